@@ -1,0 +1,5 @@
+pub mod recon;
+
+pub mod cli {
+    pub fn main() {}
+}

@@ -1,0 +1,1 @@
+fn main() { helmholtz_server::cli::main() }

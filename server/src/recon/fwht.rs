@@ -1,0 +1,1 @@
+//! Fast Walsh-Hadamard transform.

@@ -1,0 +1,159 @@
+//! Pure numerics: from a pattern spec and bucket rows to dual images and a report.
+//!
+//! Nothing here knows about async, SQL or HTTP. The job layer hands in a [`BucketSource`] (rows in
+//! order, in blocks) and a [`Control`] (progress out, cancellation in) and stores what comes back.
+//!
+//! Methods (see [`MethodConfig`]): `gi`, `dgi`, `ngi` are one-pass streaming correlators with O(k)
+//! state per channel; `direct` is the exact inverse of a complete raster or Hadamard set.
+
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+
+use helmholtz_proto::PatternSpec;
+use serde::Serialize;
+
+pub mod correlate;
+pub mod direct;
+pub mod fwht;
+pub mod method;
+pub mod metrics;
+
+pub use method::{MethodConfig, ParamError};
+
+/// Consecutive bucket rows: `values` is row-major, `rows x channels`.
+#[derive(Clone, Debug)]
+pub struct BucketBlock {
+    pub first_row: u64,
+    pub values: Vec<f64>,
+}
+
+/// Why the source of rows failed (storage error); carried through as text.
+#[derive(Debug, Clone, thiserror::Error)]
+#[error("reading bucket rows: {0}")]
+pub struct SourceError(pub String);
+
+/// Rows 0..problem.rows in order, in blocks of any size. Must not yield rows past `problem.rows`.
+pub trait BucketSource {
+    fn next_block(&mut self) -> Result<Option<BucketBlock>, SourceError>;
+}
+
+/// A source over rows already in memory (tests, benchmarks, the client's simulator).
+pub struct SliceSource<'a> {
+    values: &'a [f64],
+    channels: usize,
+    block_rows: usize,
+    next_row: usize,
+}
+
+impl<'a> SliceSource<'a> {
+    pub fn new(values: &'a [f64], channels: usize, block_rows: usize) -> Self {
+        assert!(channels > 0 && block_rows > 0 && values.len() % channels == 0);
+        SliceSource { values, channels, block_rows, next_row: 0 }
+    }
+}
+
+impl BucketSource for SliceSource<'_> {
+    fn next_block(&mut self) -> Result<Option<BucketBlock>, SourceError> {
+        let rows = self.values.len() / self.channels;
+        if self.next_row >= rows {
+            return Ok(None);
+        }
+        let end = (self.next_row + self.block_rows).min(rows);
+        let block = BucketBlock {
+            first_row: self.next_row as u64,
+            values: self.values[self.next_row * self.channels..end * self.channels].to_vec(),
+        };
+        self.next_row = end;
+        Ok(Some(block))
+    }
+}
+
+/// Shared between a running reconstruction and whoever watches it.
+#[derive(Debug, Default)]
+pub struct Control {
+    progress_bits: AtomicU64,
+    cancelled: AtomicBool,
+}
+
+impl Control {
+    pub fn new() -> Self {
+        Self::default()
+    }
+    /// Fraction done in [0, 1].
+    pub fn set_progress(&self, fraction: f64) {
+        self.progress_bits.store(fraction.clamp(0.0, 1.0).to_bits(), Ordering::Relaxed);
+    }
+    pub fn progress(&self) -> f64 {
+        f64::from_bits(self.progress_bits.load(Ordering::Relaxed))
+    }
+    pub fn cancel(&self) {
+        self.cancelled.store(true, Ordering::Relaxed);
+    }
+    pub fn is_cancelled(&self) -> bool {
+        self.cancelled.load(Ordering::Relaxed)
+    }
+}
+
+/// What is being reconstructed: the session's spec, its channel count, and how many of its rows
+/// (a prefix; at most `spec.count()`) to use.
+#[derive(Clone, Debug)]
+pub struct Problem<'a> {
+    pub spec: &'a PatternSpec,
+    pub channels: usize,
+    pub rows: u64,
+}
+
+/// One dual image: the transport estimate on the pattern grid, row-major.
+#[derive(Clone, Debug, PartialEq)]
+pub struct DualImage {
+    pub width: u32,
+    pub height: u32,
+    pub data: Vec<f32>,
+}
+
+/// The result: one dual image per channel and a JSON-ready report.
+#[derive(Clone, Debug)]
+pub struct Reconstruction {
+    pub images: Vec<DualImage>,
+    pub report: Report,
+}
+
+/// What every reconstruction reports (served on `GET /v1/reconstructions/{id}`).
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct Report {
+    pub method: String,
+    pub params: serde_json::Value,
+    pub rows_used: u64,
+    pub iterations: u64,
+    /// Method-specific figures (e.g. Hadamard split-pair sums: dark level, drift).
+    pub details: serde_json::Map<String, serde_json::Value>,
+}
+
+#[derive(Debug, Clone, thiserror::Error)]
+pub enum ReconError {
+    #[error("cancelled")]
+    Cancelled,
+    #[error(transparent)]
+    Source(#[from] SourceError),
+    /// The request cannot be solved with these rows (e.g. `direct` on an incomplete set).
+    #[error("{0}")]
+    Unsolvable(String),
+    /// The source yielded rows that do not fit the problem (a bug upstream).
+    #[error("bad input rows: {0}")]
+    BadRows(String),
+}
+
+/// Runs one reconstruction to completion (or cancellation).
+pub fn reconstruct(
+    problem: &Problem,
+    config: &MethodConfig,
+    source: &mut dyn BucketSource,
+    control: &Control,
+) -> Result<Reconstruction, ReconError> {
+    config.check(problem)?;
+    match config {
+        MethodConfig::Gi | MethodConfig::Dgi | MethodConfig::Ngi => {
+            correlate::run(problem, config, source, control)
+        }
+        MethodConfig::Direct => direct::run(problem, source, control),
+    }
+}
