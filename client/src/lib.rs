@@ -1,1 +1,57 @@
+//! The Helmholtz edge client: what runs next to a rig.
+//!
+//! A rig shows known patterns `p_i` (declared by a [`PatternSpec`], regenerated on both sides from
+//! the seed) and records one bucket value per pattern and detector channel, `c_i = t · p_i + noise`.
+//! This crate
+//!
+//! - loads or draws a scene ([`scene`]) and simulates a rig measuring it ([`simulate`]),
+//! - reads a real rig's measurements from CSV or NPY ([`measurements`]),
+//! - creates a session and streams the rows to the server over gRPC with resume after any
+//!   failure ([`upload`]),
+//! - requests reconstructions and downloads dual images over REST ([`rest`]),
+//! - writes pattern frames as PNGs for a projector or DMD ([`frames`]),
+//! - and is the `helmholtz` command line ([`cli`]).
+//!
+//! One address serves both gRPC and REST (`http://127.0.0.1:8080` by default). Every network
+//! function takes it as `server: &str`; none keeps state between calls, so they can be called
+//! from tests against a server started on port 0.
+//!
+//! ```no_run
+//! # async fn demo() -> anyhow::Result<()> {
+//! use helmholtz_client::{NewSession, UploadOptions, scene::Scene, simulate};
+//! use helmholtz_proto::PatternSpec;
+//! let spec: PatternSpec = serde_json::from_str(
+//!     r#"{"family":"bernoulli","width":32,"height":32,"count":8192,"seed":7}"#)?;
+//! let transport = Scene::builtin("double-slit", 32, 32)?.transport(1.0);
+//! let sim = simulate::simulate(&spec, &[&transport], &simulate::NoiseModel::default(), None);
+//! let server = "http://127.0.0.1:8080";
+//! let session = NewSession::new("demo-1", spec.clone(), vec!["bucket".into()])
+//!     .with_ground_truth(32, 32, transport.clone());
+//! helmholtz_client::create_session(server, &session).await?;
+//! helmholtz_client::upload(server, "demo-1", 1, &sim.values, &UploadOptions::default()).await?;
+//! helmholtz_client::finish_session(server, "demo-1").await?;
+//! let rec = helmholtz_client::request_reconstruction(server, "demo-1", "dgi", &serde_json::json!({})).await?;
+//! let rec = helmholtz_client::wait_reconstruction(server, rec.id, std::time::Duration::from_secs(60)).await?;
+//! assert!(rec.is_done());
+//! # Ok(()) }
+//! ```
 
+pub mod cli;
+pub mod frames;
+pub mod measurements;
+pub mod pngio;
+pub mod rest;
+pub mod scene;
+pub mod simulate;
+pub mod upload;
+
+pub use helmholtz_proto::PatternSpec;
+pub use rest::{
+    ApiError, FetchReport, FetchTarget, ImageFormat, Reconstruction, SessionView, fetch,
+    get_reconstruction, get_session, list_sessions, request_reconstruction_rest,
+    wait_reconstruction, wait_reconstruction_with,
+};
+pub use upload::{
+    Backoff, CreatedSession, NewSession, RetryPolicy, UploadOptions, UploadReport, create_session,
+    finish_session, request_reconstruction, upload, upload_status,
+};

@@ -1,1 +1,4 @@
-fn main() {}
+//! `helmholtz`: the Helmholtz edge client. See `helmholtz --help` and the library docs.
+fn main() -> std::process::ExitCode {
+    helmholtz_client::cli::main()
+}

@@ -1,5 +1,14 @@
-pub mod recon;
+//! Helmholtz server: gRPC acquisition, SQLite storage, a CPU worker pool and the REST API.
+//!
+//! Data flows one way: `api` (gRPC, REST) -> `jobs` -> `recon` (pure numerics), with `store`
+//! the only module that speaks SQL.
 
-pub mod cli {
-    pub fn main() {}
-}
+pub mod api;
+pub mod app;
+pub mod cli;
+mod demo;
+pub mod jobs;
+pub mod recon;
+pub mod store;
+
+pub use app::{Application, Config};

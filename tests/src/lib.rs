@@ -1,1 +1,152 @@
+//! Harness for end-to-end tests: the real `helmholtz-server` binary on 127.0.0.1 port 0 with a
+//! real SQLite file in a temporary directory, talked to by the real client library and binary.
 
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, bail};
+use helmholtz_proto::v1::acquisition_client::AcquisitionClient;
+use tonic::transport::Channel;
+
+/// Path of a workspace binary built beside this test executable (`cargo test --workspace`
+/// builds them: the server and client packages each have an integration test).
+pub fn binary(name: &str) -> PathBuf {
+    let exe = std::env::current_exe().expect("test executable path");
+    let dir = exe.parent().and_then(Path::parent).expect("target/<profile>/deps/..");
+    let path = dir.join(format!("{name}{}", std::env::consts::EXE_SUFFIX));
+    assert!(
+        path.exists(),
+        "{} is missing: run the tests with `cargo test --workspace`, which builds the binaries",
+        path.display()
+    );
+    path
+}
+
+/// A running server process. Killed (SIGKILL) when dropped.
+pub struct ServerProcess {
+    child: Child,
+    pub base_url: String,
+    pub port: u16,
+    pub data_dir: PathBuf,
+    stdout_thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl ServerProcess {
+    /// Starts `helmholtz-server serve` on 127.0.0.1 port 0 (or `port`) with `data_dir`.
+    pub fn start(data_dir: &Path, port: u16, extra: &[&str]) -> anyhow::Result<ServerProcess> {
+        let mut child = Command::new(binary("helmholtz-server"))
+            .arg("serve")
+            .arg("--listen")
+            .arg(format!("127.0.0.1:{port}"))
+            .arg("--data-dir")
+            .arg(data_dir)
+            .args(extra)
+            .env("RUST_LOG", "warn")
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .context("spawning helmholtz-server")?;
+        let stdout = child.stdout.take().expect("piped stdout");
+        let (tx, rx) = std::sync::mpsc::channel();
+        let stdout_thread = std::thread::spawn(move || {
+            let mut tx = Some(tx);
+            for line in BufReader::new(stdout).lines() {
+                let Ok(line) = line else { break };
+                if let Some(tx) = tx.take() {
+                    let _ = tx.send(line);
+                }
+            }
+        });
+        let line = rx.recv_timeout(Duration::from_secs(60)).context("server printed no address")?;
+        let base_url = line
+            .split_whitespace()
+            .find(|w| w.starts_with("http://"))
+            .with_context(|| format!("no address in {line:?}"))?
+            .to_string();
+        let port = base_url.rsplit(':').next().and_then(|p| p.parse().ok()).context("port")?;
+        Ok(ServerProcess { child, base_url, port, data_dir: data_dir.to_path_buf(), stdout_thread: Some(stdout_thread) })
+    }
+
+    /// SIGKILL: no graceful shutdown, no chance to flush anything.
+    pub fn kill(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+        if let Some(t) = self.stdout_thread.take() {
+            let _ = t.join();
+        }
+    }
+
+    /// SIGTERM, then wait for a clean exit.
+    pub fn terminate(&mut self) -> anyhow::Result<std::process::ExitStatus> {
+        let pid = self.child.id().to_string();
+        Command::new("kill").args(["-TERM", &pid]).status()?;
+        let deadline = Instant::now() + Duration::from_secs(30);
+        loop {
+            if let Some(status) = self.child.try_wait()? {
+                return Ok(status);
+            }
+            if Instant::now() > deadline {
+                bail!("server did not exit within 30 s of SIGTERM");
+            }
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+
+    pub async fn grpc(&self) -> anyhow::Result<AcquisitionClient<Channel>> {
+        Ok(AcquisitionClient::connect(self.base_url.clone()).await?)
+    }
+
+    pub fn url(&self, path: &str) -> String {
+        format!("{}{}", self.base_url, path)
+    }
+}
+
+impl Drop for ServerProcess {
+    fn drop(&mut self) {
+        self.kill();
+    }
+}
+
+/// Parses a little-endian float NPY (`<f4` or `<f8`) into (shape, values as f64).
+pub fn parse_npy(bytes: &[u8]) -> anyhow::Result<(Vec<usize>, Vec<f64>)> {
+    if bytes.len() < 10 || &bytes[..6] != b"\x93NUMPY" {
+        bail!("not an NPY file");
+    }
+    let hlen = u16::from_le_bytes([bytes[8], bytes[9]]) as usize;
+    let header = std::str::from_utf8(&bytes[10..10 + hlen])?;
+    let shape_text = header.split("'shape': (").nth(1).and_then(|s| s.split(')').next()).context("shape")?;
+    let shape: Vec<usize> =
+        shape_text.split(',').map(str::trim).filter(|s| !s.is_empty()).map(|s| s.parse()).collect::<Result<_, _>>()?;
+    let data = &bytes[10 + hlen..];
+    let values = if header.contains("'<f4'") {
+        data.chunks_exact(4).map(|b| f32::from_le_bytes(b.try_into().unwrap()) as f64).collect()
+    } else if header.contains("'<f8'") {
+        data.chunks_exact(8).map(|b| f64::from_le_bytes(b.try_into().unwrap())).collect()
+    } else {
+        bail!("unsupported dtype in {header}");
+    };
+    Ok((shape, values))
+}
+
+/// Pearson correlation.
+pub fn correlation(a: &[f64], b: &[f64]) -> f64 {
+    let n = a.len() as f64;
+    let (ma, mb) = (a.iter().sum::<f64>() / n, b.iter().sum::<f64>() / n);
+    let (mut sab, mut saa, mut sbb) = (0.0, 0.0, 0.0);
+    for (x, y) in a.iter().zip(b) {
+        sab += (x - ma) * (y - mb);
+        saa += (x - ma) * (x - ma);
+        sbb += (y - mb) * (y - mb);
+    }
+    sab / (saa * sbb).sqrt()
+}
+
+/// ||a - b|| / ||b||.
+pub fn relative_error(a: &[f64], b: &[f64]) -> f64 {
+    let num: f64 = a.iter().zip(b).map(|(x, y)| (x - y) * (x - y)).sum();
+    let den: f64 = b.iter().map(|y| y * y).sum();
+    (num / den).sqrt()
+}

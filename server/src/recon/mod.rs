@@ -16,6 +16,9 @@ pub mod direct;
 pub mod fwht;
 pub mod method;
 pub mod metrics;
+mod stream;
+#[cfg(test)]
+mod testutil;
 
 pub use method::{MethodConfig, ParamError};
 

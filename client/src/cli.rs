@@ -1,0 +1,1211 @@
+//! The `helmholtz` command line. `main.rs` only calls [`main`].
+//!
+//! Every command prints one JSON object on stdout with `--json`, human text otherwise. Errors go to
+//! stderr (and, with `--json`, as `{"error": "..."}` on stdout) with exit code 1; usage errors
+//! exit with 2.
+
+use std::collections::BTreeMap;
+use std::io::{IsTerminal, Write};
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, bail};
+use clap::{Args, Parser, Subcommand, ValueEnum};
+use helmholtz_proto::patterns::{Family, HadamardOrdering};
+use helmholtz_proto::{PatternSpec, SpecError};
+use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
+use serde_json::{Value, json};
+
+use crate::frames;
+use crate::measurements::{self, Measurements};
+use crate::rest::{self, FetchTarget, ImageFormat, Reconstruction};
+use crate::scene::Scene;
+use crate::simulate::{self, NoiseModel};
+use crate::upload::{self, NewSession, UploadOptions, UploadReport};
+
+const ABOUT: &str = "Helmholtz edge client: simulate a single-pixel / dual-photography rig, upload \
+bucket measurements, and fetch reconstructed dual (ghost) images.";
+
+const LONG_ABOUT: &str = "Helmholtz edge client.
+
+A projector shows known patterns p_i (declared by a pattern spec and regenerated from its seed), a \
+bucket detector records c_i = t . p_i + noise per pattern and channel, and the server reconstructs \
+the light transport t on the pattern grid: the dual image.
+
+One server address serves gRPC (uploads) and REST (reconstructions, images).";
+
+/// Top-level arguments.
+#[derive(Debug, Parser)]
+#[command(name = "helmholtz", version, about = ABOUT, long_about = LONG_ABOUT)]
+pub struct Cli {
+    /// Server address, for gRPC and REST alike.
+    #[arg(
+        long,
+        global = true,
+        env = "HELMHOLTZ_SERVER",
+        default_value = "http://127.0.0.1:8080"
+    )]
+    pub server: String,
+    /// Print one JSON object on stdout instead of text (and no progress bars).
+    #[arg(long, global = true)]
+    pub json: bool,
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+#[allow(clippy::large_enum_variant)] // parsed once
+pub enum Command {
+    /// Simulate a rig imaging a scene, upload it as a session, optionally reconstruct and save.
+    ///
+    /// Steps: draw or load the scene, resample it to the pattern grid, compute every bucket value
+    /// t . p_i, add noise (drift, shot, read, dark, ADC), create the session (with the noiseless
+    /// scene as ground truth unless --no-ground-truth), upload with resume, finish, and with
+    /// --reconstruct request a reconstruction (--wait / --out wait for it and save the image).
+    Simulate(SimulateArgs),
+    /// Upload a real rig's measurements (CSV or NPY) to a session, creating it if needed.
+    ///
+    /// The file holds one row per pattern in pattern order and one column per detector channel.
+    /// Rows already committed on the server (an interrupted earlier upload) are not sent again.
+    Upload(UploadArgs),
+    /// Show one session (upload progress, latest reconstruction), or list all sessions.
+    Status(StatusArgs),
+    /// Download a dual image (PNG, 32-bit float TIFF, or NPY).
+    Fetch(FetchArgs),
+    /// Request a reconstruction of a session; optionally wait for it and save the image.
+    Reconstruct(ReconstructArgs),
+    /// Write pattern frames as 8-bit grey PNGs (frame_000000.png, ...) for a projector or DMD.
+    Patterns(PatternsArgs),
+}
+
+/// Pattern families.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum FamilyArg {
+    /// Each pixel on with probability --fill (random binary; GI/DGI/NGI).
+    Bernoulli,
+    /// 2D Walsh-Hadamard rows as P+/P- split pairs (--count frames, even, up to 2 x pixels).
+    Hadamard,
+    /// One pixel (or --block x --block block) on at a time.
+    Raster,
+    /// Random grey levels on --grain x --grain cells (SLM / rotating diffuser).
+    Speckle,
+}
+
+/// Hadamard row orderings.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum OrderingArg {
+    /// Sylvester (Kronecker) order.
+    Natural,
+    /// Walsh order: by number of sign changes along the flattened pattern.
+    Sequency,
+    /// 2D sequency diagonals (low spatial frequencies first).
+    Zigzag,
+    /// Nested dyadic levels: after 4^j rows the whole 2^j x 2^j basis is measured.
+    #[value(name = "russian-doll", alias = "russian_doll")]
+    RussianDoll,
+    /// By number of constant pieces (Yu et al. 2019).
+    #[value(name = "cake-cutting", alias = "cake_cutting")]
+    CakeCutting,
+}
+
+impl From<OrderingArg> for HadamardOrdering {
+    fn from(o: OrderingArg) -> Self {
+        match o {
+            OrderingArg::Natural => HadamardOrdering::Natural,
+            OrderingArg::Sequency => HadamardOrdering::Sequency,
+            OrderingArg::Zigzag => HadamardOrdering::Zigzag,
+            OrderingArg::RussianDoll => HadamardOrdering::RussianDoll,
+            OrderingArg::CakeCutting => HadamardOrdering::CakeCutting,
+        }
+    }
+}
+
+/// The pattern declaration as flags.
+#[derive(Debug, Clone, Args)]
+pub struct PatternArgs {
+    /// Pattern family.
+    #[arg(long, value_enum, default_value = "bernoulli")]
+    pub family: FamilyArg,
+    /// Pattern width in pixels (a power of two for hadamard).
+    #[arg(long, default_value_t = 64)]
+    pub width: u32,
+    /// Pattern height in pixels (a power of two for hadamard).
+    #[arg(long, default_value_t = 64)]
+    pub height: u32,
+    /// Number of patterns (frames) shown. Default: the full basis for hadamard (2 x width x
+    /// height frames) and raster (one per block); required for bernoulli and speckle.
+    #[arg(long)]
+    pub count: Option<u64>,
+    /// Bernoulli: probability that a pixel is on, in (0, 1).
+    #[arg(long, default_value_t = 0.5)]
+    pub fill: f64,
+    /// Hadamard: row ordering (matters when --count is below the full basis).
+    #[arg(long, value_enum, default_value = "natural")]
+    pub ordering: OrderingArg,
+    /// Raster: block side in pixels.
+    #[arg(long, default_value_t = 1)]
+    pub block: u32,
+    /// Speckle: cell side in pixels.
+    #[arg(long, default_value_t = 1)]
+    pub grain: u32,
+    /// Pattern seed: the server regenerates the same patterns from it.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+}
+
+impl PatternArgs {
+    /// The validated spec; errors name the flag.
+    pub fn to_spec(&self) -> anyhow::Result<PatternSpec> {
+        let family = match self.family {
+            FamilyArg::Bernoulli => Family::Bernoulli { fill: self.fill },
+            FamilyArg::Hadamard => Family::Hadamard {
+                ordering: self.ordering.into(),
+            },
+            FamilyArg::Raster => Family::Raster { block: self.block },
+            FamilyArg::Speckle => Family::Speckle { grain: self.grain },
+        };
+        let pixels = self.width as u64 * self.height as u64;
+        let count = match (self.count, self.family) {
+            (Some(c), _) => c,
+            (None, FamilyArg::Hadamard) => 2 * pixels,
+            (None, FamilyArg::Raster) => {
+                let b = self.block.max(1);
+                self.width.div_ceil(b) as u64 * self.height.div_ceil(b) as u64
+            }
+            (None, f) => bail!(
+                "--count is required for {} patterns (correlation imaging needs many: e.g. {} = 8 x width x height)",
+                format!("{f:?}").to_lowercase(),
+                8 * pixels
+            ),
+        };
+        PatternSpec::new(family, self.width, self.height, count, self.seed).map_err(spec_flag_error)
+    }
+}
+
+fn spec_flag_error(e: SpecError) -> anyhow::Error {
+    anyhow::anyhow!("--{}: {}", e.field, e.message)
+}
+
+/// A spec from `--spec FILE` or `--spec-json TEXT`.
+#[derive(Debug, Clone, Args)]
+#[group(required = true, multiple = false)]
+pub struct SpecSource {
+    /// Pattern spec JSON file, e.g. {"family":"bernoulli","width":64,"height":64,"count":4096,"seed":7,"fill":0.5}.
+    #[arg(long, value_name = "FILE")]
+    pub spec: Option<PathBuf>,
+    /// Pattern spec as inline JSON (same form as --spec).
+    #[arg(long, value_name = "JSON")]
+    pub spec_json: Option<String>,
+}
+
+impl SpecSource {
+    pub fn load(&self) -> anyhow::Result<PatternSpec> {
+        let (text, origin) = match (&self.spec, &self.spec_json) {
+            (Some(path), _) => (
+                std::fs::read_to_string(path)
+                    .with_context(|| format!("reading {}", path.display()))?,
+                path.display().to_string(),
+            ),
+            (None, Some(text)) => (text.clone(), "--spec-json".to_string()),
+            (None, None) => bail!("give --spec FILE or --spec-json JSON"),
+        };
+        serde_json::from_str(&text).with_context(|| format!("{origin}: not a valid pattern spec"))
+    }
+}
+
+/// Noise flags of the simulator.
+#[derive(Debug, Clone, Args)]
+pub struct NoiseArgs {
+    /// Peak transport: the scene is scaled so its brightest pixel is this (signal units).
+    #[arg(long, default_value_t = 1.0)]
+    pub gain: f32,
+    /// Source drift: relative standard deviation of a slow multiplicative random walk (e.g. 0.02).
+    #[arg(long, default_value_t = 0.0)]
+    pub drift: f64,
+    /// Correlation length of the drift in patterns [default: count / 20, at least 16].
+    #[arg(long)]
+    pub drift_correlation: Option<f64>,
+    /// Shot noise: mean photo-electrons per pattern (Poisson). Omit for no shot noise.
+    #[arg(long)]
+    pub photons: Option<f64>,
+    /// Read noise: signal-to-noise ratio in dB, sigma = rms(c) / 10^(snr/20). Omit for none.
+    #[arg(long)]
+    pub snr_db: Option<f64>,
+    /// Dark offset added to every value (signal units).
+    #[arg(long, default_value_t = 0.0)]
+    pub dark: f64,
+    /// ADC bits (e.g. 12 or 16): quantise to 2^bits levels of full scale = 1.1 max(signal) +
+    /// dark, clipping above (saturation). Omit for an ideal, unquantised detector.
+    #[arg(long)]
+    pub adc_bits: Option<u32>,
+    /// Seed of the noise (independent of the pattern --seed).
+    #[arg(long, default_value_t = 1)]
+    pub noise_seed: u64,
+}
+
+impl NoiseArgs {
+    pub fn model(&self) -> NoiseModel {
+        NoiseModel {
+            drift: self.drift,
+            drift_correlation: self.drift_correlation,
+            photons: self.photons,
+            snr_db: self.snr_db,
+            dark: self.dark,
+            adc_bits: self.adc_bits,
+            seed: self.noise_seed,
+        }
+    }
+}
+
+/// Upload tuning flags.
+#[derive(Debug, Clone, Args)]
+pub struct TransferArgs {
+    /// Rows per upload chunk [default: about 256 KiB of values].
+    #[arg(long)]
+    pub chunk_rows: Option<usize>,
+    /// Keep retrying (re-asking the server's committed count and resuming) for this many seconds
+    /// without progress before giving up.
+    #[arg(long, default_value_t = 60.0)]
+    pub retry_for: f64,
+}
+
+impl TransferArgs {
+    fn options(&self, progress: bool) -> anyhow::Result<UploadOptions> {
+        anyhow::ensure!(
+            self.retry_for >= 0.0 && self.retry_for.is_finite(),
+            "--retry-for must be >= 0"
+        );
+        Ok(UploadOptions {
+            chunk_rows: self.chunk_rows,
+            retry_for: Duration::from_secs_f64(self.retry_for),
+            progress,
+            ..UploadOptions::default()
+        })
+    }
+}
+
+/// Reconstruction flags shared by `simulate` and `reconstruct`.
+#[derive(Debug, Clone, Args)]
+pub struct ResultArgs {
+    /// Method parameters as a JSON object, e.g. '{"lambda": 0.01}'.
+    #[arg(long, value_name = "JSON")]
+    pub params: Option<String>,
+    /// Wait until the reconstruction is done (implied by --out).
+    #[arg(long)]
+    pub wait: bool,
+    /// Give up waiting after this many seconds.
+    #[arg(long, default_value_t = 600.0)]
+    pub timeout: f64,
+    /// Save the dual image here once done (format from the extension: .png, .tiff, .npy).
+    #[arg(long, value_name = "FILE")]
+    pub out: Option<PathBuf>,
+    /// Image format when --out has no telling extension.
+    #[arg(long, value_enum)]
+    pub format: Option<ImageFormat>,
+    /// Detector channel to save [default: the server's default].
+    #[arg(long)]
+    pub channel: Option<String>,
+}
+
+#[derive(Debug, Clone, Args)]
+pub struct SimulateArgs {
+    /// Scene: camera, shapes, usaf (USAF-1951 chart), double-slit, or a PNG file (grey or colour,
+    /// 8/16 bit; resampled to the pattern grid).
+    #[arg(long)]
+    pub scene: String,
+    #[command(flatten)]
+    pub patterns: PatternArgs,
+    /// Detector channel names, comma separated (each sees the same scene, see --channel-gains).
+    #[arg(long, value_delimiter = ',', default_value = "bucket")]
+    pub channels: Vec<String>,
+    /// Per-channel scale of the scene, comma separated (default 1 for every channel).
+    #[arg(long, value_delimiter = ',')]
+    pub channel_gains: Vec<f32>,
+    #[command(flatten)]
+    pub noise: NoiseArgs,
+    /// Session id (1-128 of A-Z a-z 0-9 . _ -) [default: sim-<time>-<random>]. Re-running with
+    /// the same id and declaration resumes the upload instead of creating a new session.
+    #[arg(long)]
+    pub session_id: Option<String>,
+    /// Rig name recorded with the session.
+    #[arg(long, default_value = "simulator")]
+    pub rig: String,
+    /// Extra session metadata, KEY=VALUE (repeatable).
+    #[arg(long = "metadata", value_name = "KEY=VALUE")]
+    pub metadata: Vec<String>,
+    /// Do not send the noiseless scene as ground truth (the server then reports no PSNR/SSIM).
+    #[arg(long)]
+    pub no_ground_truth: bool,
+    /// Also write the simulated values (rows x channels) to a .csv or .npy file.
+    #[arg(long, value_name = "FILE")]
+    pub values_out: Option<PathBuf>,
+    /// Only simulate (and write --values-out / --scene-out): contact no server.
+    #[arg(long)]
+    pub offline: bool,
+    /// Write the scene as seen on the pattern grid (8-bit PNG) to this file.
+    #[arg(long, value_name = "FILE")]
+    pub scene_out: Option<PathBuf>,
+    /// Request a reconstruction after the upload: gi, dgi, ngi or direct.
+    #[arg(long, value_name = "METHOD")]
+    pub reconstruct: Option<String>,
+    #[command(flatten)]
+    pub result: ResultArgs,
+    #[command(flatten)]
+    pub transfer: TransferArgs,
+}
+
+#[derive(Debug, Clone, Args)]
+pub struct UploadArgs {
+    /// Session id (1-128 of A-Z a-z 0-9 . _ -). Created if new; re-running resumes.
+    #[arg(long)]
+    pub session_id: String,
+    #[command(flatten)]
+    pub spec: SpecSource,
+    /// Measurements: CSV (one row per pattern, one column per channel, optional header of
+    /// channel names, '#' comments) or NPY (shape (n,) or (n, channels); float or int).
+    #[arg(long, value_name = "FILE")]
+    pub values: PathBuf,
+    /// Channel names, comma separated [default: the CSV header, else "bucket" for one column,
+    /// else ch0,ch1,...].
+    #[arg(long, value_delimiter = ',')]
+    pub channels: Vec<String>,
+    /// Rig name recorded with the session.
+    #[arg(long, default_value = "rig")]
+    pub rig: String,
+    /// Extra session metadata, KEY=VALUE (repeatable).
+    #[arg(long = "metadata", value_name = "KEY=VALUE")]
+    pub metadata: Vec<String>,
+    /// Finish the session after the upload (all rows of the spec must then be committed).
+    #[arg(long)]
+    pub finish: bool,
+    /// Accept a file with fewer rows than the spec's count (upload a prefix, continue later).
+    #[arg(long)]
+    pub partial: bool,
+    #[command(flatten)]
+    pub transfer: TransferArgs,
+}
+
+#[derive(Debug, Clone, Args)]
+pub struct StatusArgs {
+    /// Session to show; omit to list all sessions.
+    pub session_id: Option<String>,
+}
+
+#[derive(Debug, Clone, Args)]
+pub struct FetchArgs {
+    /// Reconstruction id.
+    #[arg(long, required_unless_present = "session", conflicts_with = "session")]
+    pub reconstruction: Option<i64>,
+    /// Session id: its latest finished reconstruction.
+    #[arg(long)]
+    pub session: Option<String>,
+    /// Image format [default: from --out's extension, else png].
+    #[arg(long, value_enum)]
+    pub format: Option<ImageFormat>,
+    /// Detector channel [default: the server's default].
+    #[arg(long)]
+    pub channel: Option<String>,
+    /// Output file.
+    #[arg(long, value_name = "FILE")]
+    pub out: PathBuf,
+}
+
+#[derive(Debug, Clone, Args)]
+pub struct ReconstructArgs {
+    /// Session to reconstruct.
+    #[arg(long)]
+    pub session_id: String,
+    /// Method: gi (correlation), dgi (differential), ngi (normalised), direct (Hadamard/raster inverse).
+    #[arg(long)]
+    pub method: String,
+    #[command(flatten)]
+    pub result: ResultArgs,
+}
+
+#[derive(Debug, Clone, Args)]
+pub struct PatternsArgs {
+    #[command(flatten)]
+    pub spec: SpecSource,
+    /// First frame index.
+    #[arg(long, default_value_t = 0)]
+    pub first: u64,
+    /// Number of frames to write.
+    #[arg(long, default_value_t = 16)]
+    pub count: u64,
+    /// Output directory (created if missing).
+    #[arg(long, value_name = "DIR")]
+    pub out: PathBuf,
+}
+
+/// What a command prints.
+pub struct Outcome {
+    pub json: Value,
+    pub text: String,
+}
+
+/// Parses the arguments, runs the command, prints, and returns the exit code.
+pub fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let _ = tracing_subscriber::fmt()
+        .with_env_filter(tracing_subscriber::EnvFilter::from_default_env())
+        .with_writer(std::io::stderr)
+        .try_init();
+    let runtime = match tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+    {
+        Ok(rt) => rt,
+        Err(e) => {
+            eprintln!("error: cannot start the async runtime: {e}");
+            return ExitCode::FAILURE;
+        }
+    };
+    let json_mode = cli.json;
+    match runtime.block_on(run(cli)) {
+        Ok(outcome) => {
+            let text = if json_mode {
+                serde_json::to_string_pretty(&outcome.json).expect("json")
+            } else {
+                outcome.text.trim_end().to_string()
+            };
+            // A closed pipe (`| head`) is not an error of ours.
+            let _ = writeln!(std::io::stdout(), "{text}");
+            ExitCode::SUCCESS
+        }
+        Err(e) => {
+            if json_mode {
+                let chain: Vec<String> = e.chain().map(|c| c.to_string()).collect();
+                let _ = writeln!(
+                    std::io::stdout(),
+                    "{}",
+                    json!({ "error": format!("{e:#}"), "causes": chain })
+                );
+            }
+            eprintln!("error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+/// Runs one parsed command.
+pub async fn run(cli: Cli) -> anyhow::Result<Outcome> {
+    let progress = !cli.json && std::io::stderr().is_terminal();
+    let server = cli.server.as_str();
+    match &cli.command {
+        Command::Simulate(a) => simulate_cmd(server, a, progress).await,
+        Command::Upload(a) => upload_cmd(server, a, progress).await,
+        Command::Status(a) => status_cmd(server, a).await,
+        Command::Fetch(a) => fetch_cmd(server, a).await,
+        Command::Reconstruct(a) => reconstruct_cmd(server, a, progress).await,
+        Command::Patterns(a) => patterns_cmd(a),
+    }
+}
+
+fn parse_metadata(items: &[String]) -> anyhow::Result<BTreeMap<String, String>> {
+    items
+        .iter()
+        .map(|kv| {
+            let (k, v) = kv
+                .split_once('=')
+                .with_context(|| format!("--metadata {kv:?}: expected KEY=VALUE"))?;
+            anyhow::ensure!(!k.trim().is_empty(), "--metadata {kv:?}: empty key");
+            Ok((k.trim().to_string(), v.to_string()))
+        })
+        .collect()
+}
+
+fn parse_params(params: Option<&str>) -> anyhow::Result<Value> {
+    match params {
+        None => Ok(json!({})),
+        Some(text) => {
+            let v: Value = serde_json::from_str(text)
+                .with_context(|| format!("--params {text:?}: not valid JSON"))?;
+            anyhow::ensure!(
+                v.is_object(),
+                "--params must be a JSON object like '{{\"lambda\": 0.1}}', got {v}"
+            );
+            Ok(v)
+        }
+    }
+}
+
+fn generated_session_id() -> String {
+    let ms = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_millis())
+        .unwrap_or(0);
+    format!("sim-{ms}-{:08x}", rand::random::<u32>())
+}
+
+fn spec_summary(spec: &PatternSpec) -> String {
+    format!(
+        "{} {}x{}, {} patterns, seed {}",
+        spec.family().name(),
+        spec.width(),
+        spec.height(),
+        spec.count(),
+        spec.seed()
+    )
+}
+
+fn spec_json(spec: &PatternSpec) -> Value {
+    serde_json::to_value(spec).expect("spec serialises")
+}
+
+fn upload_text(r: &UploadReport) -> String {
+    let mut s = format!(
+        "uploaded {} rows to session {} in {:.2} s: {} sent, {} already on the server",
+        r.rows, r.session_id, r.seconds, r.rows_sent, r.rows_skipped
+    );
+    if r.resumes > 0 {
+        s.push_str(&format!(", resumed {} time(s)", r.resumes));
+    }
+    s.push_str(&format!(
+        "; server has {}/{} rows\n",
+        r.committed_rows, r.expected_rows
+    ));
+    s
+}
+
+fn recon_text(r: &Reconstruction) -> String {
+    let mut s = format!(
+        "reconstruction {} ({}) of session {}: {}",
+        r.id, r.method, r.session_id, r.state
+    );
+    if r.is_terminal() {
+        s.push_str(&format!(", {} rows, {:.2} s", r.rows, r.seconds));
+    } else {
+        s.push_str(&format!(" ({:.0}%)", r.progress * 100.0));
+    }
+    if let Some(e) = &r.error {
+        s.push_str(&format!("\n  error: {e}"));
+    }
+    if let Some(obj) = r.report.as_object() {
+        let figures: Vec<String> = ["psnr_db", "psnr", "ssim", "iterations"]
+            .iter()
+            .filter_map(|k| obj.get(*k).map(|v| format!("{k} {v}")))
+            .collect();
+        if !figures.is_empty() {
+            s.push_str(&format!("\n  {}", figures.join(", ")));
+        }
+    }
+    s.push('\n');
+    s
+}
+
+fn timeout_of(secs: f64) -> anyhow::Result<Duration> {
+    anyhow::ensure!(
+        secs >= 0.0 && secs.is_finite(),
+        "--timeout must be >= 0 seconds"
+    );
+    Ok(Duration::from_secs_f64(secs))
+}
+
+fn output_format(format: Option<ImageFormat>, out: &Path) -> ImageFormat {
+    format
+        .or_else(|| ImageFormat::from_path(out))
+        .unwrap_or(ImageFormat::Png)
+}
+
+/// After a reconstruction was requested: wait and save as the flags say.
+async fn finish_reconstruction(
+    server: &str,
+    rec: Reconstruction,
+    result: &ResultArgs,
+    progress: bool,
+    json_out: &mut serde_json::Map<String, Value>,
+    text: &mut String,
+) -> anyhow::Result<()> {
+    let rec = if result.wait || result.out.is_some() {
+        let rec =
+            rest::wait_reconstruction_with(server, rec.id, timeout_of(result.timeout)?, progress)
+                .await?;
+        if !rec.is_done() {
+            json_out.insert("reconstruction".into(), serde_json::to_value(&rec)?);
+            bail!(
+                "reconstruction {} {}: {}",
+                rec.id,
+                rec.state,
+                rec.error.as_deref().unwrap_or("no error message")
+            );
+        }
+        rec
+    } else {
+        rec
+    };
+    text.push_str(&recon_text(&rec));
+    json_out.insert("reconstruction".into(), serde_json::to_value(&rec)?);
+    if let Some(out) = &result.out {
+        let format = output_format(result.format, out);
+        let report = rest::fetch(
+            server,
+            &FetchTarget::Reconstruction(rec.id),
+            format,
+            result.channel.as_deref(),
+            out,
+        )
+        .await?;
+        text.push_str(&format!(
+            "saved {} ({} bytes)\n",
+            out.display(),
+            report.bytes
+        ));
+        json_out.insert("saved".into(), serde_json::to_value(&report)?);
+    }
+    Ok(())
+}
+
+fn write_values(path: &Path, names: &[String], rows: usize, values: &[f64]) -> anyhow::Result<()> {
+    let bytes = match path
+        .extension()
+        .and_then(|e| e.to_str())
+        .map(str::to_ascii_lowercase)
+        .as_deref()
+    {
+        Some("npy") => measurements::to_npy_f64(rows, names.len(), values),
+        Some("csv") | Some("txt") => measurements::to_csv(names, values).into_bytes(),
+        _ => bail!(
+            "--values-out {}: use a .csv or .npy file name",
+            path.display()
+        ),
+    };
+    rest::write_atomically(path, &bytes)
+}
+
+fn sim_progress(len: u64, wanted: bool) -> ProgressBar {
+    if !wanted {
+        return ProgressBar::hidden();
+    }
+    let bar = ProgressBar::with_draw_target(Some(len), ProgressDrawTarget::stderr());
+    bar.set_style(
+        ProgressStyle::with_template("{prefix:>10} [{bar:40.yellow/blue}] {human_pos}/{human_len} patterns {per_sec} eta {eta}")
+            .expect("valid template")
+            .progress_chars("=> "),
+    );
+    bar.set_prefix("simulating");
+    bar
+}
+
+async fn simulate_cmd(server: &str, a: &SimulateArgs, progress: bool) -> anyhow::Result<Outcome> {
+    let spec = a.patterns.to_spec()?;
+    let model = a.noise.model();
+    model.validate()?;
+    anyhow::ensure!(
+        a.noise.gain > 0.0 && a.noise.gain.is_finite(),
+        "--gain must be > 0"
+    );
+    anyhow::ensure!(
+        !a.channels.is_empty() && a.channels.iter().all(|c| !c.trim().is_empty()),
+        "--channels: empty channel name"
+    );
+    let gains: Vec<f32> = if a.channel_gains.is_empty() {
+        vec![1.0; a.channels.len()]
+    } else {
+        anyhow::ensure!(
+            a.channel_gains.len() == a.channels.len(),
+            "--channel-gains has {} values for {} channels",
+            a.channel_gains.len(),
+            a.channels.len()
+        );
+        a.channel_gains.clone()
+    };
+    let session_id = a.session_id.clone().unwrap_or_else(generated_session_id);
+    anyhow::ensure!(
+        upload::valid_session_id(&session_id),
+        "--session-id {session_id:?}: use 1-128 of A-Z a-z 0-9 . _ -"
+    );
+    let params = parse_params(a.result.params.as_deref())?;
+    let metadata = parse_metadata(&a.metadata)?;
+    if a.offline && (a.reconstruct.is_some() || a.result.out.is_some()) {
+        bail!("--offline contacts no server: --reconstruct and --out need one");
+    }
+
+    // Scene -> transport on the pattern grid.
+    let scene = Scene::load(&a.scene, spec.width(), spec.height())?;
+    let transport = scene.transport(a.noise.gain);
+    if let Some(path) = &a.scene_out {
+        rest::write_atomically(path, &scene.to_png()?)?;
+    }
+    let per_channel: Vec<Vec<f32>> = gains
+        .iter()
+        .map(|g| transport.iter().map(|t| t * g).collect())
+        .collect();
+
+    let t0 = Instant::now();
+    let bar = sim_progress(spec.count(), progress);
+    let sim = {
+        let spec = spec.clone();
+        let model = model.clone();
+        let bar = bar.clone();
+        tokio::task::spawn_blocking(move || {
+            let refs: Vec<&[f32]> = per_channel.iter().map(Vec::as_slice).collect();
+            simulate::simulate(&spec, &refs, &model, Some(&bar))
+        })
+        .await
+        .context("simulation thread panicked")?
+    };
+    bar.finish_and_clear();
+    let sim_seconds = t0.elapsed().as_secs_f64();
+
+    let mut text = format!(
+        "simulated {} ({}) with {} channel(s) in {:.2} s; scene {} scaled to peak {}\n",
+        session_id,
+        spec_summary(&spec),
+        sim.channels,
+        sim_seconds,
+        a.scene,
+        a.noise.gain
+    );
+    for (name, ch) in a.channels.iter().zip(&sim.noise.channels) {
+        text.push_str(&format!(
+            "  {name}: mean signal {:.4}, effective SNR {}{}\n",
+            ch.mean_signal,
+            if ch.effective_snr_db.is_finite() {
+                format!("{:.1} dB", ch.effective_snr_db)
+            } else {
+                "noiseless".into()
+            },
+            if ch.saturated > 0 {
+                format!(", {} saturated", ch.saturated)
+            } else {
+                String::new()
+            }
+        ));
+    }
+    let mut out = serde_json::Map::new();
+    out.insert("session_id".into(), json!(session_id));
+    out.insert("spec".into(), spec_json(&spec));
+    out.insert("channels".into(), json!(a.channels));
+    out.insert("noise_model".into(), serde_json::to_value(&model)?);
+    out.insert("noise".into(), serde_json::to_value(&sim.noise)?);
+    out.insert("simulate_seconds".into(), json!(sim_seconds));
+    if let Some(path) = &a.values_out {
+        write_values(path, &a.channels, sim.rows, &sim.values)?;
+        text.push_str(&format!("wrote values to {}\n", path.display()));
+        out.insert("values_out".into(), json!(path));
+    }
+    if a.offline {
+        return Ok(Outcome {
+            json: Value::Object(out),
+            text,
+        });
+    }
+
+    let mut session = NewSession::new(session_id.clone(), spec.clone(), a.channels.clone())
+        .with_rig(a.rig.clone());
+    session.metadata = metadata;
+    session.metadata.insert("scene".into(), a.scene.clone());
+    if !a.no_ground_truth {
+        session = session.with_ground_truth(spec.width(), spec.height(), transport.clone());
+    }
+    let created = upload::create_session(server, &session).await?;
+    text.push_str(&format!(
+        "session {} {}\n",
+        session_id,
+        if created.created {
+            "created"
+        } else {
+            "already existed (same declaration): resuming"
+        }
+    ));
+    out.insert("created".into(), json!(created.created));
+
+    let opts = a.transfer.options(progress)?;
+    let report =
+        upload::upload(server, &session_id, sim.channels as u32, &sim.values, &opts).await?;
+    text.push_str(&upload_text(&report));
+    out.insert("upload".into(), serde_json::to_value(&report)?);
+    let finished = upload::finish_session(server, &session_id).await?;
+    text.push_str(&format!(
+        "session {} finished with {} rows\n",
+        session_id, finished.committed_rows
+    ));
+
+    if let Some(method) = &a.reconstruct {
+        let rec = upload::request_reconstruction(server, &session_id, method, &params).await?;
+        finish_reconstruction(server, rec, &a.result, progress, &mut out, &mut text).await?;
+    } else if a.result.out.is_some() || a.result.wait {
+        bail!("--wait and --out need --reconstruct METHOD");
+    }
+    Ok(Outcome {
+        json: Value::Object(out),
+        text,
+    })
+}
+
+fn channel_names(given: &[String], m: &Measurements) -> anyhow::Result<Vec<String>> {
+    let names = if !given.is_empty() {
+        given.to_vec()
+    } else if let Some(header) = &m.names {
+        header.clone()
+    } else if m.channels == 1 {
+        vec!["bucket".to_string()]
+    } else {
+        (0..m.channels).map(|c| format!("ch{c}")).collect()
+    };
+    anyhow::ensure!(
+        names.len() == m.channels,
+        "--channels names {} channel(s) ({}) but the file has {} column(s)",
+        names.len(),
+        names.join(","),
+        m.channels
+    );
+    Ok(names)
+}
+
+/// Checks the file's rows against the spec: same count (or fewer with `partial`).
+pub fn check_rows(
+    file: &Path,
+    rows: usize,
+    spec: &PatternSpec,
+    partial: bool,
+) -> anyhow::Result<()> {
+    let expected = spec.count();
+    if rows as u64 > expected || (!partial && (rows as u64) < expected) {
+        bail!(
+            "{}: {rows} rows, but the spec declares {expected} patterns (one row per pattern){}",
+            file.display(),
+            if (rows as u64) < expected {
+                "; pass --partial to upload a prefix"
+            } else {
+                ""
+            }
+        );
+    }
+    Ok(())
+}
+
+async fn upload_cmd(server: &str, a: &UploadArgs, progress: bool) -> anyhow::Result<Outcome> {
+    anyhow::ensure!(
+        upload::valid_session_id(&a.session_id),
+        "--session-id {:?}: use 1-128 of A-Z a-z 0-9 . _ -",
+        a.session_id
+    );
+    let spec = a.spec.load()?;
+    let m = measurements::read_measurements(&a.values)?;
+    let names = channel_names(&a.channels, &m)?;
+    check_rows(&a.values, m.rows, &spec, a.partial)?;
+    let mut session =
+        NewSession::new(a.session_id.clone(), spec.clone(), names.clone()).with_rig(a.rig.clone());
+    session.metadata = parse_metadata(&a.metadata)?;
+    let created = upload::create_session(server, &session).await?;
+    let mut text = format!(
+        "session {} {} ({}; channels {})\n",
+        a.session_id,
+        if created.created {
+            "created"
+        } else {
+            "exists: resuming"
+        },
+        spec_summary(&spec),
+        names.join(",")
+    );
+    let opts = a.transfer.options(progress)?;
+    let report = upload::upload(server, &a.session_id, m.channels as u32, &m.values, &opts).await?;
+    text.push_str(&upload_text(&report));
+    let mut out = json!({
+        "session_id": a.session_id,
+        "created": created.created,
+        "spec": spec_json(&spec),
+        "channels": names,
+        "file": a.values,
+        "upload": report,
+    });
+    if a.finish {
+        let s = upload::finish_session(server, &a.session_id).await?;
+        text.push_str(&format!(
+            "session finished with {} rows\n",
+            s.committed_rows
+        ));
+        out["finished"] = json!(true);
+    }
+    Ok(Outcome { json: out, text })
+}
+
+async fn status_cmd(server: &str, a: &StatusArgs) -> anyhow::Result<Outcome> {
+    match &a.session_id {
+        None => {
+            let sessions = rest::list_sessions(server).await?;
+            let mut text = if sessions.is_empty() {
+                "no sessions\n".to_string()
+            } else {
+                String::new()
+            };
+            for s in &sessions {
+                text.push_str(&format!(
+                    "{:<32} {:<8} {:>9}/{:<9} rows  {}{}\n",
+                    s.id,
+                    s.state,
+                    s.committed_rows,
+                    s.expected_rows,
+                    s.patterns
+                        .get("family")
+                        .and_then(Value::as_str)
+                        .unwrap_or("?"),
+                    s.latest_reconstruction
+                        .map(|r| format!("  latest reconstruction {r}"))
+                        .unwrap_or_default()
+                ));
+            }
+            Ok(Outcome {
+                json: json!({ "sessions": sessions }),
+                text,
+            })
+        }
+        Some(id) => {
+            let s = rest::get_session(server, id).await?;
+            let mut text = format!(
+                "session {} ({}): {}, {}/{} rows committed ({:.1}%)\n  rig {:?}, channels {}, ground truth: {}\n  patterns {}\n",
+                s.id,
+                s.state,
+                if s.state == "finished" {
+                    "finished"
+                } else {
+                    "accepting rows"
+                },
+                s.committed_rows,
+                s.expected_rows,
+                if s.expected_rows > 0 {
+                    100.0 * s.committed_rows as f64 / s.expected_rows as f64
+                } else {
+                    0.0
+                },
+                s.rig,
+                s.channels.join(","),
+                if s.has_ground_truth { "yes" } else { "no" },
+                s.patterns
+            );
+            let mut out = json!({ "session": s });
+            if let Some(rid) = s.latest_reconstruction {
+                let r = rest::get_reconstruction(server, rid).await?;
+                text.push_str("latest ");
+                text.push_str(&recon_text(&r));
+                out["latest_reconstruction"] = serde_json::to_value(&r)?;
+            } else {
+                text.push_str("no reconstructions yet\n");
+            }
+            Ok(Outcome { json: out, text })
+        }
+    }
+}
+
+async fn fetch_cmd(server: &str, a: &FetchArgs) -> anyhow::Result<Outcome> {
+    let target = match (&a.reconstruction, &a.session) {
+        (Some(id), _) => FetchTarget::Reconstruction(*id),
+        (None, Some(s)) => FetchTarget::Session(s.clone()),
+        (None, None) => bail!("give --reconstruction ID or --session ID"),
+    };
+    let format = output_format(a.format, &a.out);
+    let report = rest::fetch(server, &target, format, a.channel.as_deref(), &a.out).await?;
+    let text = format!(
+        "saved {} ({} bytes, {})\n",
+        report.path.display(),
+        report.bytes,
+        format.extension()
+    );
+    Ok(Outcome {
+        json: serde_json::to_value(&report)?,
+        text,
+    })
+}
+
+async fn reconstruct_cmd(
+    server: &str,
+    a: &ReconstructArgs,
+    progress: bool,
+) -> anyhow::Result<Outcome> {
+    let params = parse_params(a.result.params.as_deref())?;
+    let rec = upload::request_reconstruction(server, &a.session_id, &a.method, &params).await?;
+    let mut out = serde_json::Map::new();
+    let mut text = String::new();
+    finish_reconstruction(server, rec, &a.result, progress, &mut out, &mut text).await?;
+    Ok(Outcome {
+        json: Value::Object(out),
+        text,
+    })
+}
+
+fn patterns_cmd(a: &PatternsArgs) -> anyhow::Result<Outcome> {
+    let spec = a.spec.load()?;
+    let paths = frames::write_frames(&spec, a.first, a.count, &a.out)?;
+    let text = format!(
+        "wrote {} frame(s) {}..{} of {} to {}\n",
+        paths.len(),
+        a.first,
+        a.first + a.count,
+        spec_summary(&spec),
+        a.out.display()
+    );
+    Ok(Outcome {
+        json: json!({ "spec": spec_json(&spec), "dir": a.out, "frames": paths }),
+        text,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::CommandFactory;
+
+    #[test]
+    fn cli_definition_is_consistent() {
+        Cli::command().debug_assert();
+    }
+
+    fn parse(args: &[&str]) -> Cli {
+        Cli::try_parse_from(std::iter::once("helmholtz").chain(args.iter().copied())).unwrap()
+    }
+
+    #[test]
+    fn simulate_flags_build_specs() {
+        let cli = parse(&[
+            "simulate",
+            "--scene",
+            "usaf",
+            "--family",
+            "hadamard",
+            "--width",
+            "32",
+            "--height",
+            "16",
+            "--ordering",
+            "russian_doll",
+            "--seed",
+            "3",
+            "--photons",
+            "1e4",
+            "--json",
+        ]);
+        let Command::Simulate(a) = cli.command else {
+            panic!()
+        };
+        assert!(cli.json);
+        let spec = a.patterns.to_spec().unwrap();
+        assert_eq!(spec.count(), 2 * 32 * 16);
+        assert_eq!(
+            spec.family(),
+            &Family::Hadamard {
+                ordering: HadamardOrdering::RussianDoll
+            }
+        );
+        assert_eq!(a.noise.model().photons, Some(1e4));
+        assert_eq!(a.channels, ["bucket"]);
+
+        let cli = parse(&[
+            "simulate", "--scene", "camera", "--count", "100", "--fill", "1.5",
+        ]);
+        let Command::Simulate(a) = cli.command else {
+            panic!()
+        };
+        let e = a.patterns.to_spec().unwrap_err().to_string();
+        assert!(e.starts_with("--fill:"), "{e}");
+
+        let cli = parse(&["simulate", "--scene", "camera", "--family", "speckle"]);
+        let Command::Simulate(a) = cli.command else {
+            panic!()
+        };
+        assert!(
+            a.patterns
+                .to_spec()
+                .unwrap_err()
+                .to_string()
+                .contains("--count is required")
+        );
+
+        let cli = parse(&[
+            "simulate", "--scene", "x", "--family", "raster", "--width", "10", "--height", "7",
+            "--block", "3",
+        ]);
+        let Command::Simulate(a) = cli.command else {
+            panic!()
+        };
+        assert_eq!(a.patterns.to_spec().unwrap().count(), 4 * 3);
+    }
+
+    #[test]
+    fn fetch_needs_exactly_one_target() {
+        assert!(Cli::try_parse_from(["helmholtz", "fetch", "--out", "x.png"]).is_err());
+        assert!(
+            Cli::try_parse_from([
+                "helmholtz",
+                "fetch",
+                "--reconstruction",
+                "1",
+                "--session",
+                "s",
+                "--out",
+                "x.png"
+            ])
+            .is_err()
+        );
+        let cli = parse(&[
+            "fetch",
+            "--session",
+            "s",
+            "--out",
+            "x.tiff",
+            "--server",
+            "http://h:1",
+        ]);
+        assert_eq!(cli.server, "http://h:1");
+    }
+
+    #[test]
+    fn params_and_metadata() {
+        assert_eq!(parse_params(None).unwrap(), json!({}));
+        assert_eq!(parse_params(Some(r#"{"a":1}"#)).unwrap(), json!({"a":1}));
+        assert!(
+            parse_params(Some("[1]"))
+                .unwrap_err()
+                .to_string()
+                .contains("JSON object")
+        );
+        assert!(
+            parse_params(Some("{"))
+                .unwrap_err()
+                .to_string()
+                .contains("not valid JSON")
+        );
+        let m = parse_metadata(&["lens=50mm".into(), "note=a=b".into()]).unwrap();
+        assert_eq!(m["note"], "a=b");
+        assert!(parse_metadata(&["novalue".into()]).is_err());
+        assert!(upload::valid_session_id(&generated_session_id()));
+    }
+
+    #[test]
+    fn row_count_checks_name_the_file() {
+        let spec: PatternSpec =
+            serde_json::from_str(r#"{"family":"raster","width":4,"height":4,"count":16}"#).unwrap();
+        let f = Path::new("run7.csv");
+        assert!(check_rows(f, 16, &spec, false).is_ok());
+        let e = check_rows(f, 15, &spec, false).unwrap_err().to_string();
+        assert!(
+            e.contains("run7.csv")
+                && e.contains("15 rows")
+                && e.contains("16 patterns")
+                && e.contains("--partial"),
+            "{e}"
+        );
+        assert!(check_rows(f, 15, &spec, true).is_ok());
+        assert!(check_rows(f, 17, &spec, true).is_err());
+    }
+
+    #[test]
+    fn channel_names_follow_header_or_flags() {
+        let m = Measurements {
+            rows: 1,
+            channels: 2,
+            names: Some(vec!["n".into(), "s".into()]),
+            values: vec![1.0, 2.0],
+        };
+        assert_eq!(channel_names(&[], &m).unwrap(), ["n", "s"]);
+        assert_eq!(
+            channel_names(&["a".into(), "b".into()], &m).unwrap(),
+            ["a", "b"]
+        );
+        assert!(channel_names(&["a".into()], &m).is_err());
+        let m = Measurements { names: None, ..m };
+        assert_eq!(channel_names(&[], &m).unwrap(), ["ch0", "ch1"]);
+    }
+}

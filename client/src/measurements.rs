@@ -1,0 +1,605 @@
+//! A real rig's measurements from disk: CSV or NumPy `.npy`, to `rows x channels` f64.
+//!
+//! - CSV: one row per pattern, one column per channel. Separator `,` (or `;`, tab, or blanks,
+//!   detected from the first line). An optional first line of channel names (any field that is
+//!   not a number makes it a header). `#` starts a comment to the end of the line; blank lines are
+//!   skipped. Every value must be a finite number.
+//! - NPY (format 1.0, 2.0, 3.0): dtypes float64, float32, int8/16/32/64, uint8/16/32/64 of either
+//!   byte order, shape `(n,)` (one channel) or `(n, channels)`, C or Fortran order.
+//!
+//! Errors name the file and, for CSV, the line and column.
+
+use std::path::Path;
+
+use thiserror::Error;
+
+/// Bucket values read from a file.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Measurements {
+    pub rows: usize,
+    pub channels: usize,
+    /// Channel names from a CSV header line, if there was one.
+    pub names: Option<Vec<String>>,
+    /// Row-major: `values[row * channels + channel]`.
+    pub values: Vec<f64>,
+}
+
+/// Why a measurements file was refused.
+#[derive(Debug, Error)]
+pub enum MeasurementsError {
+    #[error("{file}: {source}")]
+    Io {
+        file: String,
+        source: std::io::Error,
+    },
+    #[error("{file}: line {line}: {message}")]
+    Csv {
+        file: String,
+        line: usize,
+        message: String,
+    },
+    #[error("{file}: not a usable .npy file: {message}")]
+    Npy { file: String, message: String },
+    #[error("{file}: {message}")]
+    Empty { file: String, message: String },
+}
+
+/// Reads `path` as NPY (by the `.npy` extension or the NPY magic bytes) or else as CSV.
+pub fn read_measurements(path: &Path) -> Result<Measurements, MeasurementsError> {
+    let file = path.display().to_string();
+    let bytes = std::fs::read(path).map_err(|source| MeasurementsError::Io {
+        file: file.clone(),
+        source,
+    })?;
+    let is_npy = bytes.starts_with(NPY_MAGIC)
+        || path
+            .extension()
+            .is_some_and(|e| e.eq_ignore_ascii_case("npy"));
+    if is_npy {
+        parse_npy(&bytes, &file)
+    } else {
+        let text = std::str::from_utf8(&bytes).map_err(|e| MeasurementsError::Csv {
+            file: file.clone(),
+            line: 1 + bytes[..e.valid_up_to()]
+                .iter()
+                .filter(|&&b| b == b'\n')
+                .count(),
+            message: "not UTF-8 text (a binary file? .npy files need the .npy extension)".into(),
+        })?;
+        parse_csv(text, &file)
+    }
+}
+
+#[derive(Clone, Copy)]
+enum Separator {
+    Char(char),
+    Blanks,
+}
+
+fn split_fields(line: &str, sep: Separator) -> Vec<&str> {
+    match sep {
+        Separator::Char(c) => line.split(c).map(str::trim).collect(),
+        Separator::Blanks => line.split_whitespace().collect(),
+    }
+}
+
+fn parse_number(field: &str) -> Option<f64> {
+    field.parse::<f64>().ok()
+}
+
+/// Parses CSV text (see the module docs); `file` names it in errors.
+pub fn parse_csv(text: &str, file: &str) -> Result<Measurements, MeasurementsError> {
+    let text = text.strip_prefix('\u{feff}').unwrap_or(text);
+    let err = |line: usize, message: String| MeasurementsError::Csv {
+        file: file.to_string(),
+        line,
+        message,
+    };
+    let mut sep = None;
+    let mut names: Option<Vec<String>> = None;
+    let mut channels = 0usize;
+    let mut values = Vec::new();
+    let mut rows = 0usize;
+    for (idx, raw) in text.lines().enumerate() {
+        let lineno = idx + 1;
+        let line = raw.split('#').next().unwrap_or("").trim();
+        if line.is_empty() {
+            continue;
+        }
+        let sep = *sep.get_or_insert_with(|| {
+            [',', ';', '\t']
+                .into_iter()
+                .find(|&c| line.contains(c))
+                .map(Separator::Char)
+                .unwrap_or(Separator::Blanks)
+        });
+        let fields = split_fields(line, sep);
+        if channels == 0 {
+            channels = fields.len();
+            let numeric = fields.iter().all(|f| parse_number(f).is_some());
+            if !numeric {
+                let header: Vec<String> = fields
+                    .iter()
+                    .map(|f| f.trim_matches(['"', '\'']).trim().to_string())
+                    .collect();
+                if let Some(pos) = header.iter().position(|n| n.is_empty()) {
+                    return Err(err(
+                        lineno,
+                        format!("header column {} has no name", pos + 1),
+                    ));
+                }
+                names = Some(header);
+                continue;
+            }
+        }
+        if fields.len() != channels {
+            return Err(err(
+                lineno,
+                format!(
+                    "{} columns, but the first {} has {channels}",
+                    fields.len(),
+                    if names.is_some() {
+                        "line (header)"
+                    } else {
+                        "row"
+                    }
+                ),
+            ));
+        }
+        for (col, f) in fields.iter().enumerate() {
+            match parse_number(f) {
+                Some(v) if v.is_finite() => values.push(v),
+                Some(_) => {
+                    return Err(err(
+                        lineno,
+                        format!("column {}: {f:?} is not a finite number", col + 1),
+                    ));
+                }
+                None if f.is_empty() => {
+                    return Err(err(lineno, format!("column {}: empty value", col + 1)));
+                }
+                None => {
+                    return Err(err(
+                        lineno,
+                        format!("column {}: {f:?} is not a number", col + 1),
+                    ));
+                }
+            }
+        }
+        rows += 1;
+    }
+    if rows == 0 {
+        return Err(MeasurementsError::Empty {
+            file: file.to_string(),
+            message: "no data rows (only blank lines, comments or a header)".into(),
+        });
+    }
+    Ok(Measurements {
+        rows,
+        channels,
+        names,
+        values,
+    })
+}
+
+/// Writes `rows x channels` values as CSV with a header line of channel names.
+pub fn to_csv(names: &[String], values: &[f64]) -> String {
+    let channels = names.len();
+    let mut out = names.join(",");
+    out.push('\n');
+    for row in values.chunks(channels) {
+        let line: Vec<String> = row.iter().map(|v| format!("{v}")).collect();
+        out.push_str(&line.join(","));
+        out.push('\n');
+    }
+    out
+}
+
+const NPY_MAGIC: &[u8] = b"\x93NUMPY";
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Kind {
+    Float,
+    Int,
+    Uint,
+}
+
+/// Parses NPY bytes (see the module docs); `file` names it in errors.
+pub fn parse_npy(bytes: &[u8], file: &str) -> Result<Measurements, MeasurementsError> {
+    let err = |message: String| MeasurementsError::Npy {
+        file: file.to_string(),
+        message,
+    };
+    if !bytes.starts_with(NPY_MAGIC) {
+        return Err(err("missing the \\x93NUMPY magic bytes".into()));
+    }
+    if bytes.len() < 10 {
+        return Err(err("truncated before the header".into()));
+    }
+    let major = bytes[6];
+    let (header_len, start) = match major {
+        1 => (u16::from_le_bytes([bytes[8], bytes[9]]) as usize, 10),
+        2 | 3 => {
+            if bytes.len() < 12 {
+                return Err(err("truncated before the header".into()));
+            }
+            (
+                u32::from_le_bytes(bytes[8..12].try_into().unwrap()) as usize,
+                12,
+            )
+        }
+        v => return Err(err(format!("unsupported format version {v}.{}", bytes[7]))),
+    };
+    let header = bytes.get(start..start + header_len).ok_or_else(|| {
+        err(format!(
+            "header says {header_len} bytes but the file is shorter"
+        ))
+    })?;
+    let header = std::str::from_utf8(header).map_err(|_| err("header is not text".into()))?;
+    let descr = dict_value(header, "descr").ok_or_else(|| err("header has no 'descr'".into()))?;
+    let descr = unquote(descr).ok_or_else(|| {
+        err(format!(
+            "dtype {descr} is a structured/record dtype; save a plain numeric array"
+        ))
+    })?;
+    let fortran = match dict_value(header, "fortran_order") {
+        Some(v) if v.starts_with("True") => true,
+        Some(v) if v.starts_with("False") => false,
+        _ => return Err(err("header has no valid 'fortran_order'".into())),
+    };
+    let shape_src =
+        dict_value(header, "shape").ok_or_else(|| err("header has no 'shape'".into()))?;
+    let shape =
+        parse_shape(shape_src).ok_or_else(|| err(format!("cannot read shape {shape_src}")))?;
+
+    // dtype: byte order, kind, item size.
+    let mut chars = descr.chars();
+    let order = chars.next().unwrap_or('?');
+    let big_endian = match order {
+        '<' | '=' | '|' => false,
+        '>' => true,
+        _ => return Err(err(format!("cannot read dtype {descr:?}"))),
+    };
+    let kind_char = chars.next().unwrap_or('?');
+    if kind_char == 'O' {
+        return Err(err(
+            "object arrays (pickled Python objects) are not supported".into(),
+        ));
+    }
+    let size: usize = chars
+        .as_str()
+        .parse()
+        .map_err(|_| err(format!("cannot read dtype {descr:?}")))?;
+    let kind = match (kind_char, size) {
+        ('f', 4 | 8) => Kind::Float,
+        ('i', 1 | 2 | 4 | 8) => Kind::Int,
+        ('u', 1 | 2 | 4 | 8) => Kind::Uint,
+        _ => {
+            return Err(err(format!(
+                "dtype {descr:?} is not supported: use float64, float32 or an integer type"
+            )));
+        }
+    };
+
+    let (rows, channels) = match shape.as_slice() {
+        [n] => (*n, 1),
+        [n, c] => (*n, *c),
+        [] => return Err(err("a scalar, not an array of bucket values".into())),
+        s => {
+            return Err(err(format!(
+                "shape {s:?} has {} dimensions; expected (rows,) or (rows, channels)",
+                s.len()
+            )));
+        }
+    };
+    if rows == 0 || channels == 0 {
+        return Err(err(format!("shape {shape:?} holds no values")));
+    }
+    let data = &bytes[start + header_len..];
+    let expected = rows
+        .checked_mul(channels)
+        .and_then(|n| n.checked_mul(size))
+        .ok_or_else(|| err("shape overflows".into()))?;
+    if data.len() != expected {
+        return Err(err(format!(
+            "shape {shape:?} of {descr} needs {expected} bytes of data, the file has {}",
+            data.len()
+        )));
+    }
+
+    let decode = |raw: &[u8]| -> f64 {
+        let mut buf = [0u8; 8];
+        buf[..size].copy_from_slice(raw);
+        if big_endian {
+            buf[..size].reverse();
+        }
+        match (kind, size) {
+            (Kind::Float, 8) => f64::from_le_bytes(buf),
+            (Kind::Float, 4) => f32::from_le_bytes(buf[..4].try_into().unwrap()) as f64,
+            (Kind::Int, 1) => buf[0] as i8 as f64,
+            (Kind::Int, 2) => i16::from_le_bytes(buf[..2].try_into().unwrap()) as f64,
+            (Kind::Int, 4) => i32::from_le_bytes(buf[..4].try_into().unwrap()) as f64,
+            (Kind::Int, 8) => i64::from_le_bytes(buf) as f64,
+            (Kind::Uint, _) => u64::from_le_bytes(buf) as f64,
+            _ => unreachable!("checked above"),
+        }
+    };
+    let mut values = vec![0.0f64; rows * channels];
+    for (idx, raw) in data.chunks_exact(size).enumerate() {
+        // Fortran order stores column by column.
+        let (row, col) = if fortran {
+            (idx % rows, idx / rows)
+        } else {
+            (idx / channels, idx % channels)
+        };
+        let v = decode(raw);
+        if !v.is_finite() {
+            return Err(err(format!(
+                "value at row {row}, channel {col} is not finite ({v})"
+            )));
+        }
+        values[row * channels + col] = v;
+    }
+    Ok(Measurements {
+        rows,
+        channels,
+        names: None,
+        values,
+    })
+}
+
+/// The text after `'key':` in a Python dict literal, up to the end of the header.
+fn dict_value<'a>(header: &'a str, key: &str) -> Option<&'a str> {
+    let pos = header
+        .find(&format!("'{key}'"))
+        .or_else(|| header.find(&format!("\"{key}\"")))?;
+    let rest = &header[pos + key.len() + 2..];
+    let rest = rest.trim_start().strip_prefix(':')?;
+    Some(rest.trim_start())
+}
+
+/// The first quoted string at the start of `s`.
+fn unquote(s: &str) -> Option<&str> {
+    let q = s.chars().next().filter(|c| *c == '\'' || *c == '"')?;
+    let end = s[1..].find(q)?;
+    Some(&s[1..1 + end])
+}
+
+fn parse_shape(s: &str) -> Option<Vec<usize>> {
+    let inner = s.strip_prefix('(')?;
+    let inner = &inner[..inner.find(')')?];
+    inner
+        .split(',')
+        .map(str::trim)
+        .filter(|p| !p.is_empty())
+        .map(|p| p.trim_end_matches('L').parse().ok())
+        .collect()
+}
+
+/// NPY 1.0 bytes of a little-endian float64 array of shape `(rows,)` (one channel) or
+/// `(rows, channels)`.
+pub fn to_npy_f64(rows: usize, channels: usize, values: &[f64]) -> Vec<u8> {
+    assert_eq!(values.len(), rows * channels);
+    let shape = if channels == 1 {
+        format!("({rows},)")
+    } else {
+        format!("({rows}, {channels})")
+    };
+    let mut header = format!("{{'descr': '<f8', 'fortran_order': False, 'shape': {shape}, }}");
+    // Magic (6) + version (2) + length (2) + header + '\n' is a multiple of 64.
+    let total = 10 + header.len() + 1;
+    header.push_str(&" ".repeat(total.next_multiple_of(64) - total));
+    header.push('\n');
+    let mut out = Vec::with_capacity(10 + header.len() + values.len() * 8);
+    out.extend_from_slice(NPY_MAGIC);
+    out.extend_from_slice(&[1, 0]);
+    out.extend_from_slice(&(header.len() as u16).to_le_bytes());
+    out.extend_from_slice(header.as_bytes());
+    for v in values {
+        out.extend_from_slice(&v.to_le_bytes());
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn npy(descr: &str, fortran: bool, shape: &str, data: &[u8]) -> Vec<u8> {
+        let header = format!(
+            "{{'descr': '{descr}', 'fortran_order': {}, 'shape': {shape}, }}\n",
+            if fortran { "True" } else { "False" }
+        );
+        let mut out = NPY_MAGIC.to_vec();
+        out.extend_from_slice(&[1, 0]);
+        out.extend_from_slice(&(header.len() as u16).to_le_bytes());
+        out.extend_from_slice(header.as_bytes());
+        out.extend_from_slice(data);
+        out
+    }
+
+    #[test]
+    fn csv_with_header_comments_and_blank_lines() {
+        let text = "\u{feff}# rig 3, run 2\nn, e ,\"s\"\n1,2,3\n\n4.5,-5e-1,6 # note\n";
+        let m = parse_csv(text, "run.csv").unwrap();
+        assert_eq!(m.rows, 2);
+        assert_eq!(m.channels, 3);
+        assert_eq!(
+            m.names.as_deref(),
+            Some(&["n".to_string(), "e".into(), "s".into()][..])
+        );
+        assert_eq!(m.values, vec![1.0, 2.0, 3.0, 4.5, -0.5, 6.0]);
+    }
+
+    #[test]
+    fn csv_separators() {
+        for text in ["1;2\n3;4\n", "1\t2\n3\t4\n", "1 2\n  3   4\n"] {
+            let m = parse_csv(text, "x.csv").unwrap();
+            assert_eq!(
+                (m.rows, m.channels, m.values.clone()),
+                (2, 2, vec![1.0, 2.0, 3.0, 4.0])
+            );
+            assert!(m.names.is_none());
+        }
+        let m = parse_csv("0.5\n1.5\n2.5", "one.csv").unwrap();
+        assert_eq!((m.rows, m.channels), (3, 1));
+    }
+
+    #[test]
+    fn malformed_csv_says_where() {
+        let cases = [
+            ("a,b\n1,2\n3\n", "line 3", "1 columns"),
+            ("1,2\n3,x\n", "line 2", "column 2: \"x\" is not a number"),
+            ("1,2\n3,\n", "line 2", "empty value"),
+            ("1,2\n3,inf\n", "line 2", "not a finite number"),
+            ("1,2\n3,NaN\n", "line 2", "not a finite number"),
+            ("a,,c\n1,2,3\n", "line 1", "no name"),
+        ];
+        for (text, line, what) in cases {
+            let e = parse_csv(text, "bad.csv").unwrap_err().to_string();
+            assert!(e.starts_with("bad.csv: "), "{e}");
+            assert!(e.contains(line) && e.contains(what), "{text:?}: {e}");
+        }
+        let e = parse_csv("# nothing\n\nbucket\n", "empty.csv")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("empty.csv") && e.contains("no data rows"), "{e}");
+    }
+
+    #[test]
+    fn npy_round_trip_f64() {
+        let values: Vec<f64> = (0..12).map(|v| v as f64 * 0.5 - 2.0).collect();
+        let m = parse_npy(&to_npy_f64(6, 2, &values), "a.npy").unwrap();
+        assert_eq!((m.rows, m.channels), (6, 2));
+        assert_eq!(m.values, values);
+        let m = parse_npy(&to_npy_f64(12, 1, &values), "a.npy").unwrap();
+        assert_eq!((m.rows, m.channels), (12, 1));
+        // Header padded to a multiple of 64 bytes as NumPy does.
+        let bytes = to_npy_f64(12, 1, &values);
+        assert_eq!((bytes.len() - 12 * 8) % 64, 0);
+    }
+
+    #[test]
+    fn npy_dtypes_and_orders() {
+        let f32s: Vec<u8> = [1.5f32, -2.0, 3.25]
+            .iter()
+            .flat_map(|v| v.to_le_bytes())
+            .collect();
+        assert_eq!(
+            parse_npy(&npy("<f4", false, "(3,)", &f32s), "x")
+                .unwrap()
+                .values,
+            [1.5, -2.0, 3.25]
+        );
+        let i16s: Vec<u8> = [-3i16, 7, 30000]
+            .iter()
+            .flat_map(|v| v.to_le_bytes())
+            .collect();
+        assert_eq!(
+            parse_npy(&npy("<i2", false, "(3,)", &i16s), "x")
+                .unwrap()
+                .values,
+            [-3.0, 7.0, 30000.0]
+        );
+        let u16s: Vec<u8> = [65535u16, 0, 1]
+            .iter()
+            .flat_map(|v| v.to_le_bytes())
+            .collect();
+        assert_eq!(
+            parse_npy(&npy("<u2", false, "(3,)", &u16s), "x")
+                .unwrap()
+                .values,
+            [65535.0, 0.0, 1.0]
+        );
+        let i32s: Vec<u8> = [-70000i32, 5]
+            .iter()
+            .flat_map(|v| v.to_le_bytes())
+            .collect();
+        assert_eq!(
+            parse_npy(&npy("<i4", false, "(2,)", &i32s), "x")
+                .unwrap()
+                .values,
+            [-70000.0, 5.0]
+        );
+        let be: Vec<u8> = [1.0f64, 2.0].iter().flat_map(|v| v.to_be_bytes()).collect();
+        assert_eq!(
+            parse_npy(&npy(">f8", false, "(2,)", &be), "x")
+                .unwrap()
+                .values,
+            [1.0, 2.0]
+        );
+        // Fortran order (3 rows x 2 channels), column by column.
+        let f: Vec<u8> = [1.0f64, 2.0, 3.0, 10.0, 20.0, 30.0]
+            .iter()
+            .flat_map(|v| v.to_le_bytes())
+            .collect();
+        let m = parse_npy(&npy("<f8", true, "(3, 2)", &f), "x").unwrap();
+        assert_eq!(m.values, [1.0, 10.0, 2.0, 20.0, 3.0, 30.0]);
+        // Version 2.0 header.
+        let mut v2 = npy("<f8", false, "(2,)", &be);
+        v2[6] = 2;
+        let len = u16::from_le_bytes([v2[8], v2[9]]) as u32;
+        v2.splice(8..10, len.to_le_bytes());
+        assert_eq!(
+            parse_npy(&v2, "x").unwrap().values,
+            [1.0, 2.0].map(|v: f64| f64::from_le_bytes(v.to_be_bytes()))
+        );
+    }
+
+    #[test]
+    fn malformed_npy_says_why() {
+        let eight: Vec<u8> = 1.0f64.to_le_bytes().to_vec();
+        let cases: Vec<(Vec<u8>, &str)> = vec![
+            (b"NUMPY".to_vec(), "magic"),
+            (
+                npy("<f8", false, "(2,)", &eight),
+                "needs 16 bytes of data, the file has 8",
+            ),
+            (npy("<c16", false, "(1,)", &[0; 16]), "not supported"),
+            (npy("|O", false, "(1,)", &eight), "object arrays"),
+            (npy("<f8", false, "(1, 1, 1)", &eight), "3 dimensions"),
+            (npy("<f8", false, "()", &eight), "scalar"),
+            (npy("<f8", false, "(0,)", &[]), "no values"),
+            (
+                npy("<f8", false, "(1,)", &f64::NAN.to_le_bytes()),
+                "row 0, channel 0 is not finite",
+            ),
+        ];
+        for (bytes, what) in cases {
+            let e = parse_npy(&bytes, "rig.npy").unwrap_err().to_string();
+            assert!(e.starts_with("rig.npy: "), "{e}");
+            assert!(e.contains(what), "expected {what:?} in {e}");
+        }
+        let mut truncated = npy("<f8", false, "(1,)", &eight);
+        truncated.truncate(20);
+        assert!(
+            parse_npy(&truncated, "t.npy")
+                .unwrap_err()
+                .to_string()
+                .contains("shorter")
+        );
+    }
+
+    #[test]
+    fn read_measurements_dispatches_on_content() {
+        let dir = tempfile::tempdir().unwrap();
+        let csv = dir.path().join("m.csv");
+        std::fs::write(&csv, "bucket\n1\n2\n").unwrap();
+        assert_eq!(read_measurements(&csv).unwrap().values, [1.0, 2.0]);
+        let npy_path = dir.path().join("m.dat");
+        std::fs::write(&npy_path, to_npy_f64(2, 1, &[3.0, 4.0])).unwrap();
+        assert_eq!(read_measurements(&npy_path).unwrap().values, [3.0, 4.0]);
+        let missing = dir.path().join("nope.csv");
+        let e = read_measurements(&missing).unwrap_err().to_string();
+        assert!(e.contains("nope.csv"), "{e}");
+    }
+
+    #[test]
+    fn csv_writer_round_trips() {
+        let names = vec!["a".to_string(), "b".to_string()];
+        let values = [1.0, 2.5, -3.0, 1e-300];
+        let m = parse_csv(&to_csv(&names, &values), "w.csv").unwrap();
+        assert_eq!(m.values, values);
+        assert_eq!(m.names, Some(names));
+    }
+}

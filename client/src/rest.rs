@@ -1,0 +1,506 @@
+//! The REST side: sessions, reconstructions, and dual-image downloads.
+//!
+//! Errors the server reports as `application/problem+json` (RFC 9457) become an [`ApiError`]
+//! carrying its status, title, detail and offending field; downcast an `anyhow::Error` to it.
+
+use std::io::IsTerminal;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use anyhow::Context;
+use helmholtz_proto::v1;
+use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
+use serde::{Deserialize, Serialize};
+
+/// A problem reported by the REST API (or an unexpected HTTP status).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("{method} {url}: HTTP {status} {title}{}{}", detail_suffix(.detail), field_suffix(.field))]
+pub struct ApiError {
+    pub method: String,
+    pub url: String,
+    pub status: u16,
+    pub title: String,
+    pub detail: Option<String>,
+    pub field: Option<String>,
+    /// The problem's `type` URI, if any.
+    pub problem_type: Option<String>,
+}
+
+fn detail_suffix(detail: &Option<String>) -> String {
+    detail
+        .as_deref()
+        .map(|d| format!(": {d}"))
+        .unwrap_or_default()
+}
+
+fn field_suffix(field: &Option<String>) -> String {
+    field
+        .as_deref()
+        .map(|f| format!(" (field: {f})"))
+        .unwrap_or_default()
+}
+
+/// A session as `GET /v1/sessions/{id}` returns it. Unknown fields are kept in `extra`.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct SessionView {
+    pub id: String,
+    pub rig: String,
+    /// The pattern spec in its JSON form.
+    pub patterns: serde_json::Value,
+    pub channels: Vec<String>,
+    pub metadata: serde_json::Map<String, serde_json::Value>,
+    pub committed_rows: u64,
+    pub expected_rows: u64,
+    /// "open" or "finished".
+    pub state: String,
+    pub created_unix_ms: i64,
+    pub has_ground_truth: bool,
+    pub latest_reconstruction: Option<i64>,
+    #[serde(flatten)]
+    pub extra: serde_json::Map<String, serde_json::Value>,
+}
+
+/// A reconstruction job as `GET /v1/reconstructions/{id}` returns it.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct Reconstruction {
+    pub id: i64,
+    pub session_id: String,
+    pub method: String,
+    pub params: serde_json::Value,
+    /// "queued", "running", "done", "failed" or "cancelled".
+    pub state: String,
+    /// In [0, 1].
+    pub progress: f64,
+    /// Rows of the session it uses.
+    pub rows: u64,
+    pub seconds: f64,
+    pub error: Option<String>,
+    /// Method, parameters, iterations, timings, quality figures (PSNR/SSIM with ground truth).
+    pub report: serde_json::Value,
+    #[serde(flatten)]
+    pub extra: serde_json::Map<String, serde_json::Value>,
+}
+
+impl Reconstruction {
+    pub fn is_done(&self) -> bool {
+        self.state == "done"
+    }
+
+    /// Done, failed or cancelled: it will not change any more.
+    pub fn is_terminal(&self) -> bool {
+        matches!(self.state.as_str(), "done" | "failed" | "cancelled")
+    }
+}
+
+impl From<v1::Reconstruction> for Reconstruction {
+    fn from(r: v1::Reconstruction) -> Self {
+        let json = |s: &str| {
+            if s.trim().is_empty() {
+                serde_json::Value::Object(Default::default())
+            } else {
+                serde_json::from_str(s).unwrap_or(serde_json::Value::String(s.to_string()))
+            }
+        };
+        Reconstruction {
+            id: r.reconstruction_id,
+            session_id: r.session_id,
+            method: r.method,
+            params: json(&r.params_json),
+            state: r.state,
+            progress: r.progress,
+            rows: r.rows,
+            seconds: r.seconds,
+            error: (!r.error.is_empty()).then_some(r.error),
+            report: json(&r.report_json),
+            extra: Default::default(),
+        }
+    }
+}
+
+fn http() -> anyhow::Result<reqwest::Client> {
+    reqwest::Client::builder()
+        .connect_timeout(Duration::from_secs(5))
+        .timeout(Duration::from_secs(300))
+        .build()
+        .context("building the HTTP client")
+}
+
+fn url(server: &str, path: &str) -> String {
+    format!("{}{}", server.trim_end_matches('/'), path)
+}
+
+/// Percent-encodes one URL path segment or query value (RFC 3986 unreserved kept).
+pub fn encode_component(s: &str) -> String {
+    let mut out = String::with_capacity(s.len());
+    for b in s.bytes() {
+        if b.is_ascii_alphanumeric() || matches!(b, b'-' | b'.' | b'_' | b'~') {
+            out.push(b as char);
+        } else {
+            out.push_str(&format!("%{b:02X}"));
+        }
+    }
+    out
+}
+
+/// Turns a non-success response into an [`ApiError`] (reading problem+json when present).
+async fn check(
+    method: &str,
+    url: &str,
+    response: reqwest::Response,
+) -> anyhow::Result<reqwest::Response> {
+    let status = response.status();
+    if status.is_success() {
+        return Ok(response);
+    }
+    let body = response.text().await.unwrap_or_default();
+    let problem: serde_json::Value = serde_json::from_str(&body).unwrap_or_default();
+    let text = |k: &str| problem.get(k).and_then(|v| v.as_str()).map(str::to_string);
+    let fallback = (!body.trim().is_empty()).then(|| body.chars().take(300).collect::<String>());
+    Err(ApiError {
+        method: method.to_string(),
+        url: url.to_string(),
+        status: status.as_u16(),
+        title: text("title").unwrap_or_else(|| status.canonical_reason().unwrap_or("").to_string()),
+        detail: text("detail").or(if problem.is_object() { None } else { fallback }),
+        field: text("field"),
+        problem_type: text("type"),
+    }
+    .into())
+}
+
+async fn get_json<T: serde::de::DeserializeOwned>(server: &str, path: &str) -> anyhow::Result<T> {
+    let u = url(server, path);
+    let response = http()?
+        .get(&u)
+        .send()
+        .await
+        .with_context(|| format!("GET {u}: cannot reach the server"))?;
+    let response = check("GET", &u, response).await?;
+    response
+        .json()
+        .await
+        .with_context(|| format!("GET {u}: unexpected response body"))
+}
+
+/// `GET /v1/sessions`.
+pub async fn list_sessions(server: &str) -> anyhow::Result<Vec<SessionView>> {
+    #[derive(Deserialize)]
+    struct List {
+        sessions: Vec<SessionView>,
+    }
+    Ok(get_json::<List>(server, "/v1/sessions").await?.sessions)
+}
+
+/// `GET /v1/sessions/{id}`.
+pub async fn get_session(server: &str, session_id: &str) -> anyhow::Result<SessionView> {
+    get_json(
+        server,
+        &format!("/v1/sessions/{}", encode_component(session_id)),
+    )
+    .await
+}
+
+/// `GET /v1/reconstructions/{id}`.
+pub async fn get_reconstruction(server: &str, id: i64) -> anyhow::Result<Reconstruction> {
+    get_json(server, &format!("/v1/reconstructions/{id}")).await
+}
+
+/// `POST /v1/sessions/{id}/reconstructions` (the REST twin of
+/// [`crate::request_reconstruction`]).
+pub async fn request_reconstruction_rest(
+    server: &str,
+    session_id: &str,
+    method: &str,
+    params: &serde_json::Value,
+) -> anyhow::Result<Reconstruction> {
+    let u = url(
+        server,
+        &format!(
+            "/v1/sessions/{}/reconstructions",
+            encode_component(session_id)
+        ),
+    );
+    let body = serde_json::json!({ "method": method, "params": params });
+    let response = http()?
+        .post(&u)
+        .json(&body)
+        .send()
+        .await
+        .with_context(|| format!("POST {u}: cannot reach the server"))?;
+    let response = check("POST", &u, response).await?;
+    response
+        .json()
+        .await
+        .with_context(|| format!("POST {u}: unexpected response body"))
+}
+
+/// Polls `GET /v1/reconstructions/{id}` until it is done, failed or cancelled, and returns it
+/// (a failed one is returned, not an error: look at `state` and `error`). Errors after `timeout`.
+pub async fn wait_reconstruction(
+    server: &str,
+    id: i64,
+    timeout: Duration,
+) -> anyhow::Result<Reconstruction> {
+    wait_reconstruction_with(server, id, timeout, false).await
+}
+
+/// [`wait_reconstruction`], with a progress bar on stderr when `progress` and stderr is a terminal.
+/// Transient failures to reach the server are retried until the timeout.
+pub async fn wait_reconstruction_with(
+    server: &str,
+    id: i64,
+    timeout: Duration,
+    progress: bool,
+) -> anyhow::Result<Reconstruction> {
+    let started = Instant::now();
+    let bar = if progress && std::io::stderr().is_terminal() {
+        let bar = ProgressBar::with_draw_target(Some(1000), ProgressDrawTarget::stderr());
+        bar.set_style(
+            ProgressStyle::with_template(
+                "{prefix:>10} [{bar:40.green/blue}] {percent}% {elapsed} {msg}",
+            )
+            .expect("valid template")
+            .progress_chars("=> "),
+        );
+        bar.set_prefix(format!("recon {id}"));
+        bar
+    } else {
+        ProgressBar::hidden()
+    };
+    let mut poll = Duration::from_millis(50);
+    loop {
+        match get_reconstruction(server, id).await {
+            Ok(rec) => {
+                bar.set_position((rec.progress.clamp(0.0, 1.0) * 1000.0) as u64);
+                bar.set_message(rec.state.clone());
+                if rec.is_terminal() {
+                    bar.finish();
+                    return Ok(rec);
+                }
+            }
+            // A problem the server states (404, 400, ...) will not go away by waiting.
+            Err(e) if e.downcast_ref::<ApiError>().is_some_and(|a| a.status < 500) => {
+                bar.abandon();
+                return Err(e);
+            }
+            Err(e) if started.elapsed() >= timeout => {
+                bar.abandon();
+                return Err(e);
+            }
+            Err(_) => {}
+        }
+        if started.elapsed() >= timeout {
+            bar.abandon();
+            anyhow::bail!("reconstruction {id} did not finish within {timeout:?}");
+        }
+        tokio::time::sleep(poll.min(timeout.saturating_sub(started.elapsed()))).await;
+        poll = (poll * 2).min(Duration::from_secs(1));
+    }
+}
+
+/// Image formats the server renders a dual image in.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "lowercase")]
+pub enum ImageFormat {
+    /// 8-bit (or 16-bit) grey PNG, for viewing.
+    Png,
+    /// 32-bit float TIFF, the values themselves.
+    Tiff,
+    /// NumPy array (float), for analysis.
+    Npy,
+}
+
+impl ImageFormat {
+    pub fn extension(self) -> &'static str {
+        match self {
+            ImageFormat::Png => "png",
+            ImageFormat::Tiff => "tiff",
+            ImageFormat::Npy => "npy",
+        }
+    }
+
+    /// From a file name's extension (`.png`, `.tif`/`.tiff`, `.npy`).
+    pub fn from_path(path: &Path) -> Option<ImageFormat> {
+        match path.extension()?.to_str()?.to_ascii_lowercase().as_str() {
+            "png" => Some(ImageFormat::Png),
+            "tif" | "tiff" => Some(ImageFormat::Tiff),
+            "npy" => Some(ImageFormat::Npy),
+            _ => None,
+        }
+    }
+}
+
+/// Which dual image to download.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum FetchTarget {
+    /// `GET /v1/reconstructions/{id}/dual.{ext}`
+    Reconstruction(i64),
+    /// `GET /v1/sessions/{id}/dual.{ext}`: the session's latest finished reconstruction.
+    Session(String),
+}
+
+/// What [`fetch`] wrote.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct FetchReport {
+    pub url: String,
+    pub path: PathBuf,
+    pub bytes: u64,
+    pub content_type: Option<String>,
+}
+
+/// The URL path of a dual image.
+pub fn dual_path(target: &FetchTarget, format: ImageFormat, channel: Option<&str>) -> String {
+    let base = match target {
+        FetchTarget::Reconstruction(id) => format!("/v1/reconstructions/{id}"),
+        FetchTarget::Session(id) => format!("/v1/sessions/{}", encode_component(id)),
+    };
+    let mut path = format!("{base}/dual.{}", format.extension());
+    if let Some(ch) = channel {
+        path.push_str(&format!("?channel={}", encode_component(ch)));
+    }
+    path
+}
+
+/// Downloads a dual image to `out` (written to a temporary file beside it, then renamed, so a
+/// failed download never leaves a truncated image). `channel` selects one detector channel.
+pub async fn fetch(
+    server: &str,
+    target: &FetchTarget,
+    format: ImageFormat,
+    channel: Option<&str>,
+    out: &Path,
+) -> anyhow::Result<FetchReport> {
+    let u = url(server, &dual_path(target, format, channel));
+    let response = http()?
+        .get(&u)
+        .send()
+        .await
+        .with_context(|| format!("GET {u}: cannot reach the server"))?;
+    let response = check("GET", &u, response).await?;
+    let content_type = response
+        .headers()
+        .get(reqwest::header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .map(str::to_string);
+    let body = response
+        .bytes()
+        .await
+        .with_context(|| format!("GET {u}: download interrupted"))?;
+    write_atomically(out, &body)?;
+    Ok(FetchReport {
+        url: u,
+        path: out.to_path_buf(),
+        bytes: body.len() as u64,
+        content_type,
+    })
+}
+
+/// Writes `bytes` to `path` via a temporary sibling and a rename.
+pub fn write_atomically(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
+    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
+    let name = path
+        .file_name()
+        .context("output path has no file name")?
+        .to_string_lossy();
+    let tmp = path.with_file_name(format!(".{name}.part-{}", std::process::id()));
+    std::fs::write(&tmp, bytes).with_context(|| format!("writing {}", tmp.display()))?;
+    std::fs::rename(&tmp, path).with_context(|| format!("renaming to {}", path.display()))?;
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn session_and_reconstruction_json() {
+        let s: SessionView = serde_json::from_str(
+            r#"{"id":"s1","rig":"bench","patterns":{"family":"bernoulli","width":8,"height":8,"count":64,"seed":1,"fill":0.5},
+                "channels":["bucket"],"metadata":{"lens":"50mm"},"committed_rows":10,"expected_rows":64,
+                "state":"open","created_unix_ms":1,"has_ground_truth":true,"latest_reconstruction":null,"new_field":3}"#,
+        )
+        .unwrap();
+        assert_eq!(s.committed_rows, 10);
+        assert_eq!(s.latest_reconstruction, None);
+        assert_eq!(s.extra["new_field"], 3);
+        let r: Reconstruction = serde_json::from_str(
+            r#"{"id":4,"session_id":"s1","method":"dgi","params":{},"state":"done","progress":1.0,
+                "rows":64,"seconds":0.5,"error":null,"report":{"psnr_db":20.1}}"#,
+        )
+        .unwrap();
+        assert!(r.is_done() && r.is_terminal());
+        assert_eq!(r.error, None);
+        let p = v1::Reconstruction {
+            reconstruction_id: 9,
+            state: "running".into(),
+            params_json: r#"{"lambda":0.1}"#.into(),
+            ..Default::default()
+        };
+        let r = Reconstruction::from(p);
+        assert_eq!(
+            (r.id, r.is_terminal(), r.params["lambda"].as_f64()),
+            (9, false, Some(0.1))
+        );
+        assert_eq!(r.report, serde_json::json!({}));
+        assert_eq!(r.error, None);
+    }
+
+    #[test]
+    fn dual_paths_and_formats() {
+        assert_eq!(
+            dual_path(
+                &FetchTarget::Reconstruction(3),
+                ImageFormat::Npy,
+                Some("n e")
+            ),
+            "/v1/reconstructions/3/dual.npy?channel=n%20e"
+        );
+        assert_eq!(
+            dual_path(
+                &FetchTarget::Session("a.b-c".into()),
+                ImageFormat::Png,
+                None
+            ),
+            "/v1/sessions/a.b-c/dual.png"
+        );
+        assert_eq!(
+            ImageFormat::from_path(Path::new("x/dual.TIF")),
+            Some(ImageFormat::Tiff)
+        );
+        assert_eq!(ImageFormat::from_path(Path::new("dual")), None);
+    }
+
+    #[test]
+    fn api_errors_read_well() {
+        let e = ApiError {
+            method: "GET".into(),
+            url: "http://h/v1/sessions/x".into(),
+            status: 404,
+            title: "Not Found".into(),
+            detail: Some("no session x".into()),
+            field: Some("session_id".into()),
+            problem_type: None,
+        };
+        assert_eq!(
+            e.to_string(),
+            "GET http://h/v1/sessions/x: HTTP 404 Not Found: no session x (field: session_id)"
+        );
+    }
+
+    #[test]
+    fn atomic_write_replaces_whole_files() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("sub/dual.png");
+        write_atomically(&path, b"one").unwrap();
+        write_atomically(&path, b"two!").unwrap();
+        assert_eq!(std::fs::read(&path).unwrap(), b"two!");
+        assert_eq!(
+            std::fs::read_dir(path.parent().unwrap()).unwrap().count(),
+            1
+        );
+    }
+}

@@ -1,0 +1,618 @@
+#!/usr/bin/env python3
+"""Reference implementation of the Helmholtz seed -> pattern generator (proto/PATTERNS.md).
+
+Pure Python 3.11, standard library only. It is written from PATTERNS.md, not from the Rust code,
+and deliberately uses the *definitions* of the document where the Rust generator uses a fast
+equivalent (e.g. the Bernoulli threshold comparison pixel by pixel instead of the bit-sliced
+recurrence; 1D sequency found by counting sign changes and then checked against
+bitrev(gray(s))), so that agreement between the two is evidence that the document is right.
+
+Usage:
+    python3 proto/tools/patterns_ref.py                 # print the test vectors (JSON) to stdout
+    python3 proto/tools/patterns_ref.py --check FILE    # exit 1 unless FILE equals that output
+    python3 proto/tools/patterns_ref.py --show SPEC_JSON INDEX [INDEX...]
+                                                        # draw patterns of any spec, e.g.
+        '{"family":"bernoulli","width":8,"height":8,"count":10,"seed":0}' 0 1
+
+The committed output lives in proto/tests/pattern_vectors.json and is checked against the Rust
+generator by proto/tests/pattern_vectors.rs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import math
+import struct
+import sys
+from fractions import Fraction
+
+MASK64 = (1 << 64) - 1
+
+# ---------------------------------------------------------------------------------------------
+# Limits (PATTERNS.md, "Common fields and limits")
+# ---------------------------------------------------------------------------------------------
+MAX_SIDE = 4096
+MAX_PIXELS = 1 << 22
+MAX_COUNT = 10_000_000
+FILL_BITS = 16
+
+ORDERINGS = ["natural", "sequency", "zigzag", "russian_doll", "cake_cutting"]
+
+
+# ---------------------------------------------------------------------------------------------
+# Random words (PATTERNS.md, "Random words")
+# ---------------------------------------------------------------------------------------------
+GOLDEN = 0x9E3779B97F4A7C15
+MUL1 = 0xBF58476D1CE4E5B9
+MUL2 = 0x94D049BB133111EB
+
+
+def mix64(z: int) -> int:
+    z = ((z ^ (z >> 30)) * MUL1) & MASK64
+    z = ((z ^ (z >> 27)) * MUL2) & MASK64
+    return z ^ (z >> 31)
+
+
+def random_word(seed: int, c: int) -> int:
+    """Word number c (0-based) of the SplitMix64 stream of `seed`."""
+    return mix64((seed + (c + 1) * GOLDEN) & MASK64)
+
+
+# ---------------------------------------------------------------------------------------------
+# Spec: validation and canonical form (PATTERNS.md, "The spec")
+# ---------------------------------------------------------------------------------------------
+class SpecError(ValueError):
+    def __init__(self, field: str, message: str):
+        super().__init__(f"{field}: {message}")
+        self.field = field
+
+
+def fill_quantum(fill: float) -> int:
+    """Q = round(fill * 2^16), halves rounded away from zero, on the exact binary64 value."""
+    x = Fraction(fill) * (1 << FILL_BITS)  # exact rational arithmetic, no rounding anywhere
+    q = math.floor(x)
+    if x - q >= Fraction(1, 2):
+        q += 1
+    return min(max(q, 1), (1 << FILL_BITS) - 1)
+
+
+def _is_uint(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool) and v >= 0
+
+
+def canonical_spec(raw: dict) -> dict:
+    """Validates a spec object and returns it canonicalised, keys in the canonical order."""
+    params = {"raster": ("block", 1), "bernoulli": ("fill", 0.5),
+              "hadamard": ("ordering", "natural"), "speckle": ("grain", 1)}
+    family = raw.get("family")
+    if family not in params:
+        raise SpecError("family", f"unknown family {family!r}")
+    pname, pdefault = params[family]
+    allowed = {"family", "width", "height", "count", "seed", pname}
+    for key in raw:
+        if key not in allowed:
+            raise SpecError(key, "unknown field")
+    for key in ("width", "height", "count"):
+        if key not in raw:
+            raise SpecError(key, "missing")
+    width, height, count = raw["width"], raw["height"], raw["count"]
+    seed = raw.get("seed", 0)
+    p = raw.get(pname, pdefault)
+    for key, v, top in (("width", width, 2**32), ("height", height, 2**32), ("count", count, 2**64),
+                        ("seed", seed, 2**64)):
+        if not _is_uint(v) or v >= top:
+            raise SpecError(key, f"not an unsigned integer of the right size: {v!r}")
+    if not 1 <= width <= MAX_SIDE:
+        raise SpecError("width", "out of range")
+    if not 1 <= height <= MAX_SIDE:
+        raise SpecError("height", "out of range")
+    k = width * height
+    if k > MAX_PIXELS:
+        raise SpecError("width", "too many pixels")
+    if not 1 <= count <= MAX_COUNT:
+        raise SpecError("count", "out of range")
+    if family in ("raster", "speckle"):
+        if not _is_uint(p) or not 1 <= p <= max(width, height):
+            raise SpecError(pname, "out of range")
+    elif family == "bernoulli":
+        if isinstance(p, bool) or not isinstance(p, (int, float)):
+            raise SpecError("fill", "not a number")
+        p = float(p)
+        if not 0.0 < p < 1.0:
+            raise SpecError("fill", "must be in (0, 1)")
+        p = fill_quantum(p) / (1 << FILL_BITS)
+    else:
+        if p not in ORDERINGS:
+            raise SpecError("ordering", "unknown ordering")
+        if width & (width - 1) or height & (height - 1):
+            raise SpecError("width" if width & (width - 1) else "height", "not a power of two")
+        if count % 2 or count > 2 * k:
+            raise SpecError("count", "must be even and at most 2 * width * height")
+    return {"family": family, pname: p, "width": width, "height": height, "count": count,
+            "seed": seed}
+
+
+def spec_json(spec: dict) -> str:
+    """The canonical JSON text (no spaces). `fill` is a multiple of 2^-16: repr() is exact."""
+    return json.dumps(spec, separators=(",", ":"))
+
+
+def pixels(spec: dict) -> int:
+    return spec["width"] * spec["height"]
+
+
+def words_per_pattern(spec: dict) -> int:
+    return (pixels(spec) + 63) // 64
+
+
+# ---------------------------------------------------------------------------------------------
+# Packing (PATTERNS.md, "Pixels and packing")
+# ---------------------------------------------------------------------------------------------
+def pack(on: list[bool]) -> list[int]:
+    """Pixel p -> bit (p % 64) of word p // 64; unused high bits of the last word are 0."""
+    words = [0] * ((len(on) + 63) // 64)
+    for p, b in enumerate(on):
+        if b:
+            words[p // 64] |= 1 << (p % 64)
+    return words
+
+
+def words_hex(words: list[int]) -> str:
+    """The words as little-endian bytes (8 per word), in hex: byte p // 8, bit p % 8 = pixel p."""
+    return b"".join(w.to_bytes(8, "little") for w in words).hex()
+
+
+# ---------------------------------------------------------------------------------------------
+# raster
+# ---------------------------------------------------------------------------------------------
+def raster(spec: dict, i: int) -> list[bool]:
+    w, h, b = spec["width"], spec["height"], spec["block"]
+    bw, bh = -(-w // b), -(-h // b)
+    blk = i % (bw * bh)
+    bx, by = blk % bw, blk // bw
+    return [bx * b <= x < (bx + 1) * b and by * b <= y < (by + 1) * b
+            for y in range(h) for x in range(w)]
+
+
+# ---------------------------------------------------------------------------------------------
+# bernoulli
+# ---------------------------------------------------------------------------------------------
+def fill_digits(q: int) -> tuple[int, int]:
+    """(d, odd): Q = odd * 2^(16 - d) with odd odd; the fill is odd / 2^d."""
+    tz = (q & -q).bit_length() - 1
+    return FILL_BITS - tz, q >> tz
+
+
+def bernoulli(spec: dict, i: int) -> list[bool]:
+    """The definition: pixel on iff V >= 2^d - odd, V built from d random words."""
+    k, nw, seed = pixels(spec), words_per_pattern(spec), spec["seed"]
+    q = round(spec["fill"] * (1 << FILL_BITS))  # canonical fill: exact multiple of 2^-16
+    d, odd = fill_digits(q)
+    threshold = (1 << d) - odd
+    on = []
+    for w in range(nw):
+        base = ((i * nw + w) * d) & MASK64
+        r = [random_word(seed, (base + j) & MASK64) for j in range(d)]
+        for t in range(64):
+            if w * 64 + t >= k:
+                break
+            v = 0
+            for j in range(d):  # word base + 0 gives the most significant bit of V
+                v = (v << 1) | ((r[j] >> t) & 1)
+            on.append(v >= threshold)
+    return on
+
+
+def bernoulli_words_fast(spec: dict, i: int) -> list[int]:
+    """The bit-sliced recurrence of PATTERNS.md; must equal pack(bernoulli(spec, i))."""
+    k, nw, seed = pixels(spec), words_per_pattern(spec), spec["seed"]
+    d, odd = fill_digits(round(spec["fill"] * (1 << FILL_BITS)))
+    out = []
+    for w in range(nw):
+        base = ((i * nw + w) * d) & MASK64
+        r = 0
+        for j in reversed(range(d)):
+            v = random_word(seed, (base + j) & MASK64)
+            r = (v | r) if (odd >> (d - 1 - j)) & 1 else (v & r)
+        out.append(r)
+    if k % 64:
+        out[-1] &= (1 << (k % 64)) - 1
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# hadamard
+# ---------------------------------------------------------------------------------------------
+def popcount(x: int) -> int:
+    return bin(x).count("1")
+
+
+def walsh_1d(n: int, length: int) -> list[int]:
+    return [1 if popcount(n & x) % 2 == 0 else -1 for x in range(length)]
+
+
+def sign_changes(v: list[int]) -> int:
+    return sum(1 for a, b in zip(v, v[1:]) if a != b)
+
+
+def bitrev(x: int, bits: int) -> int:
+    return int(format(x, f"0{bits}b")[::-1], 2) if bits else 0
+
+
+_SEQ_CACHE: dict[int, list[int]] = {}
+
+
+def natural_of_sequency_table(length: int) -> list[int]:
+    """table[s] = the natural index whose 1D Walsh function of `length` points has s sign
+    changes, found by counting; checked against the closed form bitrev(gray(s))."""
+    if length not in _SEQ_CACHE:
+        bits = length.bit_length() - 1
+        table = [0] * length
+        for n in range(length):
+            table[sign_changes(walsh_1d(n, length))] = n
+        for s in range(length):
+            assert table[s] == bitrev(s ^ (s >> 1), bits), (length, s)
+        _SEQ_CACHE[length] = table
+    return _SEQ_CACHE[length]
+
+
+def bitlen(x: int) -> int:
+    return x.bit_length()
+
+
+def ordering_table(w: int, h: int, ordering: str) -> list[int]:
+    """Row r of the ordering -> natural index n = u * W + v."""
+    k = w * h
+    if ordering == "natural":
+        return list(range(k))
+    if ordering == "sequency":
+        return natural_of_sequency_table(k)[:]
+    keys = {
+        "zigzag": lambda su, sv: (su + sv, su),
+        "russian_doll": lambda su, sv: (max(bitlen(su), bitlen(sv)), su + sv, su),
+        "cake_cutting": lambda su, sv: ((su + 1) * (sv + 1), su),
+    }[ordering]
+    pairs = [(su, sv) for su in range(h) for sv in range(w)]
+    assert len({keys(*p) for p in pairs}) == k, "keys must be injective"
+    pairs.sort(key=lambda p: keys(*p))
+    nat_h, nat_w = natural_of_sequency_table(h), natural_of_sequency_table(w)
+    return [nat_h[su] * w + nat_w[sv] for su, sv in pairs]
+
+
+def hadamard_frame(spec: dict, i: int, table: list[int]) -> tuple[int, int, bool]:
+    """(row, natural index, positive) of frame i."""
+    return i // 2, table[i // 2], i % 2 == 0
+
+
+def hadamard(spec: dict, i: int, table: list[int]) -> list[bool]:
+    w, h = spec["width"], spec["height"]
+    _, n, positive = hadamard_frame(spec, i, table)
+    u, v = divmod(n, w)
+    col = walsh_1d(v, w)
+    row = walsh_1d(u, h)
+    return [(row[y] * col[x] == 1) == positive for y in range(h) for x in range(w)]
+
+
+# ---------------------------------------------------------------------------------------------
+# speckle
+# ---------------------------------------------------------------------------------------------
+def speckle_levels(spec: dict, i: int) -> list[int]:
+    """24-bit integer grey levels L (the value shown is L / 2^24), row-major."""
+    w, h, g, seed = spec["width"], spec["height"], spec["grain"], spec["seed"]
+    cw, ch = -(-w // g), -(-h // g)
+    cells = cw * ch
+    out = []
+    for y in range(h):
+        for x in range(w):
+            c = (y // g) * cw + x // g
+            out.append(random_word(seed, (i * cells + c) & MASK64) >> 40)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# One pattern of any spec
+# ---------------------------------------------------------------------------------------------
+class Generator:
+    def __init__(self, spec: dict):
+        self.spec = canonical_spec(spec)
+        self.table = None
+        if self.spec["family"] == "hadamard":
+            self.table = ordering_table(self.spec["width"], self.spec["height"],
+                                        self.spec["ordering"])
+
+    def bits(self, i: int) -> list[int]:
+        f = self.spec["family"]
+        if f == "raster":
+            return pack(raster(self.spec, i))
+        if f == "bernoulli":
+            words = pack(bernoulli(self.spec, i))
+            assert words == bernoulli_words_fast(self.spec, i), "the two Bernoulli forms differ"
+            return words
+        if f == "hadamard":
+            return pack(hadamard(self.spec, i, self.table))
+        raise ValueError("speckle has grey levels, not bits")
+
+    def levels(self, i: int) -> list[int]:
+        assert self.spec["family"] == "speckle"
+        return speckle_levels(self.spec, i)
+
+    def run_sha256(self, start: int, n: int) -> str:
+        """SHA-256 of patterns start..start+n: binary families as their packed words in
+        little-endian bytes (8 per word), speckle as its levels in little-endian u32 (4 each)."""
+        hasher = hashlib.sha256()
+        for i in range(start, start + n):
+            if self.spec["family"] == "speckle":
+                hasher.update(b"".join(v.to_bytes(4, "little") for v in self.levels(i)))
+            else:
+                hasher.update(b"".join(w.to_bytes(8, "little") for w in self.bits(i)))
+        return hasher.hexdigest()
+
+
+# ---------------------------------------------------------------------------------------------
+# CRC-32C and the bucket wire format (PATTERNS.md, "Bucket rows on the wire")
+# ---------------------------------------------------------------------------------------------
+def crc32c(data: bytes) -> int:
+    crc = 0xFFFFFFFF
+    for byte in data:
+        crc ^= byte
+        for _ in range(8):
+            crc = (crc >> 1) ^ (0x82F63B78 if crc & 1 else 0)
+    return crc ^ 0xFFFFFFFF
+
+
+def encode_values(values: list[float]) -> bytes:
+    return b"".join(struct.pack("<d", v) for v in values)
+
+
+# ---------------------------------------------------------------------------------------------
+# The vectors
+# ---------------------------------------------------------------------------------------------
+def vector(name: str, raw: dict, indices: list[int], runs: list[tuple[int, int]],
+           note: str = "") -> dict:
+    g = Generator(raw)
+    spec = g.spec
+    out = {"name": name}
+    if note:
+        out["note"] = note
+    out["input"] = raw
+    out["spec"] = spec
+    out["pixels"] = pixels(spec)
+    out["words_per_pattern"] = words_per_pattern(spec)
+    fam = spec["family"]
+    if fam == "bernoulli":
+        q = round(spec["fill"] * (1 << FILL_BITS))
+        d, odd = fill_digits(q)
+        out["fill_quantum"] = q
+        out["fill_digits"] = d
+    pats = []
+    for i in indices:
+        e = {"index": i}
+        if fam == "raster":
+            w, h, b = spec["width"], spec["height"], spec["block"]
+            e["block"] = i % (-(-w // b) * -(-h // b))
+        if fam == "hadamard":
+            row, n, pos = hadamard_frame(spec, i, g.table)
+            e.update({"row": row, "natural": n, "positive": pos})
+        if fam == "speckle":
+            e["levels"] = g.levels(i)
+        else:
+            e["bits_hex"] = words_hex(g.bits(i))
+        pats.append(e)
+    out["patterns"] = pats
+    out["runs"] = [{"start": s, "count": n, "sha256": g.run_sha256(s, n)} for s, n in runs]
+    return out
+
+
+def build() -> dict:
+    B = 1_000_000
+    vectors = []
+
+    # raster -------------------------------------------------------------------------------
+    vectors.append(vector("raster 10x7 block 1", {"family": "raster", "width": 10, "height": 7,
+                                                  "count": 140},
+                          [0, 1, 9, 10, 69, 70, 139], [(0, 140)],
+                          "70 blocks: pattern 70 repeats pattern 0"))
+    vectors.append(vector("raster 10x7 block 3", {"family": "raster", "width": 10, "height": 7,
+                                                  "count": 30, "block": 3, "seed": 5},
+                          [0, 1, 3, 4, 8, 11, 12, 29], [(0, 30)],
+                          "4 x 3 blocks; the last column (x = 9) and row (y = 6) are partial"))
+    vectors.append(vector("raster 16x3 block 5", {"family": "raster", "width": 16, "height": 3,
+                                                  "count": 10, "block": 5},
+                          [0, 2, 3, 4], [(0, 10)],
+                          "block taller than the image: 4 x 1 blocks, the last 1 pixel wide"))
+    vectors.append(vector("raster 64x64 block 8", {"family": "raster", "width": 64,
+                                                   "height": 64, "count": 64, "block": 8},
+                          [0, 9, 63], [(0, 64)]))
+
+    # bernoulli ----------------------------------------------------------------------------
+    vectors.append(vector("bernoulli 8x8 fill 0.5 seed 0", {"family": "bernoulli", "width": 8,
+                                                            "height": 8, "count": 2 * B},
+                          [0, 1, 2, 63, B, B + 1], [(0, 256), (B, 64)],
+                          "q = 0.5: pattern i of a 64-pixel spec is random word i itself"))
+    vectors.append(vector("bernoulli 13x11 fill 0.5 seed 42",
+                          {"family": "bernoulli", "width": 13, "height": 11, "count": MAX_COUNT,
+                           "seed": 42, "fill": 0.5},
+                          [0, 1, B - 1, B, MAX_COUNT - 1], [(0, 500), (B, 100)],
+                          "143 pixels: 3 words, the last with 15 used bits"))
+    vectors.append(vector("bernoulli 13x11 fill 0.3 seed 7",
+                          {"family": "bernoulli", "width": 13, "height": 11, "count": 2 * B,
+                           "seed": 7, "fill": 0.3},
+                          [0, 1, 2, B, B + 7], [(0, 300), (B, 50)],
+                          "Q = 19661 (odd): d = 16 words per 64 pixels"))
+    vectors.append(vector("bernoulli 100x37 fill 0.95 seed 2^64-1",
+                          {"family": "bernoulli", "width": 100, "height": 37, "count": 2 * B,
+                           "seed": MASK64, "fill": 0.95},
+                          [0, 1, B], [(0, 20), (B, 10)],
+                          "Q = 62259; the largest seed, so seed + (c + 1) * GOLDEN wraps"))
+    vectors.append(vector("bernoulli 17x5 fill 0.25", {"family": "bernoulli", "width": 17,
+                                                       "height": 5, "count": 2 * B,
+                                                       "seed": 3, "fill": 0.25},
+                          [0, 1, B], [(0, 200)],
+                          "Q = 16384 = 1 * 2^14: d = 2, on iff both bits are 1"))
+    vectors.append(vector("bernoulli 17x5 fill 0.75", {"family": "bernoulli", "width": 17,
+                                                       "height": 5, "count": 2 * B,
+                                                       "seed": 3, "fill": 0.75},
+                          [0, 1, B], [(0, 200)],
+                          "Q = 49152 = 3 * 2^14: d = 2, on iff either bit is 1"))
+    # Tiny fills: 64 patterns of 64 x 64 pixels hold a few on pixels; the patterns listed are
+    # the first ones that have any, and the script checks that the run tells Q apart from Q - 1.
+    for name, fill, note in (
+            ("bernoulli 64x64 fill 1e-9 (clamped)", 1e-9, "Q clamps to 1: on iff V = 65535"),
+            ("bernoulli 64x64 fill 2.5/65536 (rounds half up)", 2.5 / 65536,
+             "fill * 2^16 = 2.5 exactly: Q = 3, not 2 (on iff V >= 65533)")):
+        raw = {"family": "bernoulli", "width": 64, "height": 64, "count": 64, "seed": 11,
+               "fill": fill}
+        g = Generator(raw)
+        lit = [i for i in range(64) if any(g.bits(i))][:2]
+        v = vector(name, raw, lit, [(0, 64)], note)
+        lower = dict(g.spec, fill=(round(g.spec["fill"] * 65536) - 1) / 65536)
+        if lower["fill"] > 0:
+            assert Generator(lower).run_sha256(0, 64) != v["runs"][0]["sha256"]
+        else:
+            assert lit, "no pixel on: the vector would not tell Q = 1 from Q = 0"
+        vectors.append(v)
+
+    # hadamard -----------------------------------------------------------------------------
+    for w, h in ((8, 8), (16, 4), (2, 32)):
+        k = w * h
+        for o in ORDERINGS:
+            vectors.append(vector(f"hadamard {w}x{h} {o}",
+                                  {"family": "hadamard", "width": w, "height": h,
+                                   "count": 2 * k, **({} if o == "natural" else {"ordering": o})},
+                                  [0, 1, 2, 3, 6, 7, k - 1, 2 * k - 2, 2 * k - 1],
+                                  [(0, 2 * k)]))
+    vectors.append(vector("hadamard 1x1", {"family": "hadamard", "width": 1, "height": 1,
+                                           "count": 2, "ordering": "zigzag"},
+                          [0, 1], [(0, 2)], "the only row is all +1: P+ = 1, P- = 0"))
+    vectors.append(vector("hadamard 32x16 russian_doll",
+                          {"family": "hadamard", "width": 32, "height": 16, "count": 1024,
+                           "ordering": "russian_doll", "seed": 99},
+                          [0, 1, 2, 7, 31, 511, 1023], [(0, 1024)]))
+
+    # speckle ------------------------------------------------------------------------------
+    vectors.append(vector("speckle 10x7 grain 3 seed 99",
+                          {"family": "speckle", "width": 10, "height": 7, "count": 2 * B,
+                           "seed": 99, "grain": 3},
+                          [0, 1, B], [(0, 100)], "4 x 3 cells of 3 x 3 pixels, 12 words each"))
+    vectors.append(vector("speckle 5x4 grain 1 seed 0",
+                          {"family": "speckle", "width": 5, "height": 4, "count": 100},
+                          [0, 1], [(0, 100)]))
+    vectors.append(vector("speckle 33x20 grain 8 seed 2^64-1",
+                          {"family": "speckle", "width": 33, "height": 20, "count": 2 * B,
+                           "seed": MASK64, "grain": 8},
+                          [0, B], [(0, 50)], "5 x 3 cells; the last cell column is 1 pixel wide"))
+
+    # the pieces ---------------------------------------------------------------------------
+    random_words = [{"seed": s, "counter": c, "word": f"{random_word(s, c):016x}"}
+                    for s, c in ((0, 0), (0, 1), (0, 2), (1234567, 0), (1234567, 1),
+                                 (42, B), (MASK64, 0), (7, MASK64), (7, MASK64 - 1))]
+    fills = []
+    for f in (0.5, 0.3, 0.95, 0.25, 0.75, 0.1, 0.300001, 1e-9, 0.999999999, 2.5 / 65536,
+              1.5 / 65536, 65534.5 / 65536, 65535.5 / 65536, 1 / 3):
+        q = fill_quantum(f)
+        d, odd = fill_digits(q)
+        fills.append({"fill": f, "fill_f64": struct.pack(">d", f).hex(), "quantum": q,
+                      "digits": d, "odd": odd,
+                      "canonical_fill": q / (1 << FILL_BITS)})
+    orderings = []
+    for w, h in ((4, 4), (8, 2), (1, 4)):
+        for o in ORDERINGS:
+            orderings.append({"width": w, "height": h, "ordering": o,
+                              "natural": ordering_table(w, h, o)})
+    wire = []
+    for values, channels in (([1.0, -2.5], 1), ([0.0, 1.0, 3.25, -1e300, 2.0 ** -1074, 7.0], 3)):
+        data = encode_values(values)
+        wire.append({"values": values, "channels": channels, "bytes_hex": data.hex(),
+                     "crc32c": f"{crc32c(data):08x}"})
+
+    return {
+        "format": "helmholtz-pattern-vectors/1",
+        "generated_by": "python3 proto/tools/patterns_ref.py",
+        "definition": "proto/PATTERNS.md",
+        "encoding": {
+            "bits_hex": "packed words (pixel p = bit p % 64 of word p / 64, bits past k are 0) "
+                        "as little-endian bytes, 8 per word, in hex; i.e. pixel p is bit "
+                        "p % 8 (LSB first) of byte p / 8",
+            "levels": "speckle: 24-bit integer grey levels L, row-major; the value is L / 2^24",
+            "runs.sha256": "SHA-256 over patterns start .. start + count - 1 in order: binary "
+                           "families as their packed words in little-endian bytes (8 per "
+                           "word), speckle as its levels in little-endian u32 (4 bytes each)",
+            "random_words.word": "random_word(seed, counter), 16 hex digits",
+            "fills.fill_f64": "the requested fill's IEEE-754 binary64 bits, big-endian hex",
+            "orderings.natural": "natural index u * W + v of each row of the ordering",
+        },
+        "random_words": random_words,
+        "fills": fills,
+        "orderings": orderings,
+        "wire": wire,
+        "vectors": vectors,
+    }
+
+
+# ---------------------------------------------------------------------------------------------
+# Output: deterministic JSON, one pattern per line
+# ---------------------------------------------------------------------------------------------
+def dumps(obj, indent: int = 0) -> str:
+    pad, inner = "  " * indent, "  " * (indent + 1)
+    if isinstance(obj, dict):
+        if all(not isinstance(v, (dict, list)) or (isinstance(v, list) and
+               all(not isinstance(x, (dict, list)) for x in v)) for v in obj.values()) \
+                and len(json.dumps(obj)) <= 200:
+            return json.dumps(obj)
+        if "index" in obj or "sha256" in obj:  # one pattern / run per line, however long
+            return json.dumps(obj)
+        items = [f"{inner}{json.dumps(k)}: {dumps(v, indent + 1)}" for k, v in obj.items()]
+        return "{\n" + ",\n".join(items) + "\n" + pad + "}"
+    if isinstance(obj, list):
+        if all(not isinstance(x, (dict, list)) for x in obj):
+            return json.dumps(obj)
+        items = [f"{inner}{dumps(v, indent + 1)}" for v in obj]
+        return "[\n" + ",\n".join(items) + "\n" + pad + "]"
+    return json.dumps(obj)
+
+
+def show(spec_text: str, indices: list[int]) -> None:
+    g = Generator(json.loads(spec_text))
+    s = g.spec
+    print(spec_json(s))
+    for i in indices:
+        print(f"pattern {i}:")
+        if s["family"] == "speckle":
+            lv = g.levels(i)
+            for y in range(s["height"]):
+                print(" ".join(f"{lv[y * s['width'] + x]:06x}" for x in range(s["width"])))
+        else:
+            words = g.bits(i)
+            print("  words:", " ".join(f"{w:016x}" for w in words))
+            for y in range(s["height"]):
+                row = ""
+                for x in range(s["width"]):
+                    p = y * s["width"] + x
+                    row += "#" if (words[p // 64] >> (p % 64)) & 1 else "."
+                print("  " + row)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--check", metavar="FILE", help="compare FILE with the generated vectors")
+    ap.add_argument("--show", nargs="+", metavar="ARG", help="SPEC_JSON INDEX [INDEX...]")
+    args = ap.parse_args()
+    if args.show:
+        show(args.show[0], [int(x) for x in args.show[1:]] or [0])
+        return 0
+    text = dumps(build()) + "\n"
+    if args.check:
+        with open(args.check, encoding="utf-8") as f:
+            if f.read() != text:
+                print(f"{args.check} differs from the reference output", file=sys.stderr)
+                return 1
+        print(f"{args.check}: identical")
+        return 0
+    sys.stdout.write(text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,123 @@
+//! One error type for the API layer, mapped once to HTTP problem+json (RFC 9457) and once to
+//! `tonic::Status`. Internal causes are logged, never sent.
+
+use axum::http::{HeaderValue, StatusCode, header};
+use axum::response::{IntoResponse, Response};
+use serde_json::json;
+
+use crate::store::StoreError;
+
+#[derive(Debug, thiserror::Error)]
+pub enum ApiError {
+    /// Bad input; `field` names it as the request spells it.
+    #[error("{field}: {message}")]
+    InvalidArgument { field: String, message: String },
+    #[error("{0}")]
+    NotFound(String),
+    /// The id exists with a different declaration.
+    #[error("{0}")]
+    AlreadyExists(String),
+    /// The request is valid but the resource is not in a state for it.
+    #[error("{0}")]
+    FailedPrecondition(String),
+    /// A gap in rows or rows past the declared count.
+    #[error("{0}")]
+    OutOfRange(String),
+    /// A checksum mismatch.
+    #[error("{0}")]
+    DataLoss(String),
+    /// Another writer holds the session.
+    #[error("{0}")]
+    Aborted(String),
+    #[error("internal error")]
+    Internal(String),
+}
+
+impl ApiError {
+    pub fn invalid(field: impl Into<String>, message: impl Into<String>) -> Self {
+        ApiError::InvalidArgument { field: field.into(), message: message.into() }
+    }
+
+    fn slug(&self) -> (&'static str, &'static str) {
+        match self {
+            ApiError::InvalidArgument { .. } => ("invalid-argument", "Invalid argument"),
+            ApiError::NotFound(_) => ("not-found", "Not found"),
+            ApiError::AlreadyExists(_) => ("already-exists", "Conflicts with an existing resource"),
+            ApiError::FailedPrecondition(_) => ("failed-precondition", "Not possible in the current state"),
+            ApiError::OutOfRange(_) => ("out-of-range", "Out of range"),
+            ApiError::DataLoss(_) => ("data-loss", "Checksum mismatch"),
+            ApiError::Aborted(_) => ("aborted", "Concurrent writer"),
+            ApiError::Internal(_) => ("internal", "Internal error"),
+        }
+    }
+
+    fn http_status(&self) -> StatusCode {
+        match self {
+            ApiError::InvalidArgument { .. } => StatusCode::BAD_REQUEST,
+            ApiError::NotFound(_) => StatusCode::NOT_FOUND,
+            ApiError::AlreadyExists(_) | ApiError::FailedPrecondition(_) | ApiError::Aborted(_) => {
+                StatusCode::CONFLICT
+            }
+            ApiError::OutOfRange(_) => StatusCode::RANGE_NOT_SATISFIABLE,
+            ApiError::DataLoss(_) => StatusCode::UNPROCESSABLE_ENTITY,
+            ApiError::Internal(_) => StatusCode::INTERNAL_SERVER_ERROR,
+        }
+    }
+
+    fn log_internal(&self) {
+        if let ApiError::Internal(cause) = self {
+            tracing::error!(%cause, "internal error");
+        }
+    }
+}
+
+impl From<StoreError> for ApiError {
+    fn from(e: StoreError) -> Self {
+        match e {
+            StoreError::SessionNotFound(_) | StoreError::ReconstructionNotFound(_) => ApiError::NotFound(e.to_string()),
+            StoreError::SessionConflict(..) => ApiError::AlreadyExists(e.to_string()),
+            StoreError::Gap { .. } | StoreError::PastEnd { .. } => ApiError::OutOfRange(e.to_string()),
+            StoreError::Finished(_) | StoreError::Incomplete { .. } => ApiError::FailedPrecondition(e.to_string()),
+            StoreError::Corrupt(_) | StoreError::Db(_) | StoreError::Migrate(_) => ApiError::Internal(e.to_string()),
+        }
+    }
+}
+
+impl IntoResponse for ApiError {
+    fn into_response(self) -> Response {
+        self.log_internal();
+        let status = self.http_status();
+        let (slug, title) = self.slug();
+        let mut body = json!({
+            "type": format!("/problems/{slug}"),
+            "title": title,
+            "status": status.as_u16(),
+            "detail": self.to_string(),
+        });
+        if let ApiError::InvalidArgument { field, .. } = &self {
+            body["field"] = json!(field);
+        }
+        let mut response = (status, body.to_string()).into_response();
+        response
+            .headers_mut()
+            .insert(header::CONTENT_TYPE, HeaderValue::from_static("application/problem+json"));
+        response
+    }
+}
+
+impl From<ApiError> for tonic::Status {
+    fn from(e: ApiError) -> Self {
+        e.log_internal();
+        let message = e.to_string();
+        match e {
+            ApiError::InvalidArgument { .. } => tonic::Status::invalid_argument(message),
+            ApiError::NotFound(_) => tonic::Status::not_found(message),
+            ApiError::AlreadyExists(_) => tonic::Status::already_exists(message),
+            ApiError::FailedPrecondition(_) => tonic::Status::failed_precondition(message),
+            ApiError::OutOfRange(_) => tonic::Status::out_of_range(message),
+            ApiError::DataLoss(_) => tonic::Status::data_loss(message),
+            ApiError::Aborted(_) => tonic::Status::aborted(message),
+            ApiError::Internal(_) => tonic::Status::internal(message),
+        }
+    }
+}

@@ -1,0 +1,141 @@
+//! Dual images as files: 8-bit PNG scaled for viewing, 32-bit float TIFF, float32 NPY.
+
+use std::io::Cursor;
+
+/// How a float image maps to 8 bits for viewing.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Scale {
+    /// Black at the 0.5th percentile, white at the 99.5th (robust to a few hot pixels).
+    Percentile,
+    /// Black at the minimum, white at the maximum.
+    MinMax,
+}
+
+/// The (black, white) levels of `data` under `scale`.
+pub fn levels(data: &[f32], scale: Scale) -> (f32, f32) {
+    let mut finite: Vec<f32> = data.iter().copied().filter(|v| v.is_finite()).collect();
+    if finite.is_empty() {
+        return (0.0, 1.0);
+    }
+    finite.sort_by(|a, b| a.total_cmp(b));
+    let at = |q: f64| finite[((finite.len() - 1) as f64 * q).round() as usize];
+    match scale {
+        Scale::MinMax => (at(0.0), at(1.0)),
+        Scale::Percentile => (at(0.005), at(0.995)),
+    }
+}
+
+pub fn png_8bit(width: u32, height: u32, data: &[f32], scale: Scale) -> Vec<u8> {
+    let (lo, hi) = levels(data, scale);
+    let span = if hi > lo { hi - lo } else { 1.0 };
+    let pixels: Vec<u8> = data
+        .iter()
+        .map(|&v| if v.is_finite() { (((v - lo) / span).clamp(0.0, 1.0) * 255.0).round() as u8 } else { 0 })
+        .collect();
+    let mut out = Vec::new();
+    {
+        let mut encoder = png::Encoder::new(&mut out, width, height);
+        encoder.set_color(png::ColorType::Grayscale);
+        encoder.set_depth(png::BitDepth::Eight);
+        let mut writer = encoder.write_header().expect("png header to memory");
+        writer.write_image_data(&pixels).expect("png data to memory");
+    }
+    out
+}
+
+pub fn tiff_f32(width: u32, height: u32, data: &[f32]) -> Vec<u8> {
+    let mut out = Cursor::new(Vec::new());
+    {
+        let mut encoder = tiff::encoder::TiffEncoder::new(&mut out).expect("tiff to memory");
+        encoder
+            .write_image::<tiff::encoder::colortype::Gray32Float>(width, height, data)
+            .expect("tiff image to memory");
+    }
+    out.into_inner()
+}
+
+/// NPY format 1.0: little-endian float32, C order, shape (height, width).
+pub fn npy_f32(width: u32, height: u32, data: &[f32]) -> Vec<u8> {
+    let mut out = npy_header("<f4", &format!("({height}, {width})"), data.len() * 4);
+    for v in data {
+        out.extend_from_slice(&v.to_le_bytes());
+    }
+    out
+}
+
+/// NPY format 1.0: little-endian float64, C order, shape (rows, channels).
+pub fn npy_f64(rows: u64, channels: usize, data: &[f64]) -> Vec<u8> {
+    let mut out = npy_header("<f8", &format!("({rows}, {channels})"), data.len() * 8);
+    for v in data {
+        out.extend_from_slice(&v.to_le_bytes());
+    }
+    out
+}
+
+fn npy_header(descr: &str, shape: &str, payload: usize) -> Vec<u8> {
+    let mut header = format!("{{'descr': '{descr}', 'fortran_order': False, 'shape': {shape}, }}");
+    // Magic (6) + version (2) + header length (2) + header must be a multiple of 64, ending in '\n'.
+    let total = 10 + header.len() + 1;
+    header.push_str(&" ".repeat(total.next_multiple_of(64) - total));
+    header.push('\n');
+    let mut out = Vec::with_capacity(10 + header.len() + payload);
+    out.extend_from_slice(b"\x93NUMPY\x01\x00");
+    out.extend_from_slice(&(header.len() as u16).to_le_bytes());
+    out.extend_from_slice(header.as_bytes());
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn png_round_trips_with_scaling() {
+        let data = [0.0, 0.5, 1.0, 2.0];
+        let bytes = png_8bit(2, 2, &data, Scale::MinMax);
+        let decoder = png::Decoder::new(Cursor::new(bytes));
+        let mut reader = decoder.read_info().unwrap();
+        let mut buf = vec![0; reader.output_buffer_size().unwrap()];
+        let info = reader.next_frame(&mut buf).unwrap();
+        assert_eq!((info.width, info.height), (2, 2));
+        assert_eq!(&buf[..4], &[0, 64, 128, 255]);
+    }
+
+    #[test]
+    fn tiff_round_trips_exact_floats() {
+        let data = [0.1f32, -2.5, 3.0e-7, 42.0, 1.0, 0.0];
+        let bytes = tiff_f32(3, 2, &data);
+        let mut decoder = tiff::decoder::Decoder::new(Cursor::new(bytes)).unwrap();
+        assert_eq!(decoder.dimensions().unwrap(), (3, 2));
+        match decoder.read_image().unwrap() {
+            tiff::decoder::DecodingResult::F32(v) => assert_eq!(v, data),
+            other => panic!("unexpected {other:?}"),
+        }
+    }
+
+    #[test]
+    fn npy_header_is_aligned_and_data_exact() {
+        let data = [1.5f32, -2.0, 3.25];
+        let bytes = npy_f32(3, 1, &data);
+        assert_eq!(&bytes[..8], b"\x93NUMPY\x01\x00");
+        let hlen = u16::from_le_bytes([bytes[8], bytes[9]]) as usize;
+        assert_eq!((10 + hlen) % 64, 0);
+        let header = std::str::from_utf8(&bytes[10..10 + hlen]).unwrap();
+        assert!(header.contains("'shape': (1, 3)") && header.ends_with('\n'), "{header}");
+        let values: Vec<f32> =
+            bytes[10 + hlen..].chunks_exact(4).map(|b| f32::from_le_bytes(b.try_into().unwrap())).collect();
+        assert_eq!(values, data);
+    }
+
+    #[test]
+    fn percentile_levels_ignore_hot_pixels() {
+        let mut data = vec![0.0f32; 1000];
+        for (i, v) in data.iter_mut().enumerate() {
+            *v = i as f32 / 999.0;
+        }
+        data[10] = 1e6;
+        let (lo, hi) = levels(&data, Scale::Percentile);
+        assert!(lo < 0.01 && hi < 1.0, "{lo} {hi}");
+        assert_eq!(levels(&data, Scale::MinMax).1, 1e6);
+    }
+}

@@ -1,0 +1,116 @@
+//! `helmholtz-server demo`: the service plus a simulated rig (the real edge client library,
+//! talking gRPC and REST over loopback), so one command shows the whole path working.
+
+use std::time::Duration;
+
+use anyhow::Context;
+use helmholtz_client::scene::Scene;
+use helmholtz_client::simulate::{self, NoiseModel};
+use helmholtz_client::{NewSession, PatternSpec, UploadOptions};
+use tokio::sync::oneshot;
+
+use crate::app::{Application, Config};
+use crate::cli::{announce, shutdown_signal};
+
+struct DemoRig {
+    session_id: &'static str,
+    scene: &'static str,
+    spec: &'static str,
+    noise: NoiseModel,
+    method: &'static str,
+    what: &'static str,
+}
+
+fn rigs() -> Vec<DemoRig> {
+    vec![
+        DemoRig {
+            session_id: "demo-usaf-hadamard",
+            scene: "usaf",
+            spec: r#"{"family":"hadamard","width":64,"height":64,"count":8192,"seed":0,"ordering":"sequency"}"#,
+            noise: NoiseModel { snr_db: Some(50.0), dark: 0.05, seed: 1, ..NoiseModel::default() },
+            method: "direct",
+            what: "USAF-1951 target, complete Hadamard split set (8,192 DMD frames), 50 dB read noise and a dark offset, exact inverse by fast Walsh-Hadamard transform",
+        },
+        DemoRig {
+            session_id: "demo-double-slit-dgi",
+            scene: "double-slit",
+            spec: r#"{"family":"bernoulli","width":64,"height":64,"count":20000,"seed":42,"fill":0.5}"#,
+            noise: NoiseModel { photons: Some(1e5), drift: 0.05, seed: 2, ..NoiseModel::default() },
+            method: "dgi",
+            what: "double slit, 20,000 random binary patterns, shot noise (1e5 photons per pattern) and 5 % source drift, differential ghost imaging",
+        },
+    ]
+}
+
+pub async fn run(config: Config, exit_after_demo: bool) -> anyhow::Result<()> {
+    let app = Application::build(config.clone()).await?;
+    announce(&app, &config);
+    let base = app.base_url();
+    let (demo_done_tx, demo_done_rx) = oneshot::channel::<()>();
+    let server = tokio::spawn(app.run_until(async move {
+        if exit_after_demo {
+            tokio::select! { _ = demo_done_rx => {}, _ = shutdown_signal() => {} }
+        } else {
+            shutdown_signal().await;
+        }
+    }));
+    let outcome = run_rigs(&base).await;
+    let _ = demo_done_tx.send(());
+    if let Err(e) = &outcome {
+        eprintln!("demo rig failed: {e:#}");
+    } else if !exit_after_demo {
+        println!("\nServing on {base} until Ctrl-C.");
+    }
+    server.await.context("server task")??;
+    outcome
+}
+
+async fn run_rigs(base: &str) -> anyhow::Result<()> {
+    for rig in rigs() {
+        let spec: PatternSpec = serde_json::from_str(rig.spec).expect("demo spec is valid");
+        println!("\n== {}: {}", rig.session_id, rig.what);
+        let transport = Scene::builtin(rig.scene, spec.width(), spec.height())?.transport(1.0);
+        let sim = tokio::task::spawn_blocking({
+            let (spec, transport, noise) = (spec.clone(), transport.clone(), rig.noise.clone());
+            move || simulate::simulate(&spec, &[&transport], &noise, None)
+        })
+        .await?;
+        let session = NewSession::new(rig.session_id, spec.clone(), vec!["bucket".into()])
+            .with_rig("demo-rig")
+            .with_metadata("scene", rig.scene)
+            .with_ground_truth(spec.width(), spec.height(), transport);
+        helmholtz_client::create_session(base, &session).await?;
+        let upload = helmholtz_client::upload(base, rig.session_id, 1, &sim.values, &UploadOptions::default()).await?;
+        helmholtz_client::finish_session(base, rig.session_id).await?;
+        println!(
+            "   uploaded {} rows ({} already stored) in {:.2} s",
+            upload.rows,
+            upload.rows_skipped,
+            upload.seconds
+        );
+        let rec = helmholtz_client::request_reconstruction(base, rig.session_id, rig.method, &serde_json::json!({})).await?;
+        let rec = helmholtz_client::wait_reconstruction(base, rec.id, Duration::from_secs(600)).await?;
+        anyhow::ensure!(rec.is_done(), "reconstruction {} ended {}: {:?}", rec.id, rec.state, rec.error);
+        let q = &rec.report["quality"][0];
+        println!(
+            "   {} reconstruction {} in {:.3} s: PSNR {} dB, SSIM {} (after scale/offset fit: {} dB)",
+            rec.method,
+            rec.id,
+            rec.seconds,
+            fmt(&q["psnr_db"]),
+            fmt(&q["ssim"]),
+            fmt(&q["psnr_fitted_db"])
+        );
+        println!("   session:    {base}/v1/sessions/{}", rig.session_id);
+        println!("   report:     {base}/v1/reconstructions/{}", rec.id);
+        println!("   dual image: {base}/v1/reconstructions/{}/dual.png  (also .tiff, .npy)", rec.id);
+    }
+    Ok(())
+}
+
+fn fmt(v: &serde_json::Value) -> String {
+    match v.as_f64() {
+        Some(x) => format!("{x:.2}"),
+        None => v.to_string(),
+    }
+}

@@ -1,0 +1,106 @@
+//! The only place that speaks SQL: sessions, bucket rows, the job queue and results, in SQLite.
+//!
+//! SQLite runs in WAL mode with `synchronous = FULL`, so a committed transaction survives a crash
+//! of the process or of the machine: rows are acknowledged only after their commit returns.
+
+use std::path::{Path, PathBuf};
+use std::str::FromStr;
+use std::time::{Duration, SystemTime, UNIX_EPOCH};
+
+use helmholtz_proto::PatternSpec;
+use sqlx::sqlite::{SqliteConnectOptions, SqliteJournalMode, SqlitePoolOptions, SqliteSynchronous};
+use sqlx::{Row, SqlitePool};
+
+mod jobs;
+mod rows;
+mod sessions;
+
+pub use jobs::{ClaimedJob, ReconstructionRow, StoredImage};
+pub use rows::AppendOutcome;
+pub use sessions::{NewSession, SessionRow, SessionState};
+
+/// Storage errors, by what the caller should tell its user.
+#[derive(Debug, thiserror::Error)]
+pub enum StoreError {
+    #[error("session {0:?} not found")]
+    SessionNotFound(String),
+    #[error("reconstruction {0} not found")]
+    ReconstructionNotFound(i64),
+    #[error("session {0:?} exists with a different declaration ({1} differs)")]
+    SessionConflict(String, &'static str),
+    #[error("rows must continue at row {committed}; this chunk starts at {start} (a gap)")]
+    Gap { committed: u64, start: u64 },
+    #[error("chunk ends at row {end} but the spec declares only {expected} rows")]
+    PastEnd { end: u64, expected: u64 },
+    #[error("session {0:?} is finished; it takes no more rows")]
+    Finished(String),
+    #[error("session {id:?} has {committed} of {expected} rows; upload the rest before finishing")]
+    Incomplete { id: String, committed: u64, expected: u64 },
+    #[error("stored data is corrupt: {0}")]
+    Corrupt(String),
+    #[error(transparent)]
+    Db(#[from] sqlx::Error),
+    #[error(transparent)]
+    Migrate(#[from] sqlx::migrate::MigrateError),
+}
+
+/// Handle to the database; cheap to clone.
+#[derive(Clone, Debug)]
+pub struct Store {
+    pool: SqlitePool,
+    path: PathBuf,
+}
+
+pub(crate) fn now_ms() -> i64 {
+    SystemTime::now().duration_since(UNIX_EPOCH).map(|d| d.as_millis() as i64).unwrap_or(0)
+}
+
+impl Store {
+    /// Opens (creating if needed) `data_dir/helmholtz.sqlite` and applies pending migrations.
+    pub async fn open(data_dir: &Path) -> Result<Store, StoreError> {
+        std::fs::create_dir_all(data_dir).map_err(|e| {
+            StoreError::Corrupt(format!("cannot create data directory {}: {e}", data_dir.display()))
+        })?;
+        let path = data_dir.join("helmholtz.sqlite");
+        let options = SqliteConnectOptions::from_str(&format!("sqlite://{}", path.display()))?
+            .create_if_missing(true)
+            .journal_mode(SqliteJournalMode::Wal)
+            .synchronous(SqliteSynchronous::Full)
+            .busy_timeout(Duration::from_secs(10))
+            .foreign_keys(true);
+        let pool = SqlitePoolOptions::new().max_connections(8).connect_with(options).await?;
+        sqlx::migrate!("../migrations").run(&pool).await?;
+        Ok(Store { pool, path })
+    }
+
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    pub async fn close(&self) {
+        self.pool.close().await;
+    }
+
+    /// True when the database answers (health checks).
+    pub async fn ping(&self) -> bool {
+        sqlx::query("SELECT 1").fetch_one(&self.pool).await.map(|r| r.get::<i64, _>(0) == 1).unwrap_or(false)
+    }
+}
+
+pub(crate) fn parse_spec(json: &str) -> Result<PatternSpec, StoreError> {
+    serde_json::from_str(json).map_err(|e| StoreError::Corrupt(format!("stored spec: {e}")))
+}
+
+pub(crate) fn f32_to_le(data: &[f32]) -> Vec<u8> {
+    data.iter().flat_map(|v| v.to_le_bytes()).collect()
+}
+
+pub(crate) fn le_to_f32(bytes: &[u8]) -> Result<Vec<f32>, StoreError> {
+    if bytes.len() % 4 != 0 {
+        return Err(StoreError::Corrupt("f32 blob of ragged length".into()));
+    }
+    Ok(bytes.chunks_exact(4).map(|b| f32::from_le_bytes(b.try_into().expect("4"))).collect())
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,111 @@
+//! Bucket rows: append with resume semantics, read back in order.
+
+use sqlx::Row;
+
+use super::{Store, StoreError};
+
+/// What one append did.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct AppendOutcome {
+    /// The authoritative committed count after this append.
+    pub committed_rows: u64,
+    /// Rows of the chunk that were new and are now durable.
+    pub written: u64,
+    /// Rows of the chunk that were already committed (overlap).
+    pub skipped: u64,
+}
+
+impl Store {
+    /// Appends `values` (rows x `channels`, already validated as finite) starting at `start_row`.
+    ///
+    /// The committed count is authoritative: rows below it are skipped, a start above it is a gap
+    /// and writes nothing. The new rows and the new count commit in one transaction.
+    pub async fn append_rows(
+        &self,
+        session_id: &str,
+        start_row: u64,
+        channels: usize,
+        values: &[f64],
+    ) -> Result<AppendOutcome, StoreError> {
+        debug_assert!(channels > 0 && values.len() % channels == 0);
+        let rows = (values.len() / channels) as u64;
+        // BEGIN IMMEDIATE takes the write lock up front: read-then-write without upgrade failures.
+        let mut tx = self.pool.begin_with("BEGIN IMMEDIATE").await?;
+        let row = sqlx::query("SELECT committed_rows, expected_rows, state FROM sessions WHERE id = $1")
+            .bind(session_id)
+            .fetch_optional(&mut *tx)
+            .await?
+            .ok_or_else(|| StoreError::SessionNotFound(session_id.to_string()))?;
+        let committed = row.get::<i64, _>("committed_rows") as u64;
+        let expected = row.get::<i64, _>("expected_rows") as u64;
+        let state: String = row.get("state");
+        if start_row > committed {
+            return Err(StoreError::Gap { committed, start: start_row });
+        }
+        let end = start_row + rows;
+        if end > expected {
+            return Err(StoreError::PastEnd { end, expected });
+        }
+        if end <= committed {
+            return Ok(AppendOutcome { committed_rows: committed, written: 0, skipped: rows });
+        }
+        if state == "finished" {
+            return Err(StoreError::Finished(session_id.to_string()));
+        }
+        let skip = committed - start_row;
+        let fresh = &values[skip as usize * channels..];
+        let blob: Vec<u8> = fresh.iter().flat_map(|v| v.to_le_bytes()).collect();
+        sqlx::query("INSERT INTO measurement_chunks (session_id, start_row, row_count, data) VALUES ($1, $2, $3, $4)")
+            .bind(session_id)
+            .bind(committed as i64)
+            .bind((end - committed) as i64)
+            .bind(blob)
+            .execute(&mut *tx)
+            .await?;
+        sqlx::query("UPDATE sessions SET committed_rows = $2 WHERE id = $1")
+            .bind(session_id)
+            .bind(end as i64)
+            .execute(&mut *tx)
+            .await?;
+        tx.commit().await?;
+        Ok(AppendOutcome { committed_rows: end, written: end - committed, skipped: skip })
+    }
+
+    /// Up to `max_chunks` stored chunks of the session whose rows start at or after `from_row`,
+    /// in order, as (start_row, values) with values row-major (rows x channels).
+    ///
+    /// `from_row` must be a chunk boundary (0, or the end of a chunk returned before).
+    pub async fn read_chunks(
+        &self,
+        session_id: &str,
+        from_row: u64,
+        max_chunks: u32,
+    ) -> Result<Vec<(u64, Vec<f64>)>, StoreError> {
+        let rows = sqlx::query(
+            "SELECT start_row, row_count, data FROM measurement_chunks \
+             WHERE session_id = $1 AND start_row >= $2 ORDER BY start_row LIMIT $3",
+        )
+        .bind(session_id)
+        .bind(from_row as i64)
+        .bind(max_chunks as i64)
+        .fetch_all(&self.pool)
+        .await?;
+        let mut out = Vec::with_capacity(rows.len());
+        let mut expect = from_row;
+        for row in rows {
+            let start = row.get::<i64, _>("start_row") as u64;
+            let count = row.get::<i64, _>("row_count") as u64;
+            let data: Vec<u8> = row.get("data");
+            if start != expect || data.len() % 8 != 0 || count == 0 || (data.len() / 8) as u64 % count != 0 {
+                return Err(StoreError::Corrupt(format!(
+                    "session {session_id}: chunk at row {start} does not continue row {expect}"
+                )));
+            }
+            let values =
+                data.chunks_exact(8).map(|b| f64::from_le_bytes(b.try_into().expect("8"))).collect();
+            out.push((start, values));
+            expect = start + count;
+        }
+        Ok(out)
+    }
+}

@@ -1,0 +1,128 @@
+//! The whole path over loopback: simulate -> upload -> reconstruct -> fetch, with the real
+//! server binary, the real client library and a real SQLite file.
+
+use std::time::Duration;
+
+use helmholtz_client::scene::Scene;
+use helmholtz_client::simulate::{self, NoiseModel};
+use helmholtz_client::{NewSession, PatternSpec, UploadOptions};
+use helmholtz_tests::{ServerProcess, correlation, parse_npy, relative_error};
+
+/// Simulates `spec` on a built-in scene (noise-free), uploads it as a finished session and
+/// returns the scene's transport.
+async fn acquire(server: &ServerProcess, id: &str, scene: &str, spec_json: &str) -> (PatternSpec, Vec<f32>) {
+    let spec: PatternSpec = serde_json::from_str(spec_json).unwrap();
+    let transport = Scene::builtin(scene, spec.width(), spec.height()).unwrap().transport(1.0);
+    let sim = simulate::simulate(&spec, &[&transport], &NoiseModel::default(), None);
+    let session = NewSession::new(id, spec.clone(), vec!["bucket".into()]).with_ground_truth(
+        spec.width(),
+        spec.height(),
+        transport.clone(),
+    );
+    helmholtz_client::create_session(&server.base_url, &session).await.unwrap();
+    let report = helmholtz_client::upload(&server.base_url, id, 1, &sim.values, &UploadOptions::default()).await.unwrap();
+    assert_eq!(report.committed_rows, spec.count());
+    helmholtz_client::finish_session(&server.base_url, id).await.unwrap();
+    (spec, transport)
+}
+
+/// Requests `method`, waits for it, and returns (reconstruction JSON, the dual image as f64).
+async fn reconstruct(server: &ServerProcess, id: &str, method: &str) -> (serde_json::Value, Vec<f64>) {
+    let rec = helmholtz_client::request_reconstruction(&server.base_url, id, method, &serde_json::json!({})).await.unwrap();
+    let done = helmholtz_client::wait_reconstruction(&server.base_url, rec.id, Duration::from_secs(120)).await.unwrap();
+    assert!(done.is_done(), "{method} did not finish: {done:?}");
+    let json: serde_json::Value =
+        reqwest::get(server.url(&format!("/v1/reconstructions/{}", rec.id))).await.unwrap().json().await.unwrap();
+    let npy = reqwest::get(server.url(&format!("/v1/reconstructions/{}/dual.npy", rec.id))).await.unwrap();
+    assert_eq!(npy.status(), 200);
+    let (shape, values) = parse_npy(&npy.bytes().await.unwrap()).unwrap();
+    assert_eq!(shape.len(), 2);
+    (json, values)
+}
+
+fn as_f64(v: &[f32]) -> Vec<f64> {
+    v.iter().map(|&x| x as f64).collect()
+}
+
+#[tokio::test]
+async fn gi_and_dgi_of_bernoulli_patterns_correlate_with_the_scene() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = ServerProcess::start(dir.path(), 0, &[]).unwrap();
+    // 32x32 USAF target, 30,000 Bernoulli(1/2) patterns. Per pixel, GI's mean is t_j/4 and its
+    // noise std is about sqrt(sum t^2 / n)/4 (no detector noise), so SNR_j ~ t_j sqrt(n / sum t^2)
+    // ~ 1 * sqrt(30000 / ~400) ~ 9 for bright pixels: the image correlates with the scene far above 0.9.
+    let (_, truth) = acquire(&server, "gi-usaf", "usaf", r#"{"family":"bernoulli","width":32,"height":32,"count":30000,"seed":11}"#).await;
+    let truth = as_f64(&truth);
+    for method in ["gi", "dgi", "ngi"] {
+        let (json, image) = reconstruct(&server, "gi-usaf", method).await;
+        let r = correlation(&image, &truth);
+        assert!(r > 0.9, "{method}: correlation {r:.3} with the scene");
+        assert_eq!(json["method"], method);
+        assert_eq!(json["rows"], 30000);
+        assert!(json["seconds"].as_f64().unwrap() >= 0.0);
+        let quality = &json["report"]["quality"][0];
+        assert!(quality["psnr_fitted_db"].as_f64().unwrap() > 15.0, "{json}");
+    }
+}
+
+#[tokio::test]
+async fn direct_inversion_of_complete_sets_matches_the_scene() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = ServerProcess::start(dir.path(), 0, &[]).unwrap();
+    let cases = [
+        ("raster", "camera", r#"{"family":"raster","width":32,"height":32,"count":1024,"seed":0}"#),
+        ("hadamard-seq", "usaf", r#"{"family":"hadamard","width":32,"height":32,"count":2048,"ordering":"sequency"}"#),
+        ("hadamard-rect", "camera", r#"{"family":"hadamard","width":64,"height":16,"count":2048,"ordering":"russian_doll"}"#),
+    ];
+    for (id, scene, spec) in cases {
+        let (_, truth) = acquire(&server, id, scene, spec).await;
+        let (json, image) = reconstruct(&server, id, "direct").await;
+        let err = relative_error(&image, &as_f64(&truth));
+        assert!(err < 1e-4, "{id}: relative error {err:e}");
+        assert_eq!(json["report"]["method"], "direct");
+    }
+}
+
+#[tokio::test]
+async fn dual_images_are_served_as_png_tiff_and_npy_with_etags() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = ServerProcess::start(dir.path(), 0, &[]).unwrap();
+    acquire(&server, "img", "shapes", r#"{"family":"hadamard","width":32,"height":16,"count":1024}"#).await;
+    let (json, npy) = reconstruct(&server, "img", "direct").await;
+    let id = json["id"].as_i64().unwrap();
+    let http = reqwest::Client::new();
+
+    let png = http.get(server.url(&format!("/v1/reconstructions/{id}/dual.png"))).send().await.unwrap();
+    assert_eq!(png.headers()["content-type"], "image/png");
+    let etag = png.headers()["etag"].to_str().unwrap().to_string();
+    let bytes = png.bytes().await.unwrap();
+    let mut reader = png::Decoder::new(std::io::Cursor::new(bytes.to_vec())).read_info().unwrap();
+    let mut buf = vec![0; reader.output_buffer_size().unwrap()];
+    let info = reader.next_frame(&mut buf).unwrap();
+    assert_eq!((info.width, info.height, info.bit_depth), (32, 16, png::BitDepth::Eight));
+    let not_modified = http
+        .get(server.url(&format!("/v1/reconstructions/{id}/dual.png")))
+        .header("if-none-match", &etag)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(not_modified.status(), 304);
+
+    let tiff = http.get(server.url(&format!("/v1/reconstructions/{id}/dual.tiff"))).send().await.unwrap();
+    assert_eq!(tiff.headers()["content-type"], "image/tiff");
+    let mut decoder = tiff::decoder::Decoder::new(std::io::Cursor::new(tiff.bytes().await.unwrap().to_vec())).unwrap();
+    assert_eq!(decoder.dimensions().unwrap(), (32, 16));
+    let tiff::decoder::DecodingResult::F32(values) = decoder.read_image().unwrap() else { panic!("not f32") };
+    assert_eq!(values.iter().map(|&v| v as f64).collect::<Vec<_>>(), npy, "TIFF and NPY carry the same floats");
+
+    // The session's dual.png is its latest finished reconstruction.
+    let latest = http.get(server.url("/v1/sessions/img/dual.png")).send().await.unwrap();
+    assert_eq!(latest.headers()["etag"].to_str().unwrap(), etag);
+    let bad = http.get(server.url(&format!("/v1/reconstructions/{id}/dual.png?channel=nope"))).send().await.unwrap();
+    assert_eq!(bad.status(), 400);
+    let problem: serde_json::Value = bad.json().await.unwrap();
+    assert_eq!(problem["field"], "channel");
+    let none = http.get(server.url("/v1/reconstructions/999/dual.png")).send().await.unwrap();
+    assert_eq!(none.status(), 404);
+    assert_eq!(none.headers()["content-type"], "application/problem+json");
+}
