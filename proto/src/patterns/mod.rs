@@ -115,7 +115,7 @@ impl PatternGenerator {
                     let cy = (y / g) as u64;
                     for (x, px) in row.iter_mut().enumerate() {
                         let cell = cy * cells_x + (x / g) as u64;
-                        *px = speckle_level(stream_word(self.spec.seed(), base + cell));
+                        *px = speckle_level(stream_word(self.spec.seed(), base.wrapping_add(cell)));
                     }
                 }
             }
@@ -145,7 +145,7 @@ impl PatternGenerator {
                     let base = first.wrapping_add(w as u64 * d);
                     let mut r = 0u64;
                     for j in (0..digits.len()).rev() {
-                        let v = stream_word(seed, base + j as u64);
+                        let v = stream_word(seed, base.wrapping_add(j as u64));
                         r = if digits[j] { v | r } else { v & r };
                     }
                     *word = r;
@@ -165,6 +165,13 @@ impl PatternGenerator {
                 }
             }
             Kind::Hadamard { plan } => {
+                assert!(
+                    i < 2 * k as u64,
+                    "hadamard frame {i} does not exist: a {}x{} spec has 2k = {} frames",
+                    self.spec.width(),
+                    self.spec.height(),
+                    2 * k
+                );
                 let w = self.spec.width() as u64;
                 let n = plan.natural_index(i / 2);
                 let (u, v) = (n / w, n % w);

@@ -71,7 +71,8 @@ fn err(field: &'static str, message: impl Into<String>) -> SpecError {
 }
 
 /// A pattern declaration that has been validated and canonicalised (defaults filled in, Bernoulli
-/// fill quantised). Two specs that generate the same patterns compare equal.
+/// fill quantised). Specs compare field by field: two Bernoulli fills that quantise alike are
+/// equal, but the seed is kept as declared even for raster and Hadamard, which do not use it.
 ///
 /// JSON form: `{"family": "bernoulli", "width": 64, "height": 64, "count": 4096, "seed": 7,
 /// "fill": 0.5}`; family parameters sit beside the common fields.
