@@ -75,6 +75,8 @@ pub struct Reconstruction {
     pub progress: f64,
     /// Rows of the session it uses.
     pub rows: u64,
+    /// Compute time; 0 until the reconstruction is done (the server sends null meanwhile).
+    #[serde(deserialize_with = "null_as_zero")]
     pub seconds: f64,
     pub error: Option<String>,
     /// Method, parameters, iterations, timings, quality figures (PSNR/SSIM with ground truth).
@@ -503,4 +505,8 @@ mod tests {
             1
         );
     }
+}
+
+fn null_as_zero<'de, D: serde::Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
+    Ok(<Option<f64> as serde::Deserialize>::deserialize(d)?.unwrap_or(0.0))
 }

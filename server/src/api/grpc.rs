@@ -7,8 +7,9 @@ use tonic::{Request, Response, Status, Streaming};
 use super::{ApiError, AppState, validate};
 use crate::store::{ReconstructionRow, SessionRow, SessionState};
 
-/// Largest accepted gRPC message (a chunk): 8 MiB.
-pub const MAX_MESSAGE_BYTES: usize = 8 << 20;
+/// Largest accepted gRPC message: 32 MiB (a session's ground truth on a 2048 x 2048 grid is
+/// 16 MiB; upload chunks are typically 256 KiB).
+pub const MAX_MESSAGE_BYTES: usize = 32 << 20;
 
 #[derive(Clone, Debug)]
 pub struct AcquisitionService {

@@ -2,8 +2,8 @@
 
 use super::{BucketBlock, BucketSource, Control, ReconError};
 
-/// Wraps a source: checks that blocks arrive in order, hold whole rows (`rows x channels`) and do
-/// not run past `total`; turns a short source into [`ReconError::Unsolvable`] and a raised
+/// Wraps a source: checks that blocks arrive in order, hold whole rows (`rows x channels`) of
+/// finite values and do not run past `total`; turns a short source into [`ReconError::Unsolvable`] and a raised
 /// cancellation flag into [`ReconError::Cancelled`].
 pub(crate) struct RowStream<'s, 'c> {
     source: &'s mut dyn BucketSource,
@@ -56,6 +56,14 @@ impl<'s, 'c> RowStream<'s, 'c> {
             return Err(ReconError::BadRows(format!(
                 "block starts at row {}, expected row {}",
                 block.first_row, self.next
+            )));
+        }
+        if let Some(i) = block.values.iter().position(|v| !v.is_finite()) {
+            return Err(ReconError::BadRows(format!(
+                "non-finite bucket value {} at row {} channel {}",
+                block.values[i],
+                block.first_row + (i / self.channels) as u64,
+                i % self.channels
             )));
         }
         let rows = (block.values.len() / self.channels) as u64;
