@@ -57,7 +57,11 @@ pub fn run(
 
 type Output = (Vec<DualImage>, Map<String, Value>);
 
-fn raster(problem: &Problem, mut stream: RowStream, control: &Control) -> Result<Output, ReconError> {
+fn raster(
+    problem: &Problem,
+    mut stream: RowStream,
+    control: &Control,
+) -> Result<Output, ReconError> {
     let spec = problem.spec;
     let m = problem.channels;
     let (block, bx, by) = spec.raster_grid().expect("raster");
@@ -98,7 +102,8 @@ fn raster(problem: &Problem, mut stream: RowStream, control: &Control) -> Result
             DualImage { width: spec.width(), height: spec.height(), data }
         })
         .collect();
-    let (lo, hi) = (counts.iter().min().copied().unwrap_or(0), counts.iter().max().copied().unwrap_or(0));
+    let (lo, hi) =
+        (counts.iter().min().copied().unwrap_or(0), counts.iter().max().copied().unwrap_or(0));
     let mut details = Map::new();
     details.insert("family".into(), json!("raster"));
     details.insert("block".into(), json!(block));
@@ -146,7 +151,11 @@ fn finite(v: f64) -> Value {
     if v.is_finite() { json!(v) } else { Value::Null }
 }
 
-fn hadamard(problem: &Problem, mut stream: RowStream, control: &Control) -> Result<Output, ReconError> {
+fn hadamard(
+    problem: &Problem,
+    mut stream: RowStream,
+    control: &Control,
+) -> Result<Output, ReconError> {
     let spec = problem.spec;
     let m = problem.channels;
     let k = spec.pixels();
@@ -223,7 +232,12 @@ mod tests {
     use crate::recon::{BucketBlock, SliceSource, reconstruct};
     use helmholtz_proto::{HadamardOrdering, PatternSpec};
 
-    fn solve(spec: &PatternSpec, buckets: &[f64], channels: usize, block_rows: usize) -> Reconstruction {
+    fn solve(
+        spec: &PatternSpec,
+        buckets: &[f64],
+        channels: usize,
+        block_rows: usize,
+    ) -> Reconstruction {
         let rows = (buckets.len() / channels) as u64;
         let problem = Problem { spec, channels, rows };
         let mut src = SliceSource::new(buckets, channels, block_rows);
@@ -249,11 +263,12 @@ mod tests {
                 cnt[blk] += 1.0;
             }
         }
-        (0..w * h).map(|p| {
-            let blk = (p / w / b) * bx + (p % w) / b;
-            sum[blk] / cnt[blk]
-        })
-        .collect()
+        (0..w * h)
+            .map(|p| {
+                let blk = (p / w / b) * bx + (p % w) / b;
+                sum[blk] / cnt[blk]
+            })
+            .collect()
     }
 
     #[test]
@@ -284,7 +299,8 @@ mod tests {
         // Repeats 0, 1, 2 of each block with gains 0.9, 1.1, 1.0 (blocks 6.. only get 2).
         let rows = 2 * blocks + blocks / 2;
         let gains = [0.9, 1.1, 1.0];
-        let rep = simulate(&spec, std::slice::from_ref(&t), rows, |i| gains[(i / blocks) as usize], 0.0);
+        let rep =
+            simulate(&spec, std::slice::from_ref(&t), rows, |i| gains[(i / blocks) as usize], 0.0);
         let r = solve(&spec, &rep, 1, 7);
         assert!(relative_error(&r.images[0].data, &want) < 1e-6);
         assert_eq!(r.report.details["complete_scans"], json!(2));
@@ -345,12 +361,19 @@ mod tests {
         let (w, h) = (8u32, 8u32);
         let k = (w * h) as usize;
         let t = random_scene(k, 0.5, 1.0, 4);
-        let spec = PatternSpec::new(Family::Hadamard { ordering: HadamardOrdering::Natural }, w, h, 128, 0)
-            .unwrap();
+        let spec = PatternSpec::new(
+            Family::Hadamard { ordering: HadamardOrdering::Natural },
+            w,
+            h,
+            128,
+            0,
+        )
+        .unwrap();
         // Gain ramps linearly 1.0 -> 1.2 over the frames; both frames of a pair see nearly the
         // same gain, so s_r ~ g_r (1 . t).
         let n = 2 * k as u64;
-        let buckets = simulate(&spec, std::slice::from_ref(&t), n, |i| 1.0 + 0.2 * i as f64 / n as f64, 0.0);
+        let buckets =
+            simulate(&spec, std::slice::from_ref(&t), n, |i| 1.0 + 0.2 * i as f64 / n as f64, 0.0);
         let r = solve(&spec, &buckets, 1, 16);
         let dev = r.report.details["pair_sum_max_rel_dev"][0].as_f64().unwrap();
         let std = r.report.details["pair_sum_rel_std"][0].as_f64().unwrap();
@@ -373,11 +396,11 @@ mod tests {
         let (w, h) = (8u32, 4u32);
         let k = (w * h) as usize;
         let scenes = [random_scene(k, 0.0, 1.0, 5), random_scene(k, 0.0, 3.0, 6)];
-        for family in [
-            Family::Hadamard { ordering: HadamardOrdering::Zigzag },
-            Family::Raster { block: 1 },
-        ] {
-            let count = if matches!(family, Family::Raster { .. }) { k as u64 } else { 2 * k as u64 };
+        for family in
+            [Family::Hadamard { ordering: HadamardOrdering::Zigzag }, Family::Raster { block: 1 }]
+        {
+            let count =
+                if matches!(family, Family::Raster { .. }) { k as u64 } else { 2 * k as u64 };
             let spec = PatternSpec::new(family, w, h, count, 0).unwrap();
             let buckets = simulate(&spec, &scenes, count, |_| 1.0, 0.25);
             let r = solve(&spec, &buckets, 2, 9);
@@ -389,7 +412,11 @@ mod tests {
                 } else {
                     f32s(&scenes[ch])
                 };
-                assert!(relative_error(&r.images[ch].data, &want) < 1e-5, "{} ch {ch}", spec.family().name());
+                assert!(
+                    relative_error(&r.images[ch].data, &want) < 1e-5,
+                    "{} ch {ch}",
+                    spec.family().name()
+                );
             }
         }
     }
@@ -400,8 +427,14 @@ mod tests {
         let problem = Problem { spec: &spec, channels: 1, rows: 100 };
         let mut src = BlockList(Default::default());
         assert!(matches!(run(&problem, &mut src, &Control::new()), Err(ReconError::Unsolvable(_))));
-        let spec = PatternSpec::new(Family::Hadamard { ordering: HadamardOrdering::Natural }, 8, 8, 100, 0)
-            .unwrap();
+        let spec = PatternSpec::new(
+            Family::Hadamard { ordering: HadamardOrdering::Natural },
+            8,
+            8,
+            100,
+            0,
+        )
+        .unwrap();
         let problem = Problem { spec: &spec, channels: 1, rows: 100 };
         assert!(matches!(run(&problem, &mut src, &Control::new()), Err(ReconError::Unsolvable(_))));
         // Complete spec, but the source stops early.
@@ -425,12 +458,23 @@ mod tests {
 
     #[test]
     fn direct_cancels() {
-        let spec = PatternSpec::new(Family::Hadamard { ordering: HadamardOrdering::Natural }, 16, 16, 512, 0)
-            .unwrap();
+        let spec = PatternSpec::new(
+            Family::Hadamard { ordering: HadamardOrdering::Natural },
+            16,
+            16,
+            512,
+            0,
+        )
+        .unwrap();
         let buckets = vec![1.0; 512];
         let problem = Problem { spec: &spec, channels: 1, rows: 512 };
         let control = Control::new();
-        let mut src = CancelAfter { inner: SliceSource::new(&buckets, 1, 64), control: &control, after: 2, seen: 0 };
+        let mut src = CancelAfter {
+            inner: SliceSource::new(&buckets, 1, 64),
+            control: &control,
+            after: 2,
+            seen: 0,
+        };
         assert!(matches!(run(&problem, &mut src, &control), Err(ReconError::Cancelled)));
     }
 }

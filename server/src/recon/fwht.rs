@@ -131,11 +131,7 @@ mod tests {
     fn dense(x: &[f64]) -> Vec<f64> {
         let n = x.len();
         (0..n)
-            .map(|i| {
-                (0..n)
-                    .map(|j| if (i & j).count_ones() % 2 == 0 { x[j] } else { -x[j] })
-                    .sum()
-            })
+            .map(|i| (0..n).map(|j| if (i & j).count_ones() % 2 == 0 { x[j] } else { -x[j] }).sum())
             .collect()
     }
 

@@ -120,8 +120,8 @@ pub fn ssim(estimate: &[f32], truth: &[f32], width: usize, height: usize) -> f64
         let vx = mxx[i] - ux * ux;
         let vy = myy[i] - uy * uy;
         let cxy = mxy[i] - ux * uy;
-        total += ((2.0 * ux * uy + c1) * (2.0 * cxy + c2))
-            / ((ux * ux + uy * uy + c1) * (vx + vy + c2));
+        total +=
+            ((2.0 * ux * uy + c1) * (2.0 * cxy + c2)) / ((ux * ux + uy * uy + c1) * (vx + vy + c2));
     }
     total / mx.len() as f64
 }
@@ -219,8 +219,9 @@ mod tests {
         let (w, h) = (32usize, 16usize);
         let t = ramp(w, h);
         let g = gaussian(11);
-        let s2: f64 = g.iter().enumerate().map(|(i, gi)| gi * (i as f64 - 5.0).powi(2)).sum::<f64>()
-            / ((w - 1) as f64).powi(2);
+        let s2: f64 =
+            g.iter().enumerate().map(|(i, gi)| gi * (i as f64 - 5.0).powi(2)).sum::<f64>()
+                / ((w - 1) as f64).powi(2);
         let (c1, c2) = (1e-4, 9e-4); // L = 1
         let centres: Vec<f64> = (5..w - 5).map(|x| x as f64 / (w - 1) as f64).collect();
         let rows = (h - 10) as f64;
@@ -231,9 +232,8 @@ mod tests {
         // Offset by delta: structure term is exactly 1, luminance term differs.
         let delta = 0.1;
         let e: Vec<f32> = t.iter().map(|v| v + delta as f32).collect();
-        let want = mean_over(&|mu| {
-            (2.0 * mu * (mu + delta) + c1) / (mu * mu + (mu + delta).powi(2) + c1)
-        });
+        let want =
+            mean_over(&|mu| (2.0 * mu * (mu + delta) + c1) / (mu * mu + (mu + delta).powi(2) + c1));
         assert!((ssim(&e, &t, w, h) - want).abs() < 1e-5, "offset");
 
         // Doubled: sigma_e = 2 s, cov = 2 s^2, mean 2 mu.
