@@ -1,0 +1,1 @@
+//! Pattern-family measurement operators (matrix-free).

@@ -1,0 +1,1 @@
+//! Solvers: FISTA, primal-dual TV, CG, Hadamard level inverses.

@@ -1,0 +1,1 @@
+//! Sparsifying transforms and total variation.
