@@ -27,7 +27,7 @@ pub fn decode_values(bytes: &[u8], channels: usize, crc: u32) -> Result<Vec<f64>
     if actual != crc {
         return Err(WireError::Checksum { expected: crc, actual });
     }
-    if channels == 0 || bytes.len() % (8 * channels) != 0 {
+    if channels == 0 || !bytes.len().is_multiple_of(8 * channels) {
         return Err(WireError::Ragged { len: bytes.len(), channels });
     }
     let mut out = Vec::with_capacity(bytes.len() / 8);

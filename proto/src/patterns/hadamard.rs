@@ -123,7 +123,7 @@ mod tests {
     use super::*;
 
     fn walsh_1d(n: u64, len: u64) -> Vec<i32> {
-        (0..len).map(|x| if (n & x).count_ones() % 2 == 0 { 1 } else { -1 }).collect()
+        (0..len).map(|x| if (n & x).count_ones().is_multiple_of(2) { 1 } else { -1 }).collect()
     }
 
     fn sign_changes(v: &[i32]) -> usize {

@@ -88,7 +88,7 @@ impl PatternGenerator {
         match &self.kind {
             Kind::Hadamard { plan } => {
                 let row = frame / 2;
-                Some(SplitFrame { row, natural: plan.natural_index(row), positive: frame % 2 == 0 })
+                Some(SplitFrame { row, natural: plan.natural_index(row), positive: frame.is_multiple_of(2) })
             }
             _ => None,
         }
@@ -175,7 +175,7 @@ impl PatternGenerator {
                 let w = self.spec.width() as u64;
                 let n = plan.natural_index(i / 2);
                 let (u, v) = (n / w, n % w);
-                let positive = i % 2 == 0;
+                let positive = i.is_multiple_of(2);
                 out.fill(0);
                 // h = +1 (pixel of P+) where popcount(u & y) + popcount(v & x) is even.
                 for y in 0..self.spec.height() as u64 {

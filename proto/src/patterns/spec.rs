@@ -161,7 +161,7 @@ impl PatternSpec {
                         format!("hadamard needs a power of two, got {height}"),
                     ));
                 }
-                if count % 2 != 0 || count > 2 * pixels {
+                if !count.is_multiple_of(2) || count > 2 * pixels {
                     return Err(err(
                         "count",
                         format!(

@@ -53,7 +53,7 @@ pub struct SliceSource<'a> {
 
 impl<'a> SliceSource<'a> {
     pub fn new(values: &'a [f64], channels: usize, block_rows: usize) -> Self {
-        assert!(channels > 0 && block_rows > 0 && values.len() % channels == 0);
+        assert!(channels > 0 && block_rows > 0 && values.len().is_multiple_of(channels));
         SliceSource { values, channels, block_rows, next_row: 0 }
     }
 }

@@ -96,7 +96,7 @@ pub(crate) fn f32_to_le(data: &[f32]) -> Vec<u8> {
 }
 
 pub(crate) fn le_to_f32(bytes: &[u8]) -> Result<Vec<f32>, StoreError> {
-    if bytes.len() % 4 != 0 {
+    if !bytes.len().is_multiple_of(4) {
         return Err(StoreError::Corrupt("f32 blob of ragged length".into()));
     }
     Ok(bytes.chunks_exact(4).map(|b| f32::from_le_bytes(b.try_into().expect("4"))).collect())

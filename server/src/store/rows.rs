@@ -27,7 +27,7 @@ impl Store {
         channels: usize,
         values: &[f64],
     ) -> Result<AppendOutcome, StoreError> {
-        debug_assert!(channels > 0 && values.len() % channels == 0);
+        debug_assert!(channels > 0 && values.len().is_multiple_of(channels));
         let rows = (values.len() / channels) as u64;
         // BEGIN IMMEDIATE takes the write lock up front: read-then-write without upgrade failures.
         let mut tx = self.pool.begin_with("BEGIN IMMEDIATE").await?;
@@ -96,7 +96,7 @@ impl Store {
             let start = row.get::<i64, _>("start_row") as u64;
             let count = row.get::<i64, _>("row_count") as u64;
             let data: Vec<u8> = row.get("data");
-            if start != expect || data.len() % 8 != 0 || count == 0 || (data.len() / 8) as u64 % count != 0 {
+            if start != expect || !data.len().is_multiple_of(8) || count == 0 || !((data.len() / 8) as u64).is_multiple_of(count) {
                 return Err(StoreError::Corrupt(format!(
                     "session {session_id}: chunk at row {start} does not continue row {expect}"
                 )));
