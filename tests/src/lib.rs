@@ -11,7 +11,9 @@ use helmholtz_proto::v1::acquisition_client::AcquisitionClient;
 use tonic::transport::Channel;
 
 /// Path of a workspace binary built beside this test executable (`cargo test --workspace`
-/// builds them: the server and client packages each have an integration test).
+/// builds them: the server and client packages each have an integration test). Note that
+/// `cargo test -p helmholtz-tests` alone does not rebuild them: it runs whatever binaries the
+/// last workspace build left.
 pub fn binary(name: &str) -> PathBuf {
     let exe = std::env::current_exe().expect("test executable path");
     let dir = exe.parent().and_then(Path::parent).expect("target/<profile>/deps/..");

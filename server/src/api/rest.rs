@@ -21,14 +21,10 @@ pub fn router(state: AppState) -> Router {
         .route("/v1/sessions", get(list_sessions))
         .route("/v1/sessions/{id}", get(get_session))
         .route("/v1/sessions/{id}/reconstructions", get(list_reconstructions).post(post_reconstruction))
-        .route("/v1/sessions/{id}/measurements.npy", get(measurements_npy))
-        .route("/v1/sessions/{id}/dual.png", get(session_dual_png))
-        .route("/v1/sessions/{id}/dual.tiff", get(session_dual_tiff))
-        .route("/v1/sessions/{id}/dual.npy", get(session_dual_npy))
+        // measurements.npy, dual.png, dual.tiff, dual.npy
+        .route("/v1/sessions/{id}/{file}", get(session_file))
         .route("/v1/reconstructions/{id}", get(get_reconstruction))
-        .route("/v1/reconstructions/{id}/dual.png", get(dual_png))
-        .route("/v1/reconstructions/{id}/dual.tiff", get(dual_tiff))
-        .route("/v1/reconstructions/{id}/dual.npy", get(dual_npy))
+        .route("/v1/reconstructions/{id}/{file}", get(reconstruction_file))
         .fallback(not_found)
         .method_not_allowed_fallback(method_not_allowed)
         .with_state(state)
@@ -192,13 +188,12 @@ async fn post_reconstruction(
 }
 
 /// The committed bucket rows exactly as stored: float64, shape (rows, channels).
-async fn measurements_npy(State(state): State<AppState>, Path(id): Path<String>) -> Result<Response, ApiError> {
-    session_path(&id)?;
-    let session = state.store.session(&id).await?;
+async fn measurements_npy(state: &AppState, id: &str) -> Result<Response, ApiError> {
+    let session = state.store.session(id).await?;
     let mut values = Vec::with_capacity(session.committed_rows as usize * session.channels.len());
     let mut next = 0u64;
     loop {
-        let page = state.store.read_chunks(&id, next, 256).await?;
+        let page = state.store.read_chunks(id, next, 256).await?;
         let Some((start, last)) = page.last() else { break };
         next = start + (last.len() / session.channels.len()) as u64;
         values.extend(page.into_iter().flat_map(|(_, v)| v));
@@ -224,45 +219,37 @@ enum Format {
     Npy,
 }
 
-async fn dual_png(s: State<AppState>, p: Path<String>, q: Query<HashMap<String, String>>, h: HeaderMap) -> Result<Response, ApiError> {
-    dual(s, p, q, h, Format::Png).await
-}
-async fn dual_tiff(s: State<AppState>, p: Path<String>, q: Query<HashMap<String, String>>, h: HeaderMap) -> Result<Response, ApiError> {
-    dual(s, p, q, h, Format::Tiff).await
-}
-async fn dual_npy(s: State<AppState>, p: Path<String>, q: Query<HashMap<String, String>>, h: HeaderMap) -> Result<Response, ApiError> {
-    dual(s, p, q, h, Format::Npy).await
+fn dual_format(file: &str) -> Result<Format, ApiError> {
+    match file {
+        "dual.png" => Ok(Format::Png),
+        "dual.tiff" => Ok(Format::Tiff),
+        "dual.npy" => Ok(Format::Npy),
+        _ => Err(ApiError::NotFound(format!("no file {file:?}; try dual.png, dual.tiff or dual.npy"))),
+    }
 }
 
-async fn dual(
+async fn reconstruction_file(
     State(state): State<AppState>,
-    Path(id): Path<String>,
+    Path((id, file)): Path<(String, String)>,
     Query(query): Query<HashMap<String, String>>,
     headers: HeaderMap,
-    format: Format,
 ) -> Result<Response, ApiError> {
     let id = recon_path(&id)?;
+    let format = dual_format(&file)?;
     serve_dual(&state, id, &query, &headers, format).await
 }
 
-async fn session_dual_png(s: State<AppState>, p: Path<String>, q: Query<HashMap<String, String>>, h: HeaderMap) -> Result<Response, ApiError> {
-    session_dual(s, p, q, h, Format::Png).await
-}
-async fn session_dual_tiff(s: State<AppState>, p: Path<String>, q: Query<HashMap<String, String>>, h: HeaderMap) -> Result<Response, ApiError> {
-    session_dual(s, p, q, h, Format::Tiff).await
-}
-async fn session_dual_npy(s: State<AppState>, p: Path<String>, q: Query<HashMap<String, String>>, h: HeaderMap) -> Result<Response, ApiError> {
-    session_dual(s, p, q, h, Format::Npy).await
-}
-
-async fn session_dual(
+async fn session_file(
     State(state): State<AppState>,
-    Path(id): Path<String>,
+    Path((id, file)): Path<(String, String)>,
     Query(query): Query<HashMap<String, String>>,
     headers: HeaderMap,
-    format: Format,
 ) -> Result<Response, ApiError> {
     session_path(&id)?;
+    if file == "measurements.npy" {
+        return measurements_npy(&state, &id).await;
+    }
+    let format = dual_format(&file)?;
     state.store.session(&id).await?;
     let Some(latest) = state.store.latest_done(&id).await? else {
         return Err(ApiError::NotFound(format!("session {id:?} has no finished reconstruction yet")));
