@@ -130,6 +130,8 @@ impl Worker {
         let control = Arc::new(Control::new());
         let heartbeat = self.spawn_heartbeat(id, attempt, control.clone());
         let started = Instant::now();
+        let heap_base = crate::alloc::live_bytes();
+        crate::alloc::reset_peak();
         let outcome = std::panic::catch_unwind(AssertUnwindSafe(|| self.compute(&job, &control)))
             .unwrap_or_else(|panic| {
                 let msg = panic
@@ -143,7 +145,12 @@ impl Worker {
         heartbeat.abort();
         let store = &self.store;
         let result = match outcome {
-            Ok((images, report)) => {
+            Ok((images, mut report)) => {
+                if crate::alloc::installed() {
+                    // Process-wide: includes other jobs' live memory if several run at once.
+                    report["peak_memory_bytes"] = json!(crate::alloc::peak_bytes().saturating_sub(heap_base));
+                }
+                report["seconds"] = json!(seconds);
                 let report = report.to_string();
                 self.runtime.block_on(store.complete_reconstruction(id, attempt, &images, &report, seconds))
             }

@@ -3,6 +3,7 @@
 //! Data flows one way: `api` (gRPC, REST) -> `jobs` -> `recon` (pure numerics), with `store`
 //! the only module that speaks SQL.
 
+pub mod alloc;
 pub mod api;
 pub mod app;
 pub mod cli;

@@ -1,1 +1,6 @@
-fn main() { helmholtz_server::cli::main() }
+#[global_allocator]
+static ALLOC: helmholtz_server::alloc::CountingAlloc = helmholtz_server::alloc::CountingAlloc;
+
+fn main() {
+    helmholtz_server::cli::main()
+}

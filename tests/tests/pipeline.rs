@@ -60,6 +60,8 @@ async fn gi_and_dgi_of_bernoulli_patterns_correlate_with_the_scene() {
         assert_eq!(json["method"], method);
         assert_eq!(json["rows"], 30000);
         assert!(json["seconds"].as_f64().unwrap() >= 0.0);
+        let peak = json["report"]["peak_memory_bytes"].as_u64().expect("report carries the peak heap");
+        assert!(peak > 32 * 32 * 8, "a {method} job must at least hold its accumulators: {peak} bytes");
         let quality = &json["report"]["quality"][0];
         assert!(quality["psnr_fitted_db"].as_f64().unwrap() > 15.0, "{json}");
     }
