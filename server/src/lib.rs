@@ -6,6 +6,7 @@
 pub mod alloc;
 pub mod api;
 pub mod app;
+pub mod bench;
 pub mod cli;
 mod demo;
 pub mod jobs;

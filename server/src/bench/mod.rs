@@ -1,0 +1,172 @@
+//! The speed-against-error report: a grid of scenes x sizes x sampling ratios x pattern families x
+//! noise x methods, each reconstructed by the same numerics the service runs, timed, scored
+//! against the ground truth, and written as JSON, Markdown tables and SVG plots.
+//!
+//! `cargo run --release -p helmholtz-server --bin helmholtz-bench -- --preset full`
+
+mod grid;
+mod plot;
+mod report;
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use clap::Parser;
+use helmholtz_client::scene::Scene;
+use helmholtz_client::simulate;
+use helmholtz_proto::{Family, PatternSpec};
+use serde::Serialize;
+
+use crate::recon::{self, Control, MethodConfig, Problem, SliceSource, metrics};
+
+pub use grid::{Case, Noise, Preset};
+
+#[derive(Parser, Debug)]
+#[command(name = "helmholtz-bench", about = "Speed against error of every reconstruction method on a grid of simulated acquisitions.\n\nWrites DIR/benchmarks.md (tables and plots) and DIR/benchmarks.json (raw figures).")]
+struct Args {
+    /// smoke: a few small cases (CI); targets: the target problems; full: the whole grid.
+    #[arg(long, default_value = "targets", value_parser = ["smoke", "targets", "full"])]
+    preset: String,
+    /// Output directory.
+    #[arg(long, default_value = "docs")]
+    out: PathBuf,
+    /// Only methods in this comma-separated list.
+    #[arg(long, value_delimiter = ',')]
+    methods: Option<Vec<String>>,
+}
+
+/// One measured reconstruction.
+#[derive(Clone, Debug, Serialize)]
+pub struct Measurement {
+    pub case: Case,
+    pub rows: u64,
+    pub seconds: f64,
+    pub peak_memory_bytes: Option<usize>,
+    /// Raw PSNR against the scene's transport.
+    pub psnr_db: f64,
+    pub ssim: f64,
+    /// After the least-squares scale and offset fit (correlation methods estimate t up to both).
+    pub psnr_fitted_db: f64,
+    pub ssim_fitted: f64,
+    /// For correlation methods: pattern-pixel updates per second (rows * k / seconds).
+    pub updates_per_second: Option<f64>,
+    pub report: serde_json::Value,
+    pub error: Option<String>,
+}
+
+impl Measurement {
+    /// The figure plotted: fitted for the scale-free correlation methods, raw for the others.
+    pub fn quality_db(&self) -> f64 {
+        if grid::scale_free(&self.case.method) { self.psnr_fitted_db } else { self.psnr_db }
+    }
+    pub fn quality_ssim(&self) -> f64 {
+        if grid::scale_free(&self.case.method) { self.ssim_fitted } else { self.ssim }
+    }
+}
+
+pub fn main() {
+    let args = Args::parse();
+    let preset: Preset = args.preset.parse().expect("clap checked the preset");
+    let mut cases = preset.cases();
+    if let Some(methods) = &args.methods {
+        cases.retain(|c| methods.contains(&c.method));
+    }
+    eprintln!("helmholtz-bench: {} cases ({}), {} threads", cases.len(), args.preset, rayon::current_num_threads());
+    let results = run_cases(&cases, |i, m| {
+        eprintln!(
+            "[{}/{}] {:<48} {:>9.4} s  {:>6.2} dB  SSIM {:.3}{}",
+            i + 1,
+            cases.len(),
+            m.case.label(),
+            m.seconds,
+            m.quality_db(),
+            m.quality_ssim(),
+            m.error.as_deref().map(|e| format!("  ({e})")).unwrap_or_default()
+        )
+    });
+    if let Err(e) = report::write(&args.out, &args.preset, &results) {
+        eprintln!("helmholtz-bench: writing the report: {e:#}");
+        std::process::exit(1);
+    }
+    eprintln!("wrote the report to {}", args.out.display());
+}
+
+/// Runs every case (sharing the simulation between methods of one acquisition).
+pub fn run_cases(cases: &[Case], mut progress: impl FnMut(usize, &Measurement)) -> Vec<Measurement> {
+    let mut out = Vec::with_capacity(cases.len());
+    let mut cache: Option<(String, PatternSpec, Vec<f32>, Vec<f64>)> = None;
+    for (i, case) in cases.iter().enumerate() {
+        let key = case.acquisition_key();
+        if cache.as_ref().map(|c| &c.0) != Some(&key) {
+            let spec = case.spec();
+            let truth = Scene::builtin(&case.scene, case.size.0, case.size.1).expect("built-in scene").transport(1.0);
+            let sim = simulate::simulate(&spec, &[&truth], &case.noise.model(), None);
+            cache = Some((key, spec, truth, sim.values));
+        }
+        let (_, spec, truth, values) = cache.as_ref().expect("filled above");
+        let m = measure(case, spec, truth, values);
+        progress(i, &m);
+        out.push(m);
+    }
+    out
+}
+
+fn measure(case: &Case, spec: &PatternSpec, truth: &[f32], values: &[f64]) -> Measurement {
+    let problem = Problem { spec, channels: 1, rows: spec.count() };
+    let config = MethodConfig::parse(&case.method, &serde_json::Value::Null).expect("grid methods exist");
+    let control = Control::new();
+    let mut source = SliceSource::new(values, 1, 4096);
+    let base = crate::alloc::live_bytes();
+    crate::alloc::reset_peak();
+    let started = Instant::now();
+    let result = recon::reconstruct(&problem, &config, &mut source, &control);
+    let seconds = started.elapsed().as_secs_f64();
+    let peak = crate::alloc::installed().then(|| crate::alloc::peak_bytes().saturating_sub(base));
+    let k = spec.pixels() as f64;
+    match result {
+        Ok(r) => {
+            let image = &r.images[0].data;
+            let (a, b) = metrics::fit_affine(image, truth);
+            let fitted: Vec<f32> = image.iter().map(|&v| (a * v as f64 + b) as f32).collect();
+            let (w, h) = (spec.width() as usize, spec.height() as usize);
+            Measurement {
+                case: case.clone(),
+                rows: spec.count(),
+                seconds,
+                peak_memory_bytes: peak,
+                psnr_db: metrics::psnr(image, truth),
+                ssim: metrics::ssim(image, truth, w, h),
+                psnr_fitted_db: metrics::psnr(&fitted, truth),
+                ssim_fitted: metrics::ssim(&fitted, truth, w, h),
+                updates_per_second: grid::scale_free(&case.method).then(|| spec.count() as f64 * k / seconds),
+                report: serde_json::to_value(&r.report).unwrap_or_default(),
+                error: None,
+            }
+        }
+        Err(e) => Measurement {
+            case: case.clone(),
+            rows: spec.count(),
+            seconds,
+            peak_memory_bytes: peak,
+            psnr_db: f64::NAN,
+            ssim: f64::NAN,
+            psnr_fitted_db: f64::NAN,
+            ssim_fitted: f64::NAN,
+            updates_per_second: None,
+            report: serde_json::Value::Null,
+            error: Some(e.to_string()),
+        },
+    }
+}
+
+/// Frames for a sampling ratio: Bernoulli/speckle count patterns, Hadamard counts P+/P- pairs.
+pub fn frames_for(family: &Family, k: usize, ratio: f64) -> u64 {
+    let rows = ((ratio * k as f64).round() as u64).clamp(1, k as u64);
+    match family {
+        Family::Hadamard { .. } => 2 * rows,
+        _ => rows,
+    }
+}
+
+#[cfg(test)]
+mod tests;

@@ -1,0 +1,6 @@
+#[global_allocator]
+static ALLOC: helmholtz_server::alloc::CountingAlloc = helmholtz_server::alloc::CountingAlloc;
+
+fn main() {
+    helmholtz_server::bench::main()
+}
