@@ -1,0 +1,388 @@
+//! Packed 0/1 matrices and their product with real vectors by byte look-up tables.
+//!
+//! # Layout
+//!
+//! A [`BitMatrix`] is built from row-major packed rows: column `c` of a row is bit `c % 64` of
+//! word `c / 64` (the pattern generator's layout, so a pattern is a row). Internally the words
+//! are stored in column blocks of [`BLOCK_WORDS`] words (256 columns): block `b` holds, for every
+//! row in turn, that row's `BLOCK_WORDS` words of the block, so the product kernel streams each
+//! block as one contiguous run of memory. (Measured: 2.5-4x faster than row-major rows, where
+//! every row's slice of a block is a separate cache line and page.)
+//!
+//! # Kernel
+//!
+//! `out = B v` (and batched, `L` vectors at once): for every byte of columns (8 columns) build the
+//! table of the 256 subset sums of those 8 entries of `v` (255 additions; an entry is `[f64; L]`,
+//! so one look-up serves all `L` vectors), then each row adds one table entry per byte of its
+//! bits: `rows * cols / 8` look-ups instead of `rows * cols` multiply-adds. Table building costs
+//! `32 * cols * L` additions, negligible once `rows` is more than a few hundred. A block's 32
+//! tables (64 KiB for one vector) stay in L1/L2 while its rows stream through. About 0.4 ns per
+//! look-up and thread here (0.2 ns per look-up and vector in batches of four).
+//!
+//! Threads (rayon) take disjoint ranges of column blocks, each with its own tables and output
+//! partial, summed at the end (`rows * L` additions per thread); splitting rows instead would
+//! make each thread rebuild every table. Small products run on the calling thread.
+
+use rayon::prelude::*;
+
+use super::scratch::Pool;
+
+/// Words (of 64 columns) per column block.
+pub const BLOCK_WORDS: usize = 4;
+
+/// A packed 0/1 matrix (see the module docs for the layout).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct BitMatrix {
+    rows: usize,
+    cols: usize,
+    /// Words per row in the row-major form: ceil(cols / 64).
+    words: usize,
+    /// Column blocks: ceil(words / BLOCK_WORDS).
+    blocks: usize,
+    /// Block-major: `data[(b * rows + r) * BLOCK_WORDS + j]` = word `b * BLOCK_WORDS + j` of row r.
+    data: Vec<u64>,
+}
+
+/// Products smaller than this (rows x words x vectors) run on one thread.
+const PARALLEL_MIN_WORDS: usize = 1 << 13;
+
+impl BitMatrix {
+    /// From row-major packed words (`ceil(cols / 64)` per row). Bits past `cols` are cleared.
+    pub fn new(rows: usize, cols: usize, mut row_major: Vec<u64>) -> Self {
+        let words = cols.div_ceil(64);
+        assert_eq!(row_major.len(), rows * words, "bit matrix needs rows * ceil(cols / 64) words");
+        let tail = cols % 64;
+        if tail != 0 {
+            for row in row_major.chunks_exact_mut(words) {
+                row[words - 1] &= (1u64 << tail) - 1;
+            }
+        }
+        let blocks = words.div_ceil(BLOCK_WORDS);
+        let mut data = vec![0u64; blocks * rows * BLOCK_WORDS];
+        if rows > 0 && blocks > 0 {
+            data.par_chunks_mut(rows * BLOCK_WORDS).enumerate().for_each(|(b, block)| {
+                let w0 = b * BLOCK_WORDS;
+                let n = BLOCK_WORDS.min(words - w0);
+                for (r, dst) in block.chunks_exact_mut(BLOCK_WORDS).enumerate() {
+                    dst[..n].copy_from_slice(&row_major[r * words + w0..r * words + w0 + n]);
+                }
+            });
+        }
+        BitMatrix { rows, cols, words, blocks, data }
+    }
+
+    /// Rows produced in parallel by `fill(r, row_words)` (e.g. `PatternGenerator::fill_bits`),
+    /// `row_words.len() == ceil(cols / 64)`, written straight into the block layout.
+    pub fn from_fn(rows: usize, cols: usize, fill: impl Fn(usize, &mut [u64]) + Sync) -> Self {
+        let words = cols.div_ceil(64);
+        let blocks = words.div_ceil(BLOCK_WORDS);
+        let mut data = vec![0u64; blocks * rows * BLOCK_WORDS];
+        if rows > 0 && blocks > 0 {
+            // Task t fills rows t*per..(t+1)*per: in every block, one contiguous run.
+            let per = 64usize;
+            let tasks = rows.div_ceil(per);
+            let mut runs: Vec<Vec<&mut [u64]>> = (0..tasks).map(|_| Vec::with_capacity(blocks)).collect();
+            for block in data.chunks_mut(rows * BLOCK_WORDS) {
+                for (t, run) in block.chunks_mut(per * BLOCK_WORDS).enumerate() {
+                    runs[t].push(run);
+                }
+            }
+            runs.into_par_iter().enumerate().for_each(|(t, mut runs)| {
+                let mut row = vec![0u64; words];
+                for i in 0..per.min(rows - t * per) {
+                    row.fill(0);
+                    fill(t * per + i, &mut row);
+                    let tail = cols % 64;
+                    if tail != 0 {
+                        row[words - 1] &= (1u64 << tail) - 1;
+                    }
+                    for (b, run) in runs.iter_mut().enumerate() {
+                        let w0 = b * BLOCK_WORDS;
+                        let n = BLOCK_WORDS.min(words - w0);
+                        run[i * BLOCK_WORDS..i * BLOCK_WORDS + n].copy_from_slice(&row[w0..w0 + n]);
+                    }
+                }
+            });
+        }
+        BitMatrix { rows, cols, words, blocks, data }
+    }
+
+    pub fn rows(&self) -> usize {
+        self.rows
+    }
+    pub fn cols(&self) -> usize {
+        self.cols
+    }
+    /// Words per row in the row-major form, `ceil(cols / 64)`.
+    pub fn words_per_row(&self) -> usize {
+        self.words
+    }
+
+    /// Word `w` of row `r` in the row-major form.
+    #[inline]
+    pub fn word(&self, r: usize, w: usize) -> u64 {
+        self.data[((w / BLOCK_WORDS) * self.rows + r) * BLOCK_WORDS + w % BLOCK_WORDS]
+    }
+
+    #[inline]
+    pub fn get(&self, r: usize, c: usize) -> bool {
+        (self.word(r, c / 64) >> (c % 64)) & 1 == 1
+    }
+
+    /// Row `r` as row-major words.
+    pub fn row_words(&self, r: usize) -> Vec<u64> {
+        (0..self.words).map(|w| self.word(r, w)).collect()
+    }
+
+    /// Heap bytes held.
+    pub fn memory_bytes(&self) -> usize {
+        self.data.len() * 8
+    }
+
+    /// Number of set bits in each row.
+    pub fn row_sums(&self) -> Vec<f64> {
+        let mut sums = vec![0u64; self.rows];
+        if self.rows > 0 {
+            for block in self.data.chunks_exact(self.rows * BLOCK_WORDS) {
+                for (s, row) in sums.iter_mut().zip(block.chunks_exact(BLOCK_WORDS)) {
+                    *s += row.iter().map(|w| w.count_ones() as u64).sum::<u64>();
+                }
+            }
+        }
+        sums.into_iter().map(|s| s as f64).collect()
+    }
+
+    /// The transpose (`cols x rows`), by 64 x 64 bit-block transposes, written straight into
+    /// the block layout; output column blocks in parallel.
+    pub fn transpose(&self) -> BitMatrix {
+        let (rows, cols) = (self.rows, self.cols);
+        let twords = rows.div_ceil(64); // words per row of the transpose
+        let tblocks = twords.div_ceil(BLOCK_WORDS);
+        let mut data = vec![0u64; tblocks * cols * BLOCK_WORDS];
+        if tblocks > 0 && cols > 0 {
+            // Output block tb: transposed rows j (0..cols), words tb*BLOCK_WORDS + q, i.e. our
+            // rows (tb*BLOCK_WORDS + q)*64 + i, at data[(tb*cols + j)*BLOCK_WORDS + q].
+            data.par_chunks_mut(cols * BLOCK_WORDS).enumerate().for_each(|(tb, out)| {
+                let mut block = [0u64; 64];
+                for q in 0..BLOCK_WORDS {
+                    let rb = tb * BLOCK_WORDS + q;
+                    if rb >= twords {
+                        break;
+                    }
+                    for w in 0..self.words {
+                        for (i, v) in block.iter_mut().enumerate() {
+                            let r = rb * 64 + i;
+                            *v = if r < rows { self.word(r, w) } else { 0 };
+                        }
+                        transpose64(&mut block);
+                        // block[j] bit i = element (rb*64 + i, w*64 + j).
+                        for (j, &v) in block.iter().enumerate().take(cols - w * 64) {
+                            out[(w * 64 + j) * BLOCK_WORDS + q] = v;
+                        }
+                    }
+                }
+            });
+        }
+        BitMatrix { rows: cols, cols: rows, words: twords, blocks: tblocks, data }
+    }
+
+    /// `out = B v` for one vector (`v.len() == cols`, `out.len() == rows`, overwritten).
+    pub fn matvec(&self, v: &[f64], out: &mut [f64], pool: &Pool) {
+        self.matvec_batch(v, out, 1, pool);
+    }
+
+    /// `batch` products at once: `vs` holds `batch` vectors of length `cols` back to back, `out`
+    /// receives `batch` vectors of length `rows`. Groups of 4 (then 2, 1) vectors share one pass
+    /// over the bits.
+    pub fn matvec_batch(&self, vs: &[f64], out: &mut [f64], batch: usize, pool: &Pool) {
+        assert_eq!(vs.len(), self.cols * batch, "input must hold batch * cols values");
+        assert_eq!(out.len(), self.rows * batch, "output must hold batch * rows values");
+        let (mut done, rows, cols) = (0, self.rows, self.cols);
+        while done < batch {
+            let left = batch - done;
+            let v = &vs[done * cols..];
+            let o = &mut out[done * rows..];
+            done += if left >= 4 {
+                self.product::<4>(&v[..4 * cols], &mut o[..4 * rows], pool);
+                4
+            } else if left >= 2 {
+                self.product::<2>(&v[..2 * cols], &mut o[..2 * rows], pool);
+                2
+            } else {
+                self.product::<1>(&v[..cols], &mut o[..rows], pool);
+                1
+            };
+        }
+    }
+
+    /// `L` vectors (back to back in `vs`) through one pass; writes `out` (back to back).
+    fn product<const L: usize>(&self, vs: &[f64], out: &mut [f64], pool: &Pool) {
+        let (rows, blocks) = (self.rows, self.blocks);
+        if rows == 0 {
+            return;
+        }
+        if blocks == 0 {
+            out.fill(0.0);
+            return;
+        }
+        let table_len = BLOCK_WORDS * 8 * 256 * L;
+        let threads = rayon::current_num_threads().max(1);
+        let parts = if rows * self.words * L < PARALLEL_MIN_WORDS || threads == 1 {
+            1
+        } else {
+            threads.min(blocks)
+        };
+        let part_len = rows * L;
+        let mut partials = pool.take(parts * part_len);
+        let run = |p: usize, partial: &mut [f64]| {
+            let b0 = p * blocks / parts;
+            let b1 = (p + 1) * blocks / parts;
+            let mut tables = pool.take(table_len);
+            let (tables, _) = tables.as_chunks_mut::<L>();
+            let (acc, _) = partial.as_chunks_mut::<L>();
+            self.kernel::<L>(vs, b0, b1, tables, acc);
+        };
+        if parts == 1 {
+            run(0, &mut partials);
+        } else {
+            partials.par_chunks_mut(part_len).enumerate().for_each(|(p, part)| run(p, part));
+        }
+        // out[l * rows + r] = sum over parts of partial[p][r * L + l].
+        let (first, rest) = partials.split_at(part_len);
+        for l in 0..L {
+            let o = &mut out[l * rows..(l + 1) * rows];
+            for (r, v) in o.iter_mut().enumerate() {
+                *v = first[r * L + l];
+            }
+            for part in rest.chunks_exact(part_len) {
+                for (r, v) in o.iter_mut().enumerate() {
+                    *v += part[r * L + l];
+                }
+            }
+        }
+    }
+
+    /// Adds, for every row, the contribution of column blocks `b0..b1` to `acc[row]`.
+    fn kernel<const L: usize>(
+        &self,
+        vs: &[f64],
+        b0: usize,
+        b1: usize,
+        tables: &mut [[f64; L]],
+        acc: &mut [[f64; L]],
+    ) {
+        let rows = self.rows;
+        for b in b0..b1 {
+            build_tables::<L>(vs, self.cols, b * BLOCK_WORDS * 64, tables);
+            let (tabs, _) = tables.as_chunks::<256>();
+            let (tabs8, _) = tabs.as_chunks::<8>();
+            let tabs8: &[[[[f64; L]; 256]; 8]; BLOCK_WORDS] =
+                tabs8[..BLOCK_WORDS].try_into().expect("tables hold one block");
+            let block = &self.data[b * rows * BLOCK_WORDS..(b + 1) * rows * BLOCK_WORDS];
+            let (block, _) = block.as_chunks::<BLOCK_WORDS>();
+            for (a, row) in acc.iter_mut().zip(block) {
+                let (mut s0, mut s1) = ([0.0; L], [0.0; L]);
+                for (&word, t) in row.iter().zip(tabs8) {
+                    let b = word.to_le_bytes();
+                    let x0 = add(t[0][b[0] as usize], t[1][b[1] as usize]);
+                    let x1 = add(t[2][b[2] as usize], t[3][b[3] as usize]);
+                    let x2 = add(t[4][b[4] as usize], t[5][b[5] as usize]);
+                    let x3 = add(t[6][b[6] as usize], t[7][b[7] as usize]);
+                    s0 = add(s0, add(x0, x1));
+                    s1 = add(s1, add(x2, x3));
+                }
+                *a = add(*a, add(s0, s1));
+            }
+        }
+    }
+}
+
+#[inline(always)]
+fn add<const L: usize>(a: [f64; L], b: [f64; L]) -> [f64; L] {
+    std::array::from_fn(|l| a[l] + b[l])
+}
+
+/// Tables for bytes of columns starting at `col0` (`tables.len() / 256` bytes): entry `s` of the
+/// table of byte `b` is the sum over the set bits i of s of `v[col0 + 8b + i]`, per vector.
+fn build_tables<const L: usize>(vs: &[f64], cols: usize, col0: usize, tables: &mut [[f64; L]]) {
+    for (b, t) in tables.chunks_exact_mut(256).enumerate() {
+        t[0] = [0.0; L];
+        for bit in 0..8 {
+            let c = col0 + 8 * b + bit;
+            let w: [f64; L] = std::array::from_fn(|l| if c < cols { vs[l * cols + c] } else { 0.0 });
+            let half = 1 << bit;
+            let (lo, hi) = t.split_at_mut(half);
+            for (h, &l) in hi[..half].iter_mut().zip(lo.iter()) {
+                *h = add(l, w);
+            }
+        }
+    }
+}
+
+/// In-place transpose of a 64 x 64 bit block: bit j of `a[i]` <-> bit i of `a[j]`.
+fn transpose64(a: &mut [u64; 64]) {
+    let mut j = 32usize;
+    let mut m: u64 = 0x0000_0000_FFFF_FFFF;
+    while j != 0 {
+        let mut k = 0usize;
+        while k < 64 {
+            let t = ((a[k] >> j) ^ a[k + j]) & m;
+            a[k + j] ^= t;
+            a[k] ^= t << j;
+            k = (k + j + 1) & !j;
+        }
+        j >>= 1;
+        m ^= m << j;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::recon::linop::test_vector;
+
+    fn random_bits(rows: usize, cols: usize, seed: u64) -> BitMatrix {
+        BitMatrix::from_fn(rows, cols, |r, row| {
+            for (w, v) in row.iter_mut().enumerate() {
+                *v = helmholtz_proto::patterns::rng::stream_word(seed, (r * 1000 + w) as u64);
+            }
+        })
+    }
+
+    #[test]
+    fn transpose_matches_bits() {
+        for (rows, cols) in [(1, 1), (3, 70), (64, 64), (130, 65), (200, 300), (7, 129)] {
+            let b = random_bits(rows, cols, rows as u64);
+            let t = b.transpose();
+            assert_eq!((t.rows(), t.cols()), (cols, rows));
+            for r in 0..rows {
+                for c in 0..cols {
+                    assert_eq!(b.get(r, c), t.get(c, r), "{rows}x{cols} ({r},{c})");
+                }
+            }
+            // Padding bits stay clear.
+            assert_eq!(t.transpose(), b);
+        }
+    }
+
+    #[test]
+    fn product_matches_naive_for_every_group_size() {
+        let pool = Pool::new();
+        for (rows, cols) in [(5, 3), (33, 64), (17, 200), (300, 1000), (1000, 520)] {
+            let b = random_bits(rows, cols, 9);
+            for batch in [1, 2, 3, 4, 7] {
+                let vs = test_vector(cols * batch, 3);
+                let mut out = vec![f64::NAN; rows * batch];
+                b.matvec_batch(&vs, &mut out, batch, &pool);
+                for l in 0..batch {
+                    for r in 0..rows {
+                        let want: f64 =
+                            (0..cols).filter(|&c| b.get(r, c)).map(|c| vs[l * cols + c]).sum();
+                        let got = out[l * rows + r];
+                        assert!((got - want).abs() < 1e-12, "{rows}x{cols} b{batch} {got} {want}");
+                    }
+                }
+            }
+        }
+    }
+}

@@ -1,0 +1,144 @@
+//! Regularisation paths: `lambda = f * lambda_max` for decreasing fractions `f`, each solve
+//! warm-started from the previous solution, the conditioning (mean deflation), `lambda_max` and
+//! the step-size constant computed once. Pure: the only side effect is progress on the
+//! [`Control`]. The `auto` method picks among the points (held-out error); nothing here chooses.
+
+use std::time::Instant;
+
+use super::condition::Prepared;
+use super::tv::Grid;
+use super::{
+    Lambda, Solution, SolveOptions, SolveReport, check_problem, fista, is_zero_data,
+    lambda_max_l1, lambda_max_tv, lipschitz_of, relative_residual, tv, tv_fista, zero_solution,
+};
+use crate::recon::linop::LinearOperator;
+use crate::recon::{Control, ReconError};
+
+/// Which regulariser a path solves.
+#[derive(Clone, Copy)]
+pub enum Penalty<'a> {
+    /// `lambda ||Psi t||_1` by [`fista`], `Psi` orthonormal or `None` (pixel basis).
+    L1 { psi: Option<&'a dyn LinearOperator> },
+    /// `lambda TV(t)` by [`tv_fista`] (the faster TV solver on our problems).
+    Tv { grid: Grid },
+    /// `lambda TV(t)` by the primal-dual [`tv`].
+    TvPrimalDual { grid: Grid },
+}
+
+/// One point of a path.
+#[derive(Clone, Debug)]
+pub struct PathPoint {
+    /// `lambda / lambda_max`.
+    pub fraction: f64,
+    pub lambda: f64,
+    pub t: Vec<f64>,
+    pub report: SolveReport,
+}
+
+/// A solved path.
+#[derive(Clone, Debug)]
+pub struct RegPath {
+    /// Of the problem actually solved (after deflation, if any).
+    pub lambda_max: f64,
+    pub deflated: bool,
+    pub points: Vec<PathPoint>,
+    pub seconds: f64,
+}
+
+/// `lambda_max` of the penalty ([`lambda_max_l1`] or [`lambda_max_tv`]) for `(A, b, W)` as given
+/// (no deflation; [`solve_path`] reports the value for the problem it solves).
+pub fn lambda_max(
+    a: &dyn LinearOperator,
+    penalty: Penalty,
+    b: &[f64],
+    weights: Option<&[f64]>,
+    nonnegative: bool,
+) -> f64 {
+    match penalty {
+        Penalty::L1 { psi } => lambda_max_l1(a, psi, b, weights, nonnegative),
+        Penalty::Tv { grid } | Penalty::TvPrimalDual { grid } => {
+            lambda_max_tv(a, grid, b, weights)
+        }
+    }
+}
+
+/// `count` fractions from 1 down to `min_ratio`, geometrically spaced (first 1, last
+/// `min_ratio`). Empty if `count == 0` or `min_ratio` is not in `(0, 1]`.
+pub fn geometric_fractions(count: usize, min_ratio: f64) -> Vec<f64> {
+    if count == 0 || !(min_ratio > 0.0 && min_ratio <= 1.0) {
+        return Vec::new();
+    }
+    if count == 1 {
+        return vec![1.0];
+    }
+    let step = min_ratio.ln() / (count - 1) as f64;
+    (0..count).map(|i| (step * i as f64).exp()).collect()
+}
+
+/// Solves the penalty at `lambda = f * lambda_max` for each of `fractions` in the given order
+/// (pass them decreasing): point `i` starts from point `i - 1`'s solution (point 0 from
+/// `opts.warm_start`). `opts.lambda` is ignored. Progress is split evenly over the points.
+/// Each report's `relative_residual` is on the caller's `(A, b)`.
+pub fn solve_path(
+    a: &dyn LinearOperator,
+    penalty: Penalty,
+    b: &[f64],
+    opts: &SolveOptions,
+    fractions: &[f64],
+    control: &Control,
+) -> Result<RegPath, ReconError> {
+    let start = Instant::now();
+    let (_, k) = check_problem(a, b, opts)?;
+    if let Some(f) = fractions.iter().find(|f| !(f.is_finite() && **f >= 0.0)) {
+        return Err(ReconError::Unsolvable(format!("path fraction {f} is not finite and >= 0")));
+    }
+    if is_zero_data(b, opts.weights.as_deref()) {
+        let points = fractions
+            .iter()
+            .map(|&fraction| {
+                let Solution { t, report } = zero_solution("path", k, 0.0, Some(0.0), 0.0, start);
+                PathPoint { fraction, lambda: 0.0, t, report }
+            })
+            .collect();
+        return Ok(RegPath { lambda_max: 0.0, deflated: false, points, seconds: 0.0 });
+    }
+    let prep = Prepared::new(a, b, opts.weights.as_deref(), opts.deflate_mean);
+    let (op, bb, w) = (prep.op(), prep.b(), prep.weights());
+    let lmax = lambda_max(op, penalty, bb, w, opts.nonnegative);
+    let mut o = opts.clone();
+    o.deflate_mean = false;
+    o.weights = w.map(|w| w.to_vec());
+    o.lipschitz = Some(lipschitz_of(op, w, opts.lipschitz)?);
+    let (lo, hi) = opts.progress;
+    let m = fractions.len().max(1) as f64;
+    let mut points: Vec<PathPoint> = Vec::with_capacity(fractions.len());
+    for (i, &fraction) in fractions.iter().enumerate() {
+        let lambda = fraction * lmax;
+        o.lambda = Lambda::Absolute(lambda);
+        o.progress = (lo + (hi - lo) * i as f64 / m, lo + (hi - lo) * (i + 1) as f64 / m);
+        if let Some(prev) = points.last() {
+            o.warm_start = Some(prev.t.clone());
+        }
+        let Solution { t, mut report } = match penalty {
+            Penalty::L1 { psi } => fista(op, psi, bb, &o, control)?,
+            Penalty::Tv { grid } => tv_fista(op, grid, bb, &o, control)?,
+            Penalty::TvPrimalDual { grid } => tv(op, grid, bb, &o, control)?,
+        };
+        if let (Penalty::L1 { .. } | Penalty::Tv { .. }, Some(l)) = (penalty, o.lipschitz) {
+            // Keep FISTA's backtracked L (never below the estimate).
+            if report.lipschitz > l {
+                o.lipschitz = Some(report.lipschitz);
+            }
+        }
+        report.relative_residual = relative_residual(a, &t, b);
+        report.deflated = prep.is_deflated();
+        report.lambda_max = Some(lmax);
+        points.push(PathPoint { fraction, lambda, t, report });
+    }
+    Ok(RegPath {
+        lambda_max: lmax,
+        deflated: prep.is_deflated(),
+        points,
+        seconds: start.elapsed().as_secs_f64(),
+    })
+}
