@@ -1,5 +1,7 @@
 //! Speed of the operators against a dense product and a naive per-bit loop. Run with
-//! `cargo test --release -p helmholtz-server --lib recon::ops::bench -- --ignored --nocapture --test-threads 1`.
+//! `cargo test -p helmholtz-server --lib recon::ops::bench -- --ignored --nocapture --test-threads 1`
+//! (the dev profile builds this crate at opt-level 3). Wall times are best-of-5; "cpu" is CPU time
+//! per call over all threads, which shows contention from other work on the machine.
 
 use std::time::Instant;
 
@@ -8,10 +10,28 @@ use helmholtz_proto::{Family, HadamardOrdering, PatternSpec};
 use super::*;
 use crate::recon::linop::{DenseOperator, test_vector};
 
-/// Seconds per call: best of 5 rounds, each running `f` for >= 40 ms.
-fn time(mut f: impl FnMut()) -> f64 {
+/// CPU nanoseconds used so far by all threads of this process (`/proc/self/task/*/schedstat`,
+/// first field); robust to other work sharing the machine, unlike wall time.
+pub(crate) fn cpu_ns() -> u64 {
+    let Ok(dir) = std::fs::read_dir("/proc/self/task") else {
+        return 0;
+    };
+    dir.filter_map(|e| e.ok())
+        .filter_map(|e| std::fs::read_to_string(e.path().join("schedstat")).ok())
+        .filter_map(|s| {
+            s.split_whitespace()
+                .next()
+                .and_then(|v| v.parse::<u64>().ok())
+        })
+        .sum()
+}
+
+/// (wall seconds per call: best of 5 rounds of >= 40 ms each; CPU seconds per call, all threads,
+/// over all rounds).
+pub(crate) fn time2(mut f: impl FnMut()) -> (f64, f64) {
     f();
     let mut best = f64::INFINITY;
+    let (c0, mut total_calls) = (cpu_ns(), 0u64);
     for _ in 0..5 {
         let t0 = Instant::now();
         let mut calls = 0u32;
@@ -19,9 +39,15 @@ fn time(mut f: impl FnMut()) -> f64 {
             f();
             calls += 1;
         }
+        total_calls += calls as u64;
         best = best.min(t0.elapsed().as_secs_f64() / calls as f64);
     }
-    best
+    (best, (cpu_ns() - c0) as f64 * 1e-9 / total_calls as f64)
+}
+
+/// Wall seconds per call (see [`time2`]).
+fn time(f: impl FnMut()) -> f64 {
+    time2(f).0
 }
 
 fn ms(s: f64) -> String {
@@ -72,15 +98,16 @@ fn bench_bernoulli() {
     for side in [64u32, 128, 256] {
         let k = (side * side) as usize;
         let n = k / 10;
-        let spec = PatternSpec::new(Family::Bernoulli { fill: 0.5 }, side, side, n as u64, 1).unwrap();
+        let spec =
+            PatternSpec::new(Family::Bernoulli { fill: 0.5 }, side, side, n as u64, 1).unwrap();
         let t0 = Instant::now();
         let op = BernoulliOperator::from_spec(&spec, n as u64).unwrap();
         let plan = t0.elapsed().as_secs_f64();
         let x = test_vector(k, 1);
         let yv = test_vector(n, 2);
         let (mut y, mut xo) = (vec![0.0; n], vec![0.0; k]);
-        let apply = time(|| op.apply(&x, &mut y));
-        let adjoint = time(|| op.adjoint(&yv, &mut xo));
+        let (apply, apply_cpu) = time2(|| op.apply(&x, &mut y));
+        let (adjoint, adjoint_cpu) = time2(|| op.adjoint(&yv, &mut xo));
         let xs = test_vector(4 * k, 3);
         let ys = test_vector(4 * n, 4);
         let (mut yb, mut xb) = (vec![0.0; 4 * n], vec![0.0; 4 * k]);
@@ -99,27 +126,39 @@ fn bench_bernoulli() {
         let dense_a = time(|| dense.adjoint(&yv[..dense_rows], &mut xo)) * scale;
         drop(dense);
         println!(
-            "bernoulli {side}x{side} n={n} (10%): plan {}, {} MB | apply {} adjoint {} | \
-             batch-4 per vector: apply {} adjoint {} | dense f64{}: apply {} adjoint {} | \
+            "bernoulli {side}x{side} n={n} (10%): plan {}, {} MB | apply {} adjoint {} \
+             (cpu {} / {}) | batch-4 per vector: apply {} adjoint {} | dense f64{}: apply {} adjoint {} | \
              naive per-bit: apply {} adjoint {}",
             ms(plan),
             op.memory_bytes() / 1_000_000,
             ms(apply),
             ms(adjoint),
+            ms(apply_cpu),
+            ms(adjoint_cpu),
             ms(apply4),
             ms(adjoint4),
-            if dense_rows < n { " (from n/10 rows, x10)" } else { "" },
+            if dense_rows < n {
+                " (from n/10 rows, x10)"
+            } else {
+                ""
+            },
             ms(dense_f),
             ms(dense_a),
             ms(naive_f),
             ms(naive_a),
         );
-        let centred = CentredOperator::augmented(Box::new(BernoulliOperator::from_spec(&spec, n as u64).unwrap()));
+        let centred = CentredOperator::augmented(Box::new(
+            BernoulliOperator::from_spec(&spec, n as u64).unwrap(),
+        ));
         let mut yc = vec![0.0; n + 1];
         let yc_in = test_vector(n + 1, 5);
         let c_apply = time(|| centred.apply(&x, &mut yc));
         let c_adjoint = time(|| centred.adjoint(&yc_in, &mut xo));
-        println!("  centred + dc row: apply {} adjoint {}", ms(c_apply), ms(c_adjoint));
+        println!(
+            "  centred + dc row: apply {} adjoint {}",
+            ms(c_apply),
+            ms(c_adjoint)
+        );
     }
 }
 
@@ -131,7 +170,9 @@ fn bench_hadamard() {
         let k = (side * side) as usize;
         let m = k / 10;
         let spec = PatternSpec::new(
-            Family::Hadamard { ordering: HadamardOrdering::RussianDoll },
+            Family::Hadamard {
+                ordering: HadamardOrdering::RussianDoll,
+            },
             side,
             side,
             2 * k as u64,
@@ -174,10 +215,18 @@ fn bench_hadamard() {
             ms(apply),
             ms(adjoint),
             ms(apply4),
-            if dense_rows < m { " (from m/10 rows, x10)" } else { "" },
+            if dense_rows < m {
+                " (from m/10 rows, x10)"
+            } else {
+                ""
+            },
             ms(dense_f),
             ms(dense_a),
-            if dense_f < apply { "dense wins" } else { "fwht wins" },
+            if dense_f < apply {
+                "dense wins"
+            } else {
+                "fwht wins"
+            },
         );
     }
 }
@@ -188,7 +237,11 @@ fn bench_other_families() {
     for side in [64u32, 128] {
         let k = (side * side) as usize;
         let n = k / 10;
-        for family in [Family::Speckle { grain: 1 }, Family::Speckle { grain: 4 }, Family::Raster { block: 1 }] {
+        for family in [
+            Family::Speckle { grain: 1 },
+            Family::Speckle { grain: 4 },
+            Family::Raster { block: 1 },
+        ] {
             let spec = PatternSpec::new(family.clone(), side, side, n as u64, 1).unwrap();
             let t0 = Instant::now();
             let op = measurement_operator(&spec, n as u64);

@@ -54,7 +54,25 @@ impl BernoulliOperator {
     pub fn from_bit_matrix(patterns: BitMatrix) -> Self {
         let pixels = patterns.transpose();
         let row_sums = patterns.row_sums();
-        BernoulliOperator { patterns, pixels, row_sums, pool: Pool::new() }
+        BernoulliOperator {
+            patterns,
+            pixels,
+            row_sums,
+            pool: Pool::new(),
+        }
+    }
+
+    /// The operator of a subset of the rows, in the given order (e.g. the fitting rows of a
+    /// hold-out split). Repeats are allowed.
+    pub fn select_rows(&self, rows: &[usize]) -> Self {
+        let p = &self.patterns;
+        let words = p.words_per_row();
+        let selected = BitMatrix::from_fn(rows.len(), p.cols(), |i, out| {
+            for (w, o) in out.iter_mut().enumerate().take(words) {
+                *o = p.word(rows[i], w);
+            }
+        });
+        Self::from_bit_matrix(selected)
     }
 
     /// Pattern-major bits (row i = pattern i).

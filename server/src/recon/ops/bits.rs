@@ -50,7 +50,11 @@ impl BitMatrix {
     /// From row-major packed words (`ceil(cols / 64)` per row). Bits past `cols` are cleared.
     pub fn new(rows: usize, cols: usize, mut row_major: Vec<u64>) -> Self {
         let words = cols.div_ceil(64);
-        assert_eq!(row_major.len(), rows * words, "bit matrix needs rows * ceil(cols / 64) words");
+        assert_eq!(
+            row_major.len(),
+            rows * words,
+            "bit matrix needs rows * ceil(cols / 64) words"
+        );
         let tail = cols % 64;
         if tail != 0 {
             for row in row_major.chunks_exact_mut(words) {
@@ -60,15 +64,23 @@ impl BitMatrix {
         let blocks = words.div_ceil(BLOCK_WORDS);
         let mut data = vec![0u64; blocks * rows * BLOCK_WORDS];
         if rows > 0 && blocks > 0 {
-            data.par_chunks_mut(rows * BLOCK_WORDS).enumerate().for_each(|(b, block)| {
-                let w0 = b * BLOCK_WORDS;
-                let n = BLOCK_WORDS.min(words - w0);
-                for (r, dst) in block.chunks_exact_mut(BLOCK_WORDS).enumerate() {
-                    dst[..n].copy_from_slice(&row_major[r * words + w0..r * words + w0 + n]);
-                }
-            });
+            data.par_chunks_mut(rows * BLOCK_WORDS)
+                .enumerate()
+                .for_each(|(b, block)| {
+                    let w0 = b * BLOCK_WORDS;
+                    let n = BLOCK_WORDS.min(words - w0);
+                    for (r, dst) in block.chunks_exact_mut(BLOCK_WORDS).enumerate() {
+                        dst[..n].copy_from_slice(&row_major[r * words + w0..r * words + w0 + n]);
+                    }
+                });
         }
-        BitMatrix { rows, cols, words, blocks, data }
+        BitMatrix {
+            rows,
+            cols,
+            words,
+            blocks,
+            data,
+        }
     }
 
     /// Rows produced in parallel by `fill(r, row_words)` (e.g. `PatternGenerator::fill_bits`),
@@ -81,7 +93,8 @@ impl BitMatrix {
             // Task t fills rows t*per..(t+1)*per: in every block, one contiguous run.
             let per = 64usize;
             let tasks = rows.div_ceil(per);
-            let mut runs: Vec<Vec<&mut [u64]>> = (0..tasks).map(|_| Vec::with_capacity(blocks)).collect();
+            let mut runs: Vec<Vec<&mut [u64]>> =
+                (0..tasks).map(|_| Vec::with_capacity(blocks)).collect();
             for block in data.chunks_mut(rows * BLOCK_WORDS) {
                 for (t, run) in block.chunks_mut(per * BLOCK_WORDS).enumerate() {
                     runs[t].push(run);
@@ -104,7 +117,13 @@ impl BitMatrix {
                 }
             });
         }
-        BitMatrix { rows, cols, words, blocks, data }
+        BitMatrix {
+            rows,
+            cols,
+            words,
+            blocks,
+            data,
+        }
     }
 
     pub fn rows(&self) -> usize {
@@ -162,28 +181,36 @@ impl BitMatrix {
         if tblocks > 0 && cols > 0 {
             // Output block tb: transposed rows j (0..cols), words tb*BLOCK_WORDS + q, i.e. our
             // rows (tb*BLOCK_WORDS + q)*64 + i, at data[(tb*cols + j)*BLOCK_WORDS + q].
-            data.par_chunks_mut(cols * BLOCK_WORDS).enumerate().for_each(|(tb, out)| {
-                let mut block = [0u64; 64];
-                for q in 0..BLOCK_WORDS {
-                    let rb = tb * BLOCK_WORDS + q;
-                    if rb >= twords {
-                        break;
-                    }
-                    for w in 0..self.words {
-                        for (i, v) in block.iter_mut().enumerate() {
-                            let r = rb * 64 + i;
-                            *v = if r < rows { self.word(r, w) } else { 0 };
+            data.par_chunks_mut(cols * BLOCK_WORDS)
+                .enumerate()
+                .for_each(|(tb, out)| {
+                    let mut block = [0u64; 64];
+                    for q in 0..BLOCK_WORDS {
+                        let rb = tb * BLOCK_WORDS + q;
+                        if rb >= twords {
+                            break;
                         }
-                        transpose64(&mut block);
-                        // block[j] bit i = element (rb*64 + i, w*64 + j).
-                        for (j, &v) in block.iter().enumerate().take(cols - w * 64) {
-                            out[(w * 64 + j) * BLOCK_WORDS + q] = v;
+                        for w in 0..self.words {
+                            for (i, v) in block.iter_mut().enumerate() {
+                                let r = rb * 64 + i;
+                                *v = if r < rows { self.word(r, w) } else { 0 };
+                            }
+                            transpose64(&mut block);
+                            // block[j] bit i = element (rb*64 + i, w*64 + j).
+                            for (j, &v) in block.iter().enumerate().take(cols - w * 64) {
+                                out[(w * 64 + j) * BLOCK_WORDS + q] = v;
+                            }
                         }
                     }
-                }
-            });
+                });
         }
-        BitMatrix { rows: cols, cols: rows, words: twords, blocks: tblocks, data }
+        BitMatrix {
+            rows: cols,
+            cols: rows,
+            words: twords,
+            blocks: tblocks,
+            data,
+        }
     }
 
     /// `out = B v` for one vector (`v.len() == cols`, `out.len() == rows`, overwritten).
@@ -195,8 +222,16 @@ impl BitMatrix {
     /// receives `batch` vectors of length `rows`. Groups of 4 (then 2, 1) vectors share one pass
     /// over the bits.
     pub fn matvec_batch(&self, vs: &[f64], out: &mut [f64], batch: usize, pool: &Pool) {
-        assert_eq!(vs.len(), self.cols * batch, "input must hold batch * cols values");
-        assert_eq!(out.len(), self.rows * batch, "output must hold batch * rows values");
+        assert_eq!(
+            vs.len(),
+            self.cols * batch,
+            "input must hold batch * cols values"
+        );
+        assert_eq!(
+            out.len(),
+            self.rows * batch,
+            "output must hold batch * rows values"
+        );
         let (mut done, rows, cols) = (0, self.rows, self.cols);
         while done < batch {
             let left = batch - done;
@@ -245,7 +280,10 @@ impl BitMatrix {
         if parts == 1 {
             run(0, &mut partials);
         } else {
-            partials.par_chunks_mut(part_len).enumerate().for_each(|(p, part)| run(p, part));
+            partials
+                .par_chunks_mut(part_len)
+                .enumerate()
+                .for_each(|(p, part)| run(p, part));
         }
         // out[l * rows + r] = sum over parts of partial[p][r * L + l].
         let (first, rest) = partials.split_at(part_len);
@@ -276,8 +314,9 @@ impl BitMatrix {
             build_tables::<L>(vs, self.cols, b * BLOCK_WORDS * 64, tables);
             let (tabs, _) = tables.as_chunks::<256>();
             let (tabs8, _) = tabs.as_chunks::<8>();
-            let tabs8: &[[[[f64; L]; 256]; 8]; BLOCK_WORDS] =
-                tabs8[..BLOCK_WORDS].try_into().expect("tables hold one block");
+            let tabs8: &[[[[f64; L]; 256]; 8]; BLOCK_WORDS] = tabs8[..BLOCK_WORDS]
+                .try_into()
+                .expect("tables hold one block");
             let block = &self.data[b * rows * BLOCK_WORDS..(b + 1) * rows * BLOCK_WORDS];
             let (block, _) = block.as_chunks::<BLOCK_WORDS>();
             for (a, row) in acc.iter_mut().zip(block) {
@@ -309,7 +348,8 @@ fn build_tables<const L: usize>(vs: &[f64], cols: usize, col0: usize, tables: &m
         t[0] = [0.0; L];
         for bit in 0..8 {
             let c = col0 + 8 * b + bit;
-            let w: [f64; L] = std::array::from_fn(|l| if c < cols { vs[l * cols + c] } else { 0.0 });
+            let w: [f64; L] =
+                std::array::from_fn(|l| if c < cols { vs[l * cols + c] } else { 0.0 });
             let half = 1 << bit;
             let (lo, hi) = t.split_at_mut(half);
             for (h, &l) in hi[..half].iter_mut().zip(lo.iter()) {
@@ -360,8 +400,10 @@ mod tests {
                     assert_eq!(b.get(r, c), t.get(c, r), "{rows}x{cols} ({r},{c})");
                 }
             }
-            // Padding bits stay clear.
+            // Padding bits stay clear; the row-major constructor gives the same matrix.
             assert_eq!(t.transpose(), b);
+            let row_major: Vec<u64> = (0..rows).flat_map(|r| b.row_words(r)).collect();
+            assert_eq!(BitMatrix::new(rows, cols, row_major), b);
         }
     }
 
@@ -376,10 +418,15 @@ mod tests {
                 b.matvec_batch(&vs, &mut out, batch, &pool);
                 for l in 0..batch {
                     for r in 0..rows {
-                        let want: f64 =
-                            (0..cols).filter(|&c| b.get(r, c)).map(|c| vs[l * cols + c]).sum();
+                        let want: f64 = (0..cols)
+                            .filter(|&c| b.get(r, c))
+                            .map(|c| vs[l * cols + c])
+                            .sum();
                         let got = out[l * rows + r];
-                        assert!((got - want).abs() < 1e-12, "{rows}x{cols} b{batch} {got} {want}");
+                        assert!(
+                            (got - want).abs() < 1e-12,
+                            "{rows}x{cols} b{batch} {got} {want}"
+                        );
                     }
                 }
             }

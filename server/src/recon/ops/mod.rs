@@ -14,7 +14,7 @@
 //!
 //! No operator allocates in its products once warm (scratch buffers come from a per-operator pool;
 //! the trait takes `&self` and is `Sync`). Speeds: `ops::bench` (run with
-//! `cargo test --release -p helmholtz-server --lib recon::ops::bench -- --ignored --nocapture`).
+//! `cargo test -p helmholtz-server --lib recon::ops::bench -- --ignored --nocapture --test-threads 1`).
 
 pub mod bernoulli;
 pub mod bits;
@@ -23,6 +23,7 @@ pub mod hadamard;
 pub mod raster;
 pub(crate) mod scratch;
 pub mod speckle;
+pub mod subset;
 
 #[cfg(test)]
 mod bench;
@@ -35,6 +36,7 @@ pub use centred::CentredOperator;
 pub use hadamard::{HadamardOperator, SplitPairs};
 pub use raster::RasterOperator;
 pub use speckle::SpeckleOperator;
+pub use subset::RowSubset;
 
 use helmholtz_proto::{Family, PatternSpec};
 
@@ -52,7 +54,10 @@ pub enum OpError {
     #[error("the {0} family has grey levels, not bits")]
     NotBinary(&'static str),
     #[error("expected a {want} spec, got {got}")]
-    WrongFamily { want: &'static str, got: &'static str },
+    WrongFamily {
+        want: &'static str,
+        got: &'static str,
+    },
     #[error(
         "the operator would hold {bytes} bytes of patterns, over the {limit}-byte limit: \
          use fewer rows or a smaller image"
@@ -62,14 +67,20 @@ pub enum OpError {
 
 pub(crate) fn check_rows(spec: &PatternSpec, rows: u64) -> Result<(), OpError> {
     if rows > spec.count() {
-        return Err(OpError::TooManyRows { rows, count: spec.count() });
+        return Err(OpError::TooManyRows {
+            rows,
+            count: spec.count(),
+        });
     }
     Ok(())
 }
 
 pub(crate) fn check_memory(bytes: usize) -> Result<(), OpError> {
     if bytes > MEMORY_LIMIT {
-        return Err(OpError::TooLarge { bytes, limit: MEMORY_LIMIT });
+        return Err(OpError::TooLarge {
+            bytes,
+            limit: MEMORY_LIMIT,
+        });
     }
     Ok(())
 }

@@ -24,7 +24,10 @@ pub struct RasterOperator {
 impl RasterOperator {
     /// `rows` patterns of a `width x height` raster scan with `block x block` blocks.
     pub fn new(width: u32, height: u32, block: u32, rows: usize) -> Self {
-        assert!(width > 0 && height > 0 && block > 0, "raster needs positive sizes");
+        assert!(
+            width > 0 && height > 0 && block > 0,
+            "raster needs positive sizes"
+        );
         let bx = width.div_ceil(block) as usize;
         let by = height.div_ceil(block) as usize;
         let b = block as usize;
@@ -34,12 +37,23 @@ impl RasterOperator {
                 pixel_block.push(((y / b) * bx + x / b) as u32);
             }
         }
-        RasterOperator { width, height, block, rows, blocks: bx * by, pixel_block, pool: Pool::new() }
+        RasterOperator {
+            width,
+            height,
+            block,
+            rows,
+            blocks: bx * by,
+            pixel_block,
+            pool: Pool::new(),
+        }
     }
 
     pub fn from_spec(spec: &PatternSpec, rows: u64) -> Result<Self, OpError> {
         let Family::Raster { block } = *spec.family() else {
-            return Err(OpError::WrongFamily { want: "raster", got: spec.family().name() });
+            return Err(OpError::WrongFamily {
+                want: "raster",
+                got: spec.family().name(),
+            });
         };
         super::check_rows(spec, rows)?;
         Ok(Self::new(spec.width(), spec.height(), block, rows as usize))

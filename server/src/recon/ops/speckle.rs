@@ -42,7 +42,10 @@ impl SpeckleOperator {
     /// Patterns `0..rows` of a speckle spec.
     pub fn from_spec(spec: &PatternSpec, rows: u64) -> Result<Self, OpError> {
         let Family::Speckle { grain } = *spec.family() else {
-            return Err(OpError::WrongFamily { want: "speckle", got: spec.family().name() });
+            return Err(OpError::WrongFamily {
+                want: "speckle",
+                got: spec.family().name(),
+            });
         };
         super::check_rows(spec, rows)?;
         let (w, h) = (spec.width(), spec.height());
@@ -51,12 +54,16 @@ impl SpeckleOperator {
         super::check_memory(rows as usize * cells * 4)?;
         let seed = spec.seed();
         let mut values = vec![0f32; rows as usize * cells];
-        values.par_chunks_mut(cells.max(1)).enumerate().with_min_len(8).for_each(|(i, row)| {
-            let base = (i as u64).wrapping_mul(cells as u64);
-            for (c, v) in row.iter_mut().enumerate() {
-                *v = speckle_level(stream_word(seed, base.wrapping_add(c as u64)));
-            }
-        });
+        values
+            .par_chunks_mut(cells.max(1))
+            .enumerate()
+            .with_min_len(8)
+            .for_each(|(i, row)| {
+                let base = (i as u64).wrapping_mul(cells as u64);
+                for (c, v) in row.iter_mut().enumerate() {
+                    *v = speckle_level(stream_word(seed, base.wrapping_add(c as u64)));
+                }
+            });
         Ok(Self::from_cells(w, h, grain, rows as usize, values))
     }
 
@@ -65,7 +72,11 @@ impl SpeckleOperator {
     pub fn from_cells(width: u32, height: u32, grain: u32, rows: usize, values: Vec<f32>) -> Self {
         let cx = width.div_ceil(grain) as usize;
         let cells = cx * height.div_ceil(grain) as usize;
-        assert_eq!(values.len(), rows * cells, "speckle levels must be rows x cells");
+        assert_eq!(
+            values.len(),
+            rows * cells,
+            "speckle levels must be rows x cells"
+        );
         let g = grain as usize;
         let pixel_cell = if grain == 1 {
             Vec::new()
@@ -74,7 +85,16 @@ impl SpeckleOperator {
                 .flat_map(|y| (0..width as usize).map(move |x| ((y / g) * cx + x / g) as u32))
                 .collect()
         };
-        SpeckleOperator { width, height, grain, rows, cells, pixel_cell, values, pool: Pool::new() }
+        SpeckleOperator {
+            width,
+            height,
+            grain,
+            rows,
+            cells,
+            pixel_cell,
+            values,
+            pool: Pool::new(),
+        }
     }
 
     pub fn width(&self) -> u32 {
@@ -102,7 +122,10 @@ impl SpeckleOperator {
     fn to_cells(&self, xs: &[f64], out: &mut [f64], l: usize) {
         let k = self.k();
         for v in 0..l {
-            let (x, o) = (&xs[v * k..(v + 1) * k], &mut out[v * self.cells..(v + 1) * self.cells]);
+            let (x, o) = (
+                &xs[v * k..(v + 1) * k],
+                &mut out[v * self.cells..(v + 1) * self.cells],
+            );
             o.fill(0.0);
             for (&c, &xv) in self.pixel_cell.iter().zip(x) {
                 o[c as usize] += xv;
@@ -130,7 +153,10 @@ impl SpeckleOperator {
             }
         };
         if n * cells >= 1 << 16 {
-            inter_rows.par_chunks_mut(ROW_TASK).enumerate().for_each(body);
+            inter_rows
+                .par_chunks_mut(ROW_TASK)
+                .enumerate()
+                .for_each(body);
         } else {
             inter_rows.chunks_mut(ROW_TASK).enumerate().for_each(body);
         }
@@ -179,12 +205,22 @@ impl SpeckleOperator {
     }
 
     fn batched(&self, ins: &[f64], outs: &mut [f64], batch: usize, forward: bool) {
-        let (ilen, olen) = if forward { (self.k(), self.rows) } else { (self.rows, self.k()) };
+        let (ilen, olen) = if forward {
+            (self.k(), self.rows)
+        } else {
+            (self.rows, self.k())
+        };
         assert_eq!(ins.len(), ilen * batch);
         assert_eq!(outs.len(), olen * batch);
         let mut done = 0;
         while done < batch {
-            let l = if batch - done >= 4 { 4 } else if batch - done >= 2 { 2 } else { 1 };
+            let l = if batch - done >= 4 {
+                4
+            } else if batch - done >= 2 {
+                2
+            } else {
+                1
+            };
             let i = &ins[done * ilen..(done + l) * ilen];
             let o = &mut outs[done * olen..(done + l) * olen];
             match (l, forward) {

@@ -25,7 +25,10 @@ fn naive_patterns(spec: &PatternSpec, rows: u64) -> DenseOperator {
 
 fn max_diff(a: &[f64], b: &[f64]) -> f64 {
     assert_eq!(a.len(), b.len());
-    a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f64::max)
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f64::max)
 }
 
 /// Batched products equal one-by-one products.
@@ -44,31 +47,52 @@ fn check_batches(op: &dyn LinearOperator, what: &str) {
             op.apply(&xs[b * n..(b + 1) * n], &mut y);
             op.adjoint(&ys[b * m..(b + 1) * m], &mut x);
             let scale = 1.0 + y.iter().chain(&x).fold(0.0f64, |a, v| a.max(v.abs()));
-            assert!(max_diff(&y, &got_y[b * m..(b + 1) * m]) <= 1e-12 * scale, "{what} batch {batch}");
-            assert!(max_diff(&x, &got_x[b * n..(b + 1) * n]) <= 1e-12 * scale, "{what} batch {batch}");
+            assert!(
+                max_diff(&y, &got_y[b * m..(b + 1) * m]) <= 1e-12 * scale,
+                "{what} batch {batch}"
+            );
+            assert!(
+                max_diff(&x, &got_x[b * n..(b + 1) * n]) <= 1e-12 * scale,
+                "{what} batch {batch}"
+            );
         }
     }
 }
 
 /// `op` equals `want` entry by entry (materialised column by column).
 fn check_equals(op: &dyn LinearOperator, want: &DenseOperator, tol: f64, what: &str) {
-    assert_eq!((op.rows(), op.cols()), (want.rows(), want.cols()), "{what} shape");
+    assert_eq!(
+        (op.rows(), op.cols()),
+        (want.rows(), want.cols()),
+        "{what} shape"
+    );
     let got = DenseOperator::from_operator(op);
-    assert!(max_diff(got.data(), want.data()) <= tol, "{what}: forward differs");
+    assert!(
+        max_diff(got.data(), want.data()) <= tol,
+        "{what}: forward differs"
+    );
     // And the adjoint against the transpose, through the dense operator's own adjoint.
     let y = test_vector(op.rows(), 5);
     let (mut a, mut b) = (vec![0.0; op.cols()], vec![0.0; op.cols()]);
     op.adjoint(&y, &mut a);
     want.adjoint(&y, &mut b);
-    assert!(max_diff(&a, &b) <= tol * (1.0 + op.rows() as f64), "{what}: adjoint differs");
+    assert!(
+        max_diff(&a, &b) <= tol * (1.0 + op.rows() as f64),
+        "{what}: adjoint differs"
+    );
 }
 
 #[test]
 fn bernoulli_matches_the_generator() {
     // Pixel counts that are not multiples of 64, non-square grids, several fills.
-    for (w, h, n, fill) in
-        [(7u32, 5u32, 13u64, 0.5), (13, 11, 70, 0.5), (64, 1, 3, 0.3), (10, 10, 129, 0.95), (16, 16, 64, 0.5), (33, 3, 200, 0.05)]
-    {
+    for (w, h, n, fill) in [
+        (7u32, 5u32, 13u64, 0.5),
+        (13, 11, 70, 0.5),
+        (64, 1, 3, 0.3),
+        (10, 10, 129, 0.95),
+        (16, 16, 64, 0.5),
+        (33, 3, 200, 0.05),
+    ] {
         let s = spec(Family::Bernoulli { fill }, w, h, n + 5, 42);
         let op = BernoulliOperator::from_spec(&s, n).unwrap();
         let what = format!("bernoulli {w}x{h} n={n} q={fill}");
@@ -107,14 +131,30 @@ fn bernoulli_parallel_path_matches_naive() {
 #[test]
 fn binary_operator_takes_any_binary_family() {
     // Raw Hadamard frames and raster blocks as packed bits.
-    let s = spec(Family::Hadamard { ordering: HadamardOrdering::Zigzag }, 8, 4, 64, 0);
+    let s = spec(
+        Family::Hadamard {
+            ordering: HadamardOrdering::Zigzag,
+        },
+        8,
+        4,
+        64,
+        0,
+    );
     let op = BinaryOperator::from_spec(&s, 64).unwrap();
-    check_equals(&op, &naive_patterns(&s, 64), 1e-12, "hadamard frames as bits");
+    check_equals(
+        &op,
+        &naive_patterns(&s, 64),
+        1e-12,
+        "hadamard frames as bits",
+    );
     let s = spec(Family::Raster { block: 3 }, 10, 7, 30, 0);
     let op = BinaryOperator::from_spec(&s, 30).unwrap();
     check_equals(&op, &naive_patterns(&s, 30), 1e-12, "raster as bits");
     let s = spec(Family::Speckle { grain: 1 }, 4, 4, 3, 0);
-    assert_eq!(BinaryOperator::from_spec(&s, 3).unwrap_err(), OpError::NotBinary("speckle"));
+    assert_eq!(
+        BinaryOperator::from_spec(&s, 3).unwrap_err(),
+        OpError::NotBinary("speckle")
+    );
 }
 
 #[test]
@@ -133,7 +173,8 @@ fn hadamard_matches_split_pairs_in_every_ordering() {
                 let kk = k as usize;
                 let mut data = Vec::new();
                 for r in 0..op.rows() {
-                    let (plus, minus) = (&raw.data()[2 * r * kk..], &raw.data()[(2 * r + 1) * kk..]);
+                    let (plus, minus) =
+                        (&raw.data()[2 * r * kk..], &raw.data()[(2 * r + 1) * kk..]);
                     data.extend((0..kk).map(|j| (plus[j] - minus[j]) / (k as f64).sqrt()));
                 }
                 let want = DenseOperator::new(op.rows(), kk, data);
@@ -156,7 +197,15 @@ fn hadamard_parallel_batch_and_large_sizes() {
     // 64 x 32: parallel batches; 256 x 256: parallel fwht inside.
     for (w, h) in [(64u32, 32u32), (256, 256)] {
         let k = (w * h) as u64;
-        let s = spec(Family::Hadamard { ordering: HadamardOrdering::RussianDoll }, w, h, 2 * k, 0);
+        let s = spec(
+            Family::Hadamard {
+                ordering: HadamardOrdering::RussianDoll,
+            },
+            w,
+            h,
+            2 * k,
+            0,
+        );
         let op = HadamardOperator::from_spec(&s, k / 5 * 2).unwrap();
         assert!(adjoint_mismatch(&op, 1) < 1e-12);
         check_batches(&op, "hadamard large");
@@ -167,7 +216,15 @@ fn hadamard_parallel_batch_and_large_sizes() {
 fn split_pairs_cancel_the_dark_level_and_monitor_drift() {
     let (w, h) = (8u32, 8u32);
     let k = 64usize;
-    let s = spec(Family::Hadamard { ordering: HadamardOrdering::Sequency }, w, h, 128, 0);
+    let s = spec(
+        Family::Hadamard {
+            ordering: HadamardOrdering::Sequency,
+        },
+        w,
+        h,
+        128,
+        0,
+    );
     let frames = 40u64;
     let op = HadamardOperator::from_spec(&s, frames).unwrap();
     let t = crate::recon::testutil::random_scene(k, 0.0, 1.0, 3);
@@ -181,7 +238,12 @@ fn split_pairs_cancel_the_dark_level_and_monitor_drift() {
     op.apply(&t, &mut want);
     assert!(max_diff(&pairs.data, &want) < 1e-12);
     let total: f64 = t.iter().sum();
-    assert!(pairs.sums.iter().all(|s| (s - (total + 2.0 * dark)).abs() < 1e-9));
+    assert!(
+        pairs
+            .sums
+            .iter()
+            .all(|s| (s - (total + 2.0 * dark)).abs() < 1e-9)
+    );
     assert!(pairs.sum_relative_spread < 1e-12);
     // Sequency row 0 is natural row 0: its P- frame is all-off.
     assert!((pairs.dark.unwrap() - dark).abs() < 1e-12);
@@ -193,13 +255,23 @@ fn split_pairs_cancel_the_dark_level_and_monitor_drift() {
         two.push(c * (1.0 + 0.1 * i as f64 / frames as f64));
     }
     let drift = op.split_pairs_channel(&two, 2, 1);
-    assert!(drift.sum_relative_spread > 0.02, "{}", drift.sum_relative_spread);
+    assert!(
+        drift.sum_relative_spread > 0.02,
+        "{}",
+        drift.sum_relative_spread
+    );
     assert_eq!(op.split_pairs_channel(&two, 2, 0).sum_mean, 0.0);
 }
 
 #[test]
 fn raster_matches_the_generator() {
-    for (w, h, block, n) in [(10u32, 7u32, 3u32, 30u64), (10, 7, 1, 70), (10, 7, 1, 25), (5, 9, 1, 100), (6, 6, 6, 2)] {
+    for (w, h, block, n) in [
+        (10u32, 7u32, 3u32, 30u64),
+        (10, 7, 1, 70),
+        (10, 7, 1, 25),
+        (5, 9, 1, 100),
+        (6, 6, 6, 2),
+    ] {
         let s = spec(Family::Raster { block }, w, h, n, 0);
         let op = RasterOperator::from_spec(&s, n).unwrap();
         let what = format!("raster {w}x{h} b{block} n={n}");
@@ -211,7 +283,13 @@ fn raster_matches_the_generator() {
 
 #[test]
 fn speckle_matches_the_generator() {
-    for (w, h, grain, n) in [(10u32, 7u32, 1u32, 20u64), (10, 7, 3, 20), (16, 16, 4, 50), (5, 3, 5, 4), (40, 40, 1, 60)] {
+    for (w, h, grain, n) in [
+        (10u32, 7u32, 1u32, 20u64),
+        (10, 7, 3, 20),
+        (16, 16, 4, 50),
+        (5, 3, 5, 4),
+        (40, 40, 1, 60),
+    ] {
         let s = spec(Family::Speckle { grain }, w, h, n, 9);
         let op = SpeckleOperator::from_spec(&s, n).unwrap();
         let what = format!("speckle {w}x{h} g{grain} n={n}");
@@ -225,7 +303,13 @@ fn speckle_matches_the_generator() {
 fn measurement_operator_picks_and_checks() {
     let cases = [
         (Family::Bernoulli { fill: 0.5 }, 100u64, 100usize),
-        (Family::Hadamard { ordering: HadamardOrdering::Natural }, 100, 50),
+        (
+            Family::Hadamard {
+                ordering: HadamardOrdering::Natural,
+            },
+            100,
+            50,
+        ),
         (Family::Raster { block: 2 }, 100, 100),
         (Family::Speckle { grain: 2 }, 100, 100),
     ];
@@ -235,23 +319,42 @@ fn measurement_operator_picks_and_checks() {
         assert_eq!((op.rows(), op.cols()), (want_rows, 256), "{family:?}");
         assert!(adjoint_mismatch(op.as_ref(), 1) < 1e-12);
         let err = try_measurement_operator(&s, 201).err().unwrap();
-        assert_eq!(err, OpError::TooManyRows { rows: 201, count: 200 });
+        assert_eq!(
+            err,
+            OpError::TooManyRows {
+                rows: 201,
+                count: 200
+            }
+        );
         assert!(err.to_string().contains("201 rows requested"));
     }
     // Memory refusal: speckle 2048 x 2048 with 1000 patterns is 16 GB of levels.
     let s = spec(Family::Speckle { grain: 1 }, 2048, 2048, 1000, 1);
-    assert!(matches!(try_measurement_operator(&s, 1000), Err(OpError::TooLarge { .. })));
+    assert!(matches!(
+        try_measurement_operator(&s, 1000),
+        Err(OpError::TooLarge { .. })
+    ));
     // Wrong families for the specific constructors.
     let b = spec(Family::Bernoulli { fill: 0.5 }, 4, 4, 4, 1);
-    assert!(matches!(HadamardOperator::from_spec(&b, 2), Err(OpError::WrongFamily { .. })));
-    assert!(matches!(RasterOperator::from_spec(&b, 2), Err(OpError::WrongFamily { .. })));
-    assert!(matches!(SpeckleOperator::from_spec(&b, 2), Err(OpError::WrongFamily { .. })));
+    assert!(matches!(
+        HadamardOperator::from_spec(&b, 2),
+        Err(OpError::WrongFamily { .. })
+    ));
+    assert!(matches!(
+        RasterOperator::from_spec(&b, 2),
+        Err(OpError::WrongFamily { .. })
+    ));
+    assert!(matches!(
+        SpeckleOperator::from_spec(&b, 2),
+        Err(OpError::WrongFamily { .. })
+    ));
 }
 
 /// Eigenvalues of a symmetric matrix (cyclic Jacobi), ascending.
 fn symmetric_eigenvalues(mut a: Vec<f64>, n: usize) -> Vec<f64> {
     for _sweep in 0..100 {
-        let off: f64 = (0..n).flat_map(|i| (0..n).filter(move |&j| j != i).map(move |j| (i, j)))
+        let off: f64 = (0..n)
+            .flat_map(|i| (0..n).filter(move |&j| j != i).map(move |j| (i, j)))
             .map(|(i, j)| a[i * n + j] * a[i * n + j])
             .sum();
         if off < 1e-22 * (0..n).map(|i| a[i * n + i] * a[i * n + i]).sum::<f64>() {
@@ -321,7 +424,9 @@ fn centring_conditions_bernoulli_patterns() {
     let norm_p = spectral_norm(&p, 500, 1e-9);
     let norm_c = spectral_norm(&centred, 500, 1e-9);
     let norm_aug = spectral_norm(&aug, 500, 1e-9);
-    println!("cond P = {cond_p:.2}, cond [A_c; w m] = {cond_aug:.2}; ||P|| = {norm_p:.1}, ||A_c|| = {norm_c:.1}, ||aug|| = {norm_aug:.1}");
+    println!(
+        "cond P = {cond_p:.2}, cond [A_c; w m] = {cond_aug:.2}; ||P|| = {norm_p:.1}, ||A_c|| = {norm_c:.1}, ||aug|| = {norm_aug:.1}"
+    );
     // ||P|| ~ q sqrt(nk) = 160, ||A_c|| ~ 0.5 (sqrt(k) + sqrt(n)) = 21.
     assert!(norm_p > 6.0 * norm_c, "{norm_p} vs {norm_c}");
     assert!(norm_aug <= 2f64.sqrt() * norm_c * 1.01);
@@ -338,7 +443,10 @@ fn centred_objective_splits_exactly() {
     let p = BernoulliOperator::from_spec(&s, n).unwrap();
     let k = s.pixels();
     let t = test_vector(k, 1);
-    let c: Vec<f64> = test_vector(n as usize, 2).iter().map(|v| 10.0 + v).collect();
+    let c: Vec<f64> = test_vector(n as usize, 2)
+        .iter()
+        .map(|v| 10.0 + v)
+        .collect();
     let mut pt = vec![0.0; n as usize];
     p.apply(&t, &mut pt);
     let full: f64 = pt.iter().zip(&c).map(|(a, b)| (a - b) * (a - b)).sum();
@@ -378,5 +486,67 @@ fn centred_wraps_boxed_dyn_operators() {
     assert_eq!(c.rows(), 10);
     assert!(adjoint_mismatch(&c, 1) < 1e-12);
     // Raster block 2 on 6 x 6: every pattern lights 4 pixels, each pixel lit once in 9 rows.
-    assert!(c.mean_pattern().iter().all(|&m| (m - 1.0 / 9.0).abs() < 1e-15));
+    assert!(
+        c.mean_pattern()
+            .iter()
+            .all(|&m| (m - 1.0 / 9.0).abs() < 1e-15)
+    );
+}
+
+#[test]
+fn empty_operators_are_harmless() {
+    let s = spec(Family::Bernoulli { fill: 0.5 }, 9, 7, 10, 1);
+    let op = BernoulliOperator::from_spec(&s, 0).unwrap();
+    assert_eq!((op.rows(), op.cols()), (0, 63));
+    let mut x = vec![f64::NAN; 63];
+    op.adjoint(&[], &mut x);
+    assert!(x.iter().all(|&v| v == 0.0));
+    op.apply(&test_vector(63, 1), &mut []);
+    let c = CentredOperator::new(Box::new(op));
+    assert!(c.mean_pattern().iter().all(|&v| v == 0.0));
+    let h = spec(
+        Family::Hadamard {
+            ordering: HadamardOrdering::Natural,
+        },
+        4,
+        4,
+        32,
+        0,
+    );
+    let op = HadamardOperator::from_spec(&h, 1).unwrap();
+    assert_eq!(op.rows(), 0);
+    let mut x = vec![f64::NAN; 16];
+    op.adjoint(&[], &mut x);
+    assert!(x.iter().all(|&v| v == 0.0));
+}
+
+#[test]
+fn row_selections_match_the_full_operator() {
+    let pick = vec![5usize, 0, 17, 17, 3];
+    let check = |full: &dyn LinearOperator, sub: &dyn LinearOperator, what: &str| {
+        let d = DenseOperator::from_operator(full);
+        let k = full.cols();
+        let want: Vec<f64> = pick
+            .iter()
+            .flat_map(|&r| d.data()[r * k..(r + 1) * k].to_vec())
+            .collect();
+        check_equals(sub, &DenseOperator::new(pick.len(), k, want), 1e-12, what);
+        assert!(adjoint_mismatch(sub, 3) < 1e-12, "{what}");
+    };
+    let s = spec(Family::Bernoulli { fill: 0.4 }, 11, 9, 40, 3);
+    let full = BernoulliOperator::from_spec(&s, 40).unwrap();
+    check(&full, &full.select_rows(&pick), "bernoulli select");
+    let h = spec(
+        Family::Hadamard {
+            ordering: HadamardOrdering::CakeCutting,
+        },
+        8,
+        4,
+        64,
+        0,
+    );
+    let full = HadamardOperator::from_spec(&h, 64).unwrap();
+    check(&full, &full.select_rows(&pick), "hadamard select");
+    let sub = RowSubset::new(measurement_operator(&s, 40), pick.clone());
+    check(sub.inner(), &sub, "generic subset");
 }

@@ -31,7 +31,9 @@ pub fn cgls(
     let start = Instant::now();
     let (n, k) = check_problem(a, b, opts)?;
     if !(mu.is_finite() && mu >= 0.0) {
-        return Err(ReconError::Unsolvable(format!("mu must be finite and >= 0, not {mu}")));
+        return Err(ReconError::Unsolvable(format!(
+            "mu must be finite and >= 0, not {mu}"
+        )));
     }
     let w = opts.weights.as_deref();
     let wmul = |v: &mut [f64]| {
@@ -66,7 +68,9 @@ pub fn cgls(
     }
     // r = b - A x, s = A^T W r - mu x.
     a.apply(&x, &mut q);
-    r.iter_mut().zip(b.iter().zip(&q)).for_each(|(r, (b, q))| *r = b - q);
+    r.iter_mut()
+        .zip(b.iter().zip(&q))
+        .for_each(|(r, (b, q))| *r = b - q);
     wr.copy_from_slice(&r);
     wmul(&mut wr);
     a.adjoint(&wr, &mut s);
@@ -126,7 +130,9 @@ pub fn cgls(
 
     // Exact final residual (the recurrence drifts slightly).
     a.apply(&x, &mut q);
-    r.iter_mut().zip(b.iter().zip(&q)).for_each(|(r, (b, q))| *r = b - q);
+    r.iter_mut()
+        .zip(b.iter().zip(&q))
+        .for_each(|(r, (b, q))| *r = b - q);
     let rel = ratio_or_abs(norm(&r), norm(b));
     wr.copy_from_slice(&r);
     wmul(&mut wr);
@@ -154,6 +160,7 @@ pub fn cgls(
             lipschitz: 0.0,
             inner_iterations: 0,
             deflated: false,
+            polish_iterations: 0,
         },
         t: x,
     })

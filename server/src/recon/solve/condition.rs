@@ -73,7 +73,13 @@ impl<'a> MeanDeflated<'a> {
         if !(dominance.is_finite() && dominance > DOMINANCE) {
             return None;
         }
-        Some(MeanDeflated { a, sqrt_w, alpha: rms_row / mu_norm, mu_norm, dominance })
+        Some(MeanDeflated {
+            a,
+            sqrt_w,
+            alpha: rms_row / mu_norm,
+            mu_norm,
+            dominance,
+        })
     }
 
     /// The right-hand side `[P W^1/2 b; alpha mean(W^1/2 b)]`.
@@ -146,11 +152,30 @@ pub(crate) struct Prepared<'a> {
 }
 
 impl<'a> Prepared<'a> {
-    pub fn new(a: &'a dyn LinearOperator, b: &[f64], weights: Option<&'a [f64]>, deflate: bool) -> Self {
-        let deflated = if deflate { MeanDeflated::detect(a, weights) } else { None };
+    pub fn new(
+        a: &'a dyn LinearOperator,
+        b: &[f64],
+        weights: Option<&'a [f64]>,
+        deflate: bool,
+    ) -> Self {
+        let deflated = if deflate {
+            MeanDeflated::detect(a, weights)
+        } else {
+            None
+        };
         match deflated {
-            Some(d) => Prepared { a, b: d.rhs(b), deflated: Some(d), weights: None },
-            None => Prepared { a, deflated: None, b: b.to_vec(), weights },
+            Some(d) => Prepared {
+                a,
+                b: d.rhs(b),
+                deflated: Some(d),
+                weights: None,
+            },
+            None => Prepared {
+                a,
+                deflated: None,
+                b: b.to_vec(),
+                weights,
+            },
         }
     }
     pub fn op(&self) -> &dyn LinearOperator {
@@ -193,7 +218,11 @@ mod tests {
         let bd = d.rhs(&b);
         let mut at = vec![0.0; n + 1];
         d.apply(&t, &mut at);
-        let r: f64 = at.iter().zip(&bd).map(|(x, y)| (x - y).abs()).fold(0.0, f64::max);
+        let r: f64 = at
+            .iter()
+            .zip(&bd)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0, f64::max);
         assert!(r < 1e-10 * norm(&bd), "{r}");
         // The outlying singular value is gone: ||A'|| is close to the centred bulk.
         let s_raw = spectral_norm(&a, 200, 1e-10);

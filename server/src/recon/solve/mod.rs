@@ -48,8 +48,8 @@ mod tests;
 pub use cgls::cgls;
 pub use condition::MeanDeflated;
 pub use fista::{fista, lambda_max_l1, tv_fista};
-pub use poisson::{poisson_irls, poisson_weights};
 pub use path::{PathPoint, Penalty, RegPath, geometric_fractions, lambda_max, solve_path};
+pub use poisson::{poisson_irls, poisson_weights};
 pub use tv::{Grid, lambda_max_tv, tv, tv_value};
 
 /// The regularisation weight.
@@ -130,10 +130,12 @@ pub struct SolveReport {
     pub stop: StopReason,
     /// Momentum restarts (FISTA: gradient or function scheme); 0 for other solvers.
     pub restarts: usize,
-    /// Final objective in the solver's own form (FISTA/TV: `1/2||W^1/2(At-b)||^2 + lambda R(t)`;
+    /// Final objective of the caller's problem (FISTA/TV: `1/2||W^1/2(At-b)||^2 + lambda R(t)`;
     /// CGLS: `||W^1/2(At-b)||^2 + mu ||t||^2`).
     pub objective: f64,
-    /// Objective at iterations `0, stride, 2 stride, ...` (0 = the starting point).
+    /// Objective at iterations `0, stride, 2 stride, ...` (0 = the starting point) of the main
+    /// iterations (of the mean-deflated objective when `deflated`; the polish is not included).
+    /// FISTA's is non-increasing.
     pub objective_history: Vec<f64>,
     pub history_stride: usize,
     /// `||A t - b|| / ||b||` (unweighted; absolute if `b = 0`).
@@ -153,9 +155,12 @@ pub struct SolveReport {
     pub lipschitz: f64,
     /// Inner iterations of the exact prox (FISTA with `Psi` and `t >= 0`, TV-FISTA).
     pub inner_iterations: usize,
-    /// Whether the common mode of the rows was deflated ([`condition`]); the objective and
-    /// `lambda` then refer to the deflated data term, `relative_residual` to the original one.
+    /// Whether the common mode of the rows was deflated ([`condition`]) for the main
+    /// iterations; the result is then polished on the exact objective (FISTA / TV-FISTA
+    /// iterations, counted in `iterations` and in `polish_iterations`). `objective`, `lambda`
+    /// and `relative_residual` always refer to the caller's exact problem.
     pub deflated: bool,
+    pub polish_iterations: usize,
 }
 
 /// A solution and how it was found.
@@ -176,7 +181,10 @@ pub(crate) struct Weighted<'a> {
 
 impl<'a> Weighted<'a> {
     pub fn new(a: &'a dyn LinearOperator, weights: Option<&[f64]>) -> Self {
-        Weighted { a, sqrt_w: weights.map(|w| w.iter().map(|v| v.sqrt()).collect()) }
+        Weighted {
+            a,
+            sqrt_w: weights.map(|w| w.iter().map(|v| v.sqrt()).collect()),
+        }
     }
 }
 
@@ -204,8 +212,10 @@ impl LinearOperator for Weighted<'_> {
     }
 }
 
-/// `||W^1/2 A||^2`: from the options if given, else 40 power iterations (relative tol 1e-4).
-/// The estimate is a lower bound; callers add a margin or backtrack.
+/// `||W^1/2 A||^2`: from the options if given, else 20 power iterations (relative tol 1e-3).
+/// The estimate is a lower bound (measured: within 2.5 % after 20 iterations on a 307 x 1024
+/// Gaussian matrix, exact on deflated 0/1 patterns); FISTA backtracks and TV adds a 10 % margin.
+/// 20 rather than more: each iteration costs two operator products, as much as a solver step.
 pub(crate) fn lipschitz_of(
     a: &dyn LinearOperator,
     weights: Option<&[f64]>,
@@ -214,7 +224,7 @@ pub(crate) fn lipschitz_of(
     let l = match given {
         Some(l) => l,
         None => {
-            let s = spectral_norm(&Weighted::new(a, weights), 40, 1e-4);
+            let s = spectral_norm(&Weighted::new(a, weights), 20, 1e-3);
             s * s
         }
     };
@@ -246,7 +256,10 @@ pub(crate) fn check_problem(
         )));
     }
     if let Some(i) = b.iter().position(|v| !v.is_finite()) {
-        return Err(ReconError::BadRows(format!("measurement {i} is not finite ({})", b[i])));
+        return Err(ReconError::BadRows(format!(
+            "measurement {i} is not finite ({})",
+            b[i]
+        )));
     }
     if let Some(w) = &opts.weights {
         if w.len() != n {
@@ -270,19 +283,28 @@ pub(crate) fn check_problem(
             )));
         }
         if t0.iter().any(|v| !v.is_finite()) {
-            return Err(ReconError::Unsolvable("warm start contains NaN or infinity".into()));
+            return Err(ReconError::Unsolvable(
+                "warm start contains NaN or infinity".into(),
+            ));
         }
     }
     if !(opts.tol.is_finite() && opts.tol >= 0.0) {
-        return Err(ReconError::Unsolvable(format!("tol must be finite and >= 0, not {}", opts.tol)));
+        return Err(ReconError::Unsolvable(format!(
+            "tol must be finite and >= 0, not {}",
+            opts.tol
+        )));
     }
     let (lo, hi) = opts.progress;
     if !(lo.is_finite() && hi.is_finite()) {
-        return Err(ReconError::Unsolvable("progress range must be finite".into()));
+        return Err(ReconError::Unsolvable(
+            "progress range must be finite".into(),
+        ));
     }
     match opts.lambda {
         Lambda::Absolute(l) | Lambda::Relative(l) if !(l.is_finite() && l >= 0.0) => {
-            return Err(ReconError::Unsolvable(format!("lambda must be finite and >= 0, not {l}")));
+            return Err(ReconError::Unsolvable(format!(
+                "lambda must be finite and >= 0, not {l}"
+            )));
         }
         _ => {}
     }
@@ -345,18 +367,22 @@ pub(crate) struct History {
 
 impl History {
     pub fn new(cap: usize) -> Self {
-        History { cap: cap.max(2), stride: 1, values: Vec::new() }
+        History {
+            cap: cap.max(2),
+            stride: 1,
+            values: Vec::new(),
+        }
     }
     /// Records the objective at iteration `it` (0 = start) if it falls on the stride.
     pub fn record(&mut self, it: usize, value: f64) {
-        if it % self.stride != 0 {
+        if !it.is_multiple_of(self.stride) {
             return;
         }
         if self.values.len() >= self.cap {
             let kept: Vec<f64> = self.values.iter().step_by(2).copied().collect();
             self.values = kept;
             self.stride *= 2;
-            if it % self.stride != 0 {
+            if !it.is_multiple_of(self.stride) {
                 return;
             }
         }
@@ -378,13 +404,19 @@ pub(crate) struct Ticker<'a> {
 impl<'a> Ticker<'a> {
     pub fn new(control: &'a Control, opts: &SolveOptions) -> Self {
         let (lo, hi) = opts.progress;
-        Ticker { control, lo, span: hi - lo, max_iter: opts.max_iter.max(1) }
+        Ticker {
+            control,
+            lo,
+            span: hi - lo,
+            max_iter: opts.max_iter.max(1),
+        }
     }
     pub fn tick(&self, it: usize) -> Result<(), ReconError> {
         if self.control.is_cancelled() {
             return Err(ReconError::Cancelled);
         }
-        self.control.set_progress(self.lo + self.span * (it as f64 / self.max_iter as f64));
+        self.control
+            .set_progress(self.lo + self.span * (it as f64 / self.max_iter as f64));
         Ok(())
     }
     pub fn done(&self) {
@@ -428,6 +460,7 @@ pub(crate) fn zero_solution(
             lipschitz,
             inner_iterations: 0,
             deflated: false,
+            polish_iterations: 0,
         },
     }
 }
@@ -436,7 +469,12 @@ pub(crate) fn zero_solution(
 pub(crate) fn relative_residual(a: &dyn LinearOperator, t: &[f64], b: &[f64]) -> f64 {
     let mut at = vec![0.0; a.rows()];
     a.apply(t, &mut at);
-    let r: f64 = at.iter().zip(b).map(|(x, y)| (x - y) * (x - y)).sum::<f64>().sqrt();
+    let r: f64 = at
+        .iter()
+        .zip(b)
+        .map(|(x, y)| (x - y) * (x - y))
+        .sum::<f64>()
+        .sqrt();
     ratio_or_abs(r, norm(b))
 }
 
@@ -454,9 +492,4 @@ pub(crate) fn lambda_without_solve(l: Lambda) -> f64 {
         Lambda::Absolute(v) => v,
         Lambda::Relative(_) => 0.0,
     }
-}
-
-pub(crate) fn tests_rel(x: &[f64], y: &[f64]) -> f64 {
-    let d: f64 = x.iter().zip(y).map(|(a, b)| (a - b) * (a - b)).sum::<f64>().sqrt();
-    d / norm(y).max(f64::MIN_POSITIVE)
 }

@@ -1,15 +1,15 @@
 //! Regularisation paths: `lambda = f * lambda_max` for decreasing fractions `f`, each solve
-//! warm-started from the previous solution, the conditioning (mean deflation), `lambda_max` and
-//! the step-size constant computed once. Pure: the only side effect is progress on the
-//! [`Control`]. The `auto` method picks among the points (held-out error); nothing here chooses.
+//! warm-started from the previous solution, `lambda_max` and the step-size constant computed
+//! once (on the mean-deflated problem when deflation applies, as the solvers iterate on it).
+//! Pure: the only side effect is progress on the [`Control`]. The `auto` method picks among the points (held-out error); nothing here chooses.
 
 use std::time::Instant;
 
 use super::condition::Prepared;
 use super::tv::Grid;
 use super::{
-    Lambda, Solution, SolveOptions, SolveReport, check_problem, fista, is_zero_data,
-    lambda_max_l1, lambda_max_tv, lipschitz_of, relative_residual, tv, tv_fista, zero_solution,
+    Lambda, Solution, SolveOptions, SolveReport, check_problem, fista, is_zero_data, lambda_max_l1,
+    lambda_max_tv, lipschitz_of, tv, tv_fista, zero_solution,
 };
 use crate::recon::linop::LinearOperator;
 use crate::recon::{Control, ReconError};
@@ -56,9 +56,7 @@ pub fn lambda_max(
 ) -> f64 {
     match penalty {
         Penalty::L1 { psi } => lambda_max_l1(a, psi, b, weights, nonnegative),
-        Penalty::Tv { grid } | Penalty::TvPrimalDual { grid } => {
-            lambda_max_tv(a, grid, b, weights)
-        }
+        Penalty::Tv { grid } | Penalty::TvPrimalDual { grid } => lambda_max_tv(a, grid, b, weights),
     }
 }
 
@@ -78,7 +76,6 @@ pub fn geometric_fractions(count: usize, min_ratio: f64) -> Vec<f64> {
 /// Solves the penalty at `lambda = f * lambda_max` for each of `fractions` in the given order
 /// (pass them decreasing): point `i` starts from point `i - 1`'s solution (point 0 from
 /// `opts.warm_start`). `opts.lambda` is ignored. Progress is split evenly over the points.
-/// Each report's `relative_residual` is on the caller's `(A, b)`.
 pub fn solve_path(
     a: &dyn LinearOperator,
     penalty: Penalty,
@@ -90,24 +87,36 @@ pub fn solve_path(
     let start = Instant::now();
     let (_, k) = check_problem(a, b, opts)?;
     if let Some(f) = fractions.iter().find(|f| !(f.is_finite() && **f >= 0.0)) {
-        return Err(ReconError::Unsolvable(format!("path fraction {f} is not finite and >= 0")));
+        return Err(ReconError::Unsolvable(format!(
+            "path fraction {f} is not finite and >= 0"
+        )));
     }
     if is_zero_data(b, opts.weights.as_deref()) {
         let points = fractions
             .iter()
             .map(|&fraction| {
                 let Solution { t, report } = zero_solution("path", k, 0.0, Some(0.0), 0.0, start);
-                PathPoint { fraction, lambda: 0.0, t, report }
+                PathPoint {
+                    fraction,
+                    lambda: 0.0,
+                    t,
+                    report,
+                }
             })
             .collect();
-        return Ok(RegPath { lambda_max: 0.0, deflated: false, points, seconds: 0.0 });
+        return Ok(RegPath {
+            lambda_max: 0.0,
+            deflated: false,
+            points,
+            seconds: 0.0,
+        });
     }
+    // lambda_max and ||A'||^2 of the problem the solvers iterate on (deflated if it applies:
+    // each solver deflates the same way, then polishes on the exact objective).
     let prep = Prepared::new(a, b, opts.weights.as_deref(), opts.deflate_mean);
     let (op, bb, w) = (prep.op(), prep.b(), prep.weights());
     let lmax = lambda_max(op, penalty, bb, w, opts.nonnegative);
     let mut o = opts.clone();
-    o.deflate_mean = false;
-    o.weights = w.map(|w| w.to_vec());
     o.lipschitz = Some(lipschitz_of(op, w, opts.lipschitz)?);
     let (lo, hi) = opts.progress;
     let m = fractions.len().max(1) as f64;
@@ -115,25 +124,25 @@ pub fn solve_path(
     for (i, &fraction) in fractions.iter().enumerate() {
         let lambda = fraction * lmax;
         o.lambda = Lambda::Absolute(lambda);
-        o.progress = (lo + (hi - lo) * i as f64 / m, lo + (hi - lo) * (i + 1) as f64 / m);
+        o.progress = (
+            lo + (hi - lo) * i as f64 / m,
+            lo + (hi - lo) * (i + 1) as f64 / m,
+        );
         if let Some(prev) = points.last() {
             o.warm_start = Some(prev.t.clone());
         }
         let Solution { t, mut report } = match penalty {
-            Penalty::L1 { psi } => fista(op, psi, bb, &o, control)?,
-            Penalty::Tv { grid } => tv_fista(op, grid, bb, &o, control)?,
-            Penalty::TvPrimalDual { grid } => tv(op, grid, bb, &o, control)?,
+            Penalty::L1 { psi } => fista(a, psi, b, &o, control)?,
+            Penalty::Tv { grid } => tv_fista(a, grid, b, &o, control)?,
+            Penalty::TvPrimalDual { grid } => tv(a, grid, b, &o, control)?,
         };
-        if let (Penalty::L1 { .. } | Penalty::Tv { .. }, Some(l)) = (penalty, o.lipschitz) {
-            // Keep FISTA's backtracked L (never below the estimate).
-            if report.lipschitz > l {
-                o.lipschitz = Some(report.lipschitz);
-            }
-        }
-        report.relative_residual = relative_residual(a, &t, b);
-        report.deflated = prep.is_deflated();
         report.lambda_max = Some(lmax);
-        points.push(PathPoint { fraction, lambda, t, report });
+        points.push(PathPoint {
+            fraction,
+            lambda,
+            t,
+            report,
+        });
     }
     Ok(RegPath {
         lambda_max: lmax,

@@ -26,8 +26,15 @@ use crate::recon::{Control, ReconError};
 /// detector gain; 1 for raw counts). For a split (differenced) Hadamard pair the variance is
 /// the sum of the two predictions.
 pub fn poisson_weights(model: &[f64], floor: f64) -> Vec<f64> {
-    let floor = if floor.is_finite() && floor > 0.0 { floor } else { 1.0 };
-    model.iter().map(|&v| 1.0 / if v.is_finite() { v.max(floor) } else { floor }).collect()
+    let floor = if floor.is_finite() && floor > 0.0 {
+        floor
+    } else {
+        1.0
+    };
+    model
+        .iter()
+        .map(|&v| 1.0 / if v.is_finite() { v.max(floor) } else { floor })
+        .collect()
 }
 
 /// Penalised Poisson ML by IRLS: `rounds` weighted solves (at least 1), each warm-started from
@@ -47,10 +54,19 @@ pub fn poisson_irls(
     let start = Instant::now();
     let (n, k) = check_problem(a, b, opts)?;
     if !(floor.is_finite() && floor > 0.0) {
-        return Err(ReconError::Unsolvable(format!("the photon floor must be > 0, not {floor}")));
+        return Err(ReconError::Unsolvable(format!(
+            "the photon floor must be > 0, not {floor}"
+        )));
     }
     if is_zero_data(b, None) {
-        return Ok(zero_solution("poisson-irls", k, lambda_without_solve(opts.lambda), None, 0.0, start));
+        return Ok(zero_solution(
+            "poisson-irls",
+            k,
+            lambda_without_solve(opts.lambda),
+            None,
+            0.0,
+            start,
+        ));
     }
     let mean = b.iter().sum::<f64>() / n as f64;
     let mut o = opts.clone();

@@ -13,7 +13,13 @@ pub(crate) fn gaussian(n: usize, k: usize, seed: u64) -> DenseOperator {
 /// `n x k` 0/1 Bernoulli(q) matrix.
 pub(crate) fn bernoulli(n: usize, k: usize, q: f64, seed: u64) -> DenseOperator {
     let mut rng = Rng::new(seed);
-    DenseOperator::new(n, k, (0..n * k).map(|_| if rng.uniform() < q { 1.0 } else { 0.0 }).collect())
+    DenseOperator::new(
+        n,
+        k,
+        (0..n * k)
+            .map(|_| if rng.uniform() < q { 1.0 } else { 0.0 })
+            .collect(),
+    )
 }
 
 /// Random `k x k` orthogonal matrix (Gram-Schmidt, twice, on Gaussian rows).
@@ -113,21 +119,61 @@ impl LinearOperator for Haar2d {
     }
 }
 
-/// Identity operator of size `k`.
-pub(crate) struct Identity(pub usize);
+/// Fast 0/1 patterns for timing at realistic sizes: row `i` is `(1 + (H D)_{r_i}) / 2` with `H`
+/// the k x k Walsh-Hadamard matrix, `D` random signs and `r_i` distinct random rows (not 0):
+/// half-on pseudo-random patterns with the common mode of Bernoulli(1/2), O(k log k) products.
+pub(crate) struct FastBinary {
+    k: usize,
+    signs: Vec<f64>,
+    rows: Vec<usize>,
+}
 
-impl LinearOperator for Identity {
+impl FastBinary {
+    pub(crate) fn new(n: usize, k: usize, seed: u64) -> Self {
+        assert!(k.is_power_of_two() && n < k);
+        let mut rng = Rng::new(seed);
+        let signs = (0..k)
+            .map(|_| if rng.uniform() < 0.5 { -1.0 } else { 1.0 })
+            .collect();
+        let mut perm: Vec<usize> = (1..k).collect();
+        for i in (1..perm.len()).rev() {
+            let j = (rng.next_u64() % (i as u64 + 1)) as usize;
+            perm.swap(i, j);
+        }
+        perm.truncate(n);
+        FastBinary {
+            k,
+            signs,
+            rows: perm,
+        }
+    }
+}
+
+impl LinearOperator for FastBinary {
     fn rows(&self) -> usize {
-        self.0
+        self.rows.len()
     }
     fn cols(&self) -> usize {
-        self.0
+        self.k
     }
     fn apply(&self, x: &[f64], y: &mut [f64]) {
-        y.copy_from_slice(x);
+        let mut w: Vec<f64> = x.iter().zip(&self.signs).map(|(x, s)| x * s).collect();
+        crate::recon::fwht::fwht(&mut w);
+        let sum: f64 = x.iter().sum();
+        for (y, &r) in y.iter_mut().zip(&self.rows) {
+            *y = 0.5 * (sum + w[r]);
+        }
     }
     fn adjoint(&self, y: &[f64], x: &mut [f64]) {
-        x.copy_from_slice(y);
+        let mut w = vec![0.0; self.k];
+        for (&v, &r) in y.iter().zip(&self.rows) {
+            w[r] = v;
+        }
+        crate::recon::fwht::fwht(&mut w);
+        let sum: f64 = y.iter().sum();
+        for ((x, w), s) in x.iter_mut().zip(&w).zip(&self.signs) {
+            *x = 0.5 * (sum + w * s);
+        }
     }
 }
 
@@ -157,7 +203,12 @@ pub(crate) fn blocks_scene(n: usize) -> Vec<f64> {
 
 /// `||x - y|| / ||y||`.
 pub(crate) fn rel_err(x: &[f64], y: &[f64]) -> f64 {
-    let d: f64 = x.iter().zip(y).map(|(a, b)| (a - b) * (a - b)).sum::<f64>().sqrt();
+    let d: f64 = x
+        .iter()
+        .zip(y)
+        .map(|(a, b)| (a - b) * (a - b))
+        .sum::<f64>()
+        .sqrt();
     d / norm(y)
 }
 
@@ -177,7 +228,10 @@ impl LinearOperator for CancelAfterApplies<'_> {
         self.inner.cols()
     }
     fn apply(&self, x: &[f64], y: &mut [f64]) {
-        let c = self.count.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+        let c = self
+            .count
+            .fetch_add(1, std::sync::atomic::Ordering::Relaxed)
+            + 1;
         if c >= self.after {
             self.control.cancel();
         }

@@ -13,17 +13,31 @@ fn measure(a: &dyn LinearOperator, t: &[f64]) -> Vec<f64> {
 }
 
 fn opts(lambda: Lambda, tol: f64, max_iter: usize) -> SolveOptions {
-    SolveOptions { lambda, tol, max_iter, ..SolveOptions::default() }
+    SolveOptions {
+        lambda,
+        tol,
+        max_iter,
+        ..SolveOptions::default()
+    }
 }
 
 fn assert_nonneg_finite(t: &[f64], what: &str) {
     assert!(t.iter().all(|v| v.is_finite()), "{what}: non-finite value");
-    assert!(t.iter().all(|&v| v >= 0.0), "{what}: negative value {:?}", t.iter().cloned().fold(0.0, f64::min));
+    assert!(
+        t.iter().all(|&v| v >= 0.0),
+        "{what}: negative value {:?}",
+        t.iter().cloned().fold(0.0, f64::min)
+    );
 }
 
 fn assert_non_increasing(h: &[f64], what: &str) {
     for w in h.windows(2) {
-        assert!(w[1] <= w[0] * (1.0 + 1e-12) + 1e-300, "{what}: objective rose {} -> {}", w[0], w[1]);
+        assert!(
+            w[1] <= w[0] * (1.0 + 1e-12) + 1e-300,
+            "{what}: objective rose {} -> {}",
+            w[0],
+            w[1]
+        );
     }
 }
 
@@ -47,6 +61,7 @@ fn test_operators_are_sound() {
     let h = Haar2d { n: 16 };
     assert!(adjoint_mismatch(&h, 1) < 1e-14);
     check_orthonormal(&h, 256).unwrap();
+    assert!(adjoint_mismatch(&FastBinary::new(100, 256, 1), 2) < 1e-13);
     let q = random_orthogonal(32, 5);
     check_orthonormal(&q, 32).unwrap();
     // A constant image has one nonzero Haar coefficient.
@@ -66,12 +81,19 @@ fn test_operators_are_sound() {
 fn nonnegative_prox_is_exact() {
     let k = 64;
     let psi = random_orthogonal(k, 11);
-    let v: Vec<f64> = crate::recon::linop::test_vector(k, 3).iter().map(|x| x + 0.2).collect();
+    let v: Vec<f64> = crate::recon::linop::test_vector(k, 3)
+        .iter()
+        .map(|x| x + 0.2)
+        .collect();
     let gamma = 0.15;
     let prox_obj = |t: &[f64]| {
         let mut s = vec![0.0; k];
         psi.apply(t, &mut s);
-        0.5 * t.iter().zip(&v).map(|(a, b)| (a - b) * (a - b)).sum::<f64>()
+        0.5 * t
+            .iter()
+            .zip(&v)
+            .map(|(a, b)| (a - b) * (a - b))
+            .sum::<f64>()
             + gamma * s.iter().map(|x| x.abs()).sum::<f64>()
     };
     let mut prox = fista::Prox::new(fista::Reg::Ortho(&psi), true, k);
@@ -105,13 +127,25 @@ fn nonnegative_prox_is_exact() {
     // The composition heuristic.
     let mut s = vec![0.0; k];
     psi.apply(&v, &mut s);
-    s.iter_mut().for_each(|c| *c = if c.abs() > gamma { *c - gamma * c.signum() } else { 0.0 });
+    s.iter_mut().for_each(|c| {
+        *c = if c.abs() > gamma {
+            *c - gamma * c.signum()
+        } else {
+            0.0
+        }
+    });
     let mut naive = vec![0.0; k];
     psi.adjoint(&s, &mut naive);
     naive.iter_mut().for_each(|x| *x = x.max(0.0));
     let (exact, heuristic) = (prox_obj(&t), prox_obj(&naive));
-    println!("prox objective: exact {exact:.6}, clip(Psi^T soft(Psi v)) {heuristic:.6}, distance {:.3e}", rel_err(&naive, &t));
-    assert!(heuristic > exact + 1e-3 * exact.abs(), "{heuristic} vs {exact}");
+    println!(
+        "prox objective: exact {exact:.6}, clip(Psi^T soft(Psi v)) {heuristic:.6}, distance {:.3e}",
+        rel_err(&naive, &t)
+    );
+    assert!(
+        heuristic > exact + 1e-3 * exact.abs(),
+        "{heuristic} vs {exact}"
+    );
 }
 
 /// Noiseless sparse recovery, Psi = identity: k = 256, n = 100 Gaussian rows, 8 spikes.
@@ -122,12 +156,23 @@ fn fista_recovers_sparse_vector() {
     let x0 = sparse_vector(k, 8, 8);
     let b = measure(&a, &x0);
     let control = Control::new();
-    let sol = fista(&a, None, &b, &opts(Lambda::Relative(1e-5), 1e-9, 20000), &control).unwrap();
+    let sol = fista(
+        &a,
+        None,
+        &b,
+        &opts(Lambda::Relative(1e-5), 1e-9, 20000),
+        &control,
+    )
+    .unwrap();
     let err = rel_err(&sol.t, &x0);
     let r = &sol.report;
     println!(
         "fista identity sparse: rel err {err:.2e}, iters {}, restarts {}, nonzeros {}, {:.1} ms, stop {:?}",
-        r.iterations, r.restarts, r.nonzeros, r.seconds * 1e3, r.stop
+        r.iterations,
+        r.restarts,
+        r.nonzeros,
+        r.seconds * 1e3,
+        r.stop
     );
     assert!(err < 1e-3, "relative error {err}");
     assert_nonneg_finite(&sol.t, "fista");
@@ -154,21 +199,52 @@ fn piecewise_constant_scene_haar_and_tv() {
     let control = Control::new();
     let haar = Haar2d { n: n_side };
 
-    let ls = cgls(&a, &b, 0.0, &opts(Lambda::Relative(0.0), 1e-10, 2000), &control).unwrap();
+    let ls = cgls(
+        &a,
+        &b,
+        0.0,
+        &opts(Lambda::Relative(0.0), 1e-10, 2000),
+        &control,
+    )
+    .unwrap();
     let e_ls = rel_err(&ls.t, &x0);
 
     let o = opts(Lambda::Relative(1e-3), 1e-5, 3000);
     let fh = fista(&a, Some(&haar), &b, &o, &control).unwrap();
     let e_fh = rel_err(&fh.t, &x0);
-    let fi = fista(&a, None, &b, &o, &control).unwrap();
+    let fi = fista(
+        &a,
+        None,
+        &b,
+        &SolveOptions {
+            max_iter: 800,
+            ..o.clone()
+        },
+        &control,
+    )
+    .unwrap();
     let e_fi = rel_err(&fi.t, &x0);
-    let tvs = tv(&a, Grid::new(n_side, n_side), &b, &opts(Lambda::Relative(1e-3), 1e-5, 3000), &control).unwrap();
+    let tvs = tv(&a, Grid::new(n_side, n_side), &b, &o, &control).unwrap();
     let e_tv = rel_err(&tvs.t, &x0);
-    for (name, s, e) in [("cgls", &ls, e_ls), ("fista-haar", &fh, e_fh), ("fista-id", &fi, e_fi), ("tv", &tvs, e_tv)] {
+    let tvf = tv_fista(&a, Grid::new(n_side, n_side), &b, &o, &control).unwrap();
+    let e_tvf = rel_err(&tvf.t, &x0);
+    for (name, s, e) in [
+        ("cgls", &ls, e_ls),
+        ("fista-haar", &fh, e_fh),
+        ("fista-id", &fi, e_fi),
+        ("tv-pdhg", &tvs, e_tv),
+        ("tv-fista", &tvf, e_tvf),
+    ] {
         let r = &s.report;
         println!(
             "{name}: rel err {e:.4}, iters {}, inner {}, restarts {}, nonzeros {}, {:.1} ms, stop {:?}, res {:.2e}",
-            r.iterations, r.inner_iterations, r.restarts, r.nonzeros, r.seconds * 1e3, r.stop, r.relative_residual
+            r.iterations,
+            r.inner_iterations,
+            r.restarts,
+            r.nonzeros,
+            r.seconds * 1e3,
+            r.stop,
+            r.relative_residual
         );
     }
     assert_nonneg_finite(&fh.t, "fista-haar");
@@ -176,9 +252,23 @@ fn piecewise_constant_scene_haar_and_tv() {
     assert_nonneg_finite(&tvs.t, "tv");
     assert_non_increasing(&fh.report.objective_history, "fista-haar");
     assert!(e_fh < 0.5 * e_ls, "haar {e_fh} vs cgls {e_ls}");
-    assert!(e_tv < 0.05, "tv {e_tv}");
-    assert!(e_tv < e_fi && e_tv < e_fh, "tv {e_tv} vs fista-id {e_fi}, fista-haar {e_fh}");
-    assert!(tvs.report.objective < tvs.report.objective_history[0]);
+    assert_nonneg_finite(&tvf.t, "tv-fista");
+    assert_non_increasing(&tvf.report.objective_history, "tv-fista");
+    for (name, e, s) in [("tv-pdhg", e_tv, &tvs), ("tv-fista", e_tvf, &tvf)] {
+        assert!(e < 0.01, "{name} {e}");
+        assert!(
+            e < 0.1 * e_fi && e < 0.1 * e_fh,
+            "{name} {e} vs fista-id {e_fi}, fista-haar {e_fh}"
+        );
+        assert!(s.report.objective < s.report.objective_history[0]);
+        assert!(s.report.converged, "{name}");
+    }
+    // Both TV solvers reach the same minimiser.
+    assert!(
+        rel_err(&tvs.t, &tvf.t) < 2e-3,
+        "{}",
+        rel_err(&tvs.t, &tvf.t)
+    );
 }
 
 /// CGLS known answers: the exact solution of a well-conditioned square system, and the ridge
@@ -193,15 +283,24 @@ fn cgls_known_answers() {
         .data()
         .iter()
         .enumerate()
-        .map(|(i, v)| 0.3 * v * (k as f64).sqrt() / (k as f64).sqrt() + if i / k == i % k { 1.0 } else { 0.0 })
+        .map(|(i, v)| {
+            0.3 * v * (k as f64).sqrt() / (k as f64).sqrt() + if i / k == i % k { 1.0 } else { 0.0 }
+        })
         .collect();
     let a = DenseOperator::new(k, k, data);
     let x0 = crate::recon::linop::test_vector(k, 4);
     let b = measure(&a, &x0);
-    let o = SolveOptions { tol: 1e-13, max_iter: 500, ..SolveOptions::default() };
+    let o = SolveOptions {
+        tol: 1e-13,
+        max_iter: 500,
+        ..SolveOptions::default()
+    };
     let s = cgls(&a, &b, 0.0, &o, &control).unwrap();
     let e = rel_err(&s.t, &x0);
-    println!("cgls square: rel err {e:.2e} in {} iterations", s.report.iterations);
+    println!(
+        "cgls square: rel err {e:.2e} in {} iterations",
+        s.report.iterations
+    );
     assert!(e < 1e-10, "{e}");
     assert!(s.report.relative_residual < 1e-10);
 
@@ -214,7 +313,8 @@ fn cgls_known_answers() {
     let mut m = vec![0.0; k * k];
     for i in 0..k {
         for j in 0..k {
-            m[i * k + j] = (0..n).map(|r| d[r * k + i] * d[r * k + j]).sum::<f64>() + if i == j { mu } else { 0.0 };
+            m[i * k + j] = (0..n).map(|r| d[r * k + i] * d[r * k + j]).sum::<f64>()
+                + if i == j { mu } else { 0.0 };
         }
     }
     let mut rhs = vec![0.0; k];
@@ -222,7 +322,10 @@ fn cgls_known_answers() {
     let want = cholesky_solve(&m, &rhs, k);
     let s = cgls(&a, &b, mu, &o, &control).unwrap();
     let e = rel_err(&s.t, &want);
-    println!("cgls ridge: rel err {e:.2e} in {} iterations", s.report.iterations);
+    println!(
+        "cgls ridge: rel err {e:.2e} in {} iterations",
+        s.report.iterations
+    );
     assert!(e < 1e-9, "{e}");
     // Minimum-norm solution for mu = 0 (from 0): x = A^T (A A^T)^-1 b, so A x = b and x in
     // the row space.
@@ -311,7 +414,10 @@ fn all_dark_scene_gives_exact_zero() {
     let control = Control::new();
     let haar = Haar2d { n: side };
     let grid = Grid::new(side, side);
-    let o = SolveOptions { warm_start: Some(vec![0.5; k]), ..SolveOptions::default() };
+    let o = SolveOptions {
+        warm_start: Some(vec![0.5; k]),
+        ..SolveOptions::default()
+    };
     let sols = vec![
         fista(&a, None, &b, &o, &control).unwrap(),
         fista(&a, Some(&haar), &b, &o, &control).unwrap(),
@@ -324,15 +430,32 @@ fn all_dark_scene_gives_exact_zero() {
         assert_eq!(s.report.stop, StopReason::ZeroData);
         assert!(!serde_json::to_string(&s.report).unwrap().contains("null"));
     }
-    let path = solve_path(&a, Penalty::Tv { grid }, &b, &o, &geometric_fractions(4, 1e-2), &control).unwrap();
+    let path = solve_path(
+        &a,
+        Penalty::Tv { grid },
+        &b,
+        &o,
+        &geometric_fractions(4, 1e-2),
+        &control,
+    )
+    .unwrap();
     assert!(path.points.iter().all(|p| p.t.iter().all(|&v| v == 0.0)));
     // Zero weights on every nonzero measurement is the same situation.
     let mut b2 = vec![0.0; 20];
     b2[3] = 1.0;
     let mut w = vec![1.0; 20];
     w[3] = 0.0;
-    let o2 = SolveOptions { weights: Some(w), ..SolveOptions::default() };
-    assert!(fista(&a, None, &b2, &o2, &control).unwrap().t.iter().all(|&v| v == 0.0));
+    let o2 = SolveOptions {
+        weights: Some(w),
+        ..SolveOptions::default()
+    };
+    assert!(
+        fista(&a, None, &b2, &o2, &control)
+            .unwrap()
+            .t
+            .iter()
+            .all(|&v| v == 0.0)
+    );
 }
 
 /// Duplicated rows (a pattern shown twice) change nothing but the weight: solutions equal those
@@ -355,9 +478,18 @@ fn duplicated_rows_are_harmless() {
     let haar = Haar2d { n: side };
     let o = opts(Lambda::Relative(1e-3), 1e-7, 2000);
     for (s1, s2) in [
-        (fista(&a, Some(&haar), &b, &o, &control).unwrap(), fista(&a2, Some(&haar), &b2, &o, &control).unwrap()),
-        (tv_fista(&a, grid, &b, &o, &control).unwrap(), tv_fista(&a2, grid, &b2, &o, &control).unwrap()),
-        (tv(&a, grid, &b, &o, &control).unwrap(), tv(&a2, grid, &b2, &o, &control).unwrap()),
+        (
+            fista(&a, Some(&haar), &b, &o, &control).unwrap(),
+            fista(&a2, Some(&haar), &b2, &o, &control).unwrap(),
+        ),
+        (
+            tv_fista(&a, grid, &b, &o, &control).unwrap(),
+            tv_fista(&a2, grid, &b2, &o, &control).unwrap(),
+        ),
+        (
+            tv(&a, grid, &b, &o, &control).unwrap(),
+            tv(&a2, grid, &b2, &o, &control).unwrap(),
+        ),
     ] {
         assert_nonneg_finite(&s2.t, s2.report.solver);
         let d = rel_err(&s2.t, &s1.t);
@@ -370,9 +502,20 @@ fn duplicated_rows_are_harmless() {
     dd.extend_from_slice(sq.data());
     let sq2 = DenseOperator::new(2 * k, k, dd);
     let bs = measure(&sq2, &x0);
-    let s = cgls(&sq2, &bs, 0.0, &opts(Lambda::Relative(0.0), 1e-12, 5000), &control).unwrap();
+    let s = cgls(
+        &sq2,
+        &bs,
+        0.0,
+        &opts(Lambda::Relative(0.0), 1e-12, 5000),
+        &control,
+    )
+    .unwrap();
     assert!(s.t.iter().all(|v| v.is_finite()));
-    println!("cgls duplicated square: rel err {:.1e}, {} iterations", rel_err(&s.t, &x0), s.report.iterations);
+    println!(
+        "cgls duplicated square: rel err {:.1e}, {} iterations",
+        rel_err(&s.t, &x0),
+        s.report.iterations
+    );
     assert!(rel_err(&s.t, &x0) < 1e-6);
 }
 
@@ -399,7 +542,12 @@ fn dynamic_range_1e4_stays_finite() {
     for s in &sols {
         assert_nonneg_finite(&s.t, s.report.solver);
         let peak = s.t[5 * side + 9];
-        println!("{}: peak {peak:.1} (1e4), rel err {:.2e}, {} it", s.report.solver, rel_err(&s.t, &x0), s.report.iterations);
+        println!(
+            "{}: peak {peak:.1} (1e4), rel err {:.2e}, {} it",
+            s.report.solver,
+            rel_err(&s.t, &x0),
+            s.report.iterations
+        );
         assert!((peak - 1e4).abs() < 0.05e4, "{}: {peak}", s.report.solver);
     }
     let ls = cgls(&a, &b, 0.0, &o, &control).unwrap();
@@ -422,21 +570,44 @@ fn cancellation_stops_every_solver() {
         ("tv", Box::new(|a, c| tv(a, grid, &b, &o, c))),
         ("tv-fista", Box::new(|a, c| tv_fista(a, grid, &b, &o, c))),
         ("cgls", Box::new(|a, c| cgls(a, &b, 1e-9, &o, c))),
-        ("path", Box::new(|a, c| solve_path(a, Penalty::Tv { grid }, &b, &o, &[0.1, 0.01], c).map(|p| {
-            let q = p.points.into_iter().next().unwrap();
-            Solution { t: q.t, report: q.report }
-        }))),
+        (
+            "path",
+            Box::new(|a, c| {
+                solve_path(a, Penalty::Tv { grid }, &b, &o, &[0.1, 0.01], c).map(|p| {
+                    let q = p.points.into_iter().next().unwrap();
+                    Solution {
+                        t: q.t,
+                        report: q.report,
+                    }
+                })
+            }),
+        ),
     ];
     for (name, run) in &runs {
         let control = Control::new();
-        let counting = CancelAfterApplies { inner: &a, control: &control, after: 150, count: Default::default() };
+        let counting = CancelAfterApplies {
+            inner: &a,
+            control: &control,
+            after: 150,
+            count: Default::default(),
+        };
         let r = run(&counting, &control);
-        assert!(matches!(r, Err(ReconError::Cancelled)), "{name}: {:?}", r.map(|s| s.report.iterations));
+        assert!(
+            matches!(r, Err(ReconError::Cancelled)),
+            "{name}: {:?}",
+            r.map(|s| s.report.iterations)
+        );
         let applies = counting.count.load(std::sync::atomic::Ordering::Relaxed);
-        assert!(applies >= 150 && applies < 160, "{name}: {applies} products after the cancel");
+        assert!(
+            (150..160).contains(&applies),
+            "{name}: {applies} products after the cancel"
+        );
         let pre = Control::new();
         pre.cancel();
-        assert!(matches!(run(&a, &pre), Err(ReconError::Cancelled)), "{name}");
+        assert!(
+            matches!(run(&a, &pre), Err(ReconError::Cancelled)),
+            "{name}"
+        );
     }
 }
 
@@ -456,31 +627,49 @@ fn photon_starved_poisson_data() {
         let clean = measure(&a, &x0);
         let scale = photons / (clean.iter().sum::<f64>() / n as f64);
         let mut rng = Rng::new(82);
-        let counts: Vec<f64> = clean.iter().map(|&m| poisson(m * scale, &mut rng)).collect();
+        let counts: Vec<f64> = clean
+            .iter()
+            .map(|&m| poisson(m * scale, &mut rng))
+            .collect();
         let b: Vec<f64> = counts.iter().map(|c| c / scale).collect();
         let floor = 1.0 / scale;
         for lam in [3e-2, 1e-1] {
-            let o = SolveOptions { deflate_mean: std::env::var("NODEFL").is_err(), ..opts(Lambda::Relative(lam), 1e-5, if std::env::var("NODEFL").is_err() { 500 } else { 20000 }) };
+            let o = opts(Lambda::Relative(lam), 1e-5, 500);
             let irls = poisson_irls(&a, Penalty::Tv { grid }, &b, floor, 4, &o, &control).unwrap();
             let plain = tv_fista(&a, grid, &b, &o, &control).unwrap();
-            let naive = SolveOptions { weights: Some(super::poisson_weights(&b, floor)), ..o.clone() };
+            let naive = SolveOptions {
+                weights: Some(super::poisson_weights(&b, floor)),
+                ..o.clone()
+            };
             let neyman = tv_fista(&a, grid, &b, &naive, &control).unwrap();
             assert_nonneg_finite(&irls.t, "irls");
             assert_nonneg_finite(&neyman.t, "neyman");
-            let (e_i, e_p, e_n) = (rel_err(&irls.t, &x0), rel_err(&plain.t, &x0), rel_err(&neyman.t, &x0));
+            let (e_i, e_p, e_n) = (
+                rel_err(&irls.t, &x0),
+                rel_err(&plain.t, &x0),
+                rel_err(&neyman.t, &x0),
+            );
             let mean_ratio = irls.t.iter().sum::<f64>() / x0.iter().sum::<f64>();
             println!(
                 "fill {fill}, {photons} photons, lambda {lam}: irls rel err {e_i:.3} (mean x{mean_ratio:.3}, {} it), unweighted {e_p:.3}, weights from counts {e_n:.3}",
                 irls.report.iterations
             );
-            //assert!((mean_ratio - 1.0).abs() < 0.1, "{mean_ratio}");
+            assert!((mean_ratio - 1.0).abs() < 0.05, "{mean_ratio}");
+            assert!(e_n > e_i, "weights from the counts {e_n} vs irls {e_i}");
             if fill < 0.1 {
-                //assert!(e_i < e_p, "{e_i} vs {e_p}");
+                assert!(e_i < e_p, "{e_i} vs {e_p}");
             } else {
-                //assert!(e_i < 1.1 * e_p, "{e_i} vs {e_p}");
+                assert!(e_i < 1.1 * e_p, "{e_i} vs {e_p}");
             }
         }
-        let ls = cgls(&a, &b, 0.0, &opts(Lambda::Relative(0.0), 1e-8, 1000), &control).unwrap();
+        let ls = cgls(
+            &a,
+            &b,
+            0.0,
+            &opts(Lambda::Relative(0.0), 1e-8, 1000),
+            &control,
+        )
+        .unwrap();
         let negative = ls.t.iter().filter(|&&v| v < 0.0).count();
         println!("cgls on the same data: {negative} negative pixels");
         assert!(negative > 0);
@@ -510,18 +699,38 @@ fn weights_equal_row_scaling() {
     let a = gaussian(n, k, 91);
     let b = measure(&a, &blocks_scene(side));
     let w: Vec<f64> = (0..n).map(|i| 0.2 + (i % 5) as f64).collect();
-    let scaled_rows: Vec<f64> = a.data().chunks(k).zip(&w).flat_map(|(r, w)| r.iter().map(move |v| v * w.sqrt())).collect();
+    let scaled_rows: Vec<f64> = a
+        .data()
+        .chunks(k)
+        .zip(&w)
+        .flat_map(|(r, w)| r.iter().map(move |v| v * w.sqrt()))
+        .collect();
     let aw = DenseOperator::new(n, k, scaled_rows);
     let bw: Vec<f64> = b.iter().zip(&w).map(|(b, w)| b * w.sqrt()).collect();
     let control = Control::new();
     let grid = Grid::new(side, side);
-    let o = SolveOptions { weights: Some(w.clone()), ..opts(Lambda::Relative(1e-2), 1e-9, 3000) };
+    let o = SolveOptions {
+        weights: Some(w.clone()),
+        ..opts(Lambda::Relative(1e-2), 1e-9, 3000)
+    };
     let plain = opts(Lambda::Relative(1e-2), 1e-9, 3000);
     let pairs = [
-        (fista(&a, None, &b, &o, &control).unwrap(), fista(&aw, None, &bw, &plain, &control).unwrap()),
-        (tv_fista(&a, grid, &b, &o, &control).unwrap(), tv_fista(&aw, grid, &bw, &plain, &control).unwrap()),
-        (tv(&a, grid, &b, &o, &control).unwrap(), tv(&aw, grid, &bw, &plain, &control).unwrap()),
-        (cgls(&a, &b, 0.01, &o, &control).unwrap(), cgls(&aw, &bw, 0.01, &plain, &control).unwrap()),
+        (
+            fista(&a, None, &b, &o, &control).unwrap(),
+            fista(&aw, None, &bw, &plain, &control).unwrap(),
+        ),
+        (
+            tv_fista(&a, grid, &b, &o, &control).unwrap(),
+            tv_fista(&aw, grid, &bw, &plain, &control).unwrap(),
+        ),
+        (
+            tv(&a, grid, &b, &o, &control).unwrap(),
+            tv(&aw, grid, &bw, &plain, &control).unwrap(),
+        ),
+        (
+            cgls(&a, &b, 0.01, &o, &control).unwrap(),
+            cgls(&aw, &bw, 0.01, &plain, &control).unwrap(),
+        ),
     ];
     for (s1, s2) in pairs {
         let d = rel_err(&s1.t, &s2.t);
@@ -541,15 +750,25 @@ fn clear_errors() {
     assert!(msg(fista(&a, None, &b[..9], &o, &control)).contains("9 measurements"));
     let mut nan = b.clone();
     nan[2] = f64::NAN;
-    assert!(msg(tv(&a, Grid::new(4, 4), &nan, &o, &control)).contains("measurement 2 is not finite"));
+    assert!(
+        msg(tv(&a, Grid::new(4, 4), &nan, &o, &control)).contains("measurement 2 is not finite")
+    );
     assert!(msg(tv(&a, Grid::new(5, 4), &b, &o, &control)).contains("grid 5x4"));
-    assert!(msg(fista(&a, Some(&gaussian(16, 16, 2)), &b, &o, &control)).contains("not orthonormal"));
+    assert!(
+        msg(fista(&a, Some(&gaussian(16, 16, 2)), &b, &o, &control)).contains("not orthonormal")
+    );
     let zero = DenseOperator::new(10, 16, vec![0.0; 160]);
     assert!(msg(fista(&zero, None, &b, &o, &control)).contains("operator is zero"));
     assert!(msg(tv_fista(&zero, Grid::new(4, 4), &b, &o, &control)).contains("operator is zero"));
-    let bad_w = SolveOptions { weights: Some(vec![-1.0; 10]), ..SolveOptions::default() };
+    let bad_w = SolveOptions {
+        weights: Some(vec![-1.0; 10]),
+        ..SolveOptions::default()
+    };
     assert!(msg(cgls(&a, &b, 0.0, &bad_w, &control)).contains("weights must be finite"));
-    let bad_l = SolveOptions { lambda: Lambda::Absolute(f64::INFINITY), ..SolveOptions::default() };
+    let bad_l = SolveOptions {
+        lambda: Lambda::Absolute(f64::INFINITY),
+        ..SolveOptions::default()
+    };
     assert!(msg(fista(&a, None, &b, &bad_l, &control)).contains("lambda must be finite"));
     let huge = scaled(&a, 1e200);
     let r = fista(&huge, None, &b, &o, &control);
@@ -569,7 +788,17 @@ fn path_and_lambda_max() {
     let o = opts(Lambda::Relative(1.0), 1e-8, 5000);
     let at_max = fista(&a, None, &b, &o, &control).unwrap();
     assert!(at_max.t.iter().all(|&v| v == 0.0));
-    let below = fista(&a, None, &b, &SolveOptions { lambda: Lambda::Relative(0.98), ..o.clone() }, &control).unwrap();
+    let below = fista(
+        &a,
+        None,
+        &b,
+        &SolveOptions {
+            lambda: Lambda::Relative(0.98),
+            ..o.clone()
+        },
+        &control,
+    )
+    .unwrap();
     assert!(below.report.nonzeros >= 1);
 
     let fr = geometric_fractions(8, 1e-4);
@@ -580,10 +809,28 @@ fn path_and_lambda_max() {
     let warm: usize = path.points.iter().map(|p| p.report.iterations).sum();
     let cold: usize = fr
         .iter()
-        .map(|&f| fista(&a, None, &b, &SolveOptions { lambda: Lambda::Relative(f), ..o.clone() }, &control).unwrap().report.iterations)
+        .map(|&f| {
+            fista(
+                &a,
+                None,
+                &b,
+                &SolveOptions {
+                    lambda: Lambda::Relative(f),
+                    ..o.clone()
+                },
+                &control,
+            )
+            .unwrap()
+            .report
+            .iterations
+        })
         .sum();
     let last = path.points.last().unwrap();
-    println!("path nonzeros {nz:?}, iterations warm {warm} vs cold {cold}, last rel err {:.1e}, {:.1} ms", rel_err(&last.t, &x0), path.seconds * 1e3);
+    println!(
+        "path nonzeros {nz:?}, iterations warm {warm} vs cold {cold}, last rel err {:.1e}, {:.1} ms",
+        rel_err(&last.t, &x0),
+        path.seconds * 1e3
+    );
     assert_eq!(nz[0], 0);
     assert!(nz.windows(2).all(|w| w[1] + 1 >= w[0]), "{nz:?}");
     assert!(warm < cold);
@@ -595,10 +842,24 @@ fn path_and_lambda_max() {
     let xs = blocks_scene(side);
     let b = measure(&a, &xs);
     let grid = Grid::new(side, side);
-    let s = tv_fista(&a, grid, &b, &opts(Lambda::Relative(1.0), 1e-8, 3000), &control).unwrap();
+    let s = tv_fista(
+        &a,
+        grid,
+        &b,
+        &opts(Lambda::Relative(1.0), 1e-8, 3000),
+        &control,
+    )
+    .unwrap();
     let tv_rel = tv_value(&s.t, grid) / s.t.iter().sum::<f64>();
     assert!(tv_rel < 1e-6, "TV at lambda_max: {tv_rel}");
-    let s = tv_fista(&a, grid, &b, &opts(Lambda::Relative(0.2), 1e-8, 3000), &control).unwrap();
+    let s = tv_fista(
+        &a,
+        grid,
+        &b,
+        &opts(Lambda::Relative(0.2), 1e-8, 3000),
+        &control,
+    )
+    .unwrap();
     assert!(tv_value(&s.t, grid) / s.t.iter().sum::<f64>() > 1e-3);
 }
 
@@ -614,13 +875,25 @@ fn bernoulli_patterns_are_conditioned() {
     let control = Control::new();
     let grid = Grid::new(side, side);
     let o = opts(Lambda::Relative(1e-3), 1e-6, 150);
-    let off = SolveOptions { deflate_mean: false, ..o.clone() };
+    let off = SolveOptions {
+        deflate_mean: false,
+        ..o.clone()
+    };
     for (on, no) in [
-        (tv_fista(&a, grid, &b, &o, &control).unwrap(), tv_fista(&a, grid, &b, &off, &control).unwrap()),
-        (tv(&a, grid, &b, &o, &control).unwrap(), tv(&a, grid, &b, &off, &control).unwrap()),
+        (
+            tv_fista(&a, grid, &b, &o, &control).unwrap(),
+            tv_fista(&a, grid, &b, &off, &control).unwrap(),
+        ),
+        (
+            tv(&a, grid, &b, &o, &control).unwrap(),
+            tv(&a, grid, &b, &off, &control).unwrap(),
+        ),
     ] {
         let (e_on, e_off) = (rel_err(&on.t, &x0), rel_err(&no.t, &x0));
-        println!("{}: 150 iterations, deflated {e_on:.4} vs raw {e_off:.4}", on.report.solver);
+        println!(
+            "{}: 150 iterations, deflated {e_on:.4} vs raw {e_off:.4}",
+            on.report.solver
+        );
         assert!(on.report.deflated && !no.report.deflated);
         assert!(e_on < 0.05 && e_on < 0.25 * e_off, "{e_on} vs {e_off}");
     }
@@ -632,78 +905,100 @@ fn psnr64(x: &[f64], truth: &[f64]) -> f64 {
     crate::recon::metrics::psnr(&a, &b)
 }
 
-/// Rows centred and the mean row kept with a weight that matches the bulk of the spectrum.
-fn deflate(a: &DenseOperator, b: &[f64]) -> (DenseOperator, Vec<f64>) {
-    let (n, k) = (a.rows(), a.cols());
-    let d = a.data();
-    let mut mu = vec![0.0; k];
-    for i in 0..n {
-        for j in 0..k {
-            mu[j] += d[i * k + j] / n as f64;
-        }
-    }
-    let bm = b.iter().sum::<f64>() / n as f64;
-    let mut out = Vec::with_capacity((n + 1) * k);
-    for i in 0..n {
-        for j in 0..k {
-            out.push(d[i * k + j] - mu[j]);
-        }
-    }
-    let centred = DenseOperator::new(n, k, out.clone());
-    let s = crate::recon::linop::spectral_norm(&centred, 50, 1e-4);
-    let alpha = s / crate::recon::linop::norm(&mu);
-    out.extend(mu.iter().map(|m| alpha * m));
-    let mut bb: Vec<f64> = b.iter().map(|v| v - bm).collect();
-    bb.push(alpha * bm);
-    (DenseOperator::new(n + 1, k, out), bb)
-}
-
+/// Timing at the size (run with `--ignored --nocapture`): 128x128 photo, 10 % of
+/// half-on 0/1 patterns (fast test operator, so the figures are the solvers' own overhead).
 #[test]
 #[ignore]
 fn explore_convergence() {
-    let side = 64;
+    let side: usize = std::env::var("SIDE")
+        .ok()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(128);
     let k = side * side;
     let n = k / 10;
-    let scene = helmholtz_client::scene::Scene::builtin("camera", side as u32, side as u32).unwrap();
+    let scene =
+        helmholtz_client::scene::Scene::builtin("camera", side as u32, side as u32).unwrap();
     let x0: Vec<f64> = scene.pixels.iter().map(|&v| v as f64).collect();
-    let raw = bernoulli(n, k, 0.5, 3);
-    let b = measure(&raw, &x0);
+    let a = FastBinary::new(n, k, 3);
+    let b = measure(&a, &x0);
     let control = Control::new();
     let grid = Grid::new(side, side);
     let haar = Haar2d { n: side };
-    let fr = geometric_fractions(10, 1e-4);
-    for (name, pen) in [("tv-fista", Penalty::Tv { grid }), ("tv-pdhg", Penalty::TvPrimalDual { grid }), ("haar", Penalty::L1 { psi: Some(&haar) })] {
-        for max in [30, 100] {
-            let o = opts(Lambda::Relative(0.0), 1e-4, max);
-            let path = solve_path(&raw, pen, &b, &o, &fr, &control).unwrap();
-            let line: Vec<String> = path.points.iter().map(|p| format!("{:.1e}:{:.2}dB/{}it/{}nz", p.fraction, psnr64(&p.t, &x0), p.report.iterations, p.report.nonzeros)).collect();
-            println!("{name} max {max}: {:.0} ms deflated {} | {}", path.seconds * 1e3, path.deflated, line.join(" "));
+    for (count, lo, max) in [(4, 1e-3, 50), (6, 1e-3, 30), (8, 3e-4, 25)] {
+        for pen in [Penalty::Tv { grid }, Penalty::TvPrimalDual { grid }] {
+            let fr: Vec<f64> = geometric_fractions(count, lo / 3e-2)
+                .iter()
+                .map(|f| f * 3e-2)
+                .collect();
+            let path = solve_path(
+                &a,
+                pen,
+                &b,
+                &opts(Lambda::Relative(0.0), 1e-4, max),
+                &fr,
+                &control,
+            )
+            .unwrap();
+            let line: Vec<String> = path
+                .points
+                .iter()
+                .map(|p| {
+                    format!(
+                        "{:.1e}:{:.2}dB/{}it",
+                        p.fraction,
+                        psnr64(&p.t, &x0),
+                        p.report.iterations
+                    )
+                })
+                .collect();
+            println!(
+                "path {} x{max}: {:.0} ms | {}",
+                path.points[0].report.solver,
+                path.seconds * 1e3,
+                line.join(" ")
+            );
+        }
+    }
+    for lam in [1e-2, 3e-3, 1e-3, 3e-4] {
+        for max in [50, 100, 200] {
+            let o = opts(Lambda::Relative(lam), 1e-4, max);
+            let s1 = tv(&a, grid, &b, &o, &control).unwrap();
+            let s2 = tv_fista(&a, grid, &b, &o, &control).unwrap();
+            let s3 = fista(&a, Some(&haar), &b, &o, &control).unwrap();
+            println!(
+                "lam {lam:e} max {max}: pdhg {:.2} dB ({}+{} it, {:.0} ms) | tv-fista {:.2} dB ({}+{} it, {} inner, {:.0} ms) | haar {:.2} dB ({}+{} it, {:.0} ms)",
+                psnr64(&s1.t, &x0),
+                s1.report.iterations - s1.report.polish_iterations,
+                s1.report.polish_iterations,
+                s1.report.seconds * 1e3,
+                psnr64(&s2.t, &x0),
+                s2.report.iterations - s2.report.polish_iterations,
+                s2.report.polish_iterations,
+                s2.report.inner_iterations,
+                s2.report.seconds * 1e3,
+                psnr64(&s3.t, &x0),
+                s3.report.iterations - s3.report.polish_iterations,
+                s3.report.polish_iterations,
+                s3.report.seconds * 1e3
+            );
         }
     }
 }
 
 #[test]
 #[ignore]
-fn debug_weighted_deflation() {
-    let side = 16;
-    let k = side * side;
-    let n = 4 * k;
-    let x0 = blocks_scene(side);
-    let a = bernoulli(n, k, 0.5, 81);
-    let clean = measure(&a, &x0);
-    let scale = 10.0 / (clean.iter().sum::<f64>() / n as f64);
-    let mut rng = Rng::new(82);
-    let counts: Vec<f64> = clean.iter().map(|&m| poisson(m * scale, &mut rng)).collect();
-    let b: Vec<f64> = counts.iter().map(|c| c / scale).collect();
-    let w = poisson_weights(&counts, 1.0);
-    println!("counts {:?} b {:?} w {:?}", &counts[..5], &b[..5], &w[..5]);
-    for weights in [None, Some(&w[..])] {
-        let prep = super::condition::Prepared::new(&a, &b, weights, true);
-        let mut a1 = vec![0.0; prep.op().rows()];
-        let c = fista::best_constant(prep.op(), prep.b(), prep.weights(), &mut a1);
-        let l = lambda_max_l1(prep.op(), None, prep.b(), prep.weights(), true);
-        let mut g = vec![0.0; k];
-        prep.op().adjoint(prep.b(), &mut g);
-        println!("weights {}: deflated {} c {c} lambda_max {l} rhs tail {:?} g[0..3] {:?}", weights.is_some(), prep.is_deflated(), &prep.b()[prep.b().len()-2..], &g[..3]);
+fn explore_power_iteration() {
+    use crate::recon::linop::spectral_norm;
+    for (name, side) in [("fast-binary", 128usize), ("fast-binary", 64)] {
+        let k = side * side;
+        let a = FastBinary::new(k / 10, k, 3);
+        let d = super::condition::MeanDeflated::detect(&a, None).unwrap();
+        let exact = spectral_norm(&d, 2000, 1e-12);
+        let line: Vec<String> = [5, 10, 15, 20, 30, 40].iter().map(|&it| format!("{it}: {:.4}", spectral_norm(&d, it, 0.0) / exact)).collect();
+        println!("{name} {side}: deflated ||A'|| ratio after {}", line.join(", "));
     }
+    let g = gaussian(307, 1024, 21);
+    let exact = spectral_norm(&g, 2000, 1e-12);
+    let line: Vec<String> = [5, 10, 15, 20, 30, 40].iter().map(|&it| format!("{it}: {:.4}", spectral_norm(&g, it, 0.0) / exact)).collect();
+    println!("gaussian 307x1024: {}", line.join(", "));
 }

@@ -33,11 +33,10 @@ use std::time::Instant;
 use serde::Serialize;
 
 use super::condition::Prepared;
-use super::fista::{NONZERO_REL, count_tv_nonzeros, project_discs};
+use super::fista::{NONZERO_REL, Reg, count_tv_nonzeros, polish_exact, project_discs};
 use super::{
     History, Lambda, Solution, SolveOptions, SolveReport, StopReason, Ticker, check_problem,
-    is_zero_data, lambda_without_solve, lipschitz_of, non_finite,
-    relative_residual, zero_solution,
+    is_zero_data, lambda_without_solve, lipschitz_of, non_finite, relative_residual, zero_solution,
 };
 use crate::recon::linop::{LinearOperator, dot, norm};
 use crate::recon::{Control, ReconError};
@@ -174,7 +173,7 @@ pub fn lambda_max_tv(
         gradient(&d, grid, &mut dd);
         gradient_adjoint(&dd, grid, &mut q);
         let dq = dot(&d, &q);
-        if !(dq > 0.0) {
+        if dq.is_nan() || dq <= 0.0 {
             break;
         }
         let alpha = rr / dq;
@@ -186,7 +185,9 @@ pub fn lambda_max_tv(
         d.iter_mut().zip(&r).for_each(|(d, r)| *d = r + beta * *d);
     }
     gradient(&phi, grid, &mut dd);
-    let m = (0..k).map(|i| pair_norm(dd[i], dd[k + i])).fold(0.0f64, f64::max);
+    let m = (0..k)
+        .map(|i| pair_norm(dd[i], dd[k + i]))
+        .fold(0.0f64, f64::max);
     if m.is_finite() { m } else { 0.0 }
 }
 
@@ -216,7 +217,14 @@ pub fn tv(
     let (_, k) = check_problem(a, b, opts)?;
     check_grid(grid, k)?;
     if is_zero_data(b, opts.weights.as_deref()) {
-        return Ok(zero_solution(SOLVER, k, lambda_without_solve(opts.lambda), None, 0.0, start));
+        return Ok(zero_solution(
+            SOLVER,
+            k,
+            lambda_without_solve(opts.lambda),
+            None,
+            0.0,
+            start,
+        ));
     }
     let (original, original_b) = (a, b);
     let prep = Prepared::new(a, b, opts.weights.as_deref(), opts.deflate_mean);
@@ -263,9 +271,10 @@ pub fn tv(
     let mut adjoint_h = |q: &[f64], x: &mut [f64]| {
         match &sw {
             None => scratch_n.iter_mut().zip(q).for_each(|(o, q)| *o = q * inv),
-            Some(s) => {
-                scratch_n.iter_mut().zip(q.iter().zip(s)).for_each(|(o, (q, s))| *o = q * s * inv)
-            }
+            Some(s) => scratch_n
+                .iter_mut()
+                .zip(q.iter().zip(s))
+                .for_each(|(o, (q, s))| *o = q * s * inv),
         }
         a.adjoint(&scratch_n, x);
     };
@@ -287,7 +296,11 @@ pub fn tv(
             let ones = vec![1.0; k];
             apply_h(&ones, &mut at);
             let ee = dot(&at, &at);
-            let c = if ee > 0.0 { (dot(&at, &bh) / ee).max(0.0) } else { 0.0 };
+            let c = if ee > 0.0 {
+                (dot(&at, &bh) / ee).max(0.0)
+            } else {
+                0.0
+            };
             let c = if c.is_finite() { c } else { 0.0 };
             t.fill(c);
             at.iter_mut().for_each(|v| *v *= c);
@@ -305,7 +318,9 @@ pub fn tv(
     let mut p = vec![0.0; 2 * k];
     gradient(&t, grid, &mut dt);
     dt.iter_mut().for_each(|v| *v *= dscale);
-    q.iter_mut().zip(at.iter().zip(&bh)).for_each(|(q, (a, b))| *q = a - b);
+    q.iter_mut()
+        .zip(at.iter().zip(&bh))
+        .for_each(|(q, (a, b))| *q = a - b);
     if mu > 0.0 {
         for i in 0..k {
             let m = pair_norm(dt[i], dt[k + i]);
@@ -316,7 +331,11 @@ pub fn tv(
         }
     }
     let objective = |at: &[f64], dt: &[f64]| -> f64 {
-        let data: f64 = at.iter().zip(&bh).map(|(a, b)| (a - b) * (a - b)).sum::<f64>();
+        let data: f64 = at
+            .iter()
+            .zip(&bh)
+            .map(|(a, b)| (a - b) * (a - b))
+            .sum::<f64>();
         let tvh: f64 = (0..k).map(|i| pair_norm(dt[i], dt[k + i])).sum();
         anorm * anorm * 0.5 * data + lambda * tvh / dscale
     };
@@ -329,8 +348,16 @@ pub fn tv(
 
     // Step ratio tau / sigma = (primal scale) / (dual scale): the RMS pixel value over the
     // radius of the TV dual discs (or the RMS data residual when lambda = 0).
-    let y_scale = if mu > 0.0 { mu } else { norm(&q) / (n as f64).sqrt() };
-    let ratio = if t_scale > 0.0 && y_scale > 0.0 { (t_scale / y_scale).clamp(1e-6, 1e6) } else { 1.0 };
+    let y_scale = if mu > 0.0 {
+        mu
+    } else {
+        norm(&q) / (n as f64).sqrt()
+    };
+    let ratio = if t_scale > 0.0 && y_scale > 0.0 {
+        (t_scale / y_scale).clamp(1e-6, 1e6)
+    } else {
+        1.0
+    };
     let tau = (0.5 * ratio).sqrt();
     let sigma = (0.5 / ratio).sqrt();
 
@@ -345,14 +372,20 @@ pub fn tv(
         // Primal step: t <- clip(t - tau K^T y), tbar = 2 t_new - t_old.
         adjoint_h(&q, &mut kty);
         gradient_adjoint(&p, grid, &mut tmp_k);
-        kty.iter_mut().zip(&tmp_k).for_each(|(v, d)| *v += dscale * d);
+        kty.iter_mut()
+            .zip(&tmp_k)
+            .for_each(|(v, d)| *v += dscale * d);
         t_old.copy_from_slice(&t);
         if opts.nonnegative {
-            t.iter_mut().zip(&kty).for_each(|(t, g)| *t = (*t - tau * g).max(0.0));
+            t.iter_mut()
+                .zip(&kty)
+                .for_each(|(t, g)| *t = (*t - tau * g).max(0.0));
         } else {
             t.iter_mut().zip(&kty).for_each(|(t, g)| *t -= tau * g);
         }
-        tbar.iter_mut().zip(t.iter().zip(&t_old)).for_each(|(b, (n, o))| *b = 2.0 * n - o);
+        tbar.iter_mut()
+            .zip(t.iter().zip(&t_old))
+            .for_each(|(b, (n, o))| *b = 2.0 * n - o);
 
         // K tbar, and K t_new = (K tbar + K t_old) / 2 (exact recursion).
         apply_h(&tbar, &mut atbar);
@@ -378,7 +411,11 @@ pub fn tv(
             return Err(non_finite(SOLVER, it, "iterate"));
         }
         history.record(it, fx);
-        let change = if d2 == 0.0 { 0.0 } else { d2.sqrt() / norm(&t).max(f64::MIN_POSITIVE) };
+        let change = if d2 == 0.0 {
+            0.0
+        } else {
+            d2.sqrt() / norm(&t).max(f64::MIN_POSITIVE)
+        };
         if change <= opts.tol {
             small_changes += 1;
             if small_changes >= 3 {
@@ -406,7 +443,7 @@ pub fn tv(
         return Err(non_finite(SOLVER, iterations, "final objective"));
     }
     let (objective_history, history_stride) = history.finish();
-    Ok(Solution {
+    let first = Solution {
         report: SolveReport {
             solver: SOLVER,
             iterations,
@@ -425,9 +462,21 @@ pub fn tv(
             lipschitz: lip,
             inner_iterations: 0,
             deflated: prep.is_deflated(),
+            polish_iterations: 0,
         },
         t,
-    })
+    };
+    polish_exact(
+        first,
+        &prep,
+        original,
+        original_b,
+        Reg::Tv(grid),
+        opts,
+        control,
+        SOLVER,
+        start,
+    )
 }
 
 #[cfg(test)]
@@ -449,7 +498,10 @@ mod tests {
             // The far-boundary entries of p are ignored by D^T and D t is 0 there.
             let l = dot(&g, &p);
             let r = dot(&t, &dtp);
-            assert!((l - r).abs() <= 1e-12 * (l.abs() + r.abs() + 1.0), "{w}x{h}: {l} vs {r}");
+            assert!(
+                (l - r).abs() <= 1e-12 * (l.abs() + r.abs() + 1.0),
+                "{w}x{h}: {l} vs {r}"
+            );
             // ||D||^2 <= 8 (power iteration).
             let mut x = test_vector(k, 3);
             let mut est = 0.0;
@@ -465,7 +517,9 @@ mod tests {
         // Constant image: zero gradient; a step: TV = its length.
         let grid = Grid::new(6, 4);
         assert_eq!(tv_value(&[3.0; 24], grid), 0.0);
-        let step: Vec<f64> = (0..24).map(|i| if i % 6 >= 3 { 1.0 } else { 0.0 }).collect();
+        let step: Vec<f64> = (0..24)
+            .map(|i| if i % 6 >= 3 { 1.0 } else { 0.0 })
+            .collect();
         assert!((tv_value(&step, grid) - 4.0).abs() < 1e-12);
     }
 }

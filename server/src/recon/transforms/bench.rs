@@ -1,5 +1,5 @@
 //! Transform speeds. Run with
-//! `cargo test --release -p helmholtz-server --lib recon::transforms::bench -- --ignored --nocapture`.
+//! `cargo test -p helmholtz-server --lib recon::transforms::bench -- --ignored --nocapture`.
 
 use std::time::Instant;
 
@@ -24,7 +24,13 @@ fn time(mut f: impl FnMut()) -> f64 {
 #[test]
 #[ignore]
 fn bench_transforms() {
-    for (w, h) in [(64usize, 64usize), (128, 128), (158, 210), (256, 256), (512, 512)] {
+    for (w, h) in [
+        (64usize, 64usize),
+        (128, 128),
+        (158, 210),
+        (256, 256),
+        (512, 512),
+    ] {
         let k = w * h;
         let x = test_vector(k, 1);
         let mut c = vec![0.0; k];
@@ -43,7 +49,11 @@ fn bench_transforms() {
         let f = time(|| d.apply(&x, &mut g));
         let gg = test_vector(2 * k, 2);
         let i = time(|| d.adjoint(&gg, &mut c));
-        line += &format!(" | gradient {:.3}/{:.3} ms (forward/adjoint)", f * 1e3, i * 1e3);
+        line += &format!(
+            " | gradient {:.3}/{:.3} ms (forward/adjoint)",
+            f * 1e3,
+            i * 1e3
+        );
         println!("{line}");
     }
 }

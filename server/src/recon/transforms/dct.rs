@@ -29,7 +29,11 @@ pub fn dct_matrix(n: usize) -> Vec<f64> {
     let mut c = vec![0.0; n * n];
     let nf = n as f64;
     for u in 0..n {
-        let a = if u == 0 { (1.0 / nf).sqrt() } else { (2.0 / nf).sqrt() };
+        let a = if u == 0 {
+            (1.0 / nf).sqrt()
+        } else {
+            (2.0 / nf).sqrt()
+        };
         for x in 0..n {
             // Reduce the angle's integer part exactly before the cosine: (2x + 1) u mod 4N.
             let m = ((2 * x + 1) * u) % (4 * n);
@@ -69,7 +73,13 @@ impl Axis {
     fn new(n: usize, allow_fast: bool) -> Axis {
         if allow_fast && n.is_power_of_two() && n >= 2 {
             let nf = n as f64;
-            let a = |k: usize| if k == 0 { (1.0 / nf).sqrt() } else { (2.0 / nf).sqrt() };
+            let a = |k: usize| {
+                if k == 0 {
+                    (1.0 / nf).sqrt()
+                } else {
+                    (2.0 / nf).sqrt()
+                }
+            };
             let theta = |k: usize| std::f64::consts::PI * k as f64 / (2.0 * nf);
             Axis::Fast {
                 n,
@@ -124,7 +134,15 @@ impl Axis {
                 gemm(data, if forward { ct } else { c }, *n, out);
                 data.copy_from_slice(out);
             }
-            Axis::Fast { n, fft, fc, fs, cos, sin, inv_a } => {
+            Axis::Fast {
+                n,
+                fft,
+                fc,
+                fs,
+                cos,
+                sin,
+                inv_a,
+            } => {
                 let n = *n;
                 let (re, rest) = scratch.split_at_mut(n);
                 let (im, zero) = rest.split_at_mut(n);
@@ -150,7 +168,15 @@ impl Axis {
 }
 
 /// Orthonormal DCT-II of two rows at once (in place).
-fn dct_pair(fft: &Fft, fc: &[f64], fs: &[f64], x1: &mut [f64], x2: &mut [f64], re: &mut [f64], im: &mut [f64]) {
+fn dct_pair(
+    fft: &Fft,
+    fc: &[f64],
+    fs: &[f64],
+    x1: &mut [f64],
+    x2: &mut [f64],
+    re: &mut [f64],
+    im: &mut [f64],
+) {
     let n = x1.len();
     for j in 0..n / 2 {
         re[j] = x1[2 * j];
@@ -186,7 +212,11 @@ fn idct_pair(
     // V[k] = exp(i theta_k) (U[k] - i U[n-k]), U[n] = 0; Z = V1 + i V2.
     for k in 0..n {
         let (a1, a2) = (x1[k] * inv_a[k], x2[k] * inv_a[k]);
-        let (b1, b2) = if k == 0 { (0.0, 0.0) } else { (x1[n - k] * inv_a[n - k], x2[n - k] * inv_a[n - k]) };
+        let (b1, b2) = if k == 0 {
+            (0.0, 0.0)
+        } else {
+            (x1[n - k] * inv_a[n - k], x2[n - k] * inv_a[n - k])
+        };
         let (c, s) = (cos[k], sin[k]);
         let (rv1, iv1) = (c * a1 + s * b1, s * a1 - c * b1);
         let (rv2, iv2) = (c * a2 + s * b2, s * a2 - c * b2);
@@ -266,7 +296,13 @@ impl Dct2d {
 
     fn build(width: usize, height: usize, fast: bool) -> Self {
         assert!(width > 0 && height > 0, "dct needs a non-empty image");
-        Dct2d { width, height, x: Axis::new(width, fast), y: Axis::new(height, fast), pool: Pool::new() }
+        Dct2d {
+            width,
+            height,
+            x: Axis::new(width, fast),
+            y: Axis::new(height, fast),
+            pool: Pool::new(),
+        }
     }
 
     pub fn width(&self) -> usize {

@@ -7,23 +7,37 @@ pub(crate) struct Fft {
     n: usize,
     /// Bit-reversal permutation.
     rev: Vec<u32>,
-    /// `cos(2 pi j / n)`, `-sin(2 pi j / n)` for j < n / 2 (forward twiddles).
+    /// Forward twiddles per stage, contiguous: for the stage of span `half`, entries
+    /// `half + j` (j < half) hold `cos(pi j / half)` and `-sin(pi j / half)`.
     cos: Vec<f64>,
     msin: Vec<f64>,
 }
 
 impl Fft {
     pub(crate) fn new(n: usize) -> Self {
-        assert!(n.is_power_of_two(), "fft length must be a power of two, got {n}");
+        assert!(
+            n.is_power_of_two(),
+            "fft length must be a power of two, got {n}"
+        );
         let bits = n.trailing_zeros();
         let rev = (0..n as u64)
-            .map(|i| if bits == 0 { 0 } else { (i.reverse_bits() >> (64 - bits)) as u32 })
+            .map(|i| {
+                if bits == 0 {
+                    0
+                } else {
+                    (i.reverse_bits() >> (64 - bits)) as u32
+                }
+            })
             .collect();
-        let (mut cos, mut msin) = (Vec::with_capacity(n / 2), Vec::with_capacity(n / 2));
-        for j in 0..n / 2 {
-            let a = 2.0 * std::f64::consts::PI * j as f64 / n as f64;
-            cos.push(a.cos());
-            msin.push(-a.sin());
+        let (mut cos, mut msin) = (vec![0.0; n.max(1)], vec![0.0; n.max(1)]);
+        let mut half = 1;
+        while half < n {
+            for j in 0..half {
+                let a = std::f64::consts::PI * j as f64 / half as f64;
+                cos[half + j] = a.cos();
+                msin[half + j] = -a.sin();
+            }
+            half *= 2;
         }
         Fft { n, rev, cos, msin }
     }
@@ -52,18 +66,27 @@ impl Fft {
         }
         let mut half = 2;
         while half < n {
-            let stride = n / (2 * half);
-            for start in (0..n).step_by(2 * half) {
-                let (rl, rh) = re[start..start + 2 * half].split_at_mut(half);
-                let (il, ih) = im[start..start + 2 * half].split_at_mut(half);
-                for j in 0..half {
-                    let (c, s) = (self.cos[j * stride], self.msin[j * stride]);
-                    let (xr, xi) = (rh[j], ih[j]);
+            let (cs, ss) = (&self.cos[half..2 * half], &self.msin[half..2 * half]);
+            for (rc, ic) in re
+                .chunks_exact_mut(2 * half)
+                .zip(im.chunks_exact_mut(2 * half))
+            {
+                let (rl, rh) = rc.split_at_mut(half);
+                let (il, ih) = ic.split_at_mut(half);
+                for (((((rl, rh), il), ih), &c), &s) in rl
+                    .iter_mut()
+                    .zip(rh.iter_mut())
+                    .zip(il.iter_mut())
+                    .zip(ih.iter_mut())
+                    .zip(cs)
+                    .zip(ss)
+                {
+                    let (xr, xi) = (*rh, *ih);
                     let (tr, ti) = (xr * c - xi * s, xr * s + xi * c);
-                    rh[j] = rl[j] - tr;
-                    ih[j] = il[j] - ti;
-                    rl[j] += tr;
-                    il[j] += ti;
+                    *rh = *rl - tr;
+                    *ih = *il - ti;
+                    *rl += tr;
+                    *il += ti;
                 }
             }
             half *= 2;
@@ -95,7 +118,10 @@ mod tests {
                     sr += xr[j] * a.cos() - xi[j] * a.sin();
                     si += xr[j] * a.sin() + xi[j] * a.cos();
                 }
-                assert!((re[k] - sr).abs() < 1e-12 && (im[k] - si).abs() < 1e-12, "n {n} k {k}");
+                assert!(
+                    (re[k] - sr).abs() < 1e-12 && (im[k] - si).abs() < 1e-12,
+                    "n {n} k {k}"
+                );
             }
             Fft::new(n).backward(&mut re, &mut im);
             for j in 0..n {

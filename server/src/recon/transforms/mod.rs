@@ -126,7 +126,11 @@ impl TransformKind {
 }
 
 /// [`TransformKind::build`] as a plain operator.
-pub fn sparsifying_transform(kind: TransformKind, width: usize, height: usize) -> Box<dyn LinearOperator> {
+pub fn sparsifying_transform(
+    kind: TransformKind,
+    width: usize,
+    height: usize,
+) -> Box<dyn LinearOperator> {
     match kind {
         TransformKind::Identity => Box::new(Identity::new(width * height)),
         TransformKind::Haar => Box::new(Wavelet2d::haar(width, height)),

@@ -17,7 +17,10 @@ const SIZES: [(usize, usize); 12] = [
 ];
 
 fn max_diff(a: &[f64], b: &[f64]) -> f64 {
-    a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f64::max)
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f64::max)
 }
 
 #[test]
@@ -34,12 +37,21 @@ fn orthonormal_transforms_invert_and_preserve_norms() {
             let (mut c, mut back) = (vec![0.0; k], vec![0.0; k]);
             t.apply(&x, &mut c);
             t.adjoint(&c, &mut back);
-            assert!(max_diff(&x, &back) < 1e-12, "{what}: inverse(forward(x)) != x");
-            assert!((norm(&c) - norm(&x)).abs() < 1e-12 * norm(&x), "{what}: Parseval");
+            assert!(
+                max_diff(&x, &back) < 1e-12,
+                "{what}: inverse(forward(x)) != x"
+            );
+            assert!(
+                (norm(&c) - norm(&x)).abs() < 1e-12 * norm(&x),
+                "{what}: Parseval"
+            );
             // And the other way round (Psi Psi^T = I).
             t.adjoint(&x, &mut c);
             t.apply(&c, &mut back);
-            assert!(max_diff(&x, &back) < 1e-12, "{what}: forward(inverse(c)) != c");
+            assert!(
+                max_diff(&x, &back) < 1e-12,
+                "{what}: forward(inverse(c)) != c"
+            );
         }
     }
 }
@@ -53,9 +65,15 @@ fn small_transforms_are_orthogonal_matrices() {
             let k = w * h;
             for i in 0..k {
                 for j in 0..k {
-                    let s: f64 = (0..k).map(|c| d.data()[i * k + c] * d.data()[j * k + c]).sum();
+                    let s: f64 = (0..k)
+                        .map(|c| d.data()[i * k + c] * d.data()[j * k + c])
+                        .sum();
                     let want = if i == j { 1.0 } else { 0.0 };
-                    assert!((s - want).abs() < 1e-13, "{} {w}x{h} ({i},{j}) {s}", t.name());
+                    assert!(
+                        (s - want).abs() < 1e-13,
+                        "{} {w}x{h} ({i},{j}) {s}",
+                        t.name()
+                    );
                 }
             }
         }
@@ -133,13 +151,19 @@ fn daubechies_filters_kill_polynomials() {
     // except the last (taps / 2 - 1) ones where the periodic filter wraps.
     for (t, degree, taps) in [(Wavelet2d::db2(64, 1), 1, 4), (Wavelet2d::db4(64, 1), 3, 8)] {
         let t = t.with_levels(1);
-        let x: Vec<f64> = (0..64).map(|i| (i as f64 / 10.0).powi(degree) + 0.5).collect();
+        let x: Vec<f64> = (0..64)
+            .map(|i| (i as f64 / 10.0).powi(degree) + 0.5)
+            .collect();
         let mut c = vec![0.0; 64];
         t.apply(&x, &mut c);
         let details = &c[32..];
         let inner = &details[..32 - (taps / 2 - 1)];
         let scale = norm(&x);
-        assert!(inner.iter().all(|d| d.abs() < 1e-11 * scale), "{}: {inner:?}", t.name());
+        assert!(
+            inner.iter().all(|d| d.abs() < 1e-11 * scale),
+            "{}: {inner:?}",
+            t.name()
+        );
         assert!(details[31].abs() > 1e-3, "the wrap is not smooth");
     }
 }
@@ -161,7 +185,11 @@ fn smooth_images_prefer_smooth_wavelets_and_the_dct() {
         t.apply(&img, &mut c);
         count_above(&c, 1e-3 * norm(&c))
     };
-    let (haar, db4, dct) = (kept(TransformKind::Haar), kept(TransformKind::Db4), kept(TransformKind::Dct));
+    let (haar, db4, dct) = (
+        kept(TransformKind::Haar),
+        kept(TransformKind::Db4),
+        kept(TransformKind::Dct),
+    );
     println!("kept: haar {haar}, db4 {db4}, dct {dct}");
     assert!(db4 * 3 < haar, "db4 {db4} haar {haar}");
     assert!(dct * 3 < haar, "dct {dct} haar {haar}");
@@ -177,8 +205,16 @@ fn dct_matches_the_formula() {
         let pi = std::f64::consts::PI;
         for v in 0..h {
             for u in 0..w {
-                let au = if u == 0 { (1.0 / w as f64).sqrt() } else { (2.0 / w as f64).sqrt() };
-                let av = if v == 0 { (1.0 / h as f64).sqrt() } else { (2.0 / h as f64).sqrt() };
+                let au = if u == 0 {
+                    (1.0 / w as f64).sqrt()
+                } else {
+                    (2.0 / w as f64).sqrt()
+                };
+                let av = if v == 0 {
+                    (1.0 / h as f64).sqrt()
+                } else {
+                    (2.0 / h as f64).sqrt()
+                };
                 let mut s = 0.0;
                 for y in 0..h {
                     for xx in 0..w {
@@ -187,7 +223,10 @@ fn dct_matches_the_formula() {
                             * (pi * (2 * y + 1) as f64 * v as f64 / (2 * h) as f64).cos();
                     }
                 }
-                assert!((c[v * w + u] - au * av * s).abs() < 1e-13, "{w}x{h} ({u},{v})");
+                assert!(
+                    (c[v * w + u] - au * av * s).abs() < 1e-13,
+                    "{w}x{h} ({u},{v})"
+                );
             }
         }
     }
@@ -195,7 +234,15 @@ fn dct_matches_the_formula() {
 
 #[test]
 fn fast_dct_equals_the_matrix_dct() {
-    for (w, h) in [(2usize, 2usize), (4, 8), (64, 32), (16, 5), (256, 256), (2, 1), (1, 4)] {
+    for (w, h) in [
+        (2usize, 2usize),
+        (4, 8),
+        (64, 32),
+        (16, 5),
+        (256, 256),
+        (2, 1),
+        (1, 4),
+    ] {
         let (fast, slow) = (Dct2d::new(w, h), Dct2d::with_matrices(w, h));
         let x = test_vector(w * h, 9);
         let (mut a, mut b) = (vec![0.0; w * h], vec![0.0; w * h]);
@@ -238,19 +285,33 @@ fn gradient_adjoint_norm_and_tv() {
     // Row (0, 0) of gx: u[0][1] - u[0][0].
     assert_eq!(&dense.data()[..6], &[-1.0, 1.0, 0.0, 0.0, 0.0, 0.0]);
     // Row (0, 0) of gy (index 6): u[1][0] - u[0][0]; last-row gy rows are zero.
-    assert_eq!(&dense.data()[6 * 6..7 * 6], &[-1.0, 0.0, 0.0, 1.0, 0.0, 0.0]);
+    assert_eq!(
+        &dense.data()[6 * 6..7 * 6],
+        &[-1.0, 0.0, 0.0, 1.0, 0.0, 0.0]
+    );
     assert!(dense.data()[9 * 6..].iter().all(|&v| v == 0.0));
 }
 
 #[test]
 fn tv_of_a_step_edge_is_length_times_jump() {
-    for (w, h, edge, jump) in [(10usize, 7usize, 4usize, 2.5f64), (64, 32, 31, -1.0), (5, 100, 1, 0.25)] {
-        let img: Vec<f64> = (0..w * h).map(|p| if p % w >= edge { jump } else { 0.0 }).collect();
+    for (w, h, edge, jump) in [
+        (10usize, 7usize, 4usize, 2.5f64),
+        (64, 32, 31, -1.0),
+        (5, 100, 1, 0.25),
+    ] {
+        let img: Vec<f64> = (0..w * h)
+            .map(|p| if p % w >= edge { jump } else { 0.0 })
+            .collect();
         let d = Gradient::new(w, h);
-        assert!((d.tv(&img) - h as f64 * jump.abs()).abs() < 1e-12, "{w}x{h}");
+        assert!(
+            (d.tv(&img) - h as f64 * jump.abs()).abs() < 1e-12,
+            "{w}x{h}"
+        );
         assert!((d.tv_anisotropic(&img) - h as f64 * jump.abs()).abs() < 1e-12);
         // The same edge horizontal.
-        let img: Vec<f64> = (0..w * h).map(|p| if p / w >= edge { jump } else { 0.0 }).collect();
+        let img: Vec<f64> = (0..w * h)
+            .map(|p| if p / w >= edge { jump } else { 0.0 })
+            .collect();
         assert!((d.tv(&img) - w as f64 * jump.abs()).abs() < 1e-12);
     }
     // Isotropic, not anisotropic: a single bright pixel at (1, 1) of 3 x 3 has gradients
@@ -279,5 +340,8 @@ fn identity_and_kinds() {
         let op = sparsifying_transform(kind, 6, 2);
         assert_eq!((op.rows(), op.cols()), (12, 12));
     }
-    assert_eq!(serde_json::to_string(&TransformKind::Db4).unwrap(), "\"db4\"");
+    assert_eq!(
+        serde_json::to_string(&TransformKind::Db4).unwrap(),
+        "\"db4\""
+    );
 }

@@ -91,9 +91,7 @@ impl LinearOperator for Gradient {
         // x part: u[x] = gx[x - 1] (x >= 1) - gx[x] (x < w - 1).
         for (row, p) in u.chunks_exact_mut(w).zip(gx.chunks_exact(w)) {
             row[0] = 0.0;
-            for x in 1..w {
-                row[x] = p[x - 1];
-            }
+            row[1..].copy_from_slice(&p[..w - 1]);
             for x in 0..w - 1 {
                 row[x] -= p[x];
             }

@@ -25,6 +25,8 @@
 //!   periodic step runs on the first `N - 1`: still orthonormal, at the cost of a seam at the
 //!   image edge (as with any periodic wavelet on a non-periodic image).
 
+use rayon::prelude::*;
+
 use super::Transform;
 use crate::recon::linop::LinearOperator;
 use crate::recon::ops::scratch::Pool;
@@ -44,9 +46,19 @@ const DB4: [f64; 8] = [
     -0.010_597_401_785_069_032,
 ];
 
+/// Blocks with at least this many values are split over threads.
+const PARALLEL_MIN: usize = 1 << 15;
+/// Rows per task in the parallel x step.
+const ROWS_PER_TASK: usize = 16;
+
 fn db2() -> [f64; 4] {
     let (s3, d) = (3f64.sqrt(), 4.0 * 2f64.sqrt());
-    [(1.0 + s3) / d, (3.0 + s3) / d, (3.0 - s3) / d, (1.0 - s3) / d]
+    [
+        (1.0 + s3) / d,
+        (3.0 + s3) / d,
+        (3.0 - s3) / d,
+        (1.0 - s3) / d,
+    ]
 }
 
 #[derive(Clone, Debug, PartialEq)]
@@ -96,8 +108,22 @@ impl Wavelet2d {
 
     fn periodic(width: usize, height: usize, h: &[f64], name: &'static str) -> Self {
         let l = h.len();
-        let g = (0..l).map(|t| if t % 2 == 0 { h[l - 1 - t] } else { -h[l - 1 - t] }).collect();
-        Self::build(width, height, Family::Periodic { h: h.to_vec(), g }, name, usize::MAX)
+        let g = (0..l)
+            .map(|t| {
+                if t % 2 == 0 {
+                    h[l - 1 - t]
+                } else {
+                    -h[l - 1 - t]
+                }
+            })
+            .collect();
+        Self::build(
+            width,
+            height,
+            Family::Periodic { h: h.to_vec(), g },
+            name,
+            usize::MAX,
+        )
     }
 
     /// The same transform with at most `levels` levels (0 = identity).
@@ -119,7 +145,14 @@ impl Wavelet2d {
             wl = wl.div_ceil(2);
             hl = hl.div_ceil(2);
         }
-        Wavelet2d { width, height, family, name, levels, pool: Pool::new() }
+        Wavelet2d {
+            width,
+            height,
+            family,
+            name,
+            levels,
+            pool: Pool::new(),
+        }
     }
 
     pub fn levels(&self) -> usize {
@@ -224,37 +257,99 @@ impl Wavelet2d {
         }
     }
 
-    /// One x step on every row of the `wl x hl` block (row stride `width`).
-    fn step_rows(&self, data: &mut [f64], wl: usize, hl: usize, step: &Step, forward: bool, buf: &mut [f64]) {
+    /// One x step on every row of the `wl x hl` block (row stride `width`); rows in parallel
+    /// for large blocks.
+    fn step_rows(&self, data: &mut [f64], wl: usize, hl: usize, step: &Step, forward: bool) {
         let w = self.width;
-        for y in 0..hl {
-            let row = &mut data[y * w..y * w + wl];
-            let b = &mut buf[..wl];
-            if forward {
-                self.step_forward(step, row, b);
-            } else {
-                self.step_inverse(step, row, b);
+        let rows = |chunk: &mut [f64]| {
+            let mut buf = self.pool.take(wl);
+            for row in chunk.chunks_mut(w) {
+                let row = &mut row[..wl];
+                if forward {
+                    self.step_forward(step, row, &mut buf);
+                } else {
+                    self.step_inverse(step, row, &mut buf);
+                }
+                row.copy_from_slice(&buf);
             }
-            row.copy_from_slice(b);
+        };
+        // The block's rows: hl rows of stride w (the last one may be cut at wl).
+        let block = &mut data[..(hl - 1) * w + wl];
+        if wl * hl >= PARALLEL_MIN && rayon::current_num_threads() > 1 {
+            block.par_chunks_mut(ROWS_PER_TASK * w).for_each(rows);
+        } else {
+            rows(block);
         }
     }
 
     /// One y step on the `wl x hl` block: the 1D step with whole row segments as samples
-    /// (vectorised along x), through `tmp` (`hl x wl`).
-    fn step_columns(&self, data: &mut [f64], wl: usize, hl: usize, step: &Step, forward: bool, tmp: &mut [f64]) {
+    /// (vectorised along x). Column bands in parallel for large blocks, each into its own part
+    /// of `tmp`, then copied back.
+    fn step_columns(
+        &self,
+        data: &mut [f64],
+        wl: usize,
+        hl: usize,
+        step: &Step,
+        forward: bool,
+        tmp: &mut [f64],
+    ) {
+        let w = self.width;
+        let threads = rayon::current_num_threads();
+        let bands = if wl * hl >= PARALLEL_MIN && threads > 1 {
+            (2 * threads).min(wl.div_ceil(8))
+        } else {
+            1
+        };
+        let bw = wl.div_ceil(bands);
+        let tmp = &mut tmp[..hl * wl];
+        {
+            let src: &[f64] = data;
+            let band = |(j, out): (usize, &mut [f64])| {
+                let c0 = j * bw;
+                let width = bw.min(wl - c0);
+                self.column_band(src, c0, width, hl, step, forward, &mut out[..hl * width]);
+            };
+            if bands > 1 {
+                tmp.par_chunks_mut(hl * bw).enumerate().for_each(band);
+            } else {
+                band((0, tmp));
+            }
+        }
+        for (j, out) in tmp.chunks(hl * bw).enumerate() {
+            let c0 = j * bw;
+            let width = bw.min(wl - c0);
+            for y in 0..hl {
+                data[y * w + c0..y * w + c0 + width]
+                    .copy_from_slice(&out[y * width..(y + 1) * width]);
+            }
+        }
+    }
+
+    /// The y step on columns `c0..c0 + bw` of `data` (row stride `width`) into `out` (`hl x bw`).
+    #[allow(clippy::too_many_arguments)]
+    fn column_band(
+        &self,
+        data: &[f64],
+        c0: usize,
+        bw: usize,
+        hl: usize,
+        step: &Step,
+        forward: bool,
+        out: &mut [f64],
+    ) {
         let w = self.width;
         let n = step.len;
         debug_assert_eq!(n, hl);
         let half = n / 2;
         let na = n.div_ceil(2);
-        let tmp = &mut tmp[..hl * wl];
-        let src = |y: usize| y * w..y * w + wl;
-        let dst = |y: usize| y * wl..(y + 1) * wl;
+        let src = |y: usize| y * w + c0..y * w + c0 + bw;
+        let dst = |y: usize| y * bw..(y + 1) * bw;
         match (&self.family, forward) {
             (Family::Haar, true) => {
+                let (lo, hi) = out.split_at_mut(na * bw);
                 for (i, &(a, b)) in step.pairs.iter().enumerate() {
                     let (r1, r2) = (&data[src(2 * i)], &data[src(2 * i + 1)]);
-                    let (lo, hi) = tmp.split_at_mut(na * wl);
                     let (ap, de) = (&mut lo[dst(i)], &mut hi[dst(i)]);
                     for (((o1, o2), &s1), &s2) in ap.iter_mut().zip(de.iter_mut()).zip(r1).zip(r2) {
                         *o1 = a * s1 + b * s2;
@@ -265,8 +360,8 @@ impl Wavelet2d {
             (Family::Haar, false) => {
                 for (i, &(a, b)) in step.pairs.iter().enumerate() {
                     let (ap, de) = (&data[src(i)], &data[src(na + i)]);
-                    let (lo, hi) = tmp.split_at_mut((2 * i + 1) * wl);
-                    let (o1, o2) = (&mut lo[dst(2 * i)], &mut hi[..wl]);
+                    let (lo, hi) = out.split_at_mut((2 * i + 1) * bw);
+                    let (o1, o2) = (&mut lo[dst(2 * i)], &mut hi[..bw]);
                     for (((x1, x2), &av), &dv) in o1.iter_mut().zip(o2.iter_mut()).zip(ap).zip(de) {
                         *x1 = a * av + b * dv;
                         *x2 = b * av - a * dv;
@@ -275,12 +370,12 @@ impl Wavelet2d {
             }
             (Family::Periodic { h, g }, true) => {
                 let ne = 2 * half;
-                tmp[..(na + half) * wl].fill(0.0);
+                out.fill(0.0);
+                let (lo, hi) = out.split_at_mut(na * bw);
                 for i in 0..half {
+                    let (ap, de) = (&mut lo[dst(i)], &mut hi[dst(i)]);
                     for (t, (&ht, &gt)) in h.iter().zip(g).enumerate() {
                         let r = &data[src((2 * i + t) % ne)];
-                        let (lo, hi) = tmp.split_at_mut(na * wl);
-                        let (ap, de) = (&mut lo[dst(i)], &mut hi[dst(i)]);
                         for ((o1, o2), &v) in ap.iter_mut().zip(de.iter_mut()).zip(r) {
                             *o1 += ht * v;
                             *o2 += gt * v;
@@ -290,11 +385,11 @@ impl Wavelet2d {
             }
             (Family::Periodic { h, g }, false) => {
                 let ne = 2 * half;
-                tmp[..ne * wl].fill(0.0);
+                out.fill(0.0);
                 for i in 0..half {
                     let (ap, de) = (&data[src(i)], &data[src(na + i)]);
                     for (t, (&ht, &gt)) in h.iter().zip(g).enumerate() {
-                        let o = &mut tmp[dst((2 * i + t) % ne)];
+                        let o = &mut out[dst((2 * i + t) % ne)];
                         for ((x, &av), &dv) in o.iter_mut().zip(ap).zip(de) {
                             *x += ht * av + gt * dv;
                         }
@@ -304,11 +399,12 @@ impl Wavelet2d {
         }
         if n % 2 == 1 {
             // The unpaired last sample / approximation passes through.
-            let (from, to) = if forward { (n - 1, half) } else { (half, n - 1) };
-            tmp[dst(to)].copy_from_slice(&data[src(from)]);
-        }
-        for y in 0..hl {
-            data[src(y)].copy_from_slice(&tmp[dst(y)]);
+            let (from, to) = if forward {
+                (n - 1, half)
+            } else {
+                (half, n - 1)
+            };
+            out[dst(to)].copy_from_slice(&data[src(from)]);
         }
     }
 
@@ -317,7 +413,6 @@ impl Wavelet2d {
         assert_eq!(input.len(), w * h);
         assert_eq!(out.len(), w * h);
         out.copy_from_slice(input);
-        let mut buf = self.pool.take(w.max(h));
         let mut tmp = self.pool.take(w * h);
         // Block size at each level.
         let (mut wl, mut hl) = (w, h);
@@ -339,7 +434,7 @@ impl Wavelet2d {
             // Forward: x then y; inverse: y then x.
             if forward {
                 if let Some(s) = sx {
-                    self.step_rows(out, wl, hl, s, true, &mut buf);
+                    self.step_rows(out, wl, hl, s, true);
                 }
                 if let Some(s) = sy {
                     self.step_columns(out, wl, hl, s, true, &mut tmp);
@@ -349,7 +444,7 @@ impl Wavelet2d {
                     self.step_columns(out, wl, hl, s, false, &mut tmp);
                 }
                 if let Some(s) = sx {
-                    self.step_rows(out, wl, hl, s, false, &mut buf);
+                    self.step_rows(out, wl, hl, s, false);
                 }
             }
         }
@@ -370,7 +465,13 @@ fn make_step(len: usize, sizes: &mut [usize], haar: bool) -> Step {
         }
     }
     let next: Vec<usize> = (0..len.div_ceil(2))
-        .map(|i| if 2 * i + 1 < len { sizes[2 * i] + sizes[2 * i + 1] } else { sizes[2 * i] })
+        .map(|i| {
+            if 2 * i + 1 < len {
+                sizes[2 * i] + sizes[2 * i + 1]
+            } else {
+                sizes[2 * i]
+            }
+        })
         .collect();
     sizes[..next.len()].copy_from_slice(&next);
     Step { len, pairs }
