@@ -154,10 +154,15 @@ fn bench_bernoulli() {
         let yc_in = test_vector(n + 1, 5);
         let c_apply = time(|| centred.apply(&x, &mut yc));
         let c_adjoint = time(|| centred.adjoint(&yc_in, &mut xo));
+        let norm_p = crate::recon::linop::spectral_norm(&op, 100, 1e-4);
+        let norm_c = crate::recon::linop::spectral_norm(&centred, 100, 1e-4);
         println!(
-            "  centred + dc row: apply {} adjoint {}",
+            "  centred + dc row (weight {:.3}): apply {} adjoint {}; ||P|| = {norm_p:.1}, \
+             ||[A_c; w m]|| = {norm_c:.1}: step sizes {:.0}x larger",
+            centred.dc_weight().unwrap(),
             ms(c_apply),
-            ms(c_adjoint)
+            ms(c_adjoint),
+            (norm_p / norm_c).powi(2)
         );
     }
 }

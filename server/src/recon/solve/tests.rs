@@ -994,11 +994,20 @@ fn explore_power_iteration() {
         let a = FastBinary::new(k / 10, k, 3);
         let d = super::condition::MeanDeflated::detect(&a, None).unwrap();
         let exact = spectral_norm(&d, 2000, 1e-12);
-        let line: Vec<String> = [5, 10, 15, 20, 30, 40].iter().map(|&it| format!("{it}: {:.4}", spectral_norm(&d, it, 0.0) / exact)).collect();
-        println!("{name} {side}: deflated ||A'|| ratio after {}", line.join(", "));
+        let line: Vec<String> = [5, 10, 15, 20, 30, 40]
+            .iter()
+            .map(|&it| format!("{it}: {:.4}", spectral_norm(&d, it, 0.0) / exact))
+            .collect();
+        println!(
+            "{name} {side}: deflated ||A'|| ratio after {}",
+            line.join(", ")
+        );
     }
     let g = gaussian(307, 1024, 21);
     let exact = spectral_norm(&g, 2000, 1e-12);
-    let line: Vec<String> = [5, 10, 15, 20, 30, 40].iter().map(|&it| format!("{it}: {:.4}", spectral_norm(&g, it, 0.0) / exact)).collect();
+    let line: Vec<String> = [5, 10, 15, 20, 30, 40]
+        .iter()
+        .map(|&it| format!("{it}: {:.4}", spectral_norm(&g, it, 0.0) / exact))
+        .collect();
     println!("gaussian 307x1024: {}", line.join(", "));
 }
