@@ -346,7 +346,7 @@ pub struct SimulateArgs {
     /// Write the scene as seen on the pattern grid (8-bit PNG) to this file.
     #[arg(long, value_name = "FILE")]
     pub scene_out: Option<PathBuf>,
-    /// Request a reconstruction after the upload: gi, dgi, ngi or direct.
+    /// Request a reconstruction after the upload: gi, dgi, ngi, direct, lsq, cs or tv.
     #[arg(long, value_name = "METHOD")]
     pub reconstruct: Option<String>,
     #[command(flatten)]

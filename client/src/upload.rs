@@ -452,7 +452,7 @@ pub async fn finish_session(server: &str, session_id: &str) -> anyhow::Result<v1
     .await
 }
 
-/// Requests a reconstruction over gRPC. `method`: "gi", "dgi", "ngi" or "direct"; `params` a
+/// Requests a reconstruction over gRPC. `method`: "gi", "dgi", "ngi", "direct", "lsq", "cs" or "tv"; `params` a
 /// JSON object (`{}` for the defaults). Not retried: each call queues a new job.
 pub async fn request_reconstruction(
     server: &str,

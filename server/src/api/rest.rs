@@ -49,7 +49,7 @@ async fn index() -> axum::Json<Value> {
         "grpc": "helmholtz.v1.Acquisition on this same address (HTTP/2)",
         "routes": [
             "GET /v1/sessions", "GET /v1/sessions/{id}", "GET /v1/sessions/{id}/reconstructions",
-            "POST /v1/sessions/{id}/reconstructions {\"method\": \"gi|dgi|ngi|direct\", \"params\": {}}",
+            "POST /v1/sessions/{id}/reconstructions {\"method\": \"gi|dgi|ngi|direct|lsq|cs|tv\", \"params\": {}}",
             "GET /v1/sessions/{id}/dual.png|dual.tiff|dual.npy (latest finished reconstruction)",
             "GET /v1/sessions/{id}/measurements.npy (the committed bucket rows, float64, shape (rows, channels))",
             "GET /v1/reconstructions/{id}",

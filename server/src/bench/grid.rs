@@ -108,7 +108,7 @@ impl FromStr for Preset {
 }
 
 /// Every method the service offers, cheapest first.
-pub const METHODS: &[&str] = &["gi", "dgi", "ngi", "direct"];
+pub const METHODS: &[&str] = &["gi", "dgi", "ngi", "direct", "lsq", "cs", "tv"];
 
 fn applicable(family: &str, ratio: f64, method: &str) -> bool {
     match method {

@@ -103,8 +103,8 @@ pub(crate) fn run_tuned(
         MethodConfig::Gi => Kind::Gi,
         MethodConfig::Dgi => Kind::Dgi,
         MethodConfig::Ngi => Kind::Ngi,
-        MethodConfig::Direct => {
-            return Err(ReconError::Unsolvable("direct is not a correlation method".into()));
+        other => {
+            return Err(ReconError::Unsolvable(format!("{} is not a correlation method", other.name())));
         }
     };
     if problem.rows > problem.spec.count() {

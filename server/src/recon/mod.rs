@@ -11,6 +11,7 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use helmholtz_proto::PatternSpec;
 use serde::Serialize;
 
+pub mod compressive;
 pub mod correlate;
 pub mod direct;
 pub mod fwht;
@@ -162,5 +163,8 @@ pub fn reconstruct(
             correlate::run(problem, config, source, control)
         }
         MethodConfig::Direct => direct::run(problem, source, control),
+        MethodConfig::Cs { .. } | MethodConfig::Tv { .. } | MethodConfig::Lsq { .. } => {
+            compressive::run(problem, config, source, control)
+        }
     }
 }
