@@ -99,6 +99,7 @@ pub fn run(
             rows_used: problem.rows,
             iterations,
             details,
+            ..Report::default()
         },
     })
 }

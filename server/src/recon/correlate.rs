@@ -649,6 +649,7 @@ fn finish(plan: &Plan, config: &MethodConfig, mut workers: Vec<Worker>) -> Recon
             rows_used: total.rows,
             iterations: 1,
             details,
+            ..Report::default()
         },
     }
 }

@@ -51,6 +51,7 @@ pub fn run(
             rows_used: problem.rows,
             iterations: 1,
             details,
+            ..Report::default()
         },
     })
 }

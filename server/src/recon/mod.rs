@@ -15,6 +15,7 @@ pub mod compressive;
 pub mod correlate;
 pub mod direct;
 pub mod fwht;
+pub mod holdout;
 pub mod linop;
 pub mod ops;
 pub mod solve;
@@ -134,6 +135,12 @@ pub struct Report {
     pub iterations: u64,
     /// Method-specific figures (e.g. Hadamard split-pair sums: dark level, drift).
     pub details: serde_json::Map<String, serde_json::Value>,
+    /// The error estimate: how well the method, fitted without a fixed subset of the rows,
+    /// predicts those rows ([`holdout`]). `None` when it cannot be had, with the reason in
+    /// `held_out_unavailable`.
+    pub held_out: Option<holdout::HeldOut>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub held_out_unavailable: Option<String>,
 }
 
 #[derive(Debug, Clone, thiserror::Error)]
