@@ -23,21 +23,59 @@ use super::{
     BucketSource, Control, DualImage, MethodConfig, Problem, ReconError, Reconstruction, Report,
 };
 
-/// Runs the exact inverse (see the module docs). Errors as for the correlators; a family other
-/// than raster or Hadamard, or an incomplete set, is [`ReconError::Unsolvable`].
+/// Runs the exact inverse (see the module docs) for [`MethodConfig::Direct`],
+/// [`MethodConfig::ZeroFilled`] or [`MethodConfig::Levels`]. Errors as for the correlators; a
+/// family other than raster or Hadamard, or an incomplete set for `direct`, is
+/// [`ReconError::Unsolvable`].
 pub fn run(
     problem: &Problem,
+    config: &MethodConfig,
     source: &mut dyn BucketSource,
     control: &Control,
 ) -> Result<Reconstruction, ReconError> {
-    MethodConfig::Direct.check(problem)?;
+    config.check(problem)?;
     let stream = RowStream::new(source, control, problem.channels, problem.rows)?;
-    let (images, details) = match problem.spec.family() {
-        Family::Raster { .. } => raster(problem, stream, control)?,
-        Family::Hadamard { .. } => hadamard(problem, stream, control)?,
-        other => {
+    let k = problem.spec.pixels();
+    let (images, details) = match (problem.spec.family(), config) {
+        (Family::Raster { .. }, MethodConfig::Direct) => raster(problem, stream, control)?,
+        (Family::Hadamard { .. }, MethodConfig::Direct) => hadamard(problem, stream, control, k)?,
+        (Family::Hadamard { .. }, MethodConfig::ZeroFilled) => {
+            let mut out = hadamard(problem, stream, control, (problem.rows / 2) as usize)?;
+            out.1.insert("pairs_used".into(), json!(problem.rows / 2));
+            out.1.insert("pairs_missing".into(), json!(k as u64 - (problem.rows / 2).min(k as u64)));
+            out
+        }
+        (Family::Hadamard { .. }, MethodConfig::Levels { level }) => {
+            let (w, h) = (problem.spec.width() as usize, problem.spec.height() as usize);
+            let available = (problem.rows / 2) as usize;
+            let complete: Vec<u32> = (0..=12u32).filter(|&j| level_pairs(w, h, j) <= available && (j == 0 || level_pairs(w, h, j - 1) < k)).collect();
+            let finest = *complete.last().expect("level 0 needs one pair and check() refused zero rows");
+            let j = match level {
+                None => finest,
+                Some(j) if complete.contains(j) => *j,
+                Some(j) => {
+                    return Err(ReconError::Unsolvable(format!(
+                        "level {j} is not complete: it needs {} pairs ({} frames), the session has {available} pairs; complete levels: {complete:?}",
+                        level_pairs(w, h, *j),
+                        2 * level_pairs(w, h, *j)
+                    )));
+                }
+            };
+            let mut out = hadamard(problem, stream, control, level_pairs(w, h, j))?;
+            out.1.insert("level".into(), json!(j));
+            out.1.insert("resolution".into(), json!([w.min(1 << j), h.min(1 << j)]));
+            out.1.insert("block".into(), json!([(w >> j).max(1), (h >> j).max(1)]));
+            out.1.insert("pairs_used".into(), json!(level_pairs(w, h, j)));
+            out.1.insert(
+                "complete_levels".into(),
+                Value::Array(complete.iter().map(|&j| json!({"level": j, "resolution": [w.min(1 << j), h.min(1 << j)], "pairs": level_pairs(w, h, j)})).collect()),
+            );
+            out
+        }
+        (other, _) => {
             return Err(ReconError::Unsolvable(format!(
-                "direct inverts raster or hadamard sets, not {}",
+                "{} inverts raster or hadamard sets, not {}",
+                config.name(),
                 other.name()
             )));
         }
@@ -46,14 +84,27 @@ pub fn run(
     Ok(Reconstruction {
         images,
         report: Report {
-            method: MethodConfig::Direct.name().into(),
-            params: MethodConfig::Direct.params_json(),
+            method: config.name().into(),
+            params: config.params_json(),
             rows_used: problem.rows,
             iterations: 1,
             details,
-            ..Report::default()
+            held_out: None,
+            held_out_unavailable: Some(format!(
+                "{} is an exact inverse: each image value comes from its own rows alone (a raster block, a \
+                 Hadamard coefficient), so no other row predicts a held-out one; cs, tv or auto on this \
+                 session report a held-out error",
+                config.name()
+            )),
         },
     })
+}
+
+/// Split pairs in the Russian-doll levels `0..=j` of a `w x h` image (power-of-two sides):
+/// `min(2^j, h) * min(2^j, w)` (PATTERNS.md).
+pub fn level_pairs(w: usize, h: usize, j: u32) -> usize {
+    let side = 1usize << j.min(40);
+    side.min(w) * side.min(h)
 }
 
 type Output = (Vec<DualImage>, Map<String, Value>);
@@ -152,10 +203,13 @@ fn finite(v: f64) -> Value {
     if v.is_finite() { json!(v) } else { Value::Null }
 }
 
+/// The Hadamard inverse from the first `pairs` split pairs (`k`: all, the exact inverse; fewer:
+/// the zero-filled inverse, which at a complete Russian-doll level is the exact block average).
 fn hadamard(
     problem: &Problem,
     mut stream: RowStream,
     control: &Control,
+    pairs: usize,
 ) -> Result<Output, ReconError> {
     let spec = problem.spec;
     let m = problem.channels;
@@ -167,7 +221,7 @@ fn hadamard(
     let mut have_positive = false;
     let mut dark = vec![f64::NAN; m];
     let mut stats = vec![PairStats::default(); m];
-    let frames = 2 * k as u64;
+    let frames = 2 * pairs.min(k) as u64;
     while let Some(b) = stream.next_block()? {
         for (i, row) in b.values.chunks_exact(m).enumerate() {
             let frame = b.first_row + i as u64;
@@ -228,6 +282,7 @@ fn hadamard(
 #[allow(clippy::needless_range_loop)] // index loops read best in the reference computations
 mod tests {
     use super::*;
+    use crate::recon::linop::LinearOperator;
     use crate::recon::metrics::relative_error;
     use crate::recon::testutil::{BlockList, CancelAfter, random_scene, simulate};
     use crate::recon::{BucketBlock, SliceSource, reconstruct};
@@ -422,12 +477,95 @@ mod tests {
         }
     }
 
+    fn run_config(spec: &PatternSpec, buckets: &[f64], config: &MethodConfig) -> Result<Reconstruction, ReconError> {
+        let problem = Problem { spec, channels: 1, rows: buckets.len() as u64 };
+        reconstruct(&problem, config, &mut SliceSource::new(buckets, 1, 13), &Control::new())
+    }
+
+    #[test]
+    fn levels_give_the_exact_block_average_at_every_complete_level() {
+        // Square and non-square (64 x 16: levels hold min(2^j, H) * min(2^j, W) pairs).
+        for &(w, h) in &[(32usize, 32usize), (64, 16)] {
+            let k = w * h;
+            let t = random_scene(k, 0.0, 1.0, 11);
+            let ordering = HadamardOrdering::RussianDoll;
+            let spec = PatternSpec::new(Family::Hadamard { ordering }, w as u32, h as u32, 2 * k as u64, 0).unwrap();
+            let all = simulate(&spec, std::slice::from_ref(&t), 2 * k as u64, |_| 1.0, 3.0);
+            let max_level = w.max(h).trailing_zeros();
+            for j in 0..=max_level {
+                let pairs = level_pairs(w, h, j);
+                // The rows of exactly level j, then a few more frames of level j + 1 (still only
+                // level j complete), as a session stopped mid-level.
+                for extra in [0, 2] {
+                    let frames = (2 * pairs + extra).min(2 * k);
+                    let r = run_config(&spec, &all[..frames], &MethodConfig::Levels { level: None }).unwrap();
+                    assert_eq!(r.report.details["level"], json!(j), "{w}x{h} level {j} +{extra}");
+                    let (bw, bh) = ((w >> j).max(1), (h >> j).max(1));
+                    // The block average over bw x bh blocks (block_average takes square blocks,
+                    // so average explicitly).
+                    let mut want = vec![0.0; k];
+                    for y in 0..h {
+                        for x in 0..w {
+                            let (bx, by) = (x / bw * bw, y / bh * bh);
+                            let mut sum = 0.0;
+                            for yy in by..by + bh {
+                                for xx in bx..bx + bw {
+                                    sum += t[yy * w + xx];
+                                }
+                            }
+                            want[y * w + x] = sum / (bw * bh) as f64;
+                        }
+                    }
+                    let err = relative_error(&r.images[0].data, &f32s(&want));
+                    assert!(err < 1e-5, "{w}x{h} level {j}: {err}");
+                    assert!(r.report.held_out.is_none() && r.report.held_out_unavailable.is_some());
+                }
+            }
+            // An explicit coarser level from a finer session; a level not reached is refused.
+            let r = run_config(&spec, &all, &MethodConfig::Levels { level: Some(1) }).unwrap();
+            assert_eq!(r.report.details["resolution"], json!([2, 2]));
+            let half = &all[..2 * level_pairs(w, h, 2)];
+            let e = run_config(&spec, half, &MethodConfig::Levels { level: Some(3) }).unwrap_err().to_string();
+            assert!(e.contains("level 3 is not complete"), "{e}");
+        }
+    }
+
+    #[test]
+    fn zero_filled_is_the_projection_on_the_measured_coefficients() {
+        let (w, h) = (16usize, 16usize);
+        let k = w * h;
+        let t = random_scene(k, 0.0, 1.0, 12);
+        for ordering in [HadamardOrdering::Sequency, HadamardOrdering::Zigzag] {
+            let spec = PatternSpec::new(Family::Hadamard { ordering }, w as u32, h as u32, 2 * k as u64, 0).unwrap();
+            let all = simulate(&spec, std::slice::from_ref(&t), 2 * k as u64, |_| 1.0, 0.0);
+            // All pairs: the exact inverse.
+            let full = run_config(&spec, &all, &MethodConfig::ZeroFilled).unwrap();
+            assert!(relative_error(&full.images[0].data, &f32s(&t)) < 1e-5);
+            // 40 pairs (+ an odd frame, ignored): H^T S^T S H t / k, against a dense reference.
+            let r = run_config(&spec, &all[..81], &MethodConfig::ZeroFilled).unwrap();
+            assert_eq!(r.report.details["pairs_used"], json!(40));
+            let op = crate::recon::ops::HadamardOperator::from_spec(&spec, 80).unwrap();
+            let mut coeff = vec![0.0; 40];
+            op.apply(&t, &mut coeff);
+            let mut want = vec![0.0; k];
+            op.adjoint(&coeff, &mut want);
+            let err = relative_error(&r.images[0].data, &f32s(&want));
+            assert!(err < 1e-5, "{ordering:?}: {err}");
+        }
+        let bern = PatternSpec::new(Family::Bernoulli { fill: 0.5 }, 8, 8, 10, 0).unwrap();
+        let e = run_config(&bern, &[1.0; 10], &MethodConfig::ZeroFilled).unwrap_err().to_string();
+        assert!(e.contains("zero_filled inverts Hadamard"), "{e}");
+        let seq = PatternSpec::new(Family::Hadamard { ordering: HadamardOrdering::Sequency }, 8, 8, 128, 0).unwrap();
+        let e = run_config(&seq, &[1.0; 8], &MethodConfig::Levels { level: None }).unwrap_err().to_string();
+        assert!(e.contains("russian_doll"), "{e}");
+    }
+
     #[test]
     fn direct_refuses_incomplete_or_other_families() {
         let spec = PatternSpec::new(Family::Bernoulli { fill: 0.5 }, 8, 8, 200, 0).unwrap();
         let problem = Problem { spec: &spec, channels: 1, rows: 100 };
         let mut src = BlockList(Default::default());
-        assert!(matches!(run(&problem, &mut src, &Control::new()), Err(ReconError::Unsolvable(_))));
+        assert!(matches!(run(&problem, &MethodConfig::Direct, &mut src, &Control::new()), Err(ReconError::Unsolvable(_))));
         let spec = PatternSpec::new(
             Family::Hadamard { ordering: HadamardOrdering::Natural },
             8,
@@ -437,16 +575,16 @@ mod tests {
         )
         .unwrap();
         let problem = Problem { spec: &spec, channels: 1, rows: 100 };
-        assert!(matches!(run(&problem, &mut src, &Control::new()), Err(ReconError::Unsolvable(_))));
+        assert!(matches!(run(&problem, &MethodConfig::Direct, &mut src, &Control::new()), Err(ReconError::Unsolvable(_))));
         // Complete spec, but the source stops early.
         let spec = PatternSpec::new(Family::Raster { block: 1 }, 4, 4, 16, 0).unwrap();
         let problem = Problem { spec: &spec, channels: 1, rows: 16 };
         let mut src = BlockList(vec![BucketBlock { first_row: 0, values: vec![1.0; 10] }].into());
-        assert!(matches!(run(&problem, &mut src, &Control::new()), Err(ReconError::Unsolvable(_))));
+        assert!(matches!(run(&problem, &MethodConfig::Direct, &mut src, &Control::new()), Err(ReconError::Unsolvable(_))));
         // Malformed blocks.
         let problem = Problem { spec: &spec, channels: 2, rows: 16 };
         let mut src = BlockList(vec![BucketBlock { first_row: 0, values: vec![1.0; 9] }].into());
-        assert!(matches!(run(&problem, &mut src, &Control::new()), Err(ReconError::BadRows(_))));
+        assert!(matches!(run(&problem, &MethodConfig::Direct, &mut src, &Control::new()), Err(ReconError::BadRows(_))));
         let mut src = BlockList(
             vec![
                 BucketBlock { first_row: 0, values: vec![1.0; 8] },
@@ -454,7 +592,7 @@ mod tests {
             ]
             .into(),
         );
-        assert!(matches!(run(&problem, &mut src, &Control::new()), Err(ReconError::BadRows(_))));
+        assert!(matches!(run(&problem, &MethodConfig::Direct, &mut src, &Control::new()), Err(ReconError::BadRows(_))));
     }
 
     #[test]
@@ -476,6 +614,6 @@ mod tests {
             after: 2,
             seen: 0,
         };
-        assert!(matches!(run(&problem, &mut src, &control), Err(ReconError::Cancelled)));
+        assert!(matches!(run(&problem, &MethodConfig::Direct, &mut src, &control), Err(ReconError::Cancelled)));
     }
 }

@@ -17,13 +17,75 @@ pub enum MethodConfig {
     Ngi,
     /// Exact inverse of a complete raster or Hadamard (split-pair) set.
     Direct,
+    /// Hadamard split pairs, any subset: the zero-filled inverse `H^T d` (unmeasured
+    /// coefficients set to zero; the minimum-norm least-squares image).
+    ZeroFilled,
+    /// Hadamard `russian_doll` ordering: the exact block-averaged image at a complete 4^j level
+    /// (`level` = j; default the finest complete level the rows reach).
+    Levels { level: Option<u32> },
     /// Compressed sensing: `min 1/2 ||A t - c||^2 + lambda ||Psi t||_1`, `t >= 0`, Psi an orthonormal
     /// transform; `lambda` is a fraction of lambda_max (scale-free).
-    Cs { transform: TransformKind, lambda: f64, max_iter: usize },
+    Cs { transform: TransformKind, lambda: f64, max_iter: usize, fit: Fit },
     /// `min 1/2 ||A t - c||^2 + lambda TV(t)`, `t >= 0`; `lambda` a fraction of lambda_max.
-    Tv { lambda: f64, max_iter: usize },
+    Tv { lambda: f64, max_iter: usize, fit: Fit },
     /// Least squares / Tikhonov `min ||A t - c||^2 + mu ||t||^2` by CGLS (unconstrained).
-    Lsq { mu: f64, max_iter: usize },
+    Lsq { mu: f64, max_iter: usize, fit: Fit },
+    /// The data choose the model: each candidate regulariser along a warm-started lambda path,
+    /// fitted without the held-out rows and scored on them; the winner (and the resolution the
+    /// rows support) is refitted on all rows.
+    Auto { models: Vec<Model>, max_iter: usize, fit: Fit },
+}
+
+/// A regulariser `auto` can choose.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Model {
+    /// Isotropic total variation.
+    Tv,
+    /// l1 of the coefficients in an orthonormal transform.
+    L1(TransformKind),
+}
+
+impl Model {
+    pub fn name(self) -> &'static str {
+        match self {
+            Model::Tv => "tv",
+            Model::L1(kind) => kind.name(),
+        }
+    }
+    /// What the model's "kept" count counts.
+    pub fn kept_meaning(self) -> &'static str {
+        match self {
+            Model::Tv => "pixels with a nonzero gradient (edges kept)",
+            Model::L1(TransformKind::Identity) => "nonzero pixels",
+            Model::L1(TransformKind::Dct) => "nonzero DCT coefficients",
+            Model::L1(_) => "nonzero wavelet coefficients",
+        }
+    }
+    pub const DEFAULT: [Model; 3] = [Model::Tv, Model::L1(TransformKind::Db4), Model::L1(TransformKind::Dct)];
+}
+
+/// The data term and the hold-out shared by the iterative methods.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Fit {
+    /// Fraction of the rows held out for the error estimate (and `auto`'s choice).
+    pub holdout: f64,
+    pub noise: Noise,
+}
+
+impl Default for Fit {
+    fn default() -> Self {
+        Fit { holdout: super::holdout::DEFAULT_FRACTION, noise: Noise::Gaussian }
+    }
+}
+
+/// The noise the data term is built for.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Noise {
+    /// Least squares: Gaussian noise of equal variance.
+    Gaussian,
+    /// Photon counting: the Poisson likelihood by iteratively reweighted least squares, weights
+    /// `1 / predicted bucket` from the model; `photon` is the bucket value of one photon.
+    Poisson { photon: f64 },
 }
 
 /// A request that names an unknown method or bad parameters; `field` is the JSON path.
@@ -34,7 +96,7 @@ pub struct ParamError {
     pub message: String,
 }
 
-pub const METHODS: [&str; 7] = ["gi", "dgi", "ngi", "direct", "cs", "tv", "lsq"];
+pub const METHODS: [&str; 10] = ["gi", "dgi", "ngi", "direct", "zero_filled", "levels", "cs", "tv", "lsq", "auto"];
 
 /// Reads optional parameters from a JSON object, refusing unknown keys and naming bad ones.
 struct Params<'a> {
@@ -70,6 +132,56 @@ impl Params<'_> {
         }
     }
 
+    fn fit(&mut self) -> Result<Fit, ParamError> {
+        let holdout = self.number("holdout", super::holdout::DEFAULT_FRACTION, |v| (0.02..=0.5).contains(&v), "a fraction in [0.02, 0.5]")?;
+        let noise = match self.map.remove("noise") {
+            None | Some(Value::Null) => "gaussian".to_string(),
+            Some(Value::String(s)) => s,
+            Some(other) => return Err(bad("noise", format!("must be \"gaussian\" or \"poisson\", got {other}"))),
+        };
+        let noise = match noise.as_str() {
+            "gaussian" => {
+                if self.map.contains_key("photon") {
+                    return Err(bad("photon", "applies only with \"noise\": \"poisson\"".into()));
+                }
+                Noise::Gaussian
+            }
+            "poisson" => Noise::Poisson {
+                photon: self.number("photon", 1.0, |v| v > 0.0, "the bucket value of one photon, > 0")?,
+            },
+            other => return Err(bad("noise", format!("unknown noise {other:?}; known: gaussian, poisson"))),
+        };
+        Ok(Fit { holdout, noise })
+    }
+
+    fn models(&mut self) -> Result<Vec<Model>, ParamError> {
+        let known = || {
+            std::iter::once("tv").chain(TransformKind::ALL.iter().map(|k| k.name())).collect::<Vec<_>>().join(", ")
+        };
+        match self.map.remove("models") {
+            None | Some(Value::Null) => Ok(Model::DEFAULT.to_vec()),
+            Some(Value::Array(items)) if !items.is_empty() => {
+                let mut out = Vec::new();
+                for (i, item) in items.iter().enumerate() {
+                    let name = item.as_str().ok_or_else(|| bad(&format!("models[{i}]"), format!("must be a string, got {item}")))?;
+                    let model = if name == "tv" {
+                        Model::Tv
+                    } else {
+                        Model::L1(TransformKind::ALL.into_iter().find(|k| k.name() == name).ok_or_else(|| {
+                            bad(&format!("models[{i}]"), format!("unknown model {name:?}; known: {}", known()))
+                        })?)
+                    };
+                    if out.contains(&model) {
+                        return Err(bad(&format!("models[{i}]"), format!("{name:?} is listed twice")));
+                    }
+                    out.push(model);
+                }
+                Ok(out)
+            }
+            Some(other) => Err(bad("models", format!("must be a non-empty array of model names ({}), got {other}", known()))),
+        }
+    }
+
     fn finish(self) -> Result<(), ParamError> {
         match self.map.keys().next() {
             Some(key) => Err(bad(key, format!("method {} takes no parameter {key:?}", self.method))),
@@ -100,19 +212,30 @@ impl MethodConfig {
             "dgi" => MethodConfig::Dgi,
             "ngi" => MethodConfig::Ngi,
             "direct" => MethodConfig::Direct,
+            "zero_filled" => MethodConfig::ZeroFilled,
+            "levels" => MethodConfig::Levels {
+                level: match p.map.contains_key("level") {
+                    false => None,
+                    true => Some(p.number("level", 0.0, |v| v.fract() == 0.0 && (0.0..=12.0).contains(&v), "an integer level j in 0..=12 (2^j x 2^j blocks)")? as u32),
+                },
+            },
             "cs" => MethodConfig::Cs {
                 transform: p.transform(TransformKind::Db4)?,
                 lambda: p.number("lambda", 1e-3, |v| v > 0.0 && v <= 1.0, "a fraction of lambda_max in (0, 1]")?,
                 max_iter: p.iterations(300)?,
+                fit: p.fit()?,
             },
             "tv" => MethodConfig::Tv {
                 lambda: p.number("lambda", 3e-3, |v| v > 0.0 && v <= 1.0, "a fraction of lambda_max in (0, 1]")?,
                 max_iter: p.iterations(200)?,
+                fit: p.fit()?,
             },
             "lsq" => MethodConfig::Lsq {
                 mu: p.number("mu", 0.0, |v| v >= 0.0, ">= 0")?,
                 max_iter: p.iterations(200)?,
+                fit: p.fit()?,
             },
+            "auto" => MethodConfig::Auto { models: p.models()?, max_iter: p.iterations(300)?, fit: p.fit()? },
             other => {
                 return Err(ParamError {
                     field: "method".into(),
@@ -130,21 +253,47 @@ impl MethodConfig {
             MethodConfig::Dgi => "dgi",
             MethodConfig::Ngi => "ngi",
             MethodConfig::Direct => "direct",
+            MethodConfig::ZeroFilled => "zero_filled",
+            MethodConfig::Levels { .. } => "levels",
             MethodConfig::Cs { .. } => "cs",
             MethodConfig::Tv { .. } => "tv",
             MethodConfig::Lsq { .. } => "lsq",
+            MethodConfig::Auto { .. } => "auto",
         }
     }
 
     /// The parameters in canonical form (defaults filled in), as stored and reported.
     pub fn params_json(&self) -> Value {
-        match self {
-            MethodConfig::Cs { transform, lambda, max_iter } => {
+        let mut v = match self {
+            MethodConfig::Cs { transform, lambda, max_iter, .. } => {
                 json!({"transform": transform.name(), "lambda": lambda, "max_iter": max_iter})
             }
-            MethodConfig::Tv { lambda, max_iter } => json!({"lambda": lambda, "max_iter": max_iter}),
-            MethodConfig::Lsq { mu, max_iter } => json!({"mu": mu, "max_iter": max_iter}),
+            MethodConfig::Tv { lambda, max_iter, .. } => json!({"lambda": lambda, "max_iter": max_iter}),
+            MethodConfig::Lsq { mu, max_iter, .. } => json!({"mu": mu, "max_iter": max_iter}),
+            MethodConfig::Auto { models, max_iter, .. } => {
+                json!({"models": models.iter().map(|m| m.name()).collect::<Vec<_>>(), "max_iter": max_iter})
+            }
+            MethodConfig::Levels { level: Some(level) } => json!({ "level": level }),
             _ => Value::Object(Default::default()),
+        };
+        if let Some(fit) = self.fit() {
+            v["holdout"] = json!(fit.holdout);
+            match fit.noise {
+                Noise::Gaussian => v["noise"] = json!("gaussian"),
+                Noise::Poisson { photon } => {
+                    v["noise"] = json!("poisson");
+                    v["photon"] = json!(photon);
+                }
+            }
+        }
+        v
+    }
+
+    /// The data term and hold-out of an iterative method.
+    pub fn fit(&self) -> Option<Fit> {
+        match self {
+            MethodConfig::Cs { fit, .. } | MethodConfig::Tv { fit, .. } | MethodConfig::Lsq { fit, .. } | MethodConfig::Auto { fit, .. } => Some(*fit),
+            _ => None,
         }
     }
 
@@ -159,6 +308,38 @@ impl MethodConfig {
                 problem.rows,
                 problem.spec.count()
             )));
+        }
+        let hadamard = matches!(problem.spec.family(), Family::Hadamard { .. });
+        if let Some(Fit { noise: Noise::Poisson { .. }, .. }) = self.fit() {
+            if hadamard {
+                return Err(ReconError::Unsolvable(
+                    "noise \"poisson\" does not apply to Hadamard split pairs: the difference y+ - y- of two \
+                     Poisson counts has variance y+ + y- (the whole scene's light, the same for every pair), so \
+                     the least-squares data term is already the photon-weighted one"
+                        .into(),
+                ));
+            }
+            if matches!(self, MethodConfig::Lsq { .. }) {
+                return Err(ReconError::Unsolvable(
+                    "noise \"poisson\" needs a non-negative model (cs, tv or auto); lsq is unconstrained".into(),
+                ));
+            }
+        }
+        if matches!(self, MethodConfig::ZeroFilled | MethodConfig::Levels { .. }) && !hadamard {
+            return Err(ReconError::Unsolvable(format!(
+                "{} inverts Hadamard split pairs; this session's patterns are {}",
+                self.name(),
+                problem.spec.family().name()
+            )));
+        }
+        if let MethodConfig::Levels { .. } = self
+            && !matches!(problem.spec.family(), Family::Hadamard { ordering: helmholtz_proto::HadamardOrdering::RussianDoll })
+        {
+            return Err(ReconError::Unsolvable(
+                "levels needs the russian_doll ordering (complete 4^j levels of block-constant Walsh functions); \
+                 use zero_filled for other orderings"
+                    .into(),
+            ));
         }
         if let MethodConfig::Direct = self {
             let k = problem.spec.pixels() as u64;
@@ -207,11 +388,31 @@ mod tests {
         assert_eq!(MethodConfig::parse("gi", &json!({"lambda": 1})).unwrap_err().field, "params.lambda");
         assert_eq!(MethodConfig::parse("gi", &json!([1])).unwrap_err().field, "params");
         let cs = MethodConfig::parse("cs", &json!({"transform": "haar", "lambda": 0.01})).unwrap();
-        assert_eq!(cs, MethodConfig::Cs { transform: TransformKind::Haar, lambda: 0.01, max_iter: 300 });
+        assert_eq!(cs, MethodConfig::Cs { transform: TransformKind::Haar, lambda: 0.01, max_iter: 300, fit: Fit::default() });
         assert_eq!(MethodConfig::parse(cs.name(), &cs.params_json()).unwrap(), cs, "canonical params round-trip");
         assert_eq!(MethodConfig::parse("cs", &json!({"transform": "fourier"})).unwrap_err().field, "params.transform");
         assert_eq!(MethodConfig::parse("tv", &json!({"lambda": -1})).unwrap_err().field, "params.lambda");
         assert_eq!(MethodConfig::parse("tv", &json!({"max_iter": 2.5})).unwrap_err().field, "params.max_iter");
         assert_eq!(MethodConfig::parse("lsq", &json!({"mu": "big"})).unwrap_err().field, "params.mu");
+        assert_eq!(MethodConfig::parse("tv", &json!({"holdout": 0.9})).unwrap_err().field, "params.holdout");
+        assert_eq!(MethodConfig::parse("tv", &json!({"noise": "cauchy"})).unwrap_err().field, "params.noise");
+        assert_eq!(MethodConfig::parse("tv", &json!({"photon": 2})).unwrap_err().field, "params.photon");
+        assert_eq!(MethodConfig::parse("cs", &json!({"noise": "poisson", "photon": 0})).unwrap_err().field, "params.photon");
+        assert_eq!(MethodConfig::parse("auto", &json!({"models": ["tv", "wavelet"]})).unwrap_err().field, "params.models[1]");
+        assert_eq!(MethodConfig::parse("auto", &json!({"models": ["tv", "tv"]})).unwrap_err().field, "params.models[1]");
+        assert_eq!(MethodConfig::parse("auto", &json!({"models": []})).unwrap_err().field, "params.models");
+        assert_eq!(MethodConfig::parse("levels", &json!({"level": 1.5})).unwrap_err().field, "params.level");
+        let auto = MethodConfig::parse("auto", &json!({"models": ["haar", "tv"], "noise": "poisson", "photon": 3.5})).unwrap();
+        assert_eq!(
+            auto,
+            MethodConfig::Auto {
+                models: vec![Model::L1(TransformKind::Haar), Model::Tv],
+                max_iter: 300,
+                fit: Fit { holdout: 0.1, noise: Noise::Poisson { photon: 3.5 } }
+            }
+        );
+        for m in [auto, MethodConfig::Levels { level: Some(3) }, MethodConfig::parse("lsq", &json!({"holdout": 0.2})).unwrap()] {
+            assert_eq!(MethodConfig::parse(m.name(), &m.params_json()).unwrap(), m, "canonical params round-trip");
+        }
     }
 }

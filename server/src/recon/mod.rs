@@ -11,6 +11,7 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use helmholtz_proto::PatternSpec;
 use serde::Serialize;
 
+pub mod auto;
 pub mod compressive;
 pub mod correlate;
 pub mod direct;
@@ -169,8 +170,10 @@ pub fn reconstruct(
         MethodConfig::Gi | MethodConfig::Dgi | MethodConfig::Ngi => {
             correlate::run(problem, config, source, control)
         }
-        MethodConfig::Direct => direct::run(problem, source, control),
-        MethodConfig::Cs { .. } | MethodConfig::Tv { .. } | MethodConfig::Lsq { .. } => {
+        MethodConfig::Direct | MethodConfig::ZeroFilled | MethodConfig::Levels { .. } => {
+            direct::run(problem, config, source, control)
+        }
+        MethodConfig::Cs { .. } | MethodConfig::Tv { .. } | MethodConfig::Lsq { .. } | MethodConfig::Auto { .. } => {
             compressive::run(problem, config, source, control)
         }
     }

@@ -17,6 +17,7 @@
 //! `cargo test -p helmholtz-server --lib recon::ops::bench -- --ignored --nocapture --test-threads 1`).
 
 pub mod bernoulli;
+pub mod binned;
 pub mod bits;
 pub mod centred;
 pub mod hadamard;
@@ -31,6 +32,7 @@ mod bench;
 mod tests;
 
 pub use bernoulli::{BernoulliOperator, BinaryOperator};
+pub use binned::Binned;
 pub use bits::BitMatrix;
 pub use centred::CentredOperator;
 pub use hadamard::{HadamardOperator, SplitPairs};

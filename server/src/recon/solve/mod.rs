@@ -53,7 +53,7 @@ mod tests;
 pub use cgls::cgls;
 pub use condition::MeanDeflated;
 pub use fista::{fista, lambda_max_l1, tv_fista};
-pub use path::{PathPoint, Penalty, RegPath, geometric_fractions, lambda_max, solve_path};
+pub use path::{PathPoint, Penalty, RegPath, geometric_fractions, lambda_max, solve_path, solve_path_until};
 pub use poisson::{poisson_irls, poisson_weights};
 pub use tv::{Grid, lambda_max_tv, tv, tv_value};
 
@@ -220,6 +220,20 @@ impl LinearOperator for Weighted<'_> {
             }
         }
     }
+}
+
+/// `||W^1/2 A'||^2` of the operator the FISTA and TV solvers iterate on (`A' = A` with its
+/// common mode deflated when `deflate_mean` and the rows have one, see [`condition`]): pass it
+/// as [`SolveOptions::lipschitz`] to several solves on the same operator and weights so the
+/// power iteration runs once.
+pub fn step_constant(
+    a: &dyn LinearOperator,
+    weights: Option<&[f64]>,
+    deflate_mean: bool,
+) -> Result<f64, ReconError> {
+    let zeros = vec![0.0; a.rows()];
+    let prep = condition::Prepared::new(a, &zeros, weights, deflate_mean);
+    lipschitz_of(prep.op(), prep.weights(), None)
 }
 
 /// `||W^1/2 A||^2`: from the options if given, else 20 power iterations (relative tol 1e-3).

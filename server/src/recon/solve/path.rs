@@ -84,6 +84,21 @@ pub fn solve_path(
     fractions: &[f64],
     control: &Control,
 ) -> Result<RegPath, ReconError> {
+    solve_path_until(a, penalty, b, opts, fractions, control, &mut |_| true)
+}
+
+/// [`solve_path`] that shows each point to `keep_going` as soon as it is solved and stops the
+/// path when it returns `false` (e.g. once a held-out error has passed its minimum). The
+/// returned path holds the points solved so far, the last one included.
+pub fn solve_path_until(
+    a: &dyn LinearOperator,
+    penalty: Penalty,
+    b: &[f64],
+    opts: &SolveOptions,
+    fractions: &[f64],
+    control: &Control,
+    keep_going: &mut dyn FnMut(&PathPoint) -> bool,
+) -> Result<RegPath, ReconError> {
     let start = Instant::now();
     let (_, k) = check_problem(a, b, opts)?;
     if let Some(f) = fractions.iter().find(|f| !(f.is_finite() && **f >= 0.0)) {
@@ -137,12 +152,17 @@ pub fn solve_path(
             Penalty::TvPrimalDual { grid } => tv(a, grid, b, &o, control)?,
         };
         report.lambda_max = Some(lmax);
-        points.push(PathPoint {
+        let point = PathPoint {
             fraction,
             lambda,
             t,
             report,
-        });
+        };
+        let more = keep_going(&point);
+        points.push(point);
+        if !more {
+            break;
+        }
     }
     Ok(RegPath {
         lambda_max: lmax,

@@ -1,0 +1,455 @@
+//! `auto`: the data choose the model.
+//!
+//! 1. The rows are split into fitting and held-out rows ([`holdout`]).
+//! 2. Each candidate regulariser (TV, l1 in Daubechies-4 wavelets, l1 in the DCT by default) is
+//!    solved along a warm-started path `lambda = f lambda_max`, `f = 0.3, 0.1, 0.03, ...,
+//!    1e-4`, on the fitting rows; after every point its prediction of the held-out buckets is
+//!    scored ([`holdout::relative_residual`]). A path stops once two consecutive points fail to
+//!    improve the best score by 0.2 % (the minimum is behind, or the curve is flat): the noise
+//!    level, not a hand-set lambda, decides where the path ends.
+//! 3. The resolution the rows support: when there are fewer rows than pixels, the winning model
+//!    is also fitted on 2x2- (then 4x4-, ...) binned images (`A U`, [`ops::Binned`]) at the
+//!    winning `f` and its neighbours; a coarser grid that predicts the held-out rows better
+//!    than the finer one (by more than 1 %) means the rows do not support the finer resolution.
+//!    The report says so, and the image is the coarse fit replicated onto the requested grid.
+//! 4. The winner (model, resolution, `f`) is refitted on all rows, warm-started from its
+//!    held-out fit.
+//!
+//! The report names the winning model, its weight (`f` and the absolute `lambda`), how many
+//! coefficients it kept (TV: pixels with a nonzero gradient; l1: nonzero coefficients), the
+//! resolution the data support, every candidate's path with its held-out scores, and warnings
+//! when the rows are too few for the requested resolution or explain little of the held-out
+//! buckets.
+
+use std::time::Instant;
+
+use serde::Serialize;
+use serde_json::{Value, json};
+
+use super::compressive::{fit_model, predict};
+use super::holdout;
+use super::linop::LinearOperator;
+use super::method::{Fit, Model, Noise};
+use super::ops::Binned;
+use super::solve::{self, Grid, Lambda, PathPoint, Penalty, SolveOptions};
+use super::transforms::sparsifying_transform;
+use super::{Control, ReconError};
+
+/// Path fractions `f = lambda / lambda_max`, from nearly-empty models down to nearly
+/// unregularised ones (half-decade steps).
+pub const FRACTIONS: [f64; 8] = [0.3, 0.1, 0.03, 0.01, 3e-3, 1e-3, 3e-4, 1e-4];
+/// A path point "improves" when it lowers the best held-out score by more than this.
+const IMPROVE: f64 = 0.002;
+/// A coarser grid must beat the finer one's held-out score by this much to be preferred.
+const COARSER_MARGIN: f64 = 0.01;
+/// Per path point: iteration cap and stopping tolerance (warm starts make most points short).
+const PATH_MAX_ITER: usize = 100;
+const PATH_TOL: f64 = 1e-3;
+/// The smallest coarse grid side tried.
+const MIN_COARSE_SIDE: usize = 4;
+/// Above this held-out relative residual the rows explain under ~30 % of the held-out variance.
+const POOR_FIT: f64 = 0.85;
+
+/// One channel's problem.
+pub struct Channel<'a> {
+    pub size: (usize, usize),
+    pub full: &'a dyn LinearOperator,
+    pub train: &'a dyn LinearOperator,
+    pub test: &'a dyn LinearOperator,
+    pub b: &'a [f64],
+    pub b_train: Vec<f64>,
+    pub b_test: Vec<f64>,
+}
+
+/// One solved path point as reported.
+#[derive(Clone, Debug, Serialize)]
+pub struct Point {
+    pub fraction: f64,
+    /// `None` (null) when the held-out buckets are all equal and not predicted exactly.
+    pub held_out: Option<f64>,
+    pub iterations: usize,
+    pub kept: usize,
+}
+
+/// A candidate's path.
+#[derive(Clone, Debug, Serialize)]
+pub struct Candidate {
+    pub model: &'static str,
+    /// `[width, height]` of the grid it was fitted on.
+    pub grid: [usize; 2],
+    pub path: Vec<Point>,
+    pub best_fraction: f64,
+    pub best_held_out: f64,
+    pub seconds: f64,
+    #[serde(skip)]
+    best_t: Vec<f64>,
+    #[serde(skip)]
+    model_kind: Option<Model>,
+}
+
+/// What `auto` returns for one channel.
+pub struct Outcome {
+    /// On the requested grid.
+    pub t: Vec<f64>,
+    /// The winner's held-out fit's prediction of the held-out buckets.
+    pub held_out_prediction: Vec<f64>,
+    pub iterations: usize,
+    pub report: Value,
+}
+
+fn score(b_test: &[f64], prediction: &[f64]) -> f64 {
+    holdout::relative_residual(b_test, prediction).unwrap_or(f64::INFINITY)
+}
+
+/// Solves `model`'s path on the fitting rows of `op_train` (a `w x h` grid), scoring each
+/// point on `op_test`, stopping when the score stops improving.
+#[allow(clippy::too_many_arguments)]
+fn path(
+    model: Model,
+    (w, h): (usize, usize),
+    op_train: &dyn LinearOperator,
+    op_test: &dyn LinearOperator,
+    b_train: &[f64],
+    b_test: &[f64],
+    fractions: &[f64],
+    opts: &SolveOptions,
+    control: &Control,
+) -> Result<Candidate, ReconError> {
+    let start = Instant::now();
+    let psi = match model {
+        Model::L1(kind) => Some(sparsifying_transform(kind, w, h)),
+        Model::Tv => None,
+    };
+    let penalty = match model {
+        Model::L1(_) => Penalty::L1 { psi: psi.as_deref() },
+        Model::Tv => Penalty::Tv { grid: Grid::new(w, h) },
+    };
+    let mut points = Vec::new();
+    let mut best = (f64::INFINITY, 0usize);
+    let mut stale = 0;
+    let mut best_t = Vec::new();
+    solve::solve_path_until(op_train, penalty, b_train, opts, fractions, control, &mut |p: &PathPoint| {
+        let s = score(b_test, &predict(op_test, &p.t));
+        points.push(Point {
+            fraction: p.fraction,
+            held_out: s.is_finite().then_some(s),
+            iterations: p.report.iterations,
+            kept: p.report.nonzeros,
+        });
+        if s < best.0 * (1.0 - IMPROVE) || (best.0.is_infinite() && s.is_finite()) {
+            best = (s, points.len() - 1);
+            best_t = p.t.clone();
+            stale = 0;
+        } else {
+            stale += 1;
+        }
+        stale < 2
+    })?;
+    if best_t.is_empty() {
+        // Every score was undefined (held-out buckets constant and never predicted): keep the
+        // first point, the most regularised model.
+        best = (f64::INFINITY, 0);
+        best_t = vec![0.0; w * h];
+    }
+    Ok(Candidate {
+        model: model.name(),
+        grid: [w, h],
+        best_fraction: points.get(best.1).map_or(fractions[0], |p| p.fraction),
+        best_held_out: best.0,
+        path: points,
+        seconds: start.elapsed().as_secs_f64(),
+        best_t,
+        model_kind: Some(model),
+    })
+}
+
+/// Runs `auto` on one channel (see the module docs).
+pub fn run(
+    job: &Channel,
+    models: &[Model],
+    max_iter: usize,
+    fit: Fit,
+    (lo, hi): (f64, f64),
+    control: &Control,
+) -> Result<Outcome, ReconError> {
+    let start = Instant::now();
+    let (w, h) = job.size;
+    let k = w * h;
+    // One power iteration for every candidate on the fitting rows.
+    let lipschitz = solve::step_constant(job.train, None, true)?;
+    let base = SolveOptions {
+        max_iter: PATH_MAX_ITER,
+        tol: PATH_TOL,
+        lipschitz: Some(lipschitz),
+        ..SolveOptions::default()
+    };
+    let stages = models.len() as f64 + 2.0;
+    let mut candidates = Vec::with_capacity(models.len());
+    for (i, &model) in models.iter().enumerate() {
+        let opts = SolveOptions { progress: (lo + (hi - lo) * i as f64 / stages, lo + (hi - lo) * (i + 1) as f64 / stages), ..base.clone() };
+        candidates.push(path(model, (w, h), job.train, job.test, &job.b_train, &job.b_test, &FRACTIONS, &opts, control)?);
+    }
+    let winner = candidates
+        .iter()
+        .enumerate()
+        .min_by(|a, b| a.1.best_held_out.total_cmp(&b.1.best_held_out))
+        .map(|(i, _)| i)
+        .expect("at least one model");
+    let model = candidates[winner].model_kind.expect("set by path");
+    let fraction = candidates[winner].best_fraction;
+
+    // The resolution the rows support (only a question when there are fewer rows than pixels).
+    let mut chosen = (1usize, candidates[winner].best_held_out, candidates[winner].best_t.clone());
+    let mut resolution = Vec::new();
+    if job.full.rows() < k {
+        let mut factor = 2;
+        while w.div_ceil(factor) >= MIN_COARSE_SIDE && h.div_ceil(factor) >= MIN_COARSE_SIDE {
+            let train = Binned::new(job.train, w, h, factor);
+            let test = Binned::new(job.test, w, h, factor);
+            let coarse = train.coarse_size();
+            let near: Vec<f64> = FRACTIONS.iter().copied().filter(|f| (f / fraction).ln().abs() < 1.2).collect();
+            let opts = SolveOptions {
+                lipschitz: None,
+                progress: (lo + (hi - lo) * (stages - 2.0) / stages, lo + (hi - lo) * (stages - 1.0) / stages),
+                ..base.clone()
+            };
+            let c = path(model, coarse, &train, &test, &job.b_train, &job.b_test, &near, &opts, control)?;
+            let better = c.best_held_out < chosen.1 * (1.0 - COARSER_MARGIN);
+            resolution.push(json!({"grid": coarse, "held_out": finite(c.best_held_out), "fraction": c.best_fraction, "better": better}));
+            if !better {
+                break;
+            }
+            chosen = (factor, c.best_held_out, c.best_t);
+            factor *= 2;
+        }
+    }
+    let (factor, held_out, warm) = chosen;
+    let binned_full = Binned::new(job.full, w, h, factor);
+    let binned_test = Binned::new(job.test, w, h, factor);
+    let grid = binned_full.coarse_size();
+    let (full, test): (&dyn LinearOperator, &dyn LinearOperator) =
+        if factor == 1 { (job.full, job.test) } else { (&binned_full, &binned_test) };
+    let held_out_prediction = predict(test, &warm);
+
+    // Refit on all rows.
+    let refit_opts = SolveOptions {
+        max_iter,
+        lambda: Lambda::Relative(fraction),
+        warm_start: Some(warm),
+        progress: (lo + (hi - lo) * (stages - 1.0) / stages, hi),
+        ..SolveOptions::default()
+    };
+    let solution = fit_model(model, grid, full, job.b, fit.noise, &refit_opts, control)?;
+    let t = if factor == 1 {
+        solution.t.clone()
+    } else {
+        let mut up = vec![0.0; k];
+        binned_full.upsample(&solution.t, &mut up);
+        up
+    };
+
+    let mut warnings = Vec::new();
+    if factor > 1 {
+        warnings.push(format!(
+            "too few rows for {w}x{h}: {} rows predict held-out buckets better at {}x{} (held-out {:.4} vs {:.4} at \
+             full resolution); the image is the {}x{} fit replicated onto {w}x{h}",
+            job.full.rows(),
+            grid.0,
+            grid.1,
+            held_out,
+            candidates[winner].best_held_out,
+            grid.0,
+            grid.1
+        ));
+    }
+    let kept = solution.report.nonzeros;
+    let rows = job.full.rows();
+    let grid_pixels = grid.0 * grid.1;
+    let identifiable = identifiable_coefficients(rows, grid_pixels);
+    if kept as f64 > identifiable {
+        warnings.push(format!(
+            "too few rows for {}x{} to resolve this scene: the model keeps {kept} {}, but {rows} rows identify \
+             about {identifiable:.0} (the l1 phase transition n = 2 s ln(k/n)); detail finer than that is not resolved",
+            grid.0,
+            grid.1,
+            model.kept_meaning()
+        ));
+    }
+    if held_out > POOR_FIT {
+        warnings.push(format!(
+            "the best model predicts held-out buckets poorly (relative residual {held_out:.3}): the rows are too \
+             few or too noisy for any of the models at this size"
+        ));
+    }
+    let iterations = candidates.iter().flat_map(|c| c.path.iter().map(|p| p.iterations)).sum::<usize>()
+        + solution.report.iterations;
+    let report = json!({
+        "model": model.name(),
+        "kept": kept,
+        "kept_meaning": model.kept_meaning(),
+        "kept_fraction": kept as f64 / grid_pixels as f64,
+        "identifiable_coefficients": if identifiable.is_finite() { json!(identifiable.round()) } else { Value::Null },
+        "lambda_fraction": fraction,
+        "lambda": solution.report.lambda,
+        "noise": match fit.noise { Noise::Gaussian => "gaussian", Noise::Poisson { .. } => "poisson" },
+        "held_out": finite(held_out),
+        "resolution": {
+            "requested": [w, h],
+            "supported": [grid.0, grid.1],
+            "checked": resolution,
+        },
+        "warnings": warnings,
+        "candidates": candidates,
+        "refit": solution.report,
+        "seconds": start.elapsed().as_secs_f64(),
+    });
+    Ok(Outcome { t, held_out_prediction, iterations, report })
+}
+
+/// How many nonzero coefficients `rows` random rows can identify among `pixels` unknowns: the
+/// weak l1 phase transition of Donoho and Tanner for `delta = n / k -> 0`, `s = n / (2 ln(k / n))`;
+/// infinite once `n >= k` (every model is identified).
+pub fn identifiable_coefficients(rows: usize, pixels: usize) -> f64 {
+    if rows >= pixels {
+        return f64::INFINITY;
+    }
+    let (n, k) = (rows as f64, pixels as f64);
+    // Near n = k the asymptotic form blows up; it is capped at n (never more than the rows).
+    (n / (2.0 * (k / n).ln())).min(n)
+}
+
+fn finite(v: f64) -> Value {
+    if v.is_finite() { json!(v) } else { Value::Null }
+}
+
+#[cfg(test)]
+mod tests {
+    use helmholtz_client::scene::Scene;
+    use helmholtz_proto::{Family, HadamardOrdering, PatternGenerator, PatternSpec};
+    use serde_json::json;
+
+    use crate::recon::{MethodConfig, Problem, Reconstruction, SliceSource, metrics, reconstruct};
+    use crate::recon::Control;
+
+    fn scene(name: &str, n: u32) -> Vec<f32> {
+        Scene::builtin(name, n, n).unwrap().transport(1.0)
+    }
+
+    fn buckets(spec: &PatternSpec, t: &[f32]) -> Vec<f64> {
+        let g = PatternGenerator::new(spec);
+        let mut p = vec![0f32; spec.pixels()];
+        (0..spec.count())
+            .map(|i| {
+                g.fill_values(i, &mut p);
+                p.iter().zip(t).map(|(a, b)| *a as f64 * *b as f64).sum::<f64>()
+            })
+            .collect()
+    }
+
+    fn auto(spec: &PatternSpec, c: &[f64], params: serde_json::Value) -> Reconstruction {
+        let config = MethodConfig::parse("auto", &params).unwrap();
+        let problem = Problem { spec, channels: 1, rows: c.len() as u64 };
+        let r = reconstruct(&problem, &config, &mut SliceSource::new(c, 1, 500), &Control::new()).unwrap();
+        assert!(r.images[0].data.iter().all(|v| v.is_finite() && *v >= 0.0), "finite, non-negative");
+        r
+    }
+
+    fn bernoulli(n: u32, rows: u64) -> PatternSpec {
+        PatternSpec::new(Family::Bernoulli { fill: 0.5 }, n, n, rows, 7).unwrap()
+    }
+
+    #[test]
+    fn a_sparse_scene_keeps_far_fewer_coefficients_than_a_photo() {
+        // Same size, same rows (25 %): the data, not a setting, decide the model size.
+        let spec = bernoulli(48, 576);
+        let mut kept = Vec::new();
+        for name in ["shapes", "camera"] {
+            let truth = scene(name, 48);
+            let r = auto(&spec, &buckets(&spec, &truth), json!({}));
+            let a = &r.report.details["auto"][0];
+            let psnr = metrics::psnr(&r.images[0].data, &truth);
+            let held = r.report.held_out.as_ref().unwrap().relative_residual.unwrap();
+            println!("{name}: model {} kept {} ({}) f {} held-out {held:.4} PSNR {psnr:.2} dB", a["model"], a["kept"], a["kept_meaning"], a["lambda_fraction"]);
+            assert!(held < 0.5, "{name}: held-out {held}");
+            assert_eq!(a["resolution"]["supported"], json!([48, 48]), "{name}: 25 % of the rows support the full grid");
+            kept.push(a["kept_fraction"].as_f64().unwrap());
+        }
+        assert!(kept[0] * 3.0 < kept[1], "sparse scene kept {} of the grid, the photo {}", kept[0], kept[1]);
+    }
+
+    #[test]
+    fn auto_beats_every_fixed_default_it_chooses_from() {
+        // 25 % Bernoulli on the photo: auto's pick must be at least as good as tv and cs at
+        // their default weights (it may pick one of them, with a better weight).
+        let spec = bernoulli(32, 256);
+        let truth = scene("camera", 32);
+        let c = buckets(&spec, &truth);
+        let r = auto(&spec, &c, json!({}));
+        let p_auto = metrics::psnr(&r.images[0].data, &truth);
+        let problem = Problem { spec: &spec, channels: 1, rows: 256 };
+        for (m, params) in [("tv", json!({})), ("cs", json!({}))] {
+            let config = MethodConfig::parse(m, &params).unwrap();
+            let fixed = reconstruct(&problem, &config, &mut SliceSource::new(&c, 1, 500), &Control::new()).unwrap();
+            let p = metrics::psnr(&fixed.images[0].data, &truth);
+            println!("auto {p_auto:.2} dB vs {m} {p:.2} dB");
+            assert!(p_auto > p - 0.3, "auto {p_auto:.2} dB vs {m} default {p:.2} dB");
+        }
+        let candidates = r.report.details["auto"][0]["candidates"].as_array().unwrap();
+        assert_eq!(candidates.len(), 3);
+        for c in candidates {
+            assert!(c["path"].as_array().unwrap().len() >= 3, "every path saw its minimum: {c}");
+        }
+    }
+
+    #[test]
+    fn too_few_rows_for_the_resolution_is_said() {
+        // 64 x 64 from 120 rows (3 %): the rows cannot support 4096 pixels of a photo.
+        let spec = bernoulli(64, 120);
+        let truth = scene("camera", 64);
+        let r = auto(&spec, &buckets(&spec, &truth), json!({}));
+        let a = &r.report.details["auto"][0];
+        println!("{}", serde_json::to_string_pretty(&a["resolution"]).unwrap());
+        let supported = a["resolution"]["supported"][0].as_u64().unwrap();
+        println!("kept {} identifiable {} supported {supported}", a["kept"], a["identifiable_coefficients"]);
+        let warnings = a["warnings"].as_array().unwrap();
+        assert!(warnings.iter().any(|w| w.as_str().unwrap().contains("too few rows for 64x64")), "{warnings:?}");
+    }
+
+    #[test]
+    fn held_out_error_falls_as_rows_grow_and_auto_refuses_without_rows_to_hold_out() {
+        let truth = scene("camera", 32);
+        let mut last = f64::INFINITY;
+        for rows in [150, 400, 1000] {
+            let spec = bernoulli(32, rows);
+            let r = auto(&spec, &buckets(&spec, &truth), json!({"models": ["tv"]}));
+            let held = r.report.held_out.as_ref().unwrap().relative_residual.unwrap();
+            println!("{rows} rows: held-out {held:.4}");
+            assert!(held < last * 0.9, "{rows} rows: held-out {held} after {last}");
+            last = held;
+        }
+        let spec = bernoulli(32, 40);
+        let problem = Problem { spec: &spec, channels: 1, rows: 40 };
+        let c = buckets(&spec, &truth);
+        let e = reconstruct(&problem, &MethodConfig::parse("auto", &json!({})).unwrap(), &mut SliceSource::new(&c, 1, 9), &Control::new())
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("auto chooses its model by held-out error") && e.contains("at least 8"), "{e}");
+    }
+
+    #[test]
+    fn auto_on_hadamard_split_pairs() {
+        let n = 32u32;
+        let truth = scene("camera", n);
+        let ordering = HadamardOrdering::RussianDoll;
+        let spec = PatternSpec::new(Family::Hadamard { ordering }, n, n, 2 * 256, 0).unwrap();
+        let r = auto(&spec, &buckets(&spec, &truth), json!({}));
+        let zf = {
+            let problem = Problem { spec: &spec, channels: 1, rows: 512 };
+            let c = buckets(&spec, &truth);
+            reconstruct(&problem, &MethodConfig::ZeroFilled, &mut SliceSource::new(&c, 1, 64), &Control::new()).unwrap()
+        };
+        let (pa, pz) = (metrics::psnr(&r.images[0].data, &truth), metrics::psnr(&zf.images[0].data, &truth));
+        println!("hadamard 25 %: auto {pa:.2} dB ({}), zero-filled {pz:.2} dB", r.report.details["auto"][0]["model"]);
+        assert!(pa > pz + 1.0, "auto {pa:.2} dB vs zero-filled {pz:.2} dB");
+    }
+}
