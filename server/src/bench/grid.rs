@@ -108,12 +108,20 @@ impl FromStr for Preset {
 }
 
 /// Every method the service offers, cheapest first.
-pub const METHODS: &[&str] = &["gi", "dgi", "ngi", "direct", "lsq", "cs", "tv"];
+pub const METHODS: &[&str] = &["gi", "dgi", "ngi", "direct", "zero_filled", "levels", "lsq", "cs", "tv", "auto"];
 
-fn applicable(family: &str, ratio: f64, method: &str) -> bool {
+/// Iterative methods on Bernoulli patterns cost about `rows x pixels x 1e-10 s` per iteration
+/// here; above this product (e.g. 256 x 256 at 25 % or more) one case would take minutes, so the
+/// full grid leaves them out (the correlators and Hadamard run at every size).
+pub const MAX_ITERATIVE_BERNOULLI_WORK: f64 = 5e8;
+
+fn applicable(family: &str, size: u32, ratio: f64, method: &str) -> bool {
+    let k = (size as f64) * (size as f64);
     match method {
         // The exact inverse needs the complete set.
         "direct" => family == "hadamard" && ratio >= 1.0,
+        "zero_filled" | "levels" => family == "hadamard",
+        "lsq" | "cs" | "tv" | "auto" if family == "bernoulli" => ratio * k * k <= MAX_ITERATIVE_BERNOULLI_WORK,
         _ => true,
     }
 }
@@ -126,7 +134,7 @@ fn grid(scenes: &[&str], sizes: &[u32], ratios: &[f64], families: &[&str], noise
                 for &ratio in ratios {
                     for &noise in noises {
                         for &method in METHODS {
-                            if applicable(family, ratio, method) {
+                            if applicable(family, n, ratio, method) {
                                 out.push(Case {
                                     scene: scene.into(),
                                     size: (n, n),

@@ -12,7 +12,8 @@ use super::plot::{Curve, time_vs_psnr};
 
 pub fn write(dir: &Path, preset: &str, results: &[Measurement]) -> anyhow::Result<()> {
     std::fs::create_dir_all(dir.join("bench")).with_context(|| format!("creating {}", dir.display()))?;
-    let command = format!("cargo run --release -p helmholtz-server --bin helmholtz-bench -- --preset {preset}");
+    let release = if cfg!(debug_assertions) { "" } else { "--release " };
+    let command = format!("cargo run {release}-p helmholtz-server --bin helmholtz-bench -- --preset {preset}");
     let machine = json!({
         "cores": std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1),
         "rayon_threads": rayon::current_num_threads(),
@@ -28,7 +29,7 @@ pub fn write(dir: &Path, preset: &str, results: &[Measurement]) -> anyhow::Resul
     let mut md = String::new();
     let _ = writeln!(md, "# Speed against error\n");
     let _ = writeln!(md, "Produced by `{command}` ({} cores, {} build).", machine["cores"], machine["profile"]);
-    let _ = writeln!(md, "Raw figures: [`{stem}.json`]({stem}.json). Every row is one reconstruction by the service's own numerics on a simulated acquisition of a built-in scene (`helmholtz_client::simulate`), scored against that scene. PSNR uses the scene's range as peak; for the correlation methods (gi, dgi, ngi), which estimate t only up to scale and offset, the plotted/quality figure is after a least-squares affine fit (the raw PSNR is in the JSON). Times are wall-clock for the reconstruction alone (the patterns are regenerated from the seed inside it); memory is the peak heap growth during it.\n");
+    let _ = writeln!(md, "Raw figures: [`{stem}.json`]({stem}.json). Every row is one reconstruction by the service's own numerics on a simulated acquisition of a built-in scene (`helmholtz_client::simulate`), scored against that scene. PSNR uses the scene's range as peak; \"held-out\" is the error estimate the service reports without ground truth (the held-out relative residual, `||c_H - c_hat_H|| / ||c_H - mean(c_H)||`; \"-\" where a method has none, e.g. the exact inverses); for the correlation methods (gi, dgi, ngi), which estimate t only up to scale and offset, the plotted/quality figure is after a least-squares affine fit (the raw PSNR is in the JSON). Times are wall-clock for the reconstruction alone (the patterns are regenerated from the seed inside it); memory is the peak heap growth during it.\n");
     let mut panels: BTreeMap<String, Vec<&Measurement>> = BTreeMap::new();
     for m in results {
         let c = &m.case;
@@ -44,12 +45,12 @@ pub fn write(dir: &Path, preset: &str, results: &[Measurement]) -> anyhow::Resul
         let file = format!("bench/{preset}-{}.svg", title.replace([' ', ',', ':'], "_").replace("__", "_"));
         std::fs::write(dir.join(&file), time_vs_psnr(title, &curves.into_values().collect::<Vec<_>>()))?;
         let _ = writeln!(md, "![time against PSNR: {title}]({file})\n");
-        let _ = writeln!(md, "| scene | sampling | rows | method | seconds | PSNR dB | SSIM | raw PSNR dB | peak MiB | updates/s |");
-        let _ = writeln!(md, "|---|---|---|---|---|---|---|---|---|---|");
+        let _ = writeln!(md, "| scene | sampling | rows | method | seconds | PSNR dB | SSIM | raw PSNR dB | held-out | peak MiB | updates/s | auto's choice |");
+        let _ = writeln!(md, "|---|---|---|---|---|---|---|---|---|---|---|---|");
         for m in ms {
             let _ = writeln!(
                 md,
-                "| {} | {:.2} % | {} | {} | {:.4} | {} | {} | {} | {} | {} |",
+                "| {} | {:.2} % | {} | {} | {:.4} | {} | {} | {} | {} | {} | {} | {} |",
                 m.case.scene,
                 m.case.ratio * 100.0,
                 m.rows,
@@ -58,17 +59,33 @@ pub fn write(dir: &Path, preset: &str, results: &[Measurement]) -> anyhow::Resul
                 num(m.quality_db(), 2),
                 num(m.quality_ssim(), 3),
                 num(m.psnr_db, 2),
+                m.report["held_out"]["relative_residual"].as_f64().map(|v| format!("{v:.4}")).unwrap_or_else(|| "-".into()),
                 m.peak_memory_bytes.map(|b| format!("{:.1}", b as f64 / (1u64 << 20) as f64)).unwrap_or_else(|| "-".into()),
                 m.updates_per_second.map(|u| format!("{u:.2e}")).unwrap_or_else(|| "-".into()),
+                auto_choice(&m.report),
             );
             if let Some(e) = &m.error {
-                let _ = writeln!(md, "| | | | | refused: {e} | | | | | |");
+                let _ = writeln!(md, "| | | | | refused: {e} | | | | | | | |");
             }
         }
         md.push('\n');
     }
     std::fs::write(dir.join(format!("{stem}.md")), md)?;
     Ok(())
+}
+
+/// "tv f=0.001, 1820 kept, 64x64" for auto; empty for other methods.
+fn auto_choice(report: &serde_json::Value) -> String {
+    let Some(a) = report["details"]["auto"].get(0) else { return String::new() };
+    let res = &a["resolution"]["supported"];
+    format!(
+        "{} f={} kept {} at {}x{}",
+        a["model"].as_str().unwrap_or("?"),
+        a["lambda_fraction"].as_f64().map(|f| format!("{f:.0e}")).unwrap_or_default(),
+        a["kept"],
+        res[0],
+        res[1]
+    )
 }
 
 fn num(v: f64, digits: usize) -> String {

@@ -181,7 +181,8 @@ pub fn run(
     let size = (spec.width() as usize, spec.height() as usize);
     let fit: Fit = config.fit().expect("an iterative method");
     let planned = Planned::load(problem, source, control)?;
-    let split = holdout::split(planned.rows(), fit.holdout);
+    let fraction = fit.holdout.unwrap_or_else(|| holdout::default_fraction(planned.rows()));
+    let split = holdout::split(planned.rows(), fraction);
     if let (MethodConfig::Auto { .. }, Err(why)) = (config, &split) {
         return Err(ReconError::Unsolvable(format!(
             "auto chooses its model by held-out error and cannot here: {why}. Use tv or cs with a fixed lambda, or a larger holdout"

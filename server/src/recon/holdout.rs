@@ -20,8 +20,14 @@
 use helmholtz_proto::patterns::rng::stream_word;
 use serde::Serialize;
 
-/// Default fraction of rows held out.
+/// Default fraction of rows held out (raised for small sessions, [`default_fraction`]).
 pub const DEFAULT_FRACTION: f64 = 0.1;
+
+/// The fraction held out when the request does not say: 10 %, raised up to 25 % so that small
+/// sessions still hold out about 16 rows (a usable estimate) where they can.
+pub fn default_fraction(rows: usize) -> f64 {
+    (16.0 / rows.max(1) as f64).clamp(DEFAULT_FRACTION, 0.25)
+}
 /// Fewer held-out rows than this give no usable estimate (the estimate of `rho` has a relative
 /// standard error of about `1 / sqrt(2 |H|)`).
 pub const MIN_HELD_OUT: usize = 8;

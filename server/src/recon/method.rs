@@ -67,14 +67,15 @@ impl Model {
 /// The data term and the hold-out shared by the iterative methods.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Fit {
-    /// Fraction of the rows held out for the error estimate (and `auto`'s choice).
-    pub holdout: f64,
+    /// Fraction of the rows held out for the error estimate (and `auto`'s choice); `None`:
+    /// [`super::holdout::default_fraction`] of the row count.
+    pub holdout: Option<f64>,
     pub noise: Noise,
 }
 
 impl Default for Fit {
     fn default() -> Self {
-        Fit { holdout: super::holdout::DEFAULT_FRACTION, noise: Noise::Gaussian }
+        Fit { holdout: None, noise: Noise::Gaussian }
     }
 }
 
@@ -133,7 +134,13 @@ impl Params<'_> {
     }
 
     fn fit(&mut self) -> Result<Fit, ParamError> {
-        let holdout = self.number("holdout", super::holdout::DEFAULT_FRACTION, |v| (0.02..=0.5).contains(&v), "a fraction in [0.02, 0.5]")?;
+        let holdout = match self.map.get("holdout") {
+            None | Some(Value::Null) => {
+                self.map.remove("holdout");
+                None
+            }
+            Some(_) => Some(self.number("holdout", 0.0, |v| (0.02..=0.5).contains(&v), "a fraction in [0.02, 0.5]")?),
+        };
         let noise = match self.map.remove("noise") {
             None | Some(Value::Null) => "gaussian".to_string(),
             Some(Value::String(s)) => s,
@@ -277,7 +284,9 @@ impl MethodConfig {
             _ => Value::Object(Default::default()),
         };
         if let Some(fit) = self.fit() {
-            v["holdout"] = json!(fit.holdout);
+            if let Some(f) = fit.holdout {
+                v["holdout"] = json!(f);
+            }
             match fit.noise {
                 Noise::Gaussian => v["noise"] = json!("gaussian"),
                 Noise::Poisson { photon } => {
@@ -408,7 +417,7 @@ mod tests {
             MethodConfig::Auto {
                 models: vec![Model::L1(TransformKind::Haar), Model::Tv],
                 max_iter: 300,
-                fit: Fit { holdout: 0.1, noise: Noise::Poisson { photon: 3.5 } }
+                fit: Fit { holdout: None, noise: Noise::Poisson { photon: 3.5 } }
             }
         );
         for m in [auto, MethodConfig::Levels { level: Some(3) }, MethodConfig::parse("lsq", &json!({"holdout": 0.2})).unwrap()] {
