@@ -6,12 +6,19 @@
 //!    1e-4`, on the fitting rows; after every point its prediction of the held-out buckets is
 //!    scored ([`holdout::relative_residual`]). A path stops once two consecutive points fail to
 //!    improve the best score by 0.2 % (the minimum is behind, or the curve is flat): the noise
-//!    level, not a hand-set lambda, decides where the path ends.
+//!    level, not a hand-set lambda, decides where the path ends. The paths run side by side,
+//!    one point per round, and a candidate trailing the leader by more than 25 % in held-out
+//!    score is dropped (reported as eliminated), so clearly wrong models cost a few points.
 //! 3. The resolution the rows support: when there are fewer rows than pixels, the winning model
 //!    is also fitted on 2x2- (then 4x4-, ...) binned images (`A U`, [`ops::Binned`]) at the
 //!    winning `f` and its neighbours; a coarser grid that predicts the held-out rows better
 //!    than the finer one (by more than 1 %) means the rows do not support the finer resolution.
 //!    The report says so, and the image is the coarse fit replicated onto the requested grid.
+//!    Structured designs (Hadamard subsets) are not judged this way: their held-out rows lie in
+//!    the same low-sequency subspace as the fitted ones, so a coarse model always predicts them
+//!    as well, while the fine model's extrapolated edges (which only the ground truth can judge)
+//!    are lost. Their supported resolution is read off the measured rows instead
+//!    ([`ops::HadamardOperator::finest_resolution`]) and the image stays on the requested grid.
 //! 4. The winner (model, resolution, `f`) is refitted on all rows, warm-started from its
 //!    held-out fit.
 //!
@@ -31,15 +38,19 @@ use super::holdout;
 use super::linop::LinearOperator;
 use super::method::{Fit, Model, Noise};
 use super::ops::Binned;
-use super::solve::{self, Grid, Lambda, PathPoint, Penalty, SolveOptions};
+use super::solve::{self, Grid, Lambda, PathRunner, Penalty, SolveOptions};
 use super::transforms::sparsifying_transform;
 use super::{Control, ReconError};
 
 /// Path fractions `f = lambda / lambda_max`, from nearly-empty models down to nearly
 /// unregularised ones (half-decade steps).
 pub const FRACTIONS: [f64; 8] = [0.3, 0.1, 0.03, 0.01, 3e-3, 1e-3, 3e-4, 1e-4];
+/// A path always solves at least this many points (down to f = 0.01).
+const MIN_POINTS: usize = 4;
 /// A path point "improves" when it lowers the best held-out score by more than this.
 const IMPROVE: f64 = 0.002;
+/// A candidate whose best held-out score exceeds the leader's by this factor is dropped.
+const ELIMINATE: f64 = 1.25;
 /// A coarser grid must beat the finer one's held-out score by this much to be preferred.
 const COARSER_MARGIN: f64 = 0.01;
 /// Per path point: iteration cap and stopping tolerance (warm starts make most points short).
@@ -59,6 +70,13 @@ pub struct Channel<'a> {
     pub b: &'a [f64],
     pub b_train: Vec<f64>,
     pub b_test: Vec<f64>,
+    /// For designs whose rows are a structured (not random) subset, the finest grid the rows
+    /// measure at all (Hadamard: [`HadamardOperator::finest_resolution`]). Held-out rows of such
+    /// a design lie in the same subspace, so held-out error cannot judge detail finer than it:
+    /// the resolution is reported from the design instead of compared by held-out error.
+    ///
+    /// [`HadamardOperator::finest_resolution`]: super::ops::HadamardOperator::finest_resolution
+    pub measured_resolution: Option<(usize, usize)>,
 }
 
 /// One solved path point as reported.
@@ -80,6 +98,8 @@ pub struct Candidate {
     pub path: Vec<Point>,
     pub best_fraction: f64,
     pub best_held_out: f64,
+    /// Stopped early: its best held-out score trailed the leader's by more than [`ELIMINATE`].
+    pub eliminated: bool,
     pub seconds: f64,
     #[serde(skip)]
     best_t: Vec<f64>,
@@ -101,66 +121,154 @@ fn score(b_test: &[f64], prediction: &[f64]) -> f64 {
     holdout::relative_residual(b_test, prediction).unwrap_or(f64::INFINITY)
 }
 
-/// Solves `model`'s path on the fitting rows of `op_train` (a `w x h` grid), scoring each
-/// point on `op_test`, stopping when the score stops improving.
-#[allow(clippy::too_many_arguments)]
-fn path(
+/// One candidate's path in progress.
+struct Running<'a> {
     model: Model,
-    (w, h): (usize, usize),
+    grid: (usize, usize),
+    runner: PathRunner<'a>,
+    points: Vec<Point>,
+    best: (f64, usize),
+    best_t: Vec<f64>,
+    stale: usize,
+    active: bool,
+    eliminated: bool,
+    seconds: f64,
+}
+
+impl<'a> Running<'a> {
+    #[allow(clippy::too_many_arguments)]
+    fn new(
+        model: Model,
+        grid: (usize, usize),
+        psi: Option<&'a dyn LinearOperator>,
+        op_train: &'a dyn LinearOperator,
+        b_train: &'a [f64],
+        opts: &SolveOptions,
+    ) -> Result<Self, ReconError> {
+        let start = Instant::now();
+        let penalty = match model {
+            Model::L1(_) => Penalty::L1 { psi },
+            Model::Tv => Penalty::Tv { grid: Grid::new(grid.0, grid.1) },
+        };
+        let opts = super::compressive::model_options(model, opts);
+        let runner = PathRunner::new(op_train, penalty, b_train, &opts)?;
+        Ok(Running {
+            model,
+            grid,
+            runner,
+            points: Vec::new(),
+            best: (f64::INFINITY, 0),
+            best_t: Vec::new(),
+            stale: 0,
+            active: true,
+            eliminated: false,
+            seconds: start.elapsed().as_secs_f64(),
+        })
+    }
+
+    /// Solves the next point and scores it on the held-out rows; ends the path once the score
+    /// has stopped improving (after at least [`MIN_POINTS`] points).
+    fn step(
+        &mut self,
+        fraction: f64,
+        op_test: &dyn LinearOperator,
+        b_test: &[f64],
+        progress: (f64, f64),
+        control: &Control,
+    ) -> Result<(), ReconError> {
+        let start = Instant::now();
+        let p = self.runner.solve(fraction, progress, control)?;
+        let s = score(b_test, &predict(op_test, &p.t));
+        self.points.push(Point {
+            fraction,
+            held_out: s.is_finite().then_some(s),
+            iterations: p.report.iterations,
+            kept: p.report.nonzeros,
+        });
+        if s < self.best.0 * (1.0 - IMPROVE) || (self.best.0.is_infinite() && s.is_finite()) {
+            self.best = (s, self.points.len() - 1);
+            self.best_t = p.t;
+            self.stale = 0;
+        } else {
+            self.stale += 1;
+        }
+        // The first points are near-empty models: never stop before MIN_POINTS.
+        if self.stale >= 2 && self.points.len() >= MIN_POINTS {
+            self.active = false;
+        }
+        self.seconds += start.elapsed().as_secs_f64();
+        Ok(())
+    }
+
+    fn finish(mut self) -> Candidate {
+        if self.best_t.is_empty() {
+            // Every score was undefined (held-out buckets constant and never predicted): keep
+            // the most regularised model.
+            self.best = (f64::INFINITY, 0);
+            self.best_t = vec![0.0; self.grid.0 * self.grid.1];
+        }
+        Candidate {
+            model: self.model.name(),
+            grid: [self.grid.0, self.grid.1],
+            best_fraction: self.points.get(self.best.1).map_or(FRACTIONS[0], |p| p.fraction),
+            best_held_out: self.best.0,
+            path: self.points,
+            eliminated: self.eliminated,
+            seconds: self.seconds,
+            best_t: self.best_t,
+            model_kind: Some(self.model),
+        }
+    }
+}
+
+/// Runs the candidates' paths side by side over `fractions` (round-robin, one point each per
+/// round); after every round from the third on, a candidate whose best held-out score is more
+/// than [`ELIMINATE`] times the leader's stops (it is reported, marked `eliminated`).
+#[allow(clippy::too_many_arguments)]
+fn race(
+    models: &[Model],
+    grid: (usize, usize),
     op_train: &dyn LinearOperator,
     op_test: &dyn LinearOperator,
     b_train: &[f64],
     b_test: &[f64],
     fractions: &[f64],
     opts: &SolveOptions,
+    (lo, hi): (f64, f64),
     control: &Control,
-) -> Result<Candidate, ReconError> {
-    let start = Instant::now();
-    let psi = match model {
-        Model::L1(kind) => Some(sparsifying_transform(kind, w, h)),
-        Model::Tv => None,
-    };
-    let penalty = match model {
-        Model::L1(_) => Penalty::L1 { psi: psi.as_deref() },
-        Model::Tv => Penalty::Tv { grid: Grid::new(w, h) },
-    };
-    let mut points = Vec::new();
-    let mut best = (f64::INFINITY, 0usize);
-    let mut stale = 0;
-    let mut best_t = Vec::new();
-    solve::solve_path_until(op_train, penalty, b_train, opts, fractions, control, &mut |p: &PathPoint| {
-        let s = score(b_test, &predict(op_test, &p.t));
-        points.push(Point {
-            fraction: p.fraction,
-            held_out: s.is_finite().then_some(s),
-            iterations: p.report.iterations,
-            kept: p.report.nonzeros,
-        });
-        if s < best.0 * (1.0 - IMPROVE) || (best.0.is_infinite() && s.is_finite()) {
-            best = (s, points.len() - 1);
-            best_t = p.t.clone();
-            stale = 0;
-        } else {
-            stale += 1;
+) -> Result<Vec<Candidate>, ReconError> {
+    let psis: Vec<Option<Box<dyn LinearOperator>>> = models
+        .iter()
+        .map(|m| match m {
+            Model::L1(kind) => Some(sparsifying_transform(*kind, grid.0, grid.1)),
+            Model::Tv => None,
+        })
+        .collect();
+    let mut running = models
+        .iter()
+        .zip(&psis)
+        .map(|(&m, psi)| Running::new(m, grid, psi.as_deref(), op_train, b_train, opts))
+        .collect::<Result<Vec<_>, _>>()?;
+    let rounds = fractions.len() as f64;
+    for (i, &f) in fractions.iter().enumerate() {
+        let progress = (lo + (hi - lo) * i as f64 / rounds, lo + (hi - lo) * (i + 1) as f64 / rounds);
+        for r in running.iter_mut().filter(|r| r.active) {
+            r.step(f, op_test, b_test, progress, control)?;
         }
-        stale < 2
-    })?;
-    if best_t.is_empty() {
-        // Every score was undefined (held-out buckets constant and never predicted): keep the
-        // first point, the most regularised model.
-        best = (f64::INFINITY, 0);
-        best_t = vec![0.0; w * h];
+        if i >= 2 {
+            let leader = running.iter().map(|r| r.best.0).fold(f64::INFINITY, f64::min);
+            for r in running.iter_mut().filter(|r| r.active) {
+                if r.best.0 > ELIMINATE * leader {
+                    r.active = false;
+                    r.eliminated = true;
+                }
+            }
+        }
+        if running.iter().all(|r| !r.active) {
+            break;
+        }
     }
-    Ok(Candidate {
-        model: model.name(),
-        grid: [w, h],
-        best_fraction: points.get(best.1).map_or(fractions[0], |p| p.fraction),
-        best_held_out: best.0,
-        path: points,
-        seconds: start.elapsed().as_secs_f64(),
-        best_t,
-        model_kind: Some(model),
-    })
+    Ok(running.into_iter().map(Running::finish).collect())
 }
 
 /// Runs `auto` on one channel (see the module docs).
@@ -183,12 +291,8 @@ pub fn run(
         lipschitz: Some(lipschitz),
         ..SolveOptions::default()
     };
-    let stages = models.len() as f64 + 2.0;
-    let mut candidates = Vec::with_capacity(models.len());
-    for (i, &model) in models.iter().enumerate() {
-        let opts = SolveOptions { progress: (lo + (hi - lo) * i as f64 / stages, lo + (hi - lo) * (i + 1) as f64 / stages), ..base.clone() };
-        candidates.push(path(model, (w, h), job.train, job.test, &job.b_train, &job.b_test, &FRACTIONS, &opts, control)?);
-    }
+    let stages = 3.0;
+    let candidates = race(models, (w, h), job.train, job.test, &job.b_train, &job.b_test, &FRACTIONS, &base, (lo, lo + (hi - lo) / stages), control)?;
     let winner = candidates
         .iter()
         .enumerate()
@@ -201,19 +305,18 @@ pub fn run(
     // The resolution the rows support (only a question when there are fewer rows than pixels).
     let mut chosen = (1usize, candidates[winner].best_held_out, candidates[winner].best_t.clone());
     let mut resolution = Vec::new();
-    if job.full.rows() < k {
+    if job.full.rows() < k && job.measured_resolution.is_none() {
         let mut factor = 2;
         while w.div_ceil(factor) >= MIN_COARSE_SIDE && h.div_ceil(factor) >= MIN_COARSE_SIDE {
             let train = Binned::new(job.train, w, h, factor);
             let test = Binned::new(job.test, w, h, factor);
             let coarse = train.coarse_size();
             let near: Vec<f64> = FRACTIONS.iter().copied().filter(|f| (f / fraction).ln().abs() < 1.2).collect();
-            let opts = SolveOptions {
-                lipschitz: None,
-                progress: (lo + (hi - lo) * (stages - 2.0) / stages, lo + (hi - lo) * (stages - 1.0) / stages),
-                ..base.clone()
-            };
-            let c = path(model, coarse, &train, &test, &job.b_train, &job.b_test, &near, &opts, control)?;
+            let opts = SolveOptions { lipschitz: None, ..base.clone() };
+            let progress = (lo + (hi - lo) / stages, lo + (hi - lo) * 2.0 / stages);
+            let c = race(&[model], coarse, &train, &test, &job.b_train, &job.b_test, &near, &opts, progress, control)?
+                .pop()
+                .expect("one candidate");
             let better = c.best_held_out < chosen.1 * (1.0 - COARSER_MARGIN);
             resolution.push(json!({"grid": coarse, "held_out": finite(c.best_held_out), "fraction": c.best_fraction, "better": better}));
             if !better {
@@ -236,7 +339,7 @@ pub fn run(
         max_iter,
         lambda: Lambda::Relative(fraction),
         warm_start: Some(warm),
-        progress: (lo + (hi - lo) * (stages - 1.0) / stages, hi),
+        progress: (lo + (hi - lo) * 2.0 / stages, hi),
         ..SolveOptions::default()
     };
     let solution = fit_model(model, grid, full, job.b, fit.noise, &refit_opts, control)?;
@@ -249,6 +352,17 @@ pub fn run(
     };
 
     let mut warnings = Vec::new();
+    if let Some((mx, my)) = job.measured_resolution
+        && (mx < w || my < h)
+    {
+        warnings.push(format!(
+            "the rows measure nothing finer than {mx}x{my} (every pattern is constant on {}x{} blocks): detail \
+             finer than that in this {w}x{h} image is the {} model's extrapolation, not measured",
+            w / mx,
+            h / my,
+            model.name()
+        ));
+    }
     if factor > 1 {
         warnings.push(format!(
             "too few rows for {w}x{h}: {} rows predict held-out buckets better at {}x{} (held-out {:.4} vs {:.4} at \
@@ -295,7 +409,9 @@ pub fn run(
         "held_out": finite(held_out),
         "resolution": {
             "requested": [w, h],
-            "supported": [grid.0, grid.1],
+            "supported": match job.measured_resolution { Some((mx, my)) => json!([mx, my]), None => json!([grid.0, grid.1]) },
+            "fitted": [grid.0, grid.1],
+            "basis": if job.measured_resolution.is_some() { "the finest pattern in the measured rows" } else { "held-out error on binned grids" },
             "checked": resolution,
         },
         "warnings": warnings,
@@ -397,7 +513,13 @@ mod tests {
         let candidates = r.report.details["auto"][0]["candidates"].as_array().unwrap();
         assert_eq!(candidates.len(), 3);
         for c in candidates {
-            assert!(c["path"].as_array().unwrap().len() >= 3, "every path saw its minimum: {c}");
+            // A path either ran until its held-out score stopped improving, or was dropped for
+            // trailing the leader; the winner was never dropped.
+            let points = c["path"].as_array().unwrap().len();
+            assert!(c["eliminated"] == json!(true) || points >= 4, "{c}");
+            if c["model"] == r.report.details["auto"][0]["model"] {
+                assert_eq!(c["eliminated"], json!(false));
+            }
         }
     }
 

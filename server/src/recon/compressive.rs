@@ -23,7 +23,7 @@ use super::method::{Fit, MethodConfig, Model, Noise};
 use super::ops::{self, BernoulliOperator, HadamardOperator, RowSubset};
 use super::solve::{self, Grid, Lambda, Penalty, Solution, SolveOptions};
 use super::stream::RowStream;
-use super::transforms::sparsifying_transform;
+use super::transforms::{TransformKind, sparsifying_transform};
 use super::{BucketSource, Control, DualImage, Problem, ReconError, Reconstruction, Report};
 use helmholtz_proto::{Family, PatternSpec};
 
@@ -90,6 +90,14 @@ impl<'a> Planned<'a> {
         }
     }
 
+    /// Structured designs: the finest grid the rows measure (see `auto::Channel`).
+    pub fn measured_resolution(&self) -> Option<(usize, usize)> {
+        match &self.op {
+            PlannedOp::Hadamard(op) => Some(op.finest_resolution()),
+            _ => None,
+        }
+    }
+
     /// Rows the operator has (Hadamard: pairs).
     pub fn rows(&self) -> usize {
         self.op().rows()
@@ -138,11 +146,24 @@ pub(crate) fn fit_model(
         Model::L1(_) => Penalty::L1 { psi: psi.as_deref() },
         Model::Tv => Penalty::Tv { grid: Grid::new(w, h) },
     };
+    let opts = &model_options(model, opts);
     match (noise, penalty) {
         (Noise::Poisson { photon }, penalty) => solve::poisson_irls(op, penalty, b, photon, POISSON_ROUNDS, opts, control),
         (Noise::Gaussian, Penalty::L1 { psi }) => solve::fista(op, psi, b, opts, control),
         (Noise::Gaussian, Penalty::Tv { grid } | Penalty::TvPrimalDual { grid }) => solve::tv_fista(op, grid, b, opts, control),
     }
+}
+
+/// The model's own solver settings: wavelet and DCT models leave their DC coefficient (the
+/// image mean) unpenalised ([`SolveOptions::free_coefficients`]).
+pub(crate) fn model_options(model: Model, opts: &SolveOptions) -> SolveOptions {
+    let mut o = opts.clone();
+    if let Model::L1(kind) = model
+        && kind != TransformKind::Identity
+    {
+        o.free_coefficients = 1;
+    }
+    o
 }
 
 fn fit_fixed(
@@ -210,6 +231,7 @@ pub fn run(
                     b,
                     b_train: gather(b, &split.train),
                     b_test: gather(b, &split.test),
+                    measured_resolution: planned.measured_resolution(),
                 };
                 let out = super::auto::run(&job, models, *max_iter, *fit, span, control)?;
                 score.add_channel(ch, &job.b_test, &out.held_out_prediction);

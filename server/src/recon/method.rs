@@ -233,7 +233,7 @@ impl MethodConfig {
                 fit: p.fit()?,
             },
             "tv" => MethodConfig::Tv {
-                lambda: p.number("lambda", 3e-3, |v| v > 0.0 && v <= 1.0, "a fraction of lambda_max in (0, 1]")?,
+                lambda: p.number("lambda", 1e-3, |v| v > 0.0 && v <= 1.0, "a fraction of lambda_max in (0, 1]")?,
                 max_iter: p.iterations(200)?,
                 fit: p.fit()?,
             },

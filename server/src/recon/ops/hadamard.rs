@@ -116,6 +116,19 @@ impl HadamardOperator {
         self.ordering
     }
 
+    /// The finest grid any of these rows resolves: row `u W + v` is constant on blocks of
+    /// `2^tz(v)` pixels along x and `2^tz(u)` along y (`tz` = trailing zeros; `h_n(x, y) =
+    /// (-1)^popcount(n & (y W + x))`), so it resolves `W >> tz(v)` by `H >> tz(u)` (1 for 0).
+    /// A subset of rows measures nothing finer than the largest of these.
+    pub fn finest_resolution(&self) -> (usize, usize) {
+        let (w, h) = (self.width as usize, self.height as usize);
+        let resolve = |bits: usize, side: usize| if bits == 0 { 1 } else { side >> bits.trailing_zeros() };
+        self.natural.iter().fold((1, 1), |(rx, ry), &n| {
+            let (u, v) = (n / w, n % w);
+            (rx.max(resolve(v, w)), ry.max(resolve(u, h)))
+        })
+    }
+
     /// Natural (Sylvester) index `u W + v` of each row.
     pub fn natural_indices(&self) -> &[usize] {
         &self.natural

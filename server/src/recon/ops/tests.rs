@@ -550,3 +550,36 @@ fn row_selections_match_the_full_operator() {
     let sub = RowSubset::new(measurement_operator(&s, 40), pick.clone());
     check(sub.inner(), &sub, "generic subset");
 }
+
+#[test]
+fn hadamard_finest_resolution_bounds_every_row() {
+    let (w, h) = (32usize, 16usize);
+    for ordering in [HadamardOrdering::RussianDoll, HadamardOrdering::Zigzag] {
+        for pairs in [1usize, 4, 64, 100, 512] {
+            let op = HadamardOperator::new(w as u32, h as u32, ordering, pairs);
+            let (rx, ry) = op.finest_resolution();
+            let (bx, by) = (w / rx, h / ry);
+            let mut e = vec![0.0; pairs];
+            let mut p = vec![0.0; w * h];
+            let mut finest = (w, h);
+            for r in 0..pairs {
+                e.fill(0.0);
+                e[r] = 1.0;
+                op.adjoint(&e, &mut p);
+                // Constant on bx x by blocks...
+                for y in 0..h {
+                    for x in 0..w {
+                        assert_eq!(p[y * w + x], p[(y / by * by) * w + x / bx * bx], "{ordering:?} {pairs} row {r}");
+                    }
+                }
+                // ...and the bound is attained by some row: track each row's own finest block.
+                let own_x = (1..=w).filter(|b| w % b == 0).rev().find(|&b| (0..w * h).all(|i| p[i] == p[(i / w) * w + (i % w) / b * b])).unwrap();
+                let own_y = (1..=h).filter(|b| h % b == 0).rev().find(|&b| (0..w * h).all(|i| p[i] == p[((i / w) / b * b) * w + i % w])).unwrap();
+                finest = (finest.0.min(own_x), finest.1.min(own_y));
+            }
+            assert_eq!((w / finest.0, h / finest.1), (rx, ry), "{ordering:?} {pairs}: the bound is tight");
+        }
+    }
+    let full = HadamardOperator::new(w as u32, h as u32, HadamardOrdering::Natural, w * h);
+    assert_eq!(full.finest_resolution(), (w, h));
+}

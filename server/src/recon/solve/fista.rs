@@ -60,6 +60,19 @@ pub fn lambda_max_l1(
     weights: Option<&[f64]>,
     nonnegative: bool,
 ) -> f64 {
+    lambda_max_l1_free(a, psi, b, weights, nonnegative, 0)
+}
+
+/// [`lambda_max_l1`] when the first `free` coefficients of `Psi t` are not penalised
+/// ([`SolveOptions::free_coefficients`]): the largest of the others.
+pub fn lambda_max_l1_free(
+    a: &dyn LinearOperator,
+    psi: Option<&dyn LinearOperator>,
+    b: &[f64],
+    weights: Option<&[f64]>,
+    nonnegative: bool,
+    free: usize,
+) -> f64 {
     let wb: Vec<f64> = match weights {
         None => b.to_vec(),
         Some(w) => b.iter().zip(w).map(|(b, w)| b * w).collect(),
@@ -72,7 +85,7 @@ pub fn lambda_max_l1(
         Some(psi) => {
             let mut s = vec![0.0; a.cols()];
             psi.apply(&g, &mut s);
-            s.iter().fold(0.0f64, |m, &v| m.max(v.abs()))
+            s.iter().skip(free).fold(0.0f64, |m, &v| m.max(v.abs()))
         }
     }
 }
@@ -83,7 +96,9 @@ pub fn lambda_max_l1(
 pub(crate) enum Reg<'a> {
     /// `||t||_1`.
     Pixel,
-    Ortho(&'a dyn LinearOperator),
+    /// `sum_{j >= free} |(Psi t)_j|`: the first `free` coefficients (the DC term of a full
+    /// wavelet or DCT decomposition) are not penalised.
+    Ortho(&'a dyn LinearOperator, usize),
     Tv(Grid),
 }
 
@@ -92,7 +107,7 @@ impl Reg<'_> {
     fn coeffs(&self, k: usize) -> usize {
         match self {
             Reg::Pixel => 0,
-            Reg::Ortho(_) => k,
+            Reg::Ortho(..) => k,
             Reg::Tv(_) => 2 * k,
         }
     }
@@ -101,10 +116,10 @@ impl Reg<'_> {
         let k = t.len();
         match *self {
             Reg::Pixel => t.iter().map(|v| v.abs()).sum(),
-            Reg::Ortho(psi) => {
+            Reg::Ortho(psi, free) => {
                 s.resize(k, 0.0);
                 psi.apply(t, s);
-                s.iter().map(|v| v.abs()).sum()
+                s.iter().skip(free).map(|v| v.abs()).sum()
             }
             Reg::Tv(grid) => {
                 s.resize(2 * k, 0.0);
@@ -147,7 +162,7 @@ impl<'a> Prox<'a> {
     pub(crate) fn inexact(&self) -> bool {
         match self.reg {
             Reg::Pixel => false,
-            Reg::Ortho(_) => self.nonneg,
+            Reg::Ortho(..) => self.nonneg,
             Reg::Tv(_) => true,
         }
     }
@@ -155,7 +170,6 @@ impl<'a> Prox<'a> {
     /// `out = argmin_t 1/2 ||t - v||^2 + gamma R(t) (+ t >= 0)`, to duality gap `eps` when
     /// iterative. Returns `R(out)` as computed (for the objective).
     pub(crate) fn apply(&mut self, v: &[f64], gamma: f64, eps: f64, out: &mut [f64]) -> f64 {
-        let k = v.len();
         match self.reg {
             Reg::Pixel => {
                 if self.nonneg {
@@ -169,14 +183,17 @@ impl<'a> Prox<'a> {
                 }
                 out.iter().map(|v| v.abs()).sum()
             }
-            Reg::Ortho(psi) if !self.nonneg => {
+            Reg::Ortho(psi, free) if !self.nonneg => {
                 psi.apply(v, &mut self.s);
-                self.s.iter_mut().for_each(|c| *c = soft(*c, gamma));
+                self.s.iter_mut().skip(free).for_each(|c| *c = soft(*c, gamma));
                 psi.adjoint(&self.s, out);
-                self.s.iter().map(|v| v.abs()).sum()
+                self.s.iter().skip(free).map(|v| v.abs()).sum()
             }
-            Reg::Ortho(psi) => {
-                self.u.iter_mut().for_each(|u| *u = u.clamp(-gamma, gamma));
+            Reg::Ortho(psi, free) => {
+                // Free coefficients have the dual box [0, 0].
+                let free = free.min(self.u.len());
+                self.u[..free].fill(0.0);
+                self.u[free..].iter_mut().for_each(|u| *u = u.clamp(-gamma, gamma));
                 let mut j = 0;
                 loop {
                     psi.adjoint(&self.u, &mut self.tmp);
@@ -185,7 +202,7 @@ impl<'a> Prox<'a> {
                         .for_each(|(o, (&v, &pu))| *o = (v - pu).max(0.0));
                     psi.apply(out, &mut self.s);
                     let (mut l1, mut us, mut mag) = (0.0, 0.0, 0.0);
-                    for (&s, &u) in self.s.iter().zip(&self.u) {
+                    for (&s, &u) in self.s.iter().zip(&self.u).skip(free) {
                         l1 += s.abs();
                         us += u * s;
                         mag += (u * s).abs();
@@ -201,6 +218,7 @@ impl<'a> Prox<'a> {
                     self.u
                         .iter_mut()
                         .zip(&self.s)
+                        .skip(free)
                         .for_each(|(u, &s)| *u = (*u + s).clamp(-gamma, gamma));
                 }
             }
@@ -208,26 +226,11 @@ impl<'a> Prox<'a> {
                 project_discs(&mut self.u, gamma);
                 let mut j = 0;
                 loop {
-                    // out = clip(v - D^T u); s = D out (two fused passes).
+                    // out = clip(v - D^T u); then, fused in one pass over out: s = D out, the
+                    // gap at u, and the ascent step u <- proj(u + s / 8) (the step is kept even
+                    // when we stop: it only improves the next warm start).
                     primal_from_dual(&self.u, v, grid, self.nonneg, out);
-                    gradient(out, grid, &mut self.s);
-                    // Gap at u, then the ascent step u <- proj(u + s / 8) in the same pass (the
-                    // step is kept even when we stop: it only improves the next warm start).
-                    let (mut l1, mut us, mut mag) = (0.0, 0.0, 0.0);
-                    let (ux, uy) = self.u.split_at_mut(k);
-                    let (sx, sy) = self.s.split_at(k);
-                    for i in 0..k {
-                        let (a, b) = (sx[i], sy[i]);
-                        let d = ux[i] * a + uy[i] * b;
-                        l1 += pair_norm(a, b);
-                        us += d;
-                        mag += d.abs();
-                        let (nx, ny) = (ux[i] + 0.125 * a, uy[i] + 0.125 * b);
-                        let m = pair_norm(nx, ny);
-                        let f = if m > gamma { gamma / m } else { 1.0 };
-                        ux[i] = nx * f;
-                        uy[i] = ny * f;
-                    }
+                    let (l1, us, mag) = tv_dual_ascent(&mut self.u, out, grid, gamma);
                     let gap = gamma * l1 - us;
                     j += 1;
                     self.inner += 1;
@@ -241,31 +244,78 @@ impl<'a> Prox<'a> {
     }
 }
 
-/// `out = v - D^T u`, clipped at 0 if `nonneg` (one pass; `D^T` as in `gradient_adjoint`).
+/// One dual ascent step of the TV prox, fused with the gradient of the primal point `t` and
+/// the duality-gap sums: with `s = D t` (forward differences, Neumann), returns
+/// `(sum_i |s_i|, <u, s>, sum_i |u_i . s_i|)` at the current `u`, then sets
+/// `u <- proj_{|u_i| <= gamma}(u + s / 8)`. Branch-free inner loops (the boundary column and
+/// row are handled apart) so the compiler can vectorise them.
+fn tv_dual_ascent(u: &mut [f64], t: &[f64], grid: Grid, gamma: f64) -> (f64, f64, f64) {
+    let (w, h) = (grid.width, grid.height);
+    let k = w * h;
+    let (ux, uy) = u.split_at_mut(k);
+    // Four partial sums break the floating-point dependency chains.
+    let mut acc = [[0.0f64; 3]; 4];
+    #[inline(always)]
+    fn step(a: f64, b: f64, ux: &mut f64, uy: &mut f64, gamma: f64, acc: &mut [f64; 3]) {
+        let d = *ux * a + *uy * b;
+        acc[0] += (a * a + b * b).sqrt();
+        acc[1] += d;
+        acc[2] += d.abs();
+        let (nx, ny) = (*ux + 0.125 * a, *uy + 0.125 * b);
+        // Branch-free (the disc test is data-dependent and mispredicts): gamma / 0 = inf -> 1.
+        let f = (gamma / (nx * nx + ny * ny).sqrt()).min(1.0);
+        *ux = nx * f;
+        *uy = ny * f;
+    }
+    for y in 0..h {
+        let r = y * w;
+        let row = &t[r..r + w];
+        let uxr = &mut ux[r..r + w];
+        let uyr = &mut uy[r..r + w];
+        let last = y + 1 == h;
+        let next = if last { row } else { &t[r + w..r + 2 * w] };
+        // b = next - row is 0 on the last row (next = row there).
+        for x in 0..w - 1 {
+            let a = row[x + 1] - row[x];
+            let b = next[x] - row[x];
+            step(a, b, &mut uxr[x], &mut uyr[x], gamma, &mut acc[x & 3]);
+        }
+        let x = w - 1;
+        step(0.0, next[x] - row[x], &mut uxr[x], &mut uyr[x], gamma, &mut acc[x & 3]);
+    }
+    let mut out = (0.0, 0.0, 0.0);
+    for a in acc {
+        out.0 += a[0];
+        out.1 += a[1];
+        out.2 += a[2];
+    }
+    out
+}
+
+/// `out = v - D^T u`, clipped at 0 if `nonneg` (`D^T` as in `gradient_adjoint`), row by row in
+/// branch-free passes.
 fn primal_from_dual(u: &[f64], v: &[f64], grid: Grid, nonneg: bool, out: &mut [f64]) {
     let (w, h) = (grid.width, grid.height);
     let k = w * h;
     let (ux, uy) = u.split_at(k);
     for y in 0..h {
-        let row = y * w;
-        for x in 0..w {
-            let i = row + x;
-            let mut div = 0.0;
-            if x + 1 < w {
-                div += ux[i];
-            }
-            if x > 0 {
-                div -= ux[i - 1];
-            }
-            if y + 1 < h {
-                div += uy[i];
-            }
-            if y > 0 {
-                div -= uy[i - w];
-            }
-            // D^T u = -div, so v - D^T u = v + div.
-            let o = v[i] + div;
-            out[i] = if nonneg { o.max(0.0) } else { o };
+        let r = y * w;
+        let o = &mut out[r..r + w];
+        let vr = &v[r..r + w];
+        let uxr = &ux[r..r + w];
+        // D^T u = -div u, so v - D^T u = v + div u; div: +ux[x] (x < w-1), -ux[x-1] (x > 0),
+        // +uy[y] (y < h-1), -uy[y-1] (y > 0).
+        o[..w - 1].iter_mut().zip(&vr[..w - 1]).zip(&uxr[..w - 1]).for_each(|((o, &v), &u)| *o = v + u);
+        o[w - 1] = vr[w - 1];
+        o[1..].iter_mut().zip(&uxr[..w - 1]).for_each(|(o, &u)| *o -= u);
+        if y + 1 < h {
+            o.iter_mut().zip(&uy[r..r + w]).for_each(|(o, &u)| *o += u);
+        }
+        if y > 0 {
+            o.iter_mut().zip(&uy[r - w..r]).for_each(|(o, &u)| *o -= u);
+        }
+        if nonneg {
+            o.iter_mut().for_each(|o| *o = o.max(0.0));
         }
     }
 }
@@ -312,7 +362,7 @@ pub fn fista(
     }
     let reg = match psi {
         None => Reg::Pixel,
-        Some(p) => Reg::Ortho(p),
+        Some(p) => Reg::Ortho(p, opts.free_coefficients),
     };
     if is_zero_data(b, opts.weights.as_deref()) {
         return Ok(zero_solution(
@@ -327,12 +377,13 @@ pub fn fista(
     let prep = Prepared::new(a, b, opts.weights.as_deref(), opts.deflate_mean);
     let lambda_max = match opts.lambda {
         Lambda::Absolute(_) => None,
-        Lambda::Relative(_) => Some(lambda_max_l1(
+        Lambda::Relative(_) => Some(lambda_max_l1_free(
             prep.op(),
             psi,
             prep.b(),
             prep.weights(),
             opts.nonnegative,
+            if psi.is_some() { opts.free_coefficients } else { 0 },
         )),
     };
     with_polish(&prep, a, b, reg, opts, control, lambda_max, "fista", start)
@@ -668,7 +719,7 @@ fn fista_core(
     // Report.
     let (nonzeros, threshold) = match reg {
         Reg::Pixel => (count_nonzeros(&x, 0.0), 0.0),
-        Reg::Ortho(_) => {
+        Reg::Ortho(..) => {
             reg.value(&x, &mut scratch);
             let thr = if opts.nonnegative { NONZERO_REL } else { 1e-10 };
             (count_nonzeros(&scratch, thr), thr)

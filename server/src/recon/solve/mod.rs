@@ -52,8 +52,8 @@ mod tests;
 
 pub use cgls::cgls;
 pub use condition::MeanDeflated;
-pub use fista::{fista, lambda_max_l1, tv_fista};
-pub use path::{PathPoint, Penalty, RegPath, geometric_fractions, lambda_max, solve_path, solve_path_until};
+pub use fista::{fista, lambda_max_l1, lambda_max_l1_free, tv_fista};
+pub use path::{PathPoint, PathRunner, Penalty, RegPath, geometric_fractions, lambda_max, solve_path, solve_path_until};
 pub use poisson::{poisson_irls, poisson_weights};
 pub use tv::{Grid, lambda_max_tv, tv, tv_value};
 
@@ -95,6 +95,11 @@ pub struct SolveOptions {
     /// FISTA / TV: deflate a dominant common mode of the rows (0/1 patterns) before iterating
     /// ([`condition::MeanDeflated`]; a no-op for centred operators). Default `true`.
     pub deflate_mean: bool,
+    /// FISTA with `Psi`: the first this many coefficients of `Psi t` are left out of the l1
+    /// penalty and of `lambda_max`. 1 for a full wavelet or DCT decomposition leaves the DC term
+    /// (the image mean) unshrunk: it dwarfs every detail coefficient of a natural scene, so
+    /// penalising it sets `lambda_max` by the mean, not by the detail. Default 0.
+    pub free_coefficients: usize,
 }
 
 impl Default for SolveOptions {
@@ -110,6 +115,7 @@ impl Default for SolveOptions {
             history: 256,
             progress: (0.0, 1.0),
             deflate_mean: true,
+            free_coefficients: 0,
         }
     }
 }

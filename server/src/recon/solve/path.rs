@@ -8,7 +8,7 @@ use std::time::Instant;
 use super::condition::Prepared;
 use super::tv::Grid;
 use super::{
-    Lambda, Solution, SolveOptions, SolveReport, check_problem, fista, is_zero_data, lambda_max_l1,
+    Lambda, Solution, SolveOptions, SolveReport, check_problem, fista, is_zero_data, lambda_max_l1, lambda_max_l1_free,
     lambda_max_tv, lipschitz_of, tv, tv_fista, zero_solution,
 };
 use crate::recon::linop::LinearOperator;
@@ -53,9 +53,11 @@ pub fn lambda_max(
     b: &[f64],
     weights: Option<&[f64]>,
     nonnegative: bool,
+    free: usize,
 ) -> f64 {
     match penalty {
-        Penalty::L1 { psi } => lambda_max_l1(a, psi, b, weights, nonnegative),
+        Penalty::L1 { psi: Some(psi) } => lambda_max_l1_free(a, Some(psi), b, weights, nonnegative, free),
+        Penalty::L1 { psi: None } => lambda_max_l1(a, None, b, weights, nonnegative),
         Penalty::Tv { grid } | Penalty::TvPrimalDual { grid } => lambda_max_tv(a, grid, b, weights),
     }
 }
@@ -100,64 +102,13 @@ pub fn solve_path_until(
     keep_going: &mut dyn FnMut(&PathPoint) -> bool,
 ) -> Result<RegPath, ReconError> {
     let start = Instant::now();
-    let (_, k) = check_problem(a, b, opts)?;
-    if let Some(f) = fractions.iter().find(|f| !(f.is_finite() && **f >= 0.0)) {
-        return Err(ReconError::Unsolvable(format!(
-            "path fraction {f} is not finite and >= 0"
-        )));
-    }
-    if is_zero_data(b, opts.weights.as_deref()) {
-        let points = fractions
-            .iter()
-            .map(|&fraction| {
-                let Solution { t, report } = zero_solution("path", k, 0.0, Some(0.0), 0.0, start);
-                PathPoint {
-                    fraction,
-                    lambda: 0.0,
-                    t,
-                    report,
-                }
-            })
-            .collect();
-        return Ok(RegPath {
-            lambda_max: 0.0,
-            deflated: false,
-            points,
-            seconds: 0.0,
-        });
-    }
-    // lambda_max and ||A'||^2 of the problem the solvers iterate on (deflated if it applies:
-    // each solver deflates the same way, then polishes on the exact objective).
-    let prep = Prepared::new(a, b, opts.weights.as_deref(), opts.deflate_mean);
-    let (op, bb, w) = (prep.op(), prep.b(), prep.weights());
-    let lmax = lambda_max(op, penalty, bb, w, opts.nonnegative);
-    let mut o = opts.clone();
-    o.lipschitz = Some(lipschitz_of(op, w, opts.lipschitz)?);
+    let mut runner = PathRunner::new(a, penalty, b, opts)?;
     let (lo, hi) = opts.progress;
     let m = fractions.len().max(1) as f64;
     let mut points: Vec<PathPoint> = Vec::with_capacity(fractions.len());
     for (i, &fraction) in fractions.iter().enumerate() {
-        let lambda = fraction * lmax;
-        o.lambda = Lambda::Absolute(lambda);
-        o.progress = (
-            lo + (hi - lo) * i as f64 / m,
-            lo + (hi - lo) * (i + 1) as f64 / m,
-        );
-        if let Some(prev) = points.last() {
-            o.warm_start = Some(prev.t.clone());
-        }
-        let Solution { t, mut report } = match penalty {
-            Penalty::L1 { psi } => fista(a, psi, b, &o, control)?,
-            Penalty::Tv { grid } => tv_fista(a, grid, b, &o, control)?,
-            Penalty::TvPrimalDual { grid } => tv(a, grid, b, &o, control)?,
-        };
-        report.lambda_max = Some(lmax);
-        let point = PathPoint {
-            fraction,
-            lambda,
-            t,
-            report,
-        };
+        let progress = (lo + (hi - lo) * i as f64 / m, lo + (hi - lo) * (i + 1) as f64 / m);
+        let point = runner.solve(fraction, progress, control)?;
         let more = keep_going(&point);
         points.push(point);
         if !more {
@@ -165,9 +116,77 @@ pub fn solve_path_until(
         }
     }
     Ok(RegPath {
-        lambda_max: lmax,
-        deflated: prep.is_deflated(),
+        lambda_max: runner.lambda_max(),
+        deflated: runner.deflated,
         points,
         seconds: start.elapsed().as_secs_f64(),
     })
+}
+
+/// A path solved one point at a time, so that callers can interleave several paths (`auto`
+/// runs its candidates side by side and drops the clearly worse ones early). `lambda_max` and
+/// the step-size constant are computed once, on the problem the solvers iterate on (deflated if
+/// it applies: each solver deflates the same way, then polishes on the exact objective); each
+/// point starts from the previous one.
+pub struct PathRunner<'a> {
+    a: &'a dyn LinearOperator,
+    penalty: Penalty<'a>,
+    b: &'a [f64],
+    opts: SolveOptions,
+    lmax: f64,
+    deflated: bool,
+    zero: bool,
+    k: usize,
+    last: Option<Vec<f64>>,
+}
+
+impl<'a> PathRunner<'a> {
+    pub fn new(
+        a: &'a dyn LinearOperator,
+        penalty: Penalty<'a>,
+        b: &'a [f64],
+        opts: &SolveOptions,
+    ) -> Result<Self, ReconError> {
+        let (_, k) = check_problem(a, b, opts)?;
+        let mut o = opts.clone();
+        if is_zero_data(b, opts.weights.as_deref()) {
+            return Ok(PathRunner { a, penalty, b, opts: o, lmax: 0.0, deflated: false, zero: true, k, last: None });
+        }
+        let prep = Prepared::new(a, b, opts.weights.as_deref(), opts.deflate_mean);
+        let (op, bb, w) = (prep.op(), prep.b(), prep.weights());
+        let lmax = lambda_max(op, penalty, bb, w, opts.nonnegative, opts.free_coefficients);
+        o.lipschitz = Some(lipschitz_of(op, w, opts.lipschitz)?);
+        let last = opts.warm_start.clone();
+        Ok(PathRunner { a, penalty, b, opts: o, lmax, deflated: prep.is_deflated(), zero: false, k, last })
+    }
+
+    /// Of the problem actually solved (after deflation, if any); 0 for all-zero data.
+    pub fn lambda_max(&self) -> f64 {
+        self.lmax
+    }
+
+    /// Solves at `lambda = fraction * lambda_max`, warm-started from the previous point.
+    pub fn solve(&mut self, fraction: f64, progress: (f64, f64), control: &Control) -> Result<PathPoint, ReconError> {
+        if !(fraction.is_finite() && fraction >= 0.0) {
+            return Err(ReconError::Unsolvable(format!("path fraction {fraction} is not finite and >= 0")));
+        }
+        if self.zero {
+            let Solution { t, report } = zero_solution("path", self.k, 0.0, Some(0.0), 0.0, Instant::now());
+            return Ok(PathPoint { fraction, lambda: 0.0, t, report });
+        }
+        let lambda = fraction * self.lmax;
+        let mut o = self.opts.clone();
+        o.lambda = Lambda::Absolute(lambda);
+        o.progress = progress;
+        o.warm_start = self.last.take();
+        let (a, b) = (self.a, self.b);
+        let Solution { t, mut report } = match self.penalty {
+            Penalty::L1 { psi } => fista(a, psi, b, &o, control)?,
+            Penalty::Tv { grid } => tv_fista(a, grid, b, &o, control)?,
+            Penalty::TvPrimalDual { grid } => tv(a, grid, b, &o, control)?,
+        };
+        report.lambda_max = Some(self.lmax);
+        self.last = Some(t.clone());
+        Ok(PathPoint { fraction, lambda, t, report })
+    }
 }

@@ -96,7 +96,7 @@ fn nonnegative_prox_is_exact() {
             .sum::<f64>()
             + gamma * s.iter().map(|x| x.abs()).sum::<f64>()
     };
-    let mut prox = fista::Prox::new(fista::Reg::Ortho(&psi), true, k);
+    let mut prox = fista::Prox::new(fista::Reg::Ortho(&psi, 0), true, k);
     let mut t = vec![0.0; k];
     // Repeated calls continue from the dual state: converge fully.
     for _ in 0..50 {

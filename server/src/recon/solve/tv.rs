@@ -162,32 +162,25 @@ pub fn lambda_max_tv(
     if !(gn > 0.0 && gn.is_finite()) {
         return 0.0;
     }
-    // CG on D^T D phi = g (consistent: g has zero mean).
-    let mut phi = vec![0.0; k];
-    let mut r = g.clone();
-    let mut d = r.clone();
-    let mut dd = vec![0.0; 2 * k];
-    let mut q = vec![0.0; k];
-    let mut rr = dot(&r, &r);
-    let max_it = 20 * (grid.width + grid.height) + 200;
-    for _ in 0..max_it {
-        if rr.sqrt() <= 1e-10 * gn {
-            break;
+    // D^T D phi = g (consistent: g has zero mean), solved exactly: the Neumann Laplacian
+    // D^T D is diagonal in the orthonormal DCT-II basis, eigenvalue
+    // 4 sin^2(pi u / 2W) + 4 sin^2(pi v / 2H) at coefficient (v, u) (0 only for the mean).
+    let (w, h) = (grid.width, grid.height);
+    let dct = crate::recon::transforms::Dct2d::new(w, h);
+    let mut coef = vec![0.0; k];
+    dct.apply(&g, &mut coef);
+    let ex: Vec<f64> = (0..w).map(|u| 4.0 * (std::f64::consts::PI * u as f64 / (2 * w) as f64).sin().powi(2)).collect();
+    for v in 0..h {
+        let ey = 4.0 * (std::f64::consts::PI * v as f64 / (2 * h) as f64).sin().powi(2);
+        for u in 0..w {
+            let lam = ex[u] + ey;
+            let c = &mut coef[v * w + u];
+            *c = if lam > 0.0 { *c / lam } else { 0.0 };
         }
-        gradient(&d, grid, &mut dd);
-        gradient_adjoint(&dd, grid, &mut q);
-        let dq = dot(&d, &q);
-        if dq.is_nan() || dq <= 0.0 {
-            break;
-        }
-        let alpha = rr / dq;
-        phi.iter_mut().zip(&d).for_each(|(p, d)| *p += alpha * d);
-        r.iter_mut().zip(&q).for_each(|(r, q)| *r -= alpha * q);
-        let rr_new = dot(&r, &r);
-        let beta = rr_new / rr;
-        rr = rr_new;
-        d.iter_mut().zip(&r).for_each(|(d, r)| *d = r + beta * *d);
     }
+    let mut phi = vec![0.0; k];
+    dct.adjoint(&coef, &mut phi);
+    let mut dd = vec![0.0; 2 * k];
     gradient(&phi, grid, &mut dd);
     let m = (0..k)
         .map(|i| pair_norm(dd[i], dd[k + i]))
