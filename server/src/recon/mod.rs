@@ -25,6 +25,8 @@ pub mod method;
 pub mod metrics;
 mod stream;
 #[cfg(test)]
+mod hard_cases;
+#[cfg(test)]
 mod testutil;
 
 pub use method::{MethodConfig, ParamError};

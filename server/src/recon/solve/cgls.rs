@@ -9,10 +9,19 @@
 //!
 //! Unconstrained: the solution may have negative entries (clip if needed); this is the baseline
 //! and the `n >= k` method, not the non-negative one. `opts.lambda` and `opts.nonnegative` are
-//! ignored. Stops when `||s|| <= tol ||A^T W b||` (relative normal-equation residual).
+//! ignored. Stops when `||s|| <= tol * ref` (relative normal-equation residual), `ref` =
+//! `||A^T W b||`, or, for 0/1 patterns whose common mode dominates (`opts.deflate_mean` and
+//! [`MeanDeflated::detect`]), the smaller `||A'^T b'||` of the mean-deflated problem. The
+//! iterations always run on the exact problem; only the yardstick changes. Why: `||A^T W b||` is
+//! then carried by that one direction (`sigma_max^2 ~ n k q^2`, ~1e4 times the bulk's
+//! `sigma^2`), so the plain rule declared convergence with the bulk of the image unresolved
+//! (measured, noise-free 32 x 32 Bernoulli(0.5), n = 2k, default `tol = 1e-4`: "converged"
+//! after 7 iterations at 12 % relative error; with the deflated yardstick 3.5e-4 after 27; test
+//! `tests::zero_one_patterns_do_not_stop_early`).
 
 use std::time::Instant;
 
+use super::condition::MeanDeflated;
 use super::{
     History, Solution, SolveOptions, SolveReport, StopReason, Ticker, check_problem,
     count_nonzeros, is_zero_data, non_finite, ratio_or_abs, zero_solution,
@@ -66,6 +75,12 @@ pub fn cgls(
         sol.report.objective = dot(&wr, b);
         return Ok(sol);
     }
+    // The stopping yardstick (module docs): never looser than `||A^T W b||`.
+    let stop_ref = if opts.deflate_mean {
+        deflated_reference(a, b, w).map_or(ref_norm, |d| d.min(ref_norm))
+    } else {
+        ref_norm
+    };
     // r = b - A x, s = A^T W r - mu x.
     a.apply(&x, &mut q);
     r.iter_mut()
@@ -84,7 +99,7 @@ pub fn cgls(
     let ticker = Ticker::new(control, opts);
     let mut iterations = 0;
     let mut stop = StopReason::MaxIter;
-    if gamma.sqrt() <= opts.tol * ref_norm {
+    if gamma.sqrt() <= opts.tol * stop_ref {
         // The start already solves it.
         stop = StopReason::Converged;
     } else {
@@ -117,7 +132,7 @@ pub fn cgls(
                 return Err(non_finite(SOLVER, it, "normal-equation residual"));
             }
             history.record(it, objective(&r, &wr, &x));
-            if gamma_new.sqrt() <= opts.tol * ref_norm {
+            if gamma_new.sqrt() <= opts.tol * stop_ref {
                 stop = StopReason::Converged;
                 break;
             }
@@ -164,4 +179,51 @@ pub fn cgls(
         },
         t: x,
     })
+}
+
+/// `||A'^T b'||` of the mean-deflated problem (weights folded in) when the common mode of the
+/// rows dominates ([`MeanDeflated::detect`]); `None` otherwise or if it is not a positive number.
+fn deflated_reference(a: &dyn LinearOperator, b: &[f64], w: Option<&[f64]>) -> Option<f64> {
+    let d = MeanDeflated::detect(a, w)?;
+    let mut g = vec![0.0; a.cols()];
+    d.adjoint(&d.rhs(b), &mut g);
+    let r = norm(&g);
+    (r.is_finite() && r > 0.0).then_some(r)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::recon::solve::testkit::{bernoulli, blocks_scene, rel_err};
+
+    /// 0/1 patterns, noise-free, twice as many rows as pixels (well posed: the centred rows have
+    /// a condition number ~6): the least-squares solution is the scene. Measured: 4.3e-4 after
+    /// 23 iterations; the plain yardstick stops after 9 at 5.2e-2, reporting convergence.
+    #[test]
+    fn zero_one_patterns_do_not_stop_early() {
+        let side = 16;
+        let k = side * side;
+        let a = bernoulli(2 * k, k, 0.5, 77);
+        let x0 = blocks_scene(side);
+        let mut b = vec![0.0; a.rows()];
+        a.apply(&x0, &mut b);
+        let control = Control::new();
+        let run = |deflate_mean| {
+            let o = SolveOptions {
+                deflate_mean,
+                ..SolveOptions::default()
+            };
+            cgls(&a, &b, 0.0, &o, &control).unwrap()
+        };
+        let (fixed, plain) = (run(true), run(false));
+        let (e_fixed, e_plain) = (rel_err(&fixed.t, &x0), rel_err(&plain.t, &x0));
+        println!(
+            "cgls 0/1 n = 2k: deflated yardstick {e_fixed:.1e} in {} iterations, plain {e_plain:.1e} in {}",
+            fixed.report.iterations, plain.report.iterations
+        );
+        assert!(fixed.report.converged);
+        assert!(e_fixed < 1e-3, "deflated yardstick: {e_fixed:.2e}");
+        // The plain yardstick is what the user got before: shows the case bites.
+        assert!(e_plain > 1e-2, "plain yardstick: {e_plain:.2e}");
+    }
 }

@@ -74,7 +74,8 @@ pub struct SolveOptions {
     /// Upper bound on iterations (FISTA / PDHG / CG steps).
     pub max_iter: usize,
     /// Stop when the relative change of the iterate `||t_k - t_{k-1}|| / ||t_k||` falls below
-    /// this (CGLS: when `||A^T r|| <= tol ||A^T b||`).
+    /// this (CGLS: when `||A^T r|| <= tol ||A^T b||`, or `tol ||A'^T b'||` of the mean-deflated
+    /// problem when `deflate_mean` applies; see `cgls.rs`).
     pub tol: f64,
     /// Regularisation weight (ignored by CGLS, which takes `mu` as an argument).
     pub lambda: Lambda,
@@ -93,7 +94,8 @@ pub struct SolveOptions {
     /// Progress is reported to the [`Control`] mapped into this range (a path splits [0, 1]).
     pub progress: (f64, f64),
     /// FISTA / TV: deflate a dominant common mode of the rows (0/1 patterns) before iterating
-    /// ([`condition::MeanDeflated`]; a no-op for centred operators). Default `true`.
+    /// ([`condition::MeanDeflated`]; a no-op for centred operators). CGLS iterates on the exact
+    /// problem and uses the deflated problem only as its stopping yardstick. Default `true`.
     pub deflate_mean: bool,
     /// FISTA with `Psi`: the first this many coefficients of `Psi t` are left out of the l1
     /// penalty and of `lambda_max`. 1 for a full wavelet or DCT decomposition leaves the DC term
