@@ -975,7 +975,7 @@ fn unsolvable_requests_say_why() {
             1,
             1,
             COMPRESSIVE.to_vec(),
-            "empty problem: 0 measurements of 256 pixels",
+            "at least one P+/P- pair",
         ),
         // The source ends early.
         (

@@ -228,7 +228,7 @@ impl MethodConfig {
             },
             "cs" => MethodConfig::Cs {
                 transform: p.transform(TransformKind::Db4)?,
-                lambda: p.number("lambda", 1e-3, |v| v > 0.0 && v <= 1.0, "a fraction of lambda_max in (0, 1]")?,
+                lambda: p.number("lambda", 3e-4, |v| v > 0.0 && v <= 1.0, "a fraction of lambda_max in (0, 1]")?,
                 max_iter: p.iterations(300)?,
                 fit: p.fit()?,
             },
