@@ -145,3 +145,56 @@ async fn compressive_methods_run_through_the_service() {
         assert!(!json["params"]["lambda"].is_null(), "canonical params are stored: {json}");
     }
 }
+
+#[tokio::test]
+async fn auto_chooses_its_model_and_every_report_carries_its_error_estimate() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = ServerProcess::start(dir.path(), 0, &[]).unwrap();
+    // 30 % Bernoulli on the sparse scene: auto must report the model it chose, its weight, the
+    // coefficients kept and the resolution, and its served image must be good.
+    acquire(&server, "auto-shapes", "shapes", r#"{"family":"bernoulli","width":32,"height":32,"count":307,"fill":0.5,"seed":3}"#).await;
+    let (json, image) = reconstruct(&server, "auto-shapes", "auto").await;
+    assert!(image.iter().all(|v| v.is_finite() && *v >= 0.0));
+    let report = &json["report"];
+    let choice = &report["details"]["auto"][0];
+    assert!(["tv", "db4", "dct"].contains(&choice["model"].as_str().unwrap()), "{choice}");
+    assert!(choice["lambda_fraction"].as_f64().unwrap() > 0.0);
+    assert!(choice["kept"].as_u64().unwrap() > 0);
+    assert_eq!(choice["resolution"]["requested"], serde_json::json!([32, 32]));
+    let psnr = report["quality"][0]["psnr_db"].as_f64().unwrap();
+    assert!(psnr > 25.0, "auto: {psnr:.1} dB: {choice}");
+    // The error estimate without ground truth, on every method that can have one; the exact
+    // inverse says why it has none.
+    let held = report["held_out"]["relative_residual"].as_f64().unwrap();
+    assert!(held > 0.0 && held < 0.3, "held-out {held}");
+    for method in ["tv", "dgi"] {
+        let (json, _) = reconstruct(&server, "auto-shapes", method).await;
+        let held = &json["report"]["held_out"];
+        assert!(held["relative_residual"].as_f64().is_some() && held["rows"].as_u64().unwrap() >= 8, "{method}: {held}");
+    }
+    acquire(&server, "direct-shapes", "shapes", r#"{"family":"raster","width":8,"height":8,"count":64}"#).await;
+    let (json, _) = reconstruct(&server, "direct-shapes", "direct").await;
+    assert!(json["report"]["held_out"].is_null());
+    assert!(json["report"]["held_out_unavailable"].as_str().unwrap().contains("exact inverse"));
+    // A bad parameter is refused naming the field (gRPC and REST), and nothing is queued.
+    let count = || async {
+        let v: serde_json::Value = reqwest::get(server.url("/v1/sessions/auto-shapes/reconstructions")).await.unwrap().json().await.unwrap();
+        v["reconstructions"].as_array().unwrap().len()
+    };
+    let before = count().await;
+    let response = reqwest::Client::new()
+        .post(server.url("/v1/sessions/auto-shapes/reconstructions"))
+        .json(&serde_json::json!({"method": "auto", "params": {"holdout": 0.9}}))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(response.status(), 400);
+    let problem: serde_json::Value = response.json().await.unwrap();
+    assert!(problem.to_string().contains("params.holdout"), "{problem}");
+    let err = helmholtz_client::request_reconstruction(&server.base_url, "auto-shapes", "auto", &serde_json::json!({"models": ["tv", "fourier"]}))
+        .await
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("params.models[1]"), "{err}");
+    assert_eq!(count().await, before);
+}

@@ -33,7 +33,7 @@ use std::time::Instant;
 use serde::Serialize;
 use serde_json::{Value, json};
 
-use super::compressive::{fit_model, predict};
+use super::compressive::{Offset, Scorer, fit_model, fitting};
 use super::holdout;
 use super::linop::LinearOperator;
 use super::method::{Fit, Model, Noise};
@@ -77,6 +77,8 @@ pub struct Channel<'a> {
     ///
     /// [`HadamardOperator::finest_resolution`]: super::ops::HadamardOperator::finest_resolution
     pub measured_resolution: Option<(usize, usize)>,
+    /// Fit an unknown constant offset of the buckets ([`Fit::fits_offset`]).
+    pub offset: bool,
 }
 
 /// One solved path point as reported.
@@ -171,14 +173,14 @@ impl<'a> Running<'a> {
     fn step(
         &mut self,
         fraction: f64,
-        op_test: &dyn LinearOperator,
+        scorer: &Scorer,
         b_test: &[f64],
         progress: (f64, f64),
         control: &Control,
     ) -> Result<(), ReconError> {
         let start = Instant::now();
         let p = self.runner.solve(fraction, progress, control)?;
-        let s = score(b_test, &predict(op_test, &p.t));
+        let s = score(b_test, &scorer.predict(&p.t));
         self.points.push(Point {
             fraction,
             held_out: s.is_finite().then_some(s),
@@ -229,7 +231,7 @@ fn race(
     models: &[Model],
     grid: (usize, usize),
     op_train: &dyn LinearOperator,
-    op_test: &dyn LinearOperator,
+    scorer: &Scorer,
     b_train: &[f64],
     b_test: &[f64],
     fractions: &[f64],
@@ -253,7 +255,7 @@ fn race(
     for (i, &f) in fractions.iter().enumerate() {
         let progress = (lo + (hi - lo) * i as f64 / rounds, lo + (hi - lo) * (i + 1) as f64 / rounds);
         for r in running.iter_mut().filter(|r| r.active) {
-            r.step(f, op_test, b_test, progress, control)?;
+            r.step(f, scorer, b_test, progress, control)?;
         }
         if i >= 2 {
             let leader = running.iter().map(|r| r.best.0).fold(f64::INFINITY, f64::min);
@@ -283,8 +285,12 @@ pub fn run(
     let start = Instant::now();
     let (w, h) = job.size;
     let k = w * h;
+    // The fitting problems ((P A, P b) when the offset is fitted) and the held-out scorer.
+    let (train_fit, b_train_fit) = fitting(job.train, &job.b_train, job.offset);
+    let (full_fit, b_fit) = fitting(job.full, job.b, job.offset);
+    let scorer = Scorer { test: job.test, offset: job.offset.then(|| Offset::new(job.train, &job.b_train)) };
     // One power iteration for every candidate on the fitting rows.
-    let lipschitz = solve::step_constant(job.train, None, true)?;
+    let lipschitz = solve::step_constant(train_fit.as_ref(), None, true)?;
     let base = SolveOptions {
         max_iter: PATH_MAX_ITER,
         tol: PATH_TOL,
@@ -292,14 +298,14 @@ pub fn run(
         ..SolveOptions::default()
     };
     let stages = 3.0;
-    let candidates = race(models, (w, h), job.train, job.test, &job.b_train, &job.b_test, &FRACTIONS, &base, (lo, lo + (hi - lo) / stages), control)?;
+    let candidates = race(models, (w, h), train_fit.as_ref(), &scorer, &b_train_fit, &job.b_test, &FRACTIONS, &base, (lo, lo + (hi - lo) / stages), control)?;
     let winner = candidates
         .iter()
         .enumerate()
         .min_by(|a, b| a.1.best_held_out.total_cmp(&b.1.best_held_out))
         .map(|(i, _)| i)
         .expect("at least one model");
-    let model = candidates[winner].model_kind.expect("set by path");
+    let model = candidates[winner].model_kind.expect("set by race");
     let fraction = candidates[winner].best_fraction;
 
     // The resolution the rows support (only a question when there are fewer rows than pixels).
@@ -308,13 +314,15 @@ pub fn run(
     if job.full.rows() < k && job.measured_resolution.is_none() {
         let mut factor = 2;
         while w.div_ceil(factor) >= MIN_COARSE_SIDE && h.div_ceil(factor) >= MIN_COARSE_SIDE {
-            let train = Binned::new(job.train, w, h, factor);
+            let train = Binned::new(train_fit.as_ref(), w, h, factor);
             let test = Binned::new(job.test, w, h, factor);
+            let raw_train = Binned::new(job.train, w, h, factor);
+            let scorer = Scorer { test: &test, offset: job.offset.then(|| Offset::new(&raw_train, &job.b_train)) };
             let coarse = train.coarse_size();
             let near: Vec<f64> = FRACTIONS.iter().copied().filter(|f| (f / fraction).ln().abs() < 1.2).collect();
             let opts = SolveOptions { lipschitz: None, ..base.clone() };
             let progress = (lo + (hi - lo) / stages, lo + (hi - lo) * 2.0 / stages);
-            let c = race(&[model], coarse, &train, &test, &job.b_train, &job.b_test, &near, &opts, progress, control)?
+            let c = race(&[model], coarse, &train, &scorer, &b_train_fit, &job.b_test, &near, &opts, progress, control)?
                 .pop()
                 .expect("one candidate");
             let better = c.best_held_out < chosen.1 * (1.0 - COARSER_MARGIN);
@@ -327,12 +335,18 @@ pub fn run(
         }
     }
     let (factor, held_out, warm) = chosen;
-    let binned_full = Binned::new(job.full, w, h, factor);
+    let binned_full = Binned::new(full_fit.as_ref(), w, h, factor);
+    let binned_raw = Binned::new(job.full, w, h, factor);
     let binned_test = Binned::new(job.test, w, h, factor);
+    let binned_train = Binned::new(job.train, w, h, factor);
     let grid = binned_full.coarse_size();
-    let (full, test): (&dyn LinearOperator, &dyn LinearOperator) =
-        if factor == 1 { (job.full, job.test) } else { (&binned_full, &binned_test) };
-    let held_out_prediction = predict(test, &warm);
+    let (full, raw): (&dyn LinearOperator, &dyn LinearOperator) =
+        if factor == 1 { (full_fit.as_ref(), job.full) } else { (&binned_full, &binned_raw) };
+    let held_out_prediction = if factor == 1 {
+        scorer.predict(&warm)
+    } else {
+        Scorer { test: &binned_test, offset: job.offset.then(|| Offset::new(&binned_train, &job.b_train)) }.predict(&warm)
+    };
 
     // Refit on all rows.
     let refit_opts = SolveOptions {
@@ -342,7 +356,8 @@ pub fn run(
         progress: (lo + (hi - lo) * 2.0 / stages, hi),
         ..SolveOptions::default()
     };
-    let solution = fit_model(model, grid, full, job.b, fit.noise, &refit_opts, control)?;
+    let solution = fit_model(model, grid, full, &b_fit, fit.noise, &refit_opts, control)?;
+    let offset = job.offset.then(|| Offset::new(raw, job.b).at(&solution.t));
     let t = if factor == 1 {
         solution.t.clone()
     } else {
@@ -406,6 +421,7 @@ pub fn run(
         "lambda_fraction": fraction,
         "lambda": solution.report.lambda,
         "noise": match fit.noise { Noise::Gaussian => "gaussian", Noise::Poisson { .. } => "poisson" },
+        "offset": offset,
         "held_out": finite(held_out),
         "resolution": {
             "requested": [w, h],
