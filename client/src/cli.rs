@@ -346,7 +346,8 @@ pub struct SimulateArgs {
     /// Write the scene as seen on the pattern grid (8-bit PNG) to this file.
     #[arg(long, value_name = "FILE")]
     pub scene_out: Option<PathBuf>,
-    /// Request a reconstruction after the upload: gi, dgi, ngi, direct, lsq, cs or tv.
+    /// Request a reconstruction after the upload: gi, dgi, ngi, direct, zero_filled, levels, lsq,
+    /// cs, tv or auto (see --params).
     #[arg(long, value_name = "METHOD")]
     pub reconstruct: Option<String>,
     #[command(flatten)]
@@ -416,7 +417,9 @@ pub struct ReconstructArgs {
     /// Session to reconstruct.
     #[arg(long)]
     pub session_id: String,
-    /// Method: gi (correlation), dgi (differential), ngi (normalised), direct (Hadamard/raster inverse).
+    /// Method: gi (correlation), dgi (differential), ngi (normalised), direct (complete
+    /// Hadamard/raster inverse), zero_filled / levels (Hadamard subsets), lsq, cs, tv, or auto
+    /// (the data choose the model by held-out error). Parameters: --params.
     #[arg(long)]
     pub method: String,
     #[command(flatten)]

@@ -110,10 +110,11 @@ impl FromStr for Preset {
 /// Every method the service offers, cheapest first.
 pub const METHODS: &[&str] = &["gi", "dgi", "ngi", "direct", "zero_filled", "levels", "lsq", "cs", "tv", "auto"];
 
-/// Iterative methods on Bernoulli patterns cost about `rows x pixels x 1e-10 s` per iteration
-/// here; above this product (e.g. 256 x 256 at 25 % or more) one case would take minutes, so the
-/// full grid leaves them out (the correlators and Hadamard run at every size).
-pub const MAX_ITERATIVE_BERNOULLI_WORK: f64 = 5e8;
+/// Iterative methods on Bernoulli patterns cost about `rows x pixels x 1.5e-10 s` per iteration
+/// here (a few hundred iterations per case, several paths for `auto`); above this product
+/// (128 x 128 at 100 %, 256 x 256 from 5 %) one case takes minutes, so the full grid leaves them
+/// out. The correlators and every Hadamard method run at every size.
+pub const MAX_ITERATIVE_BERNOULLI_WORK: f64 = 1.1e8;
 
 fn applicable(family: &str, size: u32, ratio: f64, method: &str) -> bool {
     let k = (size as f64) * (size as f64);

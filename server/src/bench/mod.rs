@@ -33,6 +33,10 @@ struct Args {
     /// Only methods in this comma-separated list.
     #[arg(long, value_delimiter = ',')]
     methods: Option<Vec<String>>,
+    /// Run every case this many times and report the median time (the figures of the last
+    /// run; the numerics are deterministic). Shared 2-core VMs vary by tens of percent run to run.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=20))]
+    repeat: u32,
 }
 
 /// One measured reconstruction.
@@ -52,6 +56,8 @@ pub struct Measurement {
     pub updates_per_second: Option<f64>,
     pub report: serde_json::Value,
     pub error: Option<String>,
+    /// Wall time of every run of the case (`--repeat`); `seconds` is their median.
+    pub all_seconds: Vec<f64>,
 }
 
 impl Measurement {
@@ -72,7 +78,7 @@ pub fn main() {
         cases.retain(|c| methods.contains(&c.method));
     }
     eprintln!("helmholtz-bench: {} cases ({}), {} threads", cases.len(), args.preset, rayon::current_num_threads());
-    let results = run_cases(&cases, |i, m| {
+    let results = run_cases_repeated(&cases, args.repeat as usize, |i, m| {
         eprintln!(
             "[{}/{}] {:<48} {:>9.4} s  {:>6.2} dB  SSIM {:.3}{}",
             i + 1,
@@ -84,7 +90,7 @@ pub fn main() {
             m.error.as_deref().map(|e| format!("  ({e})")).unwrap_or_default()
         )
     });
-    if let Err(e) = report::write(&args.out, &args.preset, &results) {
+    if let Err(e) = report::write_with(&args.out, &args.preset, args.repeat, &results) {
         eprintln!("helmholtz-bench: writing the report: {e:#}");
         std::process::exit(1);
     }
@@ -92,7 +98,13 @@ pub fn main() {
 }
 
 /// Runs every case (sharing the simulation between methods of one acquisition).
-pub fn run_cases(cases: &[Case], mut progress: impl FnMut(usize, &Measurement)) -> Vec<Measurement> {
+pub fn run_cases(cases: &[Case], progress: impl FnMut(usize, &Measurement)) -> Vec<Measurement> {
+    run_cases_repeated(cases, 1, progress)
+}
+
+/// [`run_cases`], each case `repeat` times: the median wall time is reported (with the figures
+/// of the last run) and every run's time is kept in `all_seconds`.
+pub fn run_cases_repeated(cases: &[Case], repeat: usize, mut progress: impl FnMut(usize, &Measurement)) -> Vec<Measurement> {
     let mut out = Vec::with_capacity(cases.len());
     let mut cache: Option<(String, PatternSpec, Vec<f32>, Vec<f64>)> = None;
     for (i, case) in cases.iter().enumerate() {
@@ -104,7 +116,20 @@ pub fn run_cases(cases: &[Case], mut progress: impl FnMut(usize, &Measurement)) 
             cache = Some((key, spec, truth, sim.values));
         }
         let (_, spec, truth, values) = cache.as_ref().expect("filled above");
-        let m = measure(case, spec, truth, values);
+        let mut times = Vec::with_capacity(repeat);
+        let mut m = measure(case, spec, truth, values);
+        times.push(m.seconds);
+        for _ in 1..repeat.max(1) {
+            m = measure(case, spec, truth, values);
+            times.push(m.seconds);
+        }
+        let mut sorted = times.clone();
+        sorted.sort_by(f64::total_cmp);
+        m.seconds = sorted[sorted.len() / 2];
+        if let Some(u) = m.updates_per_second.as_mut() {
+            *u = spec.count() as f64 * spec.pixels() as f64 / m.seconds;
+        }
+        m.all_seconds = times;
         progress(i, &m);
         out.push(m);
     }
@@ -141,6 +166,7 @@ fn measure(case: &Case, spec: &PatternSpec, truth: &[f32], values: &[f64]) -> Me
                 updates_per_second: grid::scale_free(&case.method).then(|| spec.count() as f64 * k / seconds),
                 report: serde_json::to_value(&r.report).unwrap_or_default(),
                 error: None,
+                all_seconds: Vec::new(),
             }
         }
         Err(e) => Measurement {
@@ -155,6 +181,7 @@ fn measure(case: &Case, spec: &PatternSpec, truth: &[f32], values: &[f64]) -> Me
             updates_per_second: None,
             report: serde_json::Value::Null,
             error: Some(e.to_string()),
+            all_seconds: Vec::new(),
         },
     }
 }

@@ -10,10 +10,13 @@ use serde_json::json;
 use super::Measurement;
 use super::plot::{Curve, time_vs_psnr};
 
-pub fn write(dir: &Path, preset: &str, results: &[Measurement]) -> anyhow::Result<()> {
+/// Writes the report of a run (`repeat` as given with `--repeat`, named in the command line it
+/// reports).
+pub fn write_with(dir: &Path, preset: &str, repeat: u32, results: &[Measurement]) -> anyhow::Result<()> {
     std::fs::create_dir_all(dir.join("bench")).with_context(|| format!("creating {}", dir.display()))?;
     let release = if cfg!(debug_assertions) { "" } else { "--release " };
-    let command = format!("cargo run {release}-p helmholtz-server --bin helmholtz-bench -- --preset {preset}");
+    let repeat_arg = if repeat > 1 { format!(" --repeat {repeat}") } else { String::new() };
+    let command = format!("cargo run {release}-p helmholtz-server --bin helmholtz-bench -- --preset {preset}{repeat_arg}");
     let machine = json!({
         "cores": std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1),
         "rayon_threads": rayon::current_num_threads(),
@@ -29,7 +32,7 @@ pub fn write(dir: &Path, preset: &str, results: &[Measurement]) -> anyhow::Resul
     let mut md = String::new();
     let _ = writeln!(md, "# Speed against error\n");
     let _ = writeln!(md, "Produced by `{command}` ({} cores, {} build).", machine["cores"], machine["profile"]);
-    let _ = writeln!(md, "Raw figures: [`{stem}.json`]({stem}.json). Every row is one reconstruction by the service's own numerics on a simulated acquisition of a built-in scene (`helmholtz_client::simulate`), scored against that scene. PSNR uses the scene's range as peak; \"held-out\" is the error estimate the service reports without ground truth (the held-out relative residual, `||c_H - c_hat_H|| / ||c_H - mean(c_H)||`; \"-\" where a method has none, e.g. the exact inverses); for the correlation methods (gi, dgi, ngi), which estimate t only up to scale and offset, the plotted/quality figure is after a least-squares affine fit (the raw PSNR is in the JSON). Times are wall-clock for the reconstruction alone (the patterns are regenerated from the seed inside it); memory is the peak heap growth during it.\n");
+    let _ = writeln!(md, "Raw figures: [`{stem}.json`]({stem}.json). Every row is one reconstruction by the service's own numerics on a simulated acquisition of a built-in scene (`helmholtz_client::simulate`), scored against that scene. PSNR uses the scene's range as peak; \"held-out\" is the error estimate the service reports without ground truth (the held-out relative residual, `||c_H - c_hat_H|| / ||c_H - mean(c_H)||`; \"-\" where a method has none, e.g. the exact inverses); for the correlation methods (gi, dgi, ngi), which estimate t only up to scale and offset, the plotted/quality figure is after a least-squares affine fit (the raw PSNR is in the JSON). Times are wall-clock for the reconstruction alone (with `--repeat`, the median of the runs) (the patterns are regenerated from the seed inside it); memory is the peak heap growth during it.\n");
     let mut panels: BTreeMap<String, Vec<&Measurement>> = BTreeMap::new();
     for m in results {
         let c = &m.case;

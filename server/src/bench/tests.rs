@@ -15,7 +15,7 @@ fn smoke_grid_runs_and_writes_the_report() {
     let direct = results.iter().find(|m| m.case.method == "direct").unwrap();
     assert!(direct.psnr_db > 80.0, "direct: {} dB", direct.psnr_db);
     let dir = tempfile::tempdir().unwrap();
-    report::write(dir.path(), "smoke", &results).unwrap();
+    report::write_with(dir.path(), "smoke", 1, &results).unwrap();
     let md = std::fs::read_to_string(dir.path().join("benchmarks-smoke.md")).unwrap();
     assert!(md.contains("| shapes |") && md.contains(".svg"));
     let json: serde_json::Value =

@@ -224,7 +224,8 @@ impl<'a> Running<'a> {
 }
 
 /// Runs the candidates' paths side by side over `fractions` (round-robin, one point each per
-/// round); after every round from the third on, a candidate whose best held-out score is more
+/// round); after every round from the third on (the first points, near `lambda_max`, say
+/// little about a model), a candidate whose best held-out score is more
 /// than [`ELIMINATE`] times the leader's stops (it is reported, marked `eliminated`).
 #[allow(clippy::too_many_arguments)]
 fn race(
@@ -319,7 +320,8 @@ pub fn run(
             let raw_train = Binned::new(job.train, w, h, factor);
             let scorer = Scorer { test: &test, offset: job.offset.then(|| Offset::new(&raw_train, &job.b_train)) };
             let coarse = train.coarse_size();
-            let near: Vec<f64> = FRACTIONS.iter().copied().filter(|f| (f / fraction).ln().abs() < 1.2).collect();
+            // One point, at the winner's weight (relative weights carry over between grids).
+            let near = [fraction];
             let opts = SolveOptions { lipschitz: None, ..base.clone() };
             let progress = (lo + (hi - lo) / stages, lo + (hi - lo) * 2.0 / stages);
             let c = race(&[model], coarse, &train, &scorer, &b_train_fit, &job.b_test, &near, &opts, progress, control)?
@@ -348,7 +350,7 @@ pub fn run(
         Scorer { test: &binned_test, offset: job.offset.then(|| Offset::new(&binned_train, &job.b_train)) }.predict(&warm)
     };
 
-    // Refit on all rows.
+    // Refit on all rows (from the held-out fit at the same weight: a few dozen iterations).
     let refit_opts = SolveOptions {
         max_iter,
         lambda: Lambda::Relative(fraction),
@@ -391,7 +393,7 @@ pub fn run(
             grid.1
         ));
     }
-    let kept = solution.report.nonzeros;
+    let kept = kept_coefficients(model, grid, &solution.t);
     let rows = job.full.rows();
     let grid_pixels = grid.0 * grid.1;
     let identifiable = identifiable_coefficients(rows, grid_pixels);
@@ -416,6 +418,7 @@ pub fn run(
         "model": model.name(),
         "kept": kept,
         "kept_meaning": model.kept_meaning(),
+        "kept_rule": "the fewest coefficients carrying 99 % of the model's l1 norm (TV: of the gradient magnitudes; wavelet/DCT: of the coefficients, DC excluded)",
         "kept_fraction": kept as f64 / grid_pixels as f64,
         "identifiable_coefficients": if identifiable.is_finite() { json!(identifiable.round()) } else { Value::Null },
         "lambda_fraction": fraction,
@@ -437,6 +440,39 @@ pub fn run(
     });
     Ok(Outcome { t, held_out_prediction, iterations, report })
 }
+
+/// The model size of `t`: the fewest coefficients (TV: per-pixel gradient magnitudes; l1: the
+/// transform coefficients but the unpenalised DC) that carry [`KEPT_SHARE`] of their sum, the
+/// regulariser's value. Unlike a count above a threshold it does not depend on how far the
+/// iterations drove the negligible coefficients to zero.
+pub fn kept_coefficients(model: Model, (w, h): (usize, usize), t: &[f64]) -> usize {
+    let mut c: Vec<f64> = match model {
+        Model::Tv => solve::gradient_magnitudes(t, Grid::new(w, h)),
+        Model::L1(kind) => {
+            let psi = sparsifying_transform(kind, w, h);
+            let mut c = vec![0.0; t.len()];
+            psi.apply(t, &mut c);
+            let skip = usize::from(kind != super::transforms::TransformKind::Identity);
+            c.into_iter().skip(skip).map(f64::abs).collect()
+        }
+    };
+    let total: f64 = c.iter().sum();
+    if total.is_nan() || total <= 0.0 {
+        return 0;
+    }
+    c.sort_unstable_by(|a, b| b.total_cmp(a));
+    let mut acc = 0.0;
+    for (i, v) in c.iter().enumerate() {
+        acc += v;
+        if acc >= KEPT_SHARE * total {
+            return i + 1;
+        }
+    }
+    c.len()
+}
+
+/// Share of the regulariser's value the kept coefficients carry.
+pub const KEPT_SHARE: f64 = 0.99;
 
 /// How many nonzero coefficients `rows` random rows can identify among `pixels` unknowns: the
 /// weak l1 phase transition of Donoho and Tanner for `delta = n / k -> 0`, `s = n / (2 ln(k / n))`;

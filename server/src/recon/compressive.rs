@@ -90,6 +90,24 @@ impl<'a> Planned<'a> {
         }
     }
 
+    /// A cold start for the iterative fits: for Hadamard split pairs (orthonormal rows) the
+    /// zero-filled inverse `A^T b` clipped at 0, which already satisfies the data on the
+    /// measured coefficients (the solvers then only have to shape the unmeasured ones); `None`
+    /// (the solvers' own start) for the other families, where `A^T b` is a correlation image,
+    /// not an estimate of `t`.
+    pub fn cold_start(op: &dyn LinearOperator, b: &[f64], hadamard: bool) -> Option<Vec<f64>> {
+        hadamard.then(|| {
+            let mut t = vec![0.0; op.cols()];
+            op.adjoint(b, &mut t);
+            t.iter_mut().for_each(|v| *v = v.max(0.0));
+            t
+        })
+    }
+
+    pub fn is_hadamard(&self) -> bool {
+        matches!(self.op, PlannedOp::Hadamard(_))
+    }
+
     /// Structured designs: the finest grid the rows measure (see `auto::Channel`).
     pub fn measured_resolution(&self) -> Option<(usize, usize)> {
         match &self.op {
@@ -346,7 +364,8 @@ pub fn run(
             (_, Ok(split), Some((train, test))) => {
                 let b_train = gather(b, &split.train);
                 let (op_fit, b_fit) = fitting(train.as_ref(), &b_train, offset);
-                let opts = SolveOptions { progress: (span.0, mid), ..SolveOptions::default() };
+                let warm_start = Planned::cold_start(op_fit.as_ref(), &b_fit, planned.is_hadamard());
+                let opts = SolveOptions { progress: (span.0, mid), warm_start, ..SolveOptions::default() };
                 let first = fit_fixed(config, size, op_fit.as_ref(), &b_fit, opts, control)?;
                 let scorer = Scorer { test: test.as_ref(), offset: offset.then(|| Offset::new(train.as_ref(), &b_train)) };
                 score.add_channel(ch, &gather(b, &split.test), &scorer.predict(&first.t));
@@ -362,7 +381,8 @@ pub fn run(
             }
             _ => {
                 let (op_fit, b_fit) = fitting(planned.op(), b, offset);
-                let opts = SolveOptions { progress: span, ..SolveOptions::default() };
+                let warm_start = Planned::cold_start(op_fit.as_ref(), &b_fit, planned.is_hadamard());
+                let opts = SolveOptions { progress: span, warm_start, ..SolveOptions::default() };
                 let sol = fit_fixed(config, size, op_fit.as_ref(), &b_fit, opts, control)?;
                 iterations += sol.report.iterations as u64;
                 let mut report = json!({"fit": sol.report});

@@ -119,6 +119,14 @@ pub(crate) fn gradient_adjoint(g: &[f64], grid: Grid, out: &mut [f64]) {
     }
 }
 
+/// `|grad t|_i` per pixel (forward differences, Neumann): the terms of the isotropic TV.
+pub fn gradient_magnitudes(t: &[f64], grid: Grid) -> Vec<f64> {
+    let k = grid.pixels();
+    let mut g = vec![0.0; 2 * k];
+    gradient(t, grid, &mut g);
+    (0..k).map(|i| pair_norm(g[i], g[k + i])).collect()
+}
+
 /// Isotropic total variation of `t`.
 pub fn tv_value(t: &[f64], grid: Grid) -> f64 {
     let mut g = vec![0.0; 2 * grid.pixels()];
