@@ -22,6 +22,9 @@
 //! 4. The winner (model, resolution, `f`) is refitted on all rows, warm-started from its
 //!    held-out fit.
 //!
+//! A complete raster or Hadamard set needs no model: `auto` then returns the exact inverse
+//! (`direct`) and says why ([`EXACT_REASON`]).
+//!
 //! The report names the winning model, its weight (`f` and the absolute `lambda`), how many
 //! coefficients it kept (TV: pixels with a nonzero gradient; l1: nonzero coefficients), the
 //! resolution the data support, every candidate's path with its held-out scores, and warnings
@@ -60,6 +63,19 @@ const PATH_TOL: f64 = 1e-3;
 const MIN_COARSE_SIDE: usize = 4;
 /// Above this held-out relative residual the rows explain under ~30 % of the held-out variance.
 const POOR_FIT: f64 = 0.85;
+
+/// Why `auto` returns the exact inverse of a complete raster or Hadamard set.
+pub const EXACT_REASON: &str = "the rows are a complete orthogonal set (raster or Hadamard split pairs): they determine \
+     t exactly and without noise amplification, so no model is needed and none is fitted: the image is the \
+     non-negative least-squares solution, which for an orthogonal set is the exact inverse clipped at 0. (Held-out error cannot \
+     judge a model here either: a held-out raster pixel or Hadamard coefficient is orthogonal to every fitted row.)";
+
+/// Whether the session is a complete raster or Hadamard set, which `auto` inverts exactly.
+pub fn exact_inverse_applies(problem: &super::Problem) -> bool {
+    use helmholtz_proto::Family;
+    matches!(problem.spec.family(), Family::Raster { .. } | Family::Hadamard { .. })
+        && super::MethodConfig::Direct.check(problem).is_ok()
+}
 
 /// One channel's problem.
 pub struct Channel<'a> {
@@ -627,5 +643,19 @@ mod tests {
         let (pa, pz) = (metrics::psnr(&r.images[0].data, &truth), metrics::psnr(&zf.images[0].data, &truth));
         println!("hadamard 25 %: auto {pa:.2} dB ({}), zero-filled {pz:.2} dB", r.report.details["auto"][0]["model"]);
         assert!(pa > pz + 1.0, "auto {pa:.2} dB vs zero-filled {pz:.2} dB");
+    }
+
+    #[test]
+    fn a_complete_orthogonal_set_needs_no_model() {
+        let n = 16u32;
+        let truth = scene("camera", n);
+        let spec = PatternSpec::new(Family::Hadamard { ordering: HadamardOrdering::Sequency }, n, n, 512, 0).unwrap();
+        let c = buckets(&spec, &truth);
+        let r = auto(&spec, &c, json!({}));
+        assert_eq!(r.report.method, "auto");
+        assert_eq!(r.report.details["auto"][0]["model"], json!("direct"));
+        // Noise-free: the exact image (the camera scene is non-negative, so clipping is a no-op).
+        let err = metrics::relative_error(&r.images[0].data, &truth);
+        assert!(err < 1e-5, "{err}");
     }
 }

@@ -25,9 +25,9 @@ use super::{Control, MethodConfig, Problem, ReconError, Reconstruction, SliceSou
 /// One-pass correlators (estimate `t` up to a gain and an offset).
 const CORRELATION: &[&str] = &["gi", "dgi", "ngi"];
 /// Inverse-problem solvers (any family).
-const COMPRESSIVE: &[&str] = &["cs", "tv", "lsq"];
+const COMPRESSIVE: &[&str] = &["cs", "tv", "lsq", "auto"];
 /// Methods that promise `t >= 0`.
-const NONNEGATIVE: &[&str] = &["cs", "tv"];
+const NONNEGATIVE: &[&str] = &["cs", "tv", "auto"];
 /// Exact inverses of complete raster / Hadamard sets.
 const EXACT: &[&str] = &["direct"];
 
