@@ -164,7 +164,7 @@ fn measure(case: &Case, spec: &PatternSpec, truth: &[f32], values: &[f64]) -> Me
                 psnr_fitted_db: metrics::psnr(&fitted, truth),
                 ssim_fitted: metrics::ssim(&fitted, truth, w, h),
                 updates_per_second: grid::scale_free(&case.method).then(|| spec.count() as f64 * k / seconds),
-                report: serde_json::to_value(&r.report).unwrap_or_default(),
+                report: without_histories(serde_json::to_value(&r.report).unwrap_or_default()),
                 error: None,
                 all_seconds: Vec::new(),
             }
@@ -183,6 +183,17 @@ fn measure(case: &Case, spec: &PatternSpec, truth: &[f32], values: &[f64]) -> Me
             error: Some(e.to_string()),
             all_seconds: Vec::new(),
         },
+    }
+}
+
+/// The report without the solvers' objective histories (hundreds of numbers per solve; the
+/// service serves them, the benchmark JSON keeps the figures).
+fn without_histories(v: serde_json::Value) -> serde_json::Value {
+    use serde_json::Value;
+    match v {
+        Value::Object(map) => Value::Object(map.into_iter().filter(|(k, _)| k != "objective_history").map(|(k, v)| (k, without_histories(v))).collect()),
+        Value::Array(items) => Value::Array(items.into_iter().map(without_histories).collect()),
+        other => other,
     }
 }
 

@@ -12,6 +12,10 @@
 //! `rho = 1` means "no better than predicting the mean bucket", `rho = 0` a perfect prediction;
 //! with measurement noise of variance `s^2` a perfect image scores about
 //! `s / std(c_H)` (the noise floor), so `rho` estimates the image's error plus the noise.
+//! Compare `rho` between methods on the same session, not across sessions: with 0/1 patterns
+//! even the flat image `t = mean(t)` explains part of the spread (the pattern sums vary), so
+//! the "no information" level is below 1 (about `sqrt(1 - ||mean(t)||^2 / ||t||^2)` for
+//! Bernoulli(1/2)).
 //!
 //! Which rows are held out depends only on the row index (a SplitMix64 hash), so the same rows
 //! are held out in every run, whatever the block sizes or the number of threads, and for
@@ -157,7 +161,8 @@ impl Score {
 /// The held-out error estimate as reported (`Report::held_out`).
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct HeldOut {
-    /// Held-out rows (patterns; Hadamard: split pairs).
+    /// Held-out rows scored: patterns; for the iterative methods on Hadamard, split pairs; for
+    /// the correlators on Hadamard, frames (both frames of a held-out pair).
     pub rows: usize,
     /// Fraction of rows held out.
     pub fraction: f64,
