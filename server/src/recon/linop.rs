@@ -75,6 +75,29 @@ impl DenseOperator {
     }
 }
 
+/// A borrowed operator is an operator (so `&dyn LinearOperator` can stand where an owned one is
+/// boxed).
+impl<T: LinearOperator + ?Sized> LinearOperator for &T {
+    fn rows(&self) -> usize {
+        (**self).rows()
+    }
+    fn cols(&self) -> usize {
+        (**self).cols()
+    }
+    fn apply(&self, x: &[f64], y: &mut [f64]) {
+        (**self).apply(x, y)
+    }
+    fn adjoint(&self, y: &[f64], x: &mut [f64]) {
+        (**self).adjoint(y, x)
+    }
+    fn apply_batch(&self, xs: &[f64], ys: &mut [f64], batch: usize) {
+        (**self).apply_batch(xs, ys, batch)
+    }
+    fn adjoint_batch(&self, ys: &[f64], xs: &mut [f64], batch: usize) {
+        (**self).adjoint_batch(ys, xs, batch)
+    }
+}
+
 impl LinearOperator for DenseOperator {
     fn rows(&self) -> usize {
         self.rows
