@@ -12,6 +12,8 @@
 
 use rayon::prelude::*;
 
+use crate::recon::simd::avx2_dispatch;
+
 /// Elements per cache block (16 KiB of f64).
 const BLOCK: usize = 1 << 11;
 /// Shortest length worth spreading over threads.
@@ -58,6 +60,7 @@ pub fn fwht(data: &mut [f64]) {
     }
 }
 
+avx2_dispatch! {
 /// All stages of a short transform, radix 2 (the inner loops vectorise).
 fn fwht_small(data: &mut [f64]) {
     let n = data.len();
@@ -81,6 +84,7 @@ fn fwht_small(data: &mut [f64]) {
         h *= 2;
     }
 }
+}
 
 #[inline]
 fn butterfly2(a: &mut [f64], b: &mut [f64]) {
@@ -91,8 +95,8 @@ fn butterfly2(a: &mut [f64], b: &mut [f64]) {
     }
 }
 
+avx2_dispatch! {
 /// Spans h and 2h fused: quarters (a, b, c, d) of a 4h chunk.
-#[inline]
 fn butterfly4(a: &mut [f64], b: &mut [f64], c: &mut [f64], d: &mut [f64]) {
     for (((w, x), y), z) in a.iter_mut().zip(b.iter_mut()).zip(c.iter_mut()).zip(d.iter_mut()) {
         let (p, q, r, s) = (*w + *x, *w - *x, *y + *z, *y - *z);
@@ -102,12 +106,19 @@ fn butterfly4(a: &mut [f64], b: &mut [f64], c: &mut [f64], d: &mut [f64]) {
         *z = q - s;
     }
 }
+}
+
+avx2_dispatch! {
+fn butterfly2_wide(a: &mut [f64], b: &mut [f64]) {
+    butterfly2(a, b)
+}
+}
 
 fn radix2(a: &mut [f64], b: &mut [f64], parallel: bool) {
     if parallel && a.len() > TASK {
-        a.par_chunks_mut(TASK).zip(b.par_chunks_mut(TASK)).for_each(|(a, b)| butterfly2(a, b));
+        a.par_chunks_mut(TASK).zip(b.par_chunks_mut(TASK)).for_each(|(a, b)| butterfly2_wide(a, b));
     } else {
-        butterfly2(a, b);
+        butterfly2_wide(a, b);
     }
 }
 

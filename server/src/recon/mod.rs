@@ -23,6 +23,7 @@ pub mod solve;
 pub mod transforms;
 pub mod method;
 pub mod metrics;
+pub(crate) mod simd;
 mod stream;
 #[cfg(test)]
 mod hard_cases;

@@ -33,6 +33,8 @@
 
 use std::time::Instant;
 
+use rayon::prelude::*;
+
 use super::condition::Prepared;
 use super::tv::{Grid, check_grid, gradient, lambda_max_tv, pair_norm};
 use super::{
@@ -40,6 +42,7 @@ use super::{
     check_problem, count_nonzeros, half_wsq, is_zero_data, lambda_without_solve, lipschitz_of,
     non_finite, relative_residual, zero_solution,
 };
+use crate::recon::simd::avx2_dispatch;
 use crate::recon::linop::{LinearOperator, dot, norm};
 use crate::recon::{Control, ReconError};
 
@@ -249,63 +252,101 @@ impl<'a> Prox<'a> {
     }
 }
 
+/// Rows per band of the banded TV passes: about 4,096 pixels, so a band is worth a rayon task.
+/// The split depends on the grid only, so the sums (taken band by band, in order) and hence
+/// the results are the same whatever the number of threads.
+fn band_rows(grid: Grid) -> usize {
+    (4096 / grid.width.max(1)).clamp(1, grid.height.max(1))
+}
+
 /// One dual ascent step of the TV prox, fused with the gradient of the primal point `t` and
 /// the duality-gap sums: with `s = D t` (forward differences, Neumann), returns
 /// `(sum_i |s_i|, <u, s>, sum_i |u_i . s_i|)` at the current `u`, then sets
-/// `u <- proj_{|u_i| <= gamma}(u + s / 8)`. Branch-free inner loops (the boundary column and
-/// row are handled apart) so the compiler can vectorise them.
+/// `u <- proj_{|u_i| <= gamma}(u + s / 8)`. Bands of rows run in parallel.
 fn tv_dual_ascent(u: &mut [f64], t: &[f64], grid: Grid, gamma: f64) -> (f64, f64, f64) {
+    let w = grid.width;
+    let band = band_rows(grid) * w;
+    let (ux, uy) = u.split_at_mut(grid.pixels());
+    let sums: Vec<[f64; 3]> = ux
+        .par_chunks_mut(band)
+        .zip(uy.par_chunks_mut(band))
+        .enumerate()
+        .map(|(i, (ux, uy))| tv_dual_ascent_band(ux, uy, t, grid, i * band / w, gamma))
+        .collect();
+    sums.iter().fold((0.0, 0.0, 0.0), |acc, s| (acc.0 + s[0], acc.1 + s[1], acc.2 + s[2]))
+}
+
+avx2_dispatch! {
+/// [`tv_dual_ascent`] on the rows `y0..` of one band (`ux`, `uy`: the band's dual values).
+fn tv_dual_ascent_band(ux: &mut [f64], uy: &mut [f64], t: &[f64], grid: Grid, y0: usize, gamma: f64) -> [f64; 3] {
     let (w, h) = (grid.width, grid.height);
-    let k = w * h;
-    let (ux, uy) = u.split_at_mut(k);
-    // Four partial sums break the floating-point dependency chains.
-    let mut acc = [[0.0f64; 3]; 4];
+    // Per row, one pass without reductions (so LLVM vectorises the square roots and the
+    // division) writes |s_i| and u_i . s_i; a second pass sums them on four partial sums
+    // (pixel x on sum x & 3), which also breaks the floating-point dependency chains.
+    let mut mags = vec![0.0; w];
+    let mut dots = vec![0.0; w];
+    let mut lanes = [[0.0f64; 4]; 3];
     #[inline(always)]
-    fn step(a: f64, b: f64, ux: &mut f64, uy: &mut f64, gamma: f64, acc: &mut [f64; 3]) {
-        let d = *ux * a + *uy * b;
-        acc[0] += (a * a + b * b).sqrt();
-        acc[1] += d;
-        acc[2] += d.abs();
+    fn step(a: f64, b: f64, ux: &mut f64, uy: &mut f64, gamma: f64, mag: &mut f64, dot: &mut f64) {
+        *dot = *ux * a + *uy * b;
+        *mag = (a * a + b * b).sqrt();
         let (nx, ny) = (*ux + 0.125 * a, *uy + 0.125 * b);
         // Branch-free (the disc test is data-dependent and mispredicts): gamma / 0 = inf -> 1.
         let f = (gamma / (nx * nx + ny * ny).sqrt()).min(1.0);
         *ux = nx * f;
         *uy = ny * f;
     }
-    for y in 0..h {
+    for (j, (uxr, uyr)) in ux.chunks_exact_mut(w).zip(uy.chunks_exact_mut(w)).enumerate() {
+        let y = y0 + j;
         let r = y * w;
         let row = &t[r..r + w];
-        let uxr = &mut ux[r..r + w];
-        let uyr = &mut uy[r..r + w];
         let last = y + 1 == h;
         let next = if last { row } else { &t[r + w..r + 2 * w] };
-        // b = next - row is 0 on the last row (next = row there).
-        for x in 0..w - 1 {
-            let a = row[x + 1] - row[x];
-            let b = next[x] - row[x];
-            step(a, b, &mut uxr[x], &mut uyr[x], gamma, &mut acc[x & 3]);
+        // b = next - row is 0 on the last row (next = row there); a = 0 on the last column.
+        let n = w - 1;
+        let (right, left) = (&row[1..], &row[..n]);
+        for x in 0..n {
+            step(right[x] - left[x], next[x] - left[x], &mut uxr[x], &mut uyr[x], gamma, &mut mags[x], &mut dots[x]);
         }
-        let x = w - 1;
-        step(0.0, next[x] - row[x], &mut uxr[x], &mut uyr[x], gamma, &mut acc[x & 3]);
+        step(0.0, next[n] - row[n], &mut uxr[n], &mut uyr[n], gamma, &mut mags[n], &mut dots[n]);
+        for (m, d) in mags.chunks_exact(4).zip(dots.chunks_exact(4)) {
+            for l in 0..4 {
+                lanes[0][l] += m[l];
+                lanes[1][l] += d[l];
+                lanes[2][l] += d[l].abs();
+            }
+        }
+        for x in 4 * (w / 4)..w {
+            lanes[0][x & 3] += mags[x];
+            lanes[1][x & 3] += dots[x];
+            lanes[2][x & 3] += dots[x].abs();
+        }
     }
-    let mut out = (0.0, 0.0, 0.0);
-    for a in acc {
-        out.0 += a[0];
-        out.1 += a[1];
-        out.2 += a[2];
-    }
-    out
+    let sum = |l: &[f64; 4]| (l[0] + l[1]) + (l[2] + l[3]);
+    [sum(&lanes[0]), sum(&lanes[1]), sum(&lanes[2])]
+}
 }
 
-/// `out = v - D^T u`, clipped at 0 if `nonneg` (`D^T` as in `gradient_adjoint`), row by row in
-/// branch-free passes.
+/// `out = v - D^T u`, clipped at 0 if `nonneg` (`D^T` as in `gradient_adjoint`); bands of rows
+/// run in parallel.
 fn primal_from_dual(u: &[f64], v: &[f64], grid: Grid, nonneg: bool, out: &mut [f64]) {
+    let w = grid.width;
+    let band = band_rows(grid) * w;
+    out.par_chunks_mut(band)
+        .enumerate()
+        .for_each(|(i, o)| primal_from_dual_band(u, v, grid, nonneg, i * band / w, o));
+}
+
+avx2_dispatch! {
+/// [`primal_from_dual`] on the rows `y0..` of one band (`out`: the band's pixels), in
+/// branch-free passes.
+fn primal_from_dual_band(u: &[f64], v: &[f64], grid: Grid, nonneg: bool, y0: usize, out: &mut [f64]) {
     let (w, h) = (grid.width, grid.height);
     let k = w * h;
     let (ux, uy) = u.split_at(k);
-    for y in 0..h {
+    for (j, o) in out.chunks_exact_mut(w).enumerate() {
+        let y = y0 + j;
         let r = y * w;
-        let o = &mut out[r..r + w];
         let vr = &v[r..r + w];
         let uxr = &ux[r..r + w];
         // D^T u = -div u, so v - D^T u = v + div u; div: +ux[x] (x < w-1), -ux[x-1] (x > 0),
@@ -323,6 +364,7 @@ fn primal_from_dual(u: &[f64], v: &[f64], grid: Grid, nonneg: bool, out: &mut [f
             o.iter_mut().for_each(|o| *o = o.max(0.0));
         }
     }
+}
 }
 
 /// Projects each pixel's `(p_x, p_y)` (stored as `[p_x..., p_y...]`) onto the disc of radius `r`.
@@ -507,6 +549,9 @@ pub(crate) fn polish_exact(
     Ok(second)
 }
 
+avx2_dispatch! {
+/// The FISTA iterations (compiled twice, see [`crate::recon::simd`]: its vector updates are
+/// most of the work besides the operator and the prox).
 #[allow(clippy::too_many_arguments)]
 fn fista_core(
     prep: &Prepared,
@@ -764,6 +809,7 @@ fn fista_core(
         },
         t: x,
     })
+}
 }
 
 /// `c = max(0, <A 1, W b> / ||W^1/2 A 1||^2)`, the best constant image; leaves `A 1` in `a1`.

@@ -1,0 +1,47 @@
+//! Run-time choice of instruction set for the hot loops.
+//!
+//! The crate is built for baseline x86-64 (SSE2), so one binary runs on any x86-64 machine. The
+//! few loops that carry the solvers (the TV prox, the Walsh-Hadamard butterflies, the packed-bit
+//! products) are written once as plain Rust and compiled twice by [`avx2_dispatch!`]: as is, and
+//! inside a `#[target_feature(enable = "avx2,fma")]` function that LLVM vectorises 4 doubles
+//! wide. The AVX2 copy runs when the CPU has the features (checked at run time, cached by std).
+//! Results are bit-for-bit those of the baseline copy: without fast-math LLVM neither fuses
+//! multiply-adds nor reorders sums, so only the vector width changes.
+
+/// Whether the AVX2 + FMA copies can run on this CPU.
+#[inline]
+pub fn avx2() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
+}
+
+/// `avx2_dispatch!(fn name(args) -> Ret { body })` defines `name`, which runs `body` compiled
+/// for AVX2 + FMA when [`avx2`] says the CPU has them, and the baseline build otherwise.
+macro_rules! avx2_dispatch {
+    ($(#[$m:meta])* $vis:vis fn $name:ident($($arg:ident: $ty:ty),* $(,)?) $(-> $ret:ty)? $body:block) => {
+        $(#[$m])*
+        $vis fn $name($($arg: $ty),*) $(-> $ret)? {
+            #[inline(always)]
+            fn body($($arg: $ty),*) $(-> $ret)? $body
+            #[cfg(target_arch = "x86_64")]
+            {
+                #[target_feature(enable = "avx2,fma")]
+                unsafe fn wide($($arg: $ty),*) $(-> $ret)? {
+                    body($($arg),*)
+                }
+                if $crate::recon::simd::avx2() {
+                    // SAFETY: the CPU has AVX2 and FMA (checked just above); `wide` is `body`.
+                    return unsafe { wide($($arg),*) };
+                }
+            }
+            body($($arg),*)
+        }
+    };
+}
+pub(crate) use avx2_dispatch;
