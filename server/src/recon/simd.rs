@@ -4,13 +4,40 @@
 //! few loops that carry the solvers (the TV prox, the Walsh-Hadamard butterflies, the packed-bit
 //! products) are written once as plain Rust and compiled twice by [`avx2_dispatch!`]: as is, and
 //! inside a `#[target_feature(enable = "avx2,fma")]` function that LLVM vectorises 4 doubles
-//! wide. The AVX2 copy runs when the CPU has the features (checked at run time, cached by std).
+//! wide. The AVX2 copy runs when the CPU has the features (checked once at run time;
+//! `HELMHOLTZ_SIMD=baseline` forces the baseline copies, to measure one against the other).
 //! Results are bit-for-bit those of the baseline copy: without fast-math LLVM neither fuses
 //! multiply-adds nor reorders sums, so only the vector width changes.
 
-/// Whether the AVX2 + FMA copies can run on this CPU.
+use std::sync::atomic::{AtomicU8, Ordering};
+
+/// 0: not decided yet; 1: AVX2 copies; 2: baseline copies.
+static CHOICE: AtomicU8 = AtomicU8::new(0);
+
+/// Whether the AVX2 + FMA copies run: the CPU has the features and `HELMHOLTZ_SIMD` is not
+/// `baseline` (read once; for measuring one build against the other).
 #[inline]
 pub fn avx2() -> bool {
+    match CHOICE.load(Ordering::Relaxed) {
+        1 => true,
+        2 => false,
+        _ => {
+            let wide = cpu_has_avx2() && std::env::var("HELMHOLTZ_SIMD").map_or(true, |v| v != "baseline");
+            CHOICE.store(if wide { 1 } else { 2 }, Ordering::Relaxed);
+            wide
+        }
+    }
+}
+
+/// Makes every dispatched loop run its baseline copy (`true`) or, CPU permitting, its AVX2
+/// copy (`false`). Both give the same bits, so flipping this under running work is harmless;
+/// tests use it to check exactly that.
+pub fn force_baseline(baseline: bool) {
+    let wide = !baseline && cpu_has_avx2();
+    CHOICE.store(if wide { 1 } else { 2 }, Ordering::Relaxed);
+}
+
+fn cpu_has_avx2() -> bool {
     #[cfg(target_arch = "x86_64")]
     {
         std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")

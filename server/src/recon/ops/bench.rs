@@ -269,3 +269,28 @@ fn bench_other_families() {
         }
     }
 }
+
+/// The packed-bit kernel alone at the 128 x 128, 10 % size, one vector and batches of 2 and 4,
+/// forward and adjoint (CPU time per vector, all threads: robust to a busy machine).
+#[test]
+#[ignore]
+fn bench_bits_kernel() {
+    let spec = PatternSpec::new(Family::Bernoulli { fill: 0.5 }, 128, 128, 1638, 1).unwrap();
+    let op = BernoulliOperator::from_spec(&spec, 1638).unwrap();
+    let (n, k) = (op.rows(), op.cols());
+    for batch in [1usize, 2, 4] {
+        let xs = test_vector(batch * k, 3);
+        let ys = test_vector(batch * n, 4);
+        let (mut yb, mut xb) = (vec![0.0; batch * n], vec![0.0; batch * k]);
+        let (fw, fc) = time2(|| op.apply_batch(&xs, &mut yb, batch));
+        let (aw, ac) = time2(|| op.adjoint_batch(&ys, &mut xb, batch));
+        let b = batch as f64;
+        println!(
+            "bits 1638x16384 batch {batch}: per vector apply {} (cpu {}) adjoint {} (cpu {})",
+            ms(fw / b),
+            ms(fc / b),
+            ms(aw / b),
+            ms(ac / b)
+        );
+    }
+}
