@@ -32,7 +32,8 @@ pub fn avx2() -> bool {
 /// Makes every dispatched loop run its baseline copy (`true`) or, CPU permitting, its AVX2
 /// copy (`false`). Both give the same bits, so flipping this under running work is harmless;
 /// tests use it to check exactly that.
-pub fn force_baseline(baseline: bool) {
+#[cfg(test)]
+pub(crate) fn force_baseline(baseline: bool) {
     let wide = !baseline && cpu_has_avx2();
     CHOICE.store(if wide { 1 } else { 2 }, Ordering::Relaxed);
 }
