@@ -8,6 +8,7 @@ use std::collections::BTreeMap;
 use std::io::{IsTerminal, Write};
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, bail};
@@ -22,7 +23,8 @@ use crate::measurements::{self, Measurements};
 use crate::rest::{self, FetchTarget, ImageFormat, Reconstruction};
 use crate::scene::Scene;
 use crate::simulate::{self, NoiseModel};
-use crate::upload::{self, NewSession, UploadOptions, UploadReport};
+use crate::spool::{self, DrainReport, SpoolDir};
+use crate::upload::{self, NewSession, UploadOptions};
 
 const ABOUT: &str = "Helmholtz edge client: simulate a single-pixel / dual-photography rig, upload \
 bucket measurements, and fetch reconstructed dual (ghost) images.";
@@ -33,7 +35,9 @@ A projector shows known patterns p_i (declared by a pattern spec and regenerated
 bucket detector records c_i = t . p_i + noise per pattern and channel, and the server reconstructs \
 the light transport t on the pattern grid: the dual image.
 
-One server address serves gRPC (uploads) and REST (reconstructions, images).";
+One server address serves gRPC (uploads) and REST (reconstructions, images).
+
+Every measured row is first written to a durable local spool (--spool DIR, env HELMHOLTZ_SPOOL; fsync'ed before it counts) and uploaded from there in the background. If the client, the network or the server dies, nothing measured is lost: `helmholtz spool status` shows what is pending and `helmholtz spool upload` resumes from the server's committed count.";
 
 /// Top-level arguments.
 #[derive(Debug, Parser)]
@@ -50,6 +54,11 @@ pub struct Cli {
     /// Print one JSON object on stdout instead of text (and no progress bars).
     #[arg(long, global = true)]
     pub json: bool,
+    /// Spool directory: measured rows are kept here (one directory per session) until the server
+    /// has committed them [default: $XDG_STATE_HOME/helmholtz/spool, else
+    /// ~/.local/state/helmholtz/spool].
+    #[arg(long, global = true, env = "HELMHOLTZ_SPOOL", value_name = "DIR")]
+    pub spool: Option<PathBuf>,
     #[command(subcommand)]
     pub command: Command,
 }
@@ -60,15 +69,28 @@ pub enum Command {
     /// Simulate a rig imaging a scene, upload it as a session, optionally reconstruct and save.
     ///
     /// Steps: draw or load the scene, resample it to the pattern grid, compute every bucket value
-    /// t . p_i, add noise (drift, shot, read, dark, ADC), create the session (with the noiseless
-    /// scene as ground truth unless --no-ground-truth), upload with resume, finish, and with
-    /// --reconstruct request a reconstruction (--wait / --out wait for it and save the image).
+    /// t . p_i, add noise (drift, shot, read, dark, ADC), write the rows to the spool (in batches
+    /// of --batch-rows, at --frame-rate if given) while a background task creates the session
+    /// (with the noiseless scene as ground truth unless --no-ground-truth) and uploads them with
+    /// resume, finish, and with --reconstruct request a reconstruction (--wait / --out wait for it
+    /// and save the image). Re-running an interrupted command with the same --session-id
+    /// continues from what was spooled and committed.
     Simulate(SimulateArgs),
     /// Upload a real rig's measurements (CSV or NPY) to a session, creating it if needed.
     ///
     /// The file holds one row per pattern in pattern order and one column per detector channel.
-    /// Rows already committed on the server (an interrupted earlier upload) are not sent again.
+    /// Its rows go through the spool like measured rows. Rows already committed on the server (an
+    /// interrupted earlier upload) are not sent again.
     Upload(UploadArgs),
+    /// Record a real rig's rows as they arrive on stdin: spool each batch, upload in the background.
+    ///
+    /// One row per line (pattern order), one number per channel, separated by commas, semicolons,
+    /// tabs or spaces; blank lines and '#' comments are skipped. Rows are spooled every
+    /// --batch-rows rows or --flush-ms after the first unspooled one, whichever comes first, and
+    /// uploaded as they land. Rows continue after those already spooled for the session: re-run
+    /// after a crash and feed the rows from there (`helmholtz spool status` says how many). At
+    /// the end of input the session is finished with --finish once every row of the spec is in.
+    Acquire(AcquireArgs),
     /// Show one session (upload progress, latest reconstruction), or list all sessions.
     Status(StatusArgs),
     /// Download a dual image (PNG, 32-bit float TIFF, or NPY).
@@ -77,6 +99,34 @@ pub enum Command {
     Reconstruct(ReconstructArgs),
     /// Write pattern frames as 8-bit grey PNGs (frame_000000.png, ...) for a projector or DMD.
     Patterns(PatternsArgs),
+    /// The local spool of measured rows: what is pending, and uploading it.
+    #[command(subcommand)]
+    Spool(SpoolCommand),
+}
+
+#[derive(Debug, Subcommand)]
+pub enum SpoolCommand {
+    /// Per spooled session: rows spooled, rows the server has committed (if reachable), rows
+    /// pending, whether the producer finished, and the last upload error.
+    Status(SpoolStatusArgs),
+    /// Upload what is pending (every spooled session, or those named), resuming from the
+    /// server's committed count, then exit. Fully uploaded (and finished) sessions leave the
+    /// spool.
+    Upload(SpoolUploadArgs),
+}
+
+#[derive(Debug, Clone, Args)]
+pub struct SpoolStatusArgs {
+    /// Sessions to show [default: every session in the spool].
+    pub session_ids: Vec<String>,
+}
+
+#[derive(Debug, Clone, Args)]
+pub struct SpoolUploadArgs {
+    /// Sessions to upload [default: every session in the spool].
+    pub session_ids: Vec<String>,
+    #[command(flatten)]
+    pub transfer: TransferArgs,
 }
 
 /// Pattern families.
@@ -276,6 +326,10 @@ impl TransferArgs {
             self.retry_for >= 0.0 && self.retry_for.is_finite(),
             "--retry-for must be >= 0"
         );
+        anyhow::ensure!(
+            self.chunk_rows != Some(0),
+            "--chunk-rows must be at least 1"
+        );
         Ok(UploadOptions {
             chunk_rows: self.chunk_rows,
             retry_for: Duration::from_secs_f64(self.retry_for),
@@ -340,9 +394,16 @@ pub struct SimulateArgs {
     /// Also write the simulated values (rows x channels) to a .csv or .npy file.
     #[arg(long, value_name = "FILE")]
     pub values_out: Option<PathBuf>,
-    /// Only simulate (and write --values-out / --scene-out): contact no server.
+    /// Only simulate (and write --values-out / --scene-out): contact no server, use no spool.
     #[arg(long)]
     pub offline: bool,
+    /// Pace the simulated rig like a real one: this many patterns per second are measured and
+    /// spooled (and uploaded as they arrive) [default: as fast as the disk allows].
+    #[arg(long, value_name = "HZ")]
+    pub frame_rate: Option<f64>,
+    /// Rows per spool write: each batch is fsync'ed before it counts as measured.
+    #[arg(long, default_value_t = 1024, value_parser = clap::value_parser!(u64).range(1..))]
+    pub batch_rows: u64,
     /// Write the scene as seen on the pattern grid (8-bit PNG) to this file.
     #[arg(long, value_name = "FILE")]
     pub scene_out: Option<PathBuf>,
@@ -383,6 +444,38 @@ pub struct UploadArgs {
     /// Accept a file with fewer rows than the spec's count (upload a prefix, continue later).
     #[arg(long)]
     pub partial: bool,
+    /// Rows per spool write: each batch is fsync'ed before it counts as measured.
+    #[arg(long, default_value_t = 1024, value_parser = clap::value_parser!(u64).range(1..))]
+    pub batch_rows: u64,
+    #[command(flatten)]
+    pub transfer: TransferArgs,
+}
+
+#[derive(Debug, Clone, Args)]
+pub struct AcquireArgs {
+    /// Session id (1-128 of A-Z a-z 0-9 . _ -). Created if new; re-running continues it.
+    #[arg(long)]
+    pub session_id: String,
+    #[command(flatten)]
+    pub spec: SpecSource,
+    /// Channel names, comma separated (one number per channel on each line).
+    #[arg(long, value_delimiter = ',', default_value = "bucket")]
+    pub channels: Vec<String>,
+    /// Rig name recorded with the session.
+    #[arg(long, default_value = "rig")]
+    pub rig: String,
+    /// Extra session metadata, KEY=VALUE (repeatable).
+    #[arg(long = "metadata", value_name = "KEY=VALUE")]
+    pub metadata: Vec<String>,
+    /// Finish the session at the end of input (every row of the spec must then be in).
+    #[arg(long)]
+    pub finish: bool,
+    /// Rows per spool write: each batch is fsync'ed before it counts as measured.
+    #[arg(long, default_value_t = 1024, value_parser = clap::value_parser!(u64).range(1..))]
+    pub batch_rows: u64,
+    /// Spool the rows read so far once the first of them has waited this long.
+    #[arg(long, default_value_t = 200)]
+    pub flush_ms: u64,
     #[command(flatten)]
     pub transfer: TransferArgs,
 }
@@ -495,13 +588,17 @@ pub fn main() -> ExitCode {
 pub async fn run(cli: Cli) -> anyhow::Result<Outcome> {
     let progress = !cli.json && std::io::stderr().is_terminal();
     let server = cli.server.as_str();
+    let spools = SpoolDir::new(cli.spool.clone().unwrap_or_else(spool::default_root));
     match &cli.command {
-        Command::Simulate(a) => simulate_cmd(server, a, progress).await,
-        Command::Upload(a) => upload_cmd(server, a, progress).await,
+        Command::Simulate(a) => simulate_cmd(server, &spools, a, progress).await,
+        Command::Upload(a) => upload_cmd(server, &spools, a, progress).await,
+        Command::Spool(SpoolCommand::Status(a)) => spool_status_cmd(server, &spools, a).await,
+        Command::Spool(SpoolCommand::Upload(a)) => spool_upload_cmd(server, &spools, a).await,
         Command::Status(a) => status_cmd(server, a).await,
         Command::Fetch(a) => fetch_cmd(server, a).await,
         Command::Reconstruct(a) => reconstruct_cmd(server, a, progress).await,
         Command::Patterns(a) => patterns_cmd(a),
+        Command::Acquire(a) => acquire_cmd(server, &spools, a).await,
     }
 }
 
@@ -556,19 +653,103 @@ fn spec_json(spec: &PatternSpec) -> Value {
     serde_json::to_value(spec).expect("spec serialises")
 }
 
-fn upload_text(r: &UploadReport) -> String {
+fn upload_text(r: &DrainReport, spooled_before: u64) -> String {
     let mut s = format!(
-        "uploaded {} rows to session {} in {:.2} s: {} sent, {} already on the server",
-        r.rows, r.session_id, r.seconds, r.rows_sent, r.rows_skipped
+        "spooled {} rows of session {} ({} were spooled by an earlier run); uploaded in {:.2} s: {} rows sent",
+        r.spooled_rows, r.session_id, spooled_before, r.seconds, r.rows_sent
     );
     if r.resumes > 0 {
         s.push_str(&format!(", resumed {} time(s)", r.resumes));
     }
     s.push_str(&format!(
-        "; server has {}/{} rows\n",
-        r.committed_rows, r.expected_rows
+        "; server has {}/{} rows{}\n",
+        r.committed_rows,
+        r.expected_rows,
+        if r.removed { "; spool cleared" } else { "" }
     ));
     s
+}
+
+/// Spools `values` (rows x channels, every row of the session from row 0) for `session` and
+/// uploads them: rows an earlier run already spooled are checked to be the same and not written
+/// again; a background task drains the spool as batches of `batch_rows` land (paced at
+/// `frame_rate` rows per second if given). Returns the drain report and the rows spooled before.
+#[allow(clippy::too_many_arguments)]
+async fn spool_and_upload(
+    server: &str,
+    spools: &SpoolDir,
+    session: &NewSession,
+    finish: bool,
+    values: &[f64],
+    batch_rows: u64,
+    frame_rate: Option<f64>,
+    opts: &UploadOptions,
+) -> anyhow::Result<(DrainReport, u64)> {
+    let ch = session.channels.len();
+    let total = (values.len() / ch) as u64;
+    let id = &session.session_id;
+    let spool = Arc::new(spools.create_or_open(session, finish)?);
+    let have = spool.rows();
+    anyhow::ensure!(
+        have <= total,
+        "the spool {} already holds {have} rows of session {id}, more than the {total} given now",
+        spool.dir().display()
+    );
+    // The rows an earlier run spooled must be the ones given now.
+    let base = spool.base_row();
+    let mut row = base;
+    while row < have {
+        let end = (row + 65_536).min(have);
+        let held = spool.read(row, end)?;
+        if let Some(i) = held
+            .iter()
+            .zip(&values[row as usize * ch..end as usize * ch])
+            .position(|(a, b)| a.to_bits() != b.to_bits())
+        {
+            bail!(
+                "the spool {} holds different values for row {} of session {id} than the ones given now;                  upload the spooled session first (`helmholtz spool upload {id}`) or use another session id",
+                spool.dir().display(),
+                row + (i / ch) as u64
+            );
+        }
+        row = end;
+    }
+    if have < total {
+        spool.unseal()?;
+    }
+    let drainer = tokio::spawn({
+        let (spool, server, opts) = (spool.clone(), server.to_string(), opts.clone());
+        async move { spool::drain(&server, spool, &opts, true).await }
+    });
+    let produce = async {
+        let started = Instant::now();
+        let mut next = have;
+        while next < total {
+            let end = (next + batch_rows.max(1)).min(total);
+            if let Some(rate) = frame_rate {
+                // The batch is complete when its last pattern has been shown.
+                let due = started + Duration::from_secs_f64((end - have) as f64 / rate);
+                tokio::time::sleep_until(due.into()).await;
+            }
+            let batch = values[next as usize * ch..end as usize * ch].to_vec();
+            let s = spool.clone();
+            tokio::task::spawn_blocking(move || s.append(&batch))
+                .await
+                .context("spool writer panicked")??;
+            next = end;
+        }
+        spool.seal()
+    };
+    if let Err(e) = produce.await {
+        drainer.abort();
+        return Err(e.context(format!(
+            "spooling session {id} stopped at row {}; the rows spooled so far stay in {}",
+            spool.rows(),
+            spool.dir().display()
+        )));
+    }
+    let report = drainer.await.context("upload task panicked")??;
+    Ok((report, have))
 }
 
 fn recon_text(r: &Reconstruction) -> String {
@@ -690,7 +871,12 @@ fn sim_progress(len: u64, wanted: bool) -> ProgressBar {
     bar
 }
 
-async fn simulate_cmd(server: &str, a: &SimulateArgs, progress: bool) -> anyhow::Result<Outcome> {
+async fn simulate_cmd(
+    server: &str,
+    spools: &SpoolDir,
+    a: &SimulateArgs,
+    progress: bool,
+) -> anyhow::Result<Outcome> {
     let spec = a.patterns.to_spec()?;
     let model = a.noise.model();
     model.validate()?;
@@ -723,6 +909,13 @@ async fn simulate_cmd(server: &str, a: &SimulateArgs, progress: bool) -> anyhow:
     if a.offline && (a.reconstruct.is_some() || a.result.out.is_some()) {
         bail!("--offline contacts no server: --reconstruct and --out need one");
     }
+    if let Some(rate) = a.frame_rate {
+        anyhow::ensure!(
+            rate > 0.0 && rate.is_finite(),
+            "--frame-rate must be > 0 patterns per second"
+        );
+    }
+    let opts = a.transfer.options(progress)?;
 
     // Scene -> transport on the pattern grid.
     let scene = Scene::load(&a.scene, spec.width(), spec.height())?;
@@ -802,27 +995,30 @@ async fn simulate_cmd(server: &str, a: &SimulateArgs, progress: bool) -> anyhow:
     if !a.no_ground_truth {
         session = session.with_ground_truth(spec.width(), spec.height(), transport.clone());
     }
-    let created = upload::create_session(server, &session).await?;
-    text.push_str(&format!(
-        "session {} {}\n",
-        session_id,
-        if created.created {
-            "created"
-        } else {
-            "already existed (same declaration): resuming"
-        }
-    ));
-    out.insert("created".into(), json!(created.created));
-
-    let opts = a.transfer.options(progress)?;
-    let report =
-        upload::upload(server, &session_id, sim.channels as u32, &sim.values, &opts).await?;
-    text.push_str(&upload_text(&report));
+    let (report, spooled_before) = spool_and_upload(
+        server,
+        spools,
+        &session,
+        true,
+        &sim.values,
+        a.batch_rows,
+        a.frame_rate,
+        &opts,
+    )
+    .await?;
+    text.push_str(&upload_text(&report, spooled_before));
+    out.insert("spool".into(), json!(spools.session_dir(&session_id)));
+    out.insert("spooled_before".into(), json!(spooled_before));
     out.insert("upload".into(), serde_json::to_value(&report)?);
-    let finished = upload::finish_session(server, &session_id).await?;
+    anyhow::ensure!(
+        report.finished,
+        "session {session_id}: {} of {} rows committed but not finished",
+        report.committed_rows,
+        report.expected_rows
+    );
     text.push_str(&format!(
         "session {} finished with {} rows\n",
-        session_id, finished.committed_rows
+        session_id, report.committed_rows
     ));
 
     if let Some(method) = &a.reconstruct {
@@ -879,7 +1075,12 @@ pub fn check_rows(
     Ok(())
 }
 
-async fn upload_cmd(server: &str, a: &UploadArgs, progress: bool) -> anyhow::Result<Outcome> {
+async fn upload_cmd(
+    server: &str,
+    spools: &SpoolDir,
+    a: &UploadArgs,
+    progress: bool,
+) -> anyhow::Result<Outcome> {
     anyhow::ensure!(
         upload::valid_session_id(&a.session_id),
         "--session-id {:?}: use 1-128 of A-Z a-z 0-9 . _ -",
@@ -892,37 +1093,47 @@ async fn upload_cmd(server: &str, a: &UploadArgs, progress: bool) -> anyhow::Res
     let mut session =
         NewSession::new(a.session_id.clone(), spec.clone(), names.clone()).with_rig(a.rig.clone());
     session.metadata = parse_metadata(&a.metadata)?;
-    let created = upload::create_session(server, &session).await?;
+    let opts = a.transfer.options(progress)?;
     let mut text = format!(
-        "session {} {} ({}; channels {})\n",
+        "session {} ({}; channels {})\n",
         a.session_id,
-        if created.created {
-            "created"
-        } else {
-            "exists: resuming"
-        },
         spec_summary(&spec),
         names.join(",")
     );
-    let opts = a.transfer.options(progress)?;
-    let report = upload::upload(server, &a.session_id, m.channels as u32, &m.values, &opts).await?;
-    text.push_str(&upload_text(&report));
-    let mut out = json!({
+    let (report, spooled_before) = spool_and_upload(
+        server,
+        spools,
+        &session,
+        a.finish,
+        &m.values,
+        a.batch_rows,
+        None,
+        &opts,
+    )
+    .await?;
+    text.push_str(&upload_text(&report, spooled_before));
+    if a.finish {
+        anyhow::ensure!(
+            report.finished,
+            "session {}: {} of {} rows committed, so it cannot be finished",
+            a.session_id,
+            report.committed_rows,
+            report.expected_rows
+        );
+        text.push_str(&format!(
+            "session finished with {} rows\n",
+            report.committed_rows
+        ));
+    }
+    let out = json!({
         "session_id": a.session_id,
-        "created": created.created,
         "spec": spec_json(&spec),
         "channels": names,
         "file": a.values,
+        "spooled_before": spooled_before,
         "upload": report,
+        "finished": report.finished,
     });
-    if a.finish {
-        let s = upload::finish_session(server, &a.session_id).await?;
-        text.push_str(&format!(
-            "session finished with {} rows\n",
-            s.committed_rows
-        ));
-        out["finished"] = json!(true);
-    }
     Ok(Outcome { json: out, text })
 }
 
@@ -991,6 +1202,347 @@ async fn status_cmd(server: &str, a: &StatusArgs) -> anyhow::Result<Outcome> {
             Ok(Outcome { json: out, text })
         }
     }
+}
+
+/// One line of rig output: `channels` finite numbers; `None` for a blank or comment line.
+fn parse_row_line(line: &str, number: u64, channels: usize) -> anyhow::Result<Option<Vec<f64>>> {
+    let text = line.split('#').next().unwrap_or("").trim();
+    if text.is_empty() {
+        return Ok(None);
+    }
+    let fields: Vec<&str> = text
+        .split([',', ';', '\t', ' '])
+        .map(str::trim)
+        .filter(|f| !f.is_empty())
+        .collect();
+    anyhow::ensure!(
+        fields.len() == channels,
+        "stdin line {number}: {} value(s), expected {channels} (one per channel)",
+        fields.len()
+    );
+    fields
+        .iter()
+        .enumerate()
+        .map(|(c, f)| {
+            let v: f64 = f.parse().map_err(|_| {
+                anyhow::anyhow!(
+                    "stdin line {number}, column {}: {f:?} is not a number",
+                    c + 1
+                )
+            })?;
+            anyhow::ensure!(
+                v.is_finite(),
+                "stdin line {number}, column {}: {f:?} is not a finite number",
+                c + 1
+            );
+            Ok(v)
+        })
+        .collect::<anyhow::Result<Vec<f64>>>()
+        .map(Some)
+}
+
+async fn acquire_cmd(server: &str, spools: &SpoolDir, a: &AcquireArgs) -> anyhow::Result<Outcome> {
+    use tokio::io::AsyncBufReadExt;
+    anyhow::ensure!(
+        upload::valid_session_id(&a.session_id),
+        "--session-id {:?}: use 1-128 of A-Z a-z 0-9 . _ -",
+        a.session_id
+    );
+    anyhow::ensure!(
+        !a.channels.is_empty() && a.channels.iter().all(|c| !c.trim().is_empty()),
+        "--channels: empty channel name"
+    );
+    let spec = a.spec.load()?;
+    let opts = a.transfer.options(false)?;
+    let mut session = NewSession::new(a.session_id.clone(), spec.clone(), a.channels.clone())
+        .with_rig(a.rig.clone());
+    session.metadata = parse_metadata(&a.metadata)?;
+    let ch = a.channels.len();
+    let spool = Arc::new(spools.create_or_open(&session, a.finish)?);
+    let spooled_before = spool.rows();
+    spool.unseal()?;
+    let drainer = tokio::spawn({
+        let (spool, server, opts) = (spool.clone(), server.to_string(), opts.clone());
+        async move { spool::drain(&server, spool, &opts, true).await }
+    });
+    let flush_after = Duration::from_millis(a.flush_ms);
+    let produce = async {
+        let mut lines = tokio::io::BufReader::new(tokio::io::stdin()).lines();
+        let mut pending: Vec<f64> = Vec::new();
+        let mut oldest: Option<tokio::time::Instant> = None;
+        let mut number = 0u64;
+        let flush = |pending: &mut Vec<f64>| {
+            let batch = std::mem::take(pending);
+            let s = spool.clone();
+            async move {
+                if !batch.is_empty() {
+                    tokio::task::spawn_blocking(move || s.append(&batch))
+                        .await
+                        .context("spool writer panicked")??;
+                }
+                anyhow::Ok(())
+            }
+        };
+        loop {
+            let next = match oldest {
+                Some(t) => {
+                    match tokio::time::timeout_at(t + flush_after, lines.next_line()).await {
+                        Ok(line) => line,
+                        Err(_) => {
+                            flush(&mut pending).await?;
+                            oldest = None;
+                            continue;
+                        }
+                    }
+                }
+                None => lines.next_line().await,
+            };
+            let Some(line) = next.context("reading stdin")? else {
+                break;
+            };
+            number += 1;
+            let row = match parse_row_line(&line, number, ch) {
+                Ok(Some(row)) => row,
+                Ok(None) => continue,
+                Err(e) => {
+                    // The rows before the bad line are measured data: keep them.
+                    flush(&mut pending).await?;
+                    return Err(e);
+                }
+            };
+            pending.extend(row);
+            oldest.get_or_insert_with(tokio::time::Instant::now);
+            if (pending.len() / ch) as u64 >= a.batch_rows {
+                flush(&mut pending).await?;
+                oldest = None;
+            }
+        }
+        flush(&mut pending).await?;
+        spool.seal()
+    };
+    if let Err(e) = produce.await {
+        drainer.abort();
+        return Err(e.context(format!(
+            "acquisition of session {} stopped with {} rows spooled in {} (uploaded by `helmholtz spool upload`; \
+             a re-run continues after them)",
+            a.session_id,
+            spool.rows(),
+            spool.dir().display()
+        )));
+    }
+    let report = drainer.await.context("upload task panicked")??;
+    let mut text = format!(
+        "session {} ({}; channels {})\n",
+        a.session_id,
+        spec_summary(&spec),
+        a.channels.join(",")
+    );
+    text.push_str(&upload_text(&report, spooled_before));
+    if a.finish {
+        anyhow::ensure!(
+            report.finished,
+            "session {}: {} of {} rows in, so it cannot be finished; run acquire again with the missing rows",
+            a.session_id,
+            report.committed_rows,
+            report.expected_rows
+        );
+        text.push_str(&format!(
+            "session finished with {} rows\n",
+            report.committed_rows
+        ));
+    }
+    Ok(Outcome {
+        json: json!({
+            "session_id": a.session_id,
+            "spec": spec_json(&spec),
+            "channels": a.channels,
+            "spooled_before": spooled_before,
+            "upload": report,
+            "finished": report.finished,
+        }),
+        text,
+    })
+}
+
+/// One session's line of `helmholtz spool status`.
+#[derive(Debug, serde::Serialize)]
+struct SpoolEntry {
+    session_id: String,
+    #[serde(flatten)]
+    info: Option<spool::SpoolInfo>,
+    /// The server's committed count now (None if unreachable).
+    committed_rows: Option<u64>,
+    /// Spooled rows the server does not have (by its count now, else by the last known one).
+    pending_rows: Option<u64>,
+    /// spooling (another process is writing or uploading it), pending, incomplete (its producer
+    /// stopped before every row was measured), uploaded (every spooled row committed).
+    status: String,
+    server_error: Option<String>,
+    error: Option<String>,
+}
+
+fn spool_ids(spools: &SpoolDir, given: &[String]) -> anyhow::Result<Vec<String>> {
+    if given.is_empty() {
+        spools.sessions()
+    } else {
+        Ok(given.to_vec())
+    }
+}
+
+async fn spool_status_cmd(
+    server: &str,
+    spools: &SpoolDir,
+    a: &SpoolStatusArgs,
+) -> anyhow::Result<Outcome> {
+    let mut entries = Vec::new();
+    for id in spool_ids(spools, &a.session_ids)? {
+        let mut entry = SpoolEntry {
+            session_id: id.clone(),
+            info: None,
+            committed_rows: None,
+            pending_rows: None,
+            status: "error".into(),
+            server_error: None,
+            error: None,
+        };
+        match spools.inspect(&id) {
+            Err(e) => entry.error = Some(format!("{e:#}")),
+            Ok(info) => {
+                match spool::probe_committed(server, &id).await {
+                    Ok(c) => entry.committed_rows = Some(c),
+                    Err(e) => entry.server_error = Some(e),
+                }
+                let known = entry
+                    .committed_rows
+                    .or(info.state.committed_rows)
+                    .unwrap_or(0)
+                    .max(info.base_row);
+                let pending = info.spooled_rows.saturating_sub(known);
+                entry.pending_rows = Some(pending);
+                entry.status = if info.busy {
+                    "spooling"
+                } else if pending > 0 {
+                    "pending"
+                } else if !info.sealed {
+                    "incomplete"
+                } else {
+                    "uploaded"
+                }
+                .into();
+                entry.info = Some(info);
+            }
+        }
+        entries.push(entry);
+    }
+    let mut text = if entries.is_empty() {
+        format!("the spool {} holds no sessions\n", spools.root().display())
+    } else {
+        format!(
+            "spool {}\n{:<32} {:>21} {:>10} {:>10}  status\n",
+            spools.root().display(),
+            "session",
+            "spooled/expected",
+            "committed",
+            "pending"
+        )
+    };
+    for e in &entries {
+        match &e.info {
+            None => text.push_str(&format!(
+                "{:<32} error: {}\n",
+                e.session_id,
+                e.error.as_deref().unwrap_or("?")
+            )),
+            Some(info) => {
+                text.push_str(&format!(
+                    "{:<32} {:>21} {:>10} {:>10}  {}{}\n",
+                    e.session_id,
+                    format!("{}/{}", info.spooled_rows, info.expected_rows),
+                    e.committed_rows
+                        .map(|c| c.to_string())
+                        .unwrap_or_else(|| "?".into()),
+                    e.pending_rows.unwrap_or(0),
+                    e.status,
+                    if info.torn_bytes > 0 {
+                        format!(
+                            " (a torn tail of {} bytes, cut at the next open)",
+                            info.torn_bytes
+                        )
+                    } else {
+                        String::new()
+                    }
+                ));
+                if let Some(err) = &info.state.last_error {
+                    text.push_str(&format!("    last upload error: {err}\n"));
+                }
+                if let Some(err) = &e.server_error {
+                    text.push_str(&format!("    server not asked: {err}\n"));
+                }
+            }
+        }
+    }
+    Ok(Outcome {
+        json: json!({ "spool": spools.root(), "sessions": entries }),
+        text,
+    })
+}
+
+async fn spool_upload_cmd(
+    server: &str,
+    spools: &SpoolDir,
+    a: &SpoolUploadArgs,
+) -> anyhow::Result<Outcome> {
+    let opts = a.transfer.options(false)?;
+    let mut reports = Vec::new();
+    let mut failures = Vec::new();
+    let mut text = String::new();
+    for id in spool_ids(spools, &a.session_ids)? {
+        let result = async {
+            let spool = Arc::new(spools.open(&id)?);
+            spool::drain(server, spool, &opts, false).await
+        }
+        .await;
+        match result {
+            Ok(r) => {
+                text.push_str(&format!(
+                    "{}: {} rows sent, server has {}/{} rows{}{}\n",
+                    id,
+                    r.rows_sent,
+                    r.committed_rows,
+                    r.expected_rows,
+                    if r.finished { ", finished" } else { "" },
+                    if r.removed {
+                        ", spool cleared"
+                    } else {
+                        ", kept in the spool (its producer has not written every row)"
+                    }
+                ));
+                reports.push(r);
+            }
+            Err(e) => {
+                text.push_str(&format!("{id}: failed: {e:#}\n"));
+                failures.push(format!("{id}: {e:#}"));
+            }
+        }
+    }
+    if reports.is_empty() && failures.is_empty() {
+        text.push_str(&format!(
+            "nothing to upload: the spool {} holds no sessions\n",
+            spools.root().display()
+        ));
+    }
+    if !failures.is_empty() {
+        bail!(
+            "{} of {} spooled session(s) not uploaded:\n{}",
+            failures.len(),
+            failures.len() + reports.len(),
+            failures.join("\n")
+        );
+    }
+    Ok(Outcome {
+        json: json!({ "spool": spools.root(), "uploaded": reports }),
+        text,
+    })
 }
 
 async fn fetch_cmd(server: &str, a: &FetchArgs) -> anyhow::Result<Outcome> {
@@ -1124,6 +1676,66 @@ mod tests {
             panic!()
         };
         assert_eq!(a.patterns.to_spec().unwrap().count(), 4 * 3);
+    }
+
+    #[test]
+    fn rig_lines_parse_or_say_where_they_are_wrong() {
+        assert_eq!(
+            parse_row_line(" 1.5, -2 # note", 1, 2).unwrap(),
+            Some(vec![1.5, -2.0])
+        );
+        assert_eq!(parse_row_line("3\t4", 1, 2).unwrap(), Some(vec![3.0, 4.0]));
+        assert_eq!(parse_row_line("  # only a comment", 1, 2).unwrap(), None);
+        assert_eq!(parse_row_line("", 1, 2).unwrap(), None);
+        let e = parse_row_line("1,2,3", 7, 2).unwrap_err().to_string();
+        assert!(
+            e.contains("line 7") && e.contains("3 value(s), expected 2"),
+            "{e}"
+        );
+        let e = parse_row_line("1,x", 8, 2).unwrap_err().to_string();
+        assert!(
+            e.contains("line 8, column 2") && e.contains("not a number"),
+            "{e}"
+        );
+        let e = parse_row_line("1,NaN", 9, 2).unwrap_err().to_string();
+        assert!(
+            e.contains("line 9, column 2") && e.contains("finite"),
+            "{e}"
+        );
+    }
+
+    #[test]
+    fn spool_commands_parse() {
+        let cli = parse(&[
+            "--spool",
+            "/tmp/sp",
+            "spool",
+            "upload",
+            "a",
+            "b",
+            "--retry-for",
+            "5",
+        ]);
+        assert_eq!(cli.spool.as_deref(), Some(Path::new("/tmp/sp")));
+        let Command::Spool(SpoolCommand::Upload(a)) = cli.command else {
+            panic!()
+        };
+        assert_eq!(a.session_ids, ["a", "b"]);
+        assert_eq!(a.transfer.retry_for, 5.0);
+        let cli = parse(&["spool", "status"]);
+        let Command::Spool(SpoolCommand::Status(a)) = cli.command else {
+            panic!()
+        };
+        assert!(a.session_ids.is_empty());
+        let cli = parse(&["simulate", "--scene", "usaf", "--count", "10"]);
+        let Command::Simulate(a) = cli.command else {
+            panic!()
+        };
+        assert_eq!((a.batch_rows, a.frame_rate), (1024, None));
+        assert!(
+            Cli::try_parse_from(["helmholtz", "simulate", "--scene", "u", "--batch-rows", "0"])
+                .is_err()
+        );
     }
 
     #[test]

@@ -6,6 +6,7 @@
 //!
 //! - loads or draws a scene ([`scene`]) and simulates a rig measuring it ([`simulate`]),
 //! - reads a real rig's measurements from CSV or NPY ([`measurements`]),
+//! - spools every measured row durably on local disk before upload ([`spool`]),
 //! - creates a session and streams the rows to the server over gRPC with resume after any
 //!   failure ([`upload`]),
 //! - requests reconstructions and downloads dual images over REST ([`rest`]),
@@ -43,6 +44,7 @@ pub mod pngio;
 pub mod rest;
 pub mod scene;
 pub mod simulate;
+pub mod spool;
 pub mod upload;
 
 pub use helmholtz_proto::PatternSpec;

@@ -8,6 +8,7 @@
 //! [`UploadOptions::retry_for`] allows without progress. Every call opens its own lazily
 //! connected channel, so a server killed and restarted on the same port is simply reconnected.
 
+use std::borrow::Cow;
 use std::collections::BTreeMap;
 use std::future::Future;
 use std::io::IsTerminal;
@@ -64,7 +65,8 @@ impl Backoff {
             .mul_f64(1.0 - jitter * unit.clamp(0.0, 1.0))
     }
 
-    fn random_delay(&self, attempt: u32) -> Duration {
+    /// [`Backoff::delay`] with a fresh uniform draw.
+    pub fn random_delay(&self, attempt: u32) -> Duration {
         self.delay(attempt, rand::random::<f64>())
     }
 }
@@ -123,7 +125,8 @@ impl Default for UploadOptions {
 }
 
 impl UploadOptions {
-    fn policy(&self) -> RetryPolicy {
+    /// The retry policy of the unary calls an upload makes.
+    pub fn policy(&self) -> RetryPolicy {
         RetryPolicy {
             retry_for: self.retry_for,
             backoff: self.backoff.clone(),
@@ -393,9 +396,18 @@ pub async fn create_session(server: &str, session: &NewSession) -> anyhow::Resul
         !session.channels.is_empty(),
         "a session needs at least one channel"
     );
-    let request = session.to_request();
-    let operation = format!("creating session {}", session.session_id);
-    let response = unary(server, &RetryPolicy::default(), &operation, |mut c| {
+    create_session_request(server, &session.to_request(), &RetryPolicy::default()).await
+}
+
+/// [`create_session`] from the wire request (as kept in a spool manifest), retrying transient
+/// failures per `policy`.
+pub async fn create_session_request(
+    server: &str,
+    request: &v1::CreateSessionRequest,
+    policy: &RetryPolicy,
+) -> anyhow::Result<CreatedSession> {
+    let operation = format!("creating session {}", request.session_id);
+    let response = unary(server, policy, &operation, |mut c| {
         let request = request.clone();
         async move { c.create_session(request).await }
     })
@@ -412,6 +424,15 @@ pub async fn create_session(server: &str, session: &NewSession) -> anyhow::Resul
 /// The server's committed and expected row counts of a session. Retries transient failures.
 pub async fn upload_status(server: &str, session_id: &str) -> anyhow::Result<v1::UploadStatus> {
     status_with(server, session_id, &RetryPolicy::default()).await
+}
+
+/// [`upload_status`] with its own retry policy (`retry_for` zero: a single attempt).
+pub async fn upload_status_with(
+    server: &str,
+    session_id: &str,
+    policy: &RetryPolicy,
+) -> anyhow::Result<v1::UploadStatus> {
+    status_with(server, session_id, policy).await
 }
 
 async fn status_with(
@@ -509,8 +530,58 @@ pub async fn upload(
             values[pos]
         );
     }
-    let total = (values.len() / ch) as u64;
-    let chunk_rows = opts.rows_per_chunk(ch);
+    upload_rows(
+        server,
+        session_id,
+        channels,
+        &SliceRows {
+            values,
+            channels: ch,
+        },
+        opts,
+    )
+    .await
+}
+
+/// The rows an upload reads: rows `0..rows()` of a session (row-major, `channels` values a row),
+/// in memory ([`upload`]) or in a durable spool ([`crate::spool`]).
+pub trait RowSource: Sync {
+    /// Rows that can be read now.
+    fn rows(&self) -> u64;
+    /// The values of rows `start..end` (`end <= rows()`), row-major.
+    fn read(&self, start: u64, end: u64) -> anyhow::Result<Cow<'_, [f64]>>;
+}
+
+struct SliceRows<'a> {
+    values: &'a [f64],
+    channels: usize,
+}
+
+impl RowSource for SliceRows<'_> {
+    fn rows(&self) -> u64 {
+        (self.values.len() / self.channels) as u64
+    }
+
+    fn read(&self, start: u64, end: u64) -> anyhow::Result<Cow<'_, [f64]>> {
+        let ch = self.channels;
+        Ok(Cow::Borrowed(
+            &self.values[start as usize * ch..end as usize * ch],
+        ))
+    }
+}
+
+/// [`upload`] from any [`RowSource`]: streams rows `committed..source.rows()` with the same
+/// resume and retry rules. The source's values must be finite (the server refuses others).
+pub async fn upload_rows(
+    server: &str,
+    session_id: &str,
+    channels: u32,
+    source: &dyn RowSource,
+    opts: &UploadOptions,
+) -> anyhow::Result<UploadReport> {
+    anyhow::ensure!(channels > 0, "channels must be at least 1");
+    let total = source.rows();
+    let chunk_rows = opts.rows_per_chunk(channels as usize);
     let policy = opts.policy();
     let started = Instant::now();
     let bar = progress_bar(total, opts.progress);
@@ -610,7 +681,8 @@ pub async fn upload(
             server,
             session_id,
             channels,
-            values,
+            source,
+            total,
             committed,
             chunk_rows,
             opts,
@@ -639,7 +711,14 @@ pub async fn upload(
                 }
                 report.resumes += 1;
             }
-            Err(status) => {
+            Err(StreamFailure::Local(e)) => {
+                bar.abandon();
+                return Err(e.context(format!(
+                    "upload of session {session_id} stopped: cannot read its rows; {} of {total} rows committed",
+                    best_committed.unwrap_or(0)
+                )));
+            }
+            Err(StreamFailure::Rpc(status)) => {
                 let err = RpcError::new(format!("uploading to session {session_id}"), &status);
                 match disposition(status.code()) {
                     Disposition::Fatal => fatal!(err),
@@ -695,31 +774,56 @@ pub fn make_chunk(
     }
 }
 
-/// One client stream of chunks from row `from`; the chunks are encoded as the transport takes
-/// them (at most a few in flight), so memory stays bounded whatever the session size.
+/// Why one stream of chunks ended early.
+enum StreamFailure {
+    /// The server or the transport refused it.
+    Rpc(Status),
+    /// The rows could not be read locally (a damaged spool): not retried.
+    Local(anyhow::Error),
+}
+
+/// One client stream of chunks from row `from` to `total`; the chunks are read and encoded as
+/// the transport takes them (at most a few in flight), so memory stays bounded whatever the
+/// session size.
 #[allow(clippy::too_many_arguments)]
 async fn stream_rows(
     server: &str,
     session_id: &str,
     channels: u32,
-    values: &[f64],
+    source: &dyn RowSource,
+    total: u64,
     from: u64,
     chunk_rows: usize,
     opts: &UploadOptions,
     bar: &ProgressBar,
     report: &mut UploadReport,
-) -> Result<v1::UploadResponse, Status> {
-    let total = (values.len() / channels as usize) as u64;
+) -> Result<v1::UploadResponse, StreamFailure> {
     let mut client = connect(server, opts.connect_timeout)
-        .map_err(|e| Status::invalid_argument(e.to_string()))?;
+        .map_err(|e| StreamFailure::Rpc(Status::invalid_argument(e.to_string())))?;
     let (tx, rx) = tokio::sync::mpsc::channel::<v1::MeasurementChunk>(2);
     // Counters shared with the producer (atomics keep the upload future `Send`).
     let rows_sent = AtomicU64::new(0);
     let chunks_sent = AtomicU64::new(0);
     let bytes_sent = AtomicU64::new(0);
+    let read_error = std::sync::Mutex::new(None::<anyhow::Error>);
     let producer = async {
+        let tx = tx; // dropped when the producer ends: the end of the stream
         for (start, end) in chunk_ranges(total, from, chunk_rows) {
-            let chunk = make_chunk(session_id, channels, values, start, end);
+            let values = match source.read(start, end) {
+                Ok(v) => v,
+                Err(e) => {
+                    *read_error.lock().expect("not poisoned") = Some(e);
+                    return;
+                }
+            };
+            let (bytes, crc) = wire::encode_values(&values);
+            let chunk = v1::MeasurementChunk {
+                session_id: session_id.to_string(),
+                start_row: start,
+                channels,
+                values_f64le: bytes,
+                crc32c: crc,
+            };
             let bytes = chunk.values_f64le.len() as u64;
             if tx.send(chunk).await.is_err() {
                 return; // the call ended; its result says why
@@ -729,7 +833,6 @@ async fn stream_rows(
             bytes_sent.fetch_add(bytes, Ordering::Relaxed);
             bar.set_position(end);
         }
-        drop(tx); // end of stream
     };
     let call = client.upload_measurements(ReceiverStream::new(rx));
     tokio::pin!(producer);
@@ -744,7 +847,12 @@ async fn stream_rows(
     report.rows_sent += rows_sent.load(Ordering::Relaxed);
     report.chunks_sent += chunks_sent.load(Ordering::Relaxed);
     report.bytes_sent += bytes_sent.load(Ordering::Relaxed);
-    result.map(tonic::Response::into_inner)
+    if let Some(e) = read_error.lock().expect("not poisoned").take() {
+        return Err(StreamFailure::Local(e));
+    }
+    result
+        .map(tonic::Response::into_inner)
+        .map_err(StreamFailure::Rpc)
 }
 
 /// A rows progress bar on stderr, hidden unless wanted and stderr is a terminal.

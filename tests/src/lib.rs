@@ -38,7 +38,12 @@ pub struct ServerProcess {
 impl ServerProcess {
     /// Starts `helmholtz-server serve` on 127.0.0.1 port 0 (or `port`) with `data_dir`.
     pub fn start(data_dir: &Path, port: u16, extra: &[&str]) -> anyhow::Result<ServerProcess> {
-        let mut child = Command::new(binary("helmholtz-server"))
+        Self::start_binary(&binary("helmholtz-server"), data_dir, port, extra)
+    }
+
+    /// [`ServerProcess::start`] with the server binary at `server_bin`.
+    pub fn start_binary(server_bin: &Path, data_dir: &Path, port: u16, extra: &[&str]) -> anyhow::Result<ServerProcess> {
+        let mut child = Command::new(server_bin)
             .arg("serve")
             .arg("--listen")
             .arg(format!("127.0.0.1:{port}"))
@@ -101,6 +106,11 @@ impl ServerProcess {
         Ok(AcquisitionClient::connect(self.base_url.clone()).await?)
     }
 
+    /// The server's process id (for /proc/PID/status).
+    pub fn pid(&self) -> u32 {
+        self.child.id()
+    }
+
     pub fn url(&self, path: &str) -> String {
         format!("{}{}", self.base_url, path)
     }
@@ -110,6 +120,84 @@ impl Drop for ServerProcess {
     fn drop(&mut self) {
         self.kill();
     }
+}
+
+/// A TCP proxy on 127.0.0.1 port 0 in front of a real server that can cut every open connection
+/// at once: real network failure (both sockets closed mid-stream), no mock of either end.
+pub struct FaultyProxy {
+    pub addr: std::net::SocketAddr,
+    connections: std::sync::Arc<std::sync::Mutex<Vec<tokio::task::AbortHandle>>>,
+    accept: tokio::task::JoinHandle<()>,
+}
+
+impl FaultyProxy {
+    /// Forwards every connection to `target` (e.g. "127.0.0.1:8080").
+    pub async fn start(target: String) -> anyhow::Result<FaultyProxy> {
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
+        let addr = listener.local_addr()?;
+        let connections = std::sync::Arc::new(std::sync::Mutex::new(Vec::<tokio::task::AbortHandle>::new()));
+        let registry = connections.clone();
+        let accept = tokio::spawn(async move {
+            while let Ok((mut inbound, _)) = listener.accept().await {
+                let target = target.clone();
+                let task = tokio::spawn(async move {
+                    if let Ok(mut outbound) = tokio::net::TcpStream::connect(&target).await {
+                        let _ = tokio::io::copy_bidirectional(&mut inbound, &mut outbound).await;
+                    }
+                });
+                let mut live = registry.lock().unwrap();
+                live.retain(|h| !h.is_finished());
+                live.push(task.abort_handle());
+            }
+        });
+        Ok(FaultyProxy { addr, connections, accept })
+    }
+
+    pub fn url(&self) -> String {
+        format!("http://{}", self.addr)
+    }
+
+    /// Cuts every open connection (both of its sockets are closed); returns how many.
+    pub fn cut_all(&self) -> usize {
+        let mut live = self.connections.lock().unwrap();
+        let n = live.iter().filter(|h| !h.is_finished()).count();
+        for h in live.drain(..) {
+            h.abort();
+        }
+        n
+    }
+}
+
+impl Drop for FaultyProxy {
+    fn drop(&mut self) {
+        self.accept.abort();
+        self.cut_all();
+    }
+}
+
+/// A small seeded generator (SplitMix64) for fault schedules: print the seed, replay a failure.
+pub struct SplitMix64(pub u64);
+
+impl SplitMix64 {
+    pub fn next_u64(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9e37_79b9_7f4a_7c15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        z ^ (z >> 31)
+    }
+
+    /// Uniform in `lo..hi` (`hi > lo`).
+    pub fn range(&mut self, lo: u64, hi: u64) -> u64 {
+        lo + self.next_u64() % (hi - lo)
+    }
+}
+
+/// The seed of a fault test: `HELMHOLTZ_FAULT_SEED` if set (to replay a run), else the clock.
+pub fn fault_seed() -> u64 {
+    std::env::var("HELMHOLTZ_FAULT_SEED").ok().and_then(|s| s.parse().ok()).unwrap_or_else(|| {
+        std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_nanos() as u64).unwrap_or(1)
+    })
 }
 
 /// Parses a little-endian float NPY (`<f4` or `<f8`) into (shape, values as f64).

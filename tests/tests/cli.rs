@@ -11,6 +11,7 @@ fn helmholtz(server: &ServerProcess, args: &[&str]) -> serde_json::Value {
         .arg("--server")
         .arg(&server.base_url)
         .arg("--json")
+        .env("HELMHOLTZ_SPOOL", server.data_dir.join("client-spool"))
         .args(args)
         .output()
         .unwrap();
@@ -83,4 +84,47 @@ fn command_line_errors_are_clear_and_exit_non_zero() {
     assert!(!out.status.success());
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(stderr.contains("no-such-session") && stderr.contains("not found"), "{stderr}");
+}
+
+/// `helmholtz acquire` with rows arriving on stdin: a bad line stops it with the rows before it
+/// kept (spooled, then uploaded); a re-run feeds the rest and finishes; the server holds exactly
+/// the rows fed, each once.
+#[test]
+fn acquire_spools_rows_from_stdin_and_a_rerun_continues_after_a_bad_line() {
+    use std::io::Write;
+    let dir = tempfile::tempdir().unwrap();
+    let server = ServerProcess::start(&dir.path().join("data"), 0, &[]).unwrap();
+    let spool = dir.path().join("spool");
+    let spec = r#"{"family":"bernoulli","width":8,"height":8,"count":300,"seed":1}"#;
+    let acquire = |input: String| {
+        let mut child = Command::new(binary("helmholtz"))
+            .args(["--server", &server.base_url, "--spool", spool.to_str().unwrap(), "--json", "acquire"])
+            .args(["--session-id", "rig-stdin", "--spec-json", spec, "--channels", "a,b", "--finish", "--batch-rows", "64"])
+            .stdin(std::process::Stdio::piped())
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        child.stdin.take().unwrap().write_all(input.as_bytes()).unwrap();
+        child.wait_with_output().unwrap()
+    };
+    let line = |i: usize| format!("{i}.5, {}\n", i * 2);
+    let mut first: String = (0..200).map(line).collect();
+    first.push_str("# a comment\n\n7,x\n");
+    let out = acquire(first);
+    assert!(!out.status.success());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("line 203, column 2") && stderr.contains("200 rows spooled"), "{stderr}");
+
+    let out = acquire((200..300).map(line).collect());
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let json: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    assert_eq!(json["spooled_before"], 200);
+    assert_eq!(json["finished"], true);
+    let url = server.url("/v1/sessions/rig-stdin/measurements.npy");
+    let bytes = tokio::runtime::Runtime::new().unwrap().block_on(async { reqwest::get(url).await.unwrap().bytes().await.unwrap() });
+    let (shape, values) = parse_npy(&bytes).unwrap();
+    assert_eq!(shape, vec![300, 2]);
+    let expected: Vec<f64> = (0..300).flat_map(|i| [i as f64 + 0.5, (i * 2) as f64]).collect();
+    assert_eq!(values, expected);
 }

@@ -1,0 +1,452 @@
+//! Load benchmark (on demand, not a test): the real server binary, N simulated rigs spooling and
+//! uploading sessions at once through the real client library, and a steady open-loop stream of
+//! dual-image queries, for a fixed time. Reports throughput, latency percentiles per kind, errors
+//! and the server's peak memory (VmHWM), as Markdown on stdout and optionally into a file.
+//!
+//!     cargo build -p helmholtz-server --bins
+//!     cargo run -p helmholtz-tests --bin helmholtz-load -- --rigs 50 --seconds 60 --out docs/load.md
+//!
+//! (Add `--release` to both for a release build; the server binary is looked up beside this one.)
+
+use std::path::PathBuf;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, bail};
+use clap::Parser;
+use helmholtz_client::scene::Scene;
+use helmholtz_client::simulate::{self, NoiseModel};
+use helmholtz_client::spool::{self, SpoolDir};
+use helmholtz_client::{NewSession, PatternSpec, UploadOptions};
+use helmholtz_tests::ServerProcess;
+
+#[derive(Parser, Debug, Clone)]
+#[command(
+    name = "helmholtz-load",
+    about = "Load benchmark: the real server, simulated rigs uploading at once through the spool, and a steady stream of dual-image queries."
+)]
+struct Args {
+    /// Simulated rigs uploading at once.
+    #[arg(long, default_value_t = 50)]
+    rigs: usize,
+    /// Duration of the measured phase.
+    #[arg(long, default_value_t = 60.0)]
+    seconds: f64,
+    /// Rows (patterns) per uploaded session; each rig uploads session after session.
+    #[arg(long, default_value_t = 4096)]
+    rows: u64,
+    /// Pattern side (bernoulli, side x side pixels).
+    #[arg(long, default_value_t = 32)]
+    side: u32,
+    /// Dual-image queries per second (open loop: sent on schedule whatever the latency).
+    #[arg(long, default_value_t = 20.0)]
+    query_rate: f64,
+    /// Rows per spool write (fsync'ed) of each rig.
+    #[arg(long, default_value_t = 1024)]
+    batch_rows: usize,
+    /// Rows per upload chunk [default: the client's, about 256 KiB].
+    #[arg(long)]
+    chunk_rows: Option<usize>,
+    /// Server reconstruction workers [default: the server's, one per core].
+    #[arg(long)]
+    workers: Option<usize>,
+    /// The helmholtz-server binary [default: beside this binary].
+    #[arg(long)]
+    server_bin: Option<PathBuf>,
+    /// Bearer token for a server with access control: sent on REST queries, and exported as
+    /// HELMHOLTZ_TOKEN for the client library's gRPC calls.
+    #[arg(long, env = "HELMHOLTZ_TOKEN")]
+    token: Option<String>,
+    /// Also write the Markdown report to this file.
+    #[arg(long)]
+    out: Option<PathBuf>,
+}
+
+/// Latencies of one kind of operation, and its errors.
+#[derive(Default)]
+struct Samples {
+    ok: Vec<f64>,
+    errors: u64,
+    first_error: Option<String>,
+}
+
+impl Samples {
+    fn record(&mut self, result: Result<Duration, String>) {
+        match result {
+            Ok(d) => self.ok.push(d.as_secs_f64()),
+            Err(e) => {
+                self.errors += 1;
+                self.first_error.get_or_insert(e);
+            }
+        }
+    }
+
+    fn percentile(&self, p: f64) -> f64 {
+        if self.ok.is_empty() {
+            return f64::NAN;
+        }
+        let mut v = self.ok.clone();
+        v.sort_by(f64::total_cmp);
+        // Nearest rank.
+        let rank = ((p / 100.0) * v.len() as f64).ceil().max(1.0) as usize;
+        v[rank.min(v.len()) - 1]
+    }
+}
+
+#[derive(Default)]
+struct Totals {
+    sessions: u64,
+    rows: u64,
+    bytes: u64,
+    resumed_sessions: u64,
+}
+
+fn server_binary(args: &Args) -> anyhow::Result<PathBuf> {
+    if let Some(p) = &args.server_bin {
+        return Ok(p.clone());
+    }
+    let exe = std::env::current_exe()?;
+    let dir = exe.parent().context("binary directory")?;
+    let path = dir.join(format!("helmholtz-server{}", std::env::consts::EXE_SUFFIX));
+    if !path.exists() {
+        bail!(
+            "{} is missing: build it with the same profile first (`cargo build -p helmholtz-server --bins`, \
+             with --release for a release run) or pass --server-bin",
+            path.display()
+        );
+    }
+    Ok(path)
+}
+
+fn proc_status_kib(pid: u32, key: &str) -> Option<u64> {
+    let text = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    let line = text.lines().find(|l| l.starts_with(key))?;
+    line.split_whitespace().nth(1)?.parse().ok()
+}
+
+fn machine() -> String {
+    let cores = std::thread::available_parallelism()
+        .map(|n| n.get())
+        .unwrap_or(0);
+    let model = std::fs::read_to_string("/proc/cpuinfo")
+        .ok()
+        .and_then(|t| {
+            t.lines()
+                .find(|l| l.starts_with("model name"))
+                .and_then(|l| l.split(':').nth(1))
+                .map(|s| s.trim().to_string())
+        })
+        .unwrap_or_else(|| "unknown CPU".into());
+    let load = std::fs::read_to_string("/proc/loadavg").unwrap_or_default();
+    let load: Vec<&str> = load.split_whitespace().take(3).collect();
+    format!(
+        "{cores} cores ({model}), load average {} at the start",
+        load.join(" ")
+    )
+}
+
+#[tokio::main]
+async fn main() -> anyhow::Result<()> {
+    let args = Args::parse();
+    anyhow::ensure!(args.rigs >= 1, "--rigs must be at least 1");
+    anyhow::ensure!(args.seconds > 0.0, "--seconds must be > 0");
+    anyhow::ensure!(args.query_rate > 0.0, "--query-rate must be > 0");
+    if let Some(token) = &args.token {
+        // SAFETY: set before any other thread of ours reads the environment.
+        unsafe { std::env::set_var("HELMHOLTZ_TOKEN", token) };
+    }
+    let machine = machine();
+    let bin = server_binary(&args)?;
+    let dir = tempfile::tempdir()?;
+    let mut extra: Vec<String> = Vec::new();
+    if let Some(w) = args.workers {
+        extra.extend(["--workers".into(), w.to_string()]);
+    }
+    let extra: Vec<&str> = extra.iter().map(String::as_str).collect();
+    let mut server = ServerProcess::start_binary(&bin, &dir.path().join("data"), 0, &extra)?;
+    let base = server.base_url.clone();
+    let pid = server.pid();
+    eprintln!("server {} (pid {pid}) at {base}", bin.display());
+
+    let http = {
+        let mut headers = reqwest::header::HeaderMap::new();
+        if let Some(token) = &args.token {
+            headers.insert(
+                reqwest::header::AUTHORIZATION,
+                format!("Bearer {token}")
+                    .parse()
+                    .context("--token is not a valid header value")?,
+            );
+        }
+        reqwest::Client::builder()
+            .default_headers(headers)
+            .build()?
+    };
+
+    // Reference sessions with a finished reconstruction: what the queries read.
+    let side = args.side;
+    let spec = |rows: u64, seed: u64| -> PatternSpec {
+        serde_json::from_str(&format!(
+            r#"{{"family":"bernoulli","width":{side},"height":{side},"count":{rows},"seed":{seed}}}"#
+        ))
+        .expect("valid spec")
+    };
+    let transport = Scene::builtin("usaf", side, side)?.transport(1.0);
+    let noise = NoiseModel {
+        snr_db: Some(30.0),
+        ..NoiseModel::default()
+    };
+    let mut reference = Vec::new();
+    for r in 0..4u64 {
+        let id = format!("ref-{r}");
+        let s = spec(8192, 1000 + r);
+        let sim = simulate::simulate(&s, &[&transport], &noise, None);
+        helmholtz_client::create_session(&base, &NewSession::new(&id, s, vec!["bucket".into()]))
+            .await?;
+        helmholtz_client::upload(&base, &id, 1, &sim.values, &UploadOptions::default()).await?;
+        helmholtz_client::finish_session(&base, &id).await?;
+        let rec =
+            helmholtz_client::request_reconstruction(&base, &id, "dgi", &serde_json::json!({}))
+                .await?;
+        let rec =
+            helmholtz_client::wait_reconstruction(&base, rec.id, Duration::from_secs(120)).await?;
+        anyhow::ensure!(rec.is_done(), "reference reconstruction failed: {rec:?}");
+        reference.push((id, rec.id));
+    }
+    let reference = Arc::new(reference);
+
+    // One simulation per rig, reused for each of its sessions (new session ids).
+    eprintln!("simulating {} rigs ({} rows each)...", args.rigs, args.rows);
+    let rig_values: Vec<Arc<Vec<f64>>> = (0..args.rigs)
+        .map(|k| {
+            Arc::new(
+                simulate::simulate(&spec(args.rows, k as u64), &[&transport], &noise, None).values,
+            )
+        })
+        .collect();
+
+    let uploads = Arc::new(Mutex::new(Samples::default()));
+    let totals = Arc::new(Mutex::new(Totals::default()));
+    let spools = SpoolDir::new(dir.path().join("spool"));
+    let options = UploadOptions {
+        chunk_rows: args.chunk_rows,
+        ..UploadOptions::default()
+    };
+    let started = Instant::now();
+    let deadline = started + Duration::from_secs_f64(args.seconds);
+    eprintln!(
+        "running {} rigs and {} queries/s for {} s...",
+        args.rigs, args.query_rate, args.seconds
+    );
+
+    let mut rigs = Vec::new();
+    for (k, values) in rig_values.into_iter().enumerate() {
+        let (base, spools, options) = (base.clone(), spools.clone(), options.clone());
+        let (uploads, totals) = (uploads.clone(), totals.clone());
+        let s = spec(args.rows, k as u64);
+        let batch = args.batch_rows.max(1);
+        rigs.push(tokio::spawn(async move {
+            let mut n = 0u64;
+            while Instant::now() < deadline {
+                let id = format!("load-{k:03}-{n:05}");
+                n += 1;
+                let t0 = Instant::now();
+                let session = NewSession::new(&id, s.clone(), vec!["bucket".into()])
+                    .with_rig(format!("load-rig-{k}"));
+                let result = async {
+                    let spool = Arc::new(spools.create_or_open(&session, true)?);
+                    let drainer = tokio::spawn({
+                        let (spool, base, options) = (spool.clone(), base.clone(), options.clone());
+                        async move { spool::drain(&base, spool, &options, true).await }
+                    });
+                    for rows in values.chunks(batch) {
+                        let (spool, rows) = (spool.clone(), rows.to_vec());
+                        tokio::task::spawn_blocking(move || spool.append(&rows)).await??;
+                    }
+                    spool.seal()?;
+                    let report = drainer.await??;
+                    anyhow::ensure!(report.finished, "session {id} not finished: {report:?}");
+                    Ok(report)
+                }
+                .await;
+                match result {
+                    Ok(report) => {
+                        uploads.lock().unwrap().record(Ok(t0.elapsed()));
+                        let mut t = totals.lock().unwrap();
+                        t.sessions += 1;
+                        t.rows += report.committed_rows;
+                        t.bytes += report.committed_rows * 8;
+                        t.resumed_sessions += (report.resumes > 0) as u64;
+                    }
+                    Err(e) => uploads.lock().unwrap().record(Err(format!("{id}: {e:#}"))),
+                }
+            }
+        }));
+    }
+
+    // The query stream: open loop at a fixed rate, cycling through the kinds.
+    let kinds = [
+        "dual.png",
+        "dual.npy",
+        "reconstruction json",
+        "session dual.tiff",
+    ];
+    let queries: Arc<Vec<Mutex<Samples>>> = Arc::new(
+        kinds
+            .iter()
+            .map(|_| Mutex::new(Samples::default()))
+            .collect(),
+    );
+    let mut ticker = tokio::time::interval(Duration::from_secs_f64(1.0 / args.query_rate));
+    ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Burst);
+    let mut in_flight = Vec::new();
+    let mut i = 0usize;
+    while Instant::now() < deadline {
+        ticker.tick().await;
+        let kind = i % kinds.len();
+        let (session, rec) = reference[(i / kinds.len()) % reference.len()].clone();
+        i += 1;
+        let url = match kind {
+            0 => format!("{base}/v1/reconstructions/{rec}/dual.png"),
+            1 => format!("{base}/v1/reconstructions/{rec}/dual.npy"),
+            2 => format!("{base}/v1/reconstructions/{rec}"),
+            _ => format!("{base}/v1/sessions/{session}/dual.tiff"),
+        };
+        let (http, queries) = (http.clone(), queries.clone());
+        in_flight.push(tokio::spawn(async move {
+            let t0 = Instant::now();
+            let result = async {
+                let response = http
+                    .get(&url)
+                    .send()
+                    .await
+                    .map_err(|e| format!("{url}: {e}"))?;
+                let status = response.status();
+                let body = response.bytes().await.map_err(|e| format!("{url}: {e}"))?;
+                if !status.is_success() || body.is_empty() {
+                    return Err(format!("{url}: HTTP {status}, {} bytes", body.len()));
+                }
+                Ok(t0.elapsed())
+            }
+            .await;
+            queries[kind].lock().unwrap().record(result);
+        }));
+    }
+    for q in in_flight {
+        q.await?;
+    }
+    let query_seconds = started.elapsed().as_secs_f64();
+    for r in rigs {
+        r.await?;
+    }
+    let elapsed = started.elapsed().as_secs_f64();
+    let vm_hwm = proc_status_kib(pid, "VmHWM:");
+    let vm_rss = proc_status_kib(pid, "VmRSS:");
+    let _ = server.terminate();
+
+    // The report.
+    let uploads = uploads.lock().unwrap();
+    let totals = totals.lock().unwrap();
+    let query_count: usize = queries.iter().map(|q| q.lock().unwrap().ok.len()).sum();
+    let query_errors: u64 = queries.iter().map(|q| q.lock().unwrap().errors).sum();
+    let errors = uploads.errors + query_errors;
+    let mut md = String::new();
+    md.push_str(&format!(
+        "- command: `helmholtz-load --rigs {} --seconds {} --rows {} --side {} --query-rate {} --batch-rows {}{}`\n",
+        args.rigs,
+        args.seconds,
+        args.rows,
+        args.side,
+        args.query_rate,
+        args.batch_rows,
+        args.chunk_rows.map(|c| format!(" --chunk-rows {c}")).unwrap_or_default()
+    ));
+    md.push_str(&format!("- machine: {machine}\n"));
+    md.push_str(&format!(
+        "- build: {} profile\n",
+        if cfg!(debug_assertions) {
+            "dev (optimised, debug assertions on)"
+        } else {
+            "release"
+        }
+    ));
+    md.push_str(&format!(
+        "- wall time: {elapsed:.1} s (the last sessions started before the deadline finish after it)\n\n"
+    ));
+    md.push_str("| figure | value |\n|---|---|\n");
+    md.push_str(&format!(
+        "| sessions uploaded and finished | {} ({} resumed after a retry) |\n",
+        totals.sessions, totals.resumed_sessions
+    ));
+    md.push_str(&format!(
+        "| rows committed | {} ({:.0} rows/s) |\n",
+        totals.rows,
+        totals.rows as f64 / elapsed
+    ));
+    md.push_str(&format!(
+        "| bucket values committed | {:.1} MB ({:.2} MB/s) |\n",
+        totals.bytes as f64 / 1e6,
+        totals.bytes as f64 / 1e6 / elapsed
+    ));
+    md.push_str(&format!(
+        "| queries answered | {query_count} ({:.1} queries/s) |\n",
+        query_count as f64 / query_seconds
+    ));
+    md.push_str(&format!(
+        "| errors | {errors} (uploads {}, queries {query_errors}) |\n",
+        uploads.errors
+    ));
+    md.push_str(&format!(
+        "| server peak RSS (VmHWM) | {} |\n",
+        vm_hwm
+            .map(|k| format!(
+                "{:.1} MiB (VmRSS at the end {:.1} MiB)",
+                k as f64 / 1024.0,
+                vm_rss.unwrap_or(0) as f64 / 1024.0
+            ))
+            .unwrap_or_else(|| "unavailable (no /proc)".into())
+    ));
+    md.push_str(
+        "\n| kind | count | p50 ms | p99 ms | max ms | errors |\n|---|---|---|---|---|---|\n",
+    );
+    let row = |name: &str, s: &Samples| {
+        format!(
+            "| {name} | {} | {:.1} | {:.1} | {:.1} | {} |\n",
+            s.ok.len(),
+            s.percentile(50.0) * 1e3,
+            s.percentile(99.0) * 1e3,
+            s.percentile(100.0) * 1e3,
+            s.errors
+        )
+    };
+    md.push_str(&row(
+        &format!(
+            "upload session ({} rows: spool + upload + finish)",
+            args.rows
+        ),
+        &uploads,
+    ));
+    for (k, name) in kinds.iter().enumerate() {
+        md.push_str(&row(&format!("GET {name}"), &queries[k].lock().unwrap()));
+    }
+    let mut first_errors: Vec<String> = Vec::new();
+    first_errors.extend(uploads.first_error.clone());
+    for q in queries.iter() {
+        first_errors.extend(q.lock().unwrap().first_error.clone());
+    }
+    if !first_errors.is_empty() {
+        md.push_str("\nFirst errors:\n\n");
+        for e in &first_errors {
+            md.push_str(&format!("- {e}\n"));
+        }
+    }
+    println!("{md}");
+    if let Some(out) = &args.out {
+        std::fs::write(out, &md).with_context(|| format!("writing {}", out.display()))?;
+        eprintln!("wrote {}", out.display());
+    }
+    if errors > 0 {
+        bail!("{errors} errors under load");
+    }
+    Ok(())
+}
