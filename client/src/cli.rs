@@ -51,6 +51,11 @@ pub struct Cli {
         default_value = "http://127.0.0.1:8080"
     )]
     pub server: String,
+    /// The lab's access token (hz_...), sent on every call; `helmholtz-server token create`
+    /// makes one. A rig needs the rig role, requesting and fetching reconstructions the reader
+    /// role. (It may also ride in --server as http://TOKEN@host:port.)
+    #[arg(long, global = true, env = "HELMHOLTZ_TOKEN", hide_env_values = true)]
+    pub token: Option<String>,
     /// Print one JSON object on stdout instead of text (and no progress bars).
     #[arg(long, global = true)]
     pub json: bool,
@@ -587,7 +592,11 @@ pub fn main() -> ExitCode {
 /// Runs one parsed command.
 pub async fn run(cli: Cli) -> anyhow::Result<Outcome> {
     let progress = !cli.json && std::io::stderr().is_terminal();
-    let server = cli.server.as_str();
+    let server = match &cli.token {
+        Some(token) => crate::auth::with_token(&cli.server, token.trim()),
+        None => cli.server.clone(),
+    };
+    let server = server.as_str();
     let spools = SpoolDir::new(cli.spool.clone().unwrap_or_else(spool::default_root));
     match &cli.command {
         Command::Simulate(a) => simulate_cmd(server, &spools, a, progress).await,

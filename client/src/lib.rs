@@ -15,7 +15,9 @@
 //!
 //! One address serves both gRPC and REST (`http://127.0.0.1:8080` by default). Every network
 //! function takes it as `server: &str`; none keeps state between calls, so they can be called
-//! from tests against a server started on port 0.
+//! from tests against a server started on port 0. The lab's access token rides in it as the
+//! URL's user part (`http://hz_...@127.0.0.1:8080`, see [`auth::with_token`]) and is sent as a
+//! bearer token, never shown in messages.
 //!
 //! ```no_run
 //! # async fn demo() -> anyhow::Result<()> {
@@ -25,7 +27,8 @@
 //!     r#"{"family":"bernoulli","width":32,"height":32,"count":8192,"seed":7}"#)?;
 //! let transport = Scene::builtin("double-slit", 32, 32)?.transport(1.0);
 //! let sim = simulate::simulate(&spec, &[&transport], &simulate::NoiseModel::default(), None);
-//! let server = "http://127.0.0.1:8080";
+//! let server = helmholtz_client::auth::with_token("http://127.0.0.1:8080", "hz_...");
+//! let server = server.as_str();
 //! let session = NewSession::new("demo-1", spec.clone(), vec!["bucket".into()])
 //!     .with_ground_truth(32, 32, transport.clone());
 //! helmholtz_client::create_session(server, &session).await?;
@@ -37,6 +40,7 @@
 //! # Ok(()) }
 //! ```
 
+pub mod auth;
 pub mod cli;
 pub mod frames;
 pub mod measurements;

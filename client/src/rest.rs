@@ -14,7 +14,7 @@ use serde::{Deserialize, Serialize};
 
 /// A problem reported by the REST API (or an unexpected HTTP status).
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
-#[error("{method} {url}: HTTP {status} {title}{}{}", detail_suffix(.detail), field_suffix(.field))]
+#[error("{method} {url}: HTTP {status} {title}{}{}{}", detail_suffix(.detail), field_suffix(.field), request_id_suffix(.request_id))]
 pub struct ApiError {
     pub method: String,
     pub url: String,
@@ -24,6 +24,12 @@ pub struct ApiError {
     pub field: Option<String>,
     /// The problem's `type` URI, if any.
     pub problem_type: Option<String>,
+    /// The server's `x-request-id` for this request (to find it in the server's logs).
+    pub request_id: Option<String>,
+}
+
+fn request_id_suffix(id: &Option<String>) -> String {
+    id.as_deref().map(|id| format!(" [request id {id}]")).unwrap_or_default()
 }
 
 fn detail_suffix(detail: &Option<String>) -> String {
@@ -129,8 +135,18 @@ fn http() -> anyhow::Result<reqwest::Client> {
         .context("building the HTTP client")
 }
 
+/// The URL of `path` on `server`, without any token (that goes in the Authorization header).
 fn url(server: &str, path: &str) -> String {
-    format!("{}{}", server.trim_end_matches('/'), path)
+    let (address, _) = crate::auth::split_server(server);
+    format!("{}{}", address.trim_end_matches('/'), path)
+}
+
+/// Adds the token `server` carries (if any) as `Authorization: Bearer`.
+fn auth(request: reqwest::RequestBuilder, server: &str) -> reqwest::RequestBuilder {
+    match crate::auth::split_server(server).1 {
+        Some(token) => request.bearer_auth(token),
+        None => request,
+    }
 }
 
 /// Percent-encodes one URL path segment or query value (RFC 3986 unreserved kept).
@@ -156,6 +172,7 @@ async fn check(
     if status.is_success() {
         return Ok(response);
     }
+    let request_id = response.headers().get("x-request-id").and_then(|v| v.to_str().ok()).map(str::to_string);
     let body = response.text().await.unwrap_or_default();
     let problem: serde_json::Value = serde_json::from_str(&body).unwrap_or_default();
     let text = |k: &str| problem.get(k).and_then(|v| v.as_str()).map(str::to_string);
@@ -168,14 +185,14 @@ async fn check(
         detail: text("detail").or(if problem.is_object() { None } else { fallback }),
         field: text("field"),
         problem_type: text("type"),
+        request_id,
     }
     .into())
 }
 
 async fn get_json<T: serde::de::DeserializeOwned>(server: &str, path: &str) -> anyhow::Result<T> {
     let u = url(server, path);
-    let response = http()?
-        .get(&u)
+    let response = auth(http()?.get(&u), server)
         .send()
         .await
         .with_context(|| format!("GET {u}: cannot reach the server"))?;
@@ -225,8 +242,7 @@ pub async fn request_reconstruction_rest(
         ),
     );
     let body = serde_json::json!({ "method": method, "params": params });
-    let response = http()?
-        .post(&u)
+    let response = auth(http()?.post(&u), server)
         .json(&body)
         .send()
         .await
@@ -375,8 +391,7 @@ pub async fn fetch(
     out: &Path,
 ) -> anyhow::Result<FetchReport> {
     let u = url(server, &dual_path(target, format, channel));
-    let response = http()?
-        .get(&u)
+    let response = auth(http()?.get(&u), server)
         .send()
         .await
         .with_context(|| format!("GET {u}: cannot reach the server"))?;
@@ -490,10 +505,11 @@ mod tests {
             detail: Some("no session x".into()),
             field: Some("session_id".into()),
             problem_type: None,
+            request_id: Some("7f3a".into()),
         };
         assert_eq!(
             e.to_string(),
-            "GET http://h/v1/sessions/x: HTTP 404 Not Found: no session x (field: session_id)"
+            "GET http://h/v1/sessions/x: HTTP 404 Not Found: no session x (field: session_id) [request id 7f3a]"
         );
     }
 

@@ -21,9 +21,10 @@ use helmholtz_proto::{PatternSpec, wire};
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use serde::Serialize;
 use tokio_stream::wrappers::ReceiverStream;
-use tonic::transport::{Channel, Endpoint};
+use tonic::transport::Endpoint;
 use tonic::{Code, Status};
 
+use crate::auth::Grpc;
 use crate::rest::Reconstruction;
 
 /// Default payload per chunk: 256 KiB of f64 values (tonic's default message limit is 4 MiB).
@@ -182,10 +183,11 @@ pub struct RpcError {
 
 impl RpcError {
     pub fn new(operation: impl Into<String>, status: &Status) -> Self {
+        let id = crate::auth::request_id(status).map(|id| format!(" [request id {id}]"));
         RpcError {
             operation: operation.into(),
             code: status.code(),
-            message: status.message().to_string(),
+            message: format!("{}{}", status.message(), id.unwrap_or_default()),
         }
     }
 }
@@ -261,8 +263,9 @@ pub fn disposition(code: Code) -> Disposition {
 pub fn connect(
     server: &str,
     connect_timeout: Duration,
-) -> anyhow::Result<AcquisitionClient<Channel>> {
-    let endpoint = Endpoint::from_shared(server.to_string())
+) -> anyhow::Result<Grpc> {
+    let (server, token) = crate::auth::split_server(server);
+    let endpoint = Endpoint::from_shared(server.clone())
         .with_context(|| {
             format!("invalid server address {server:?} (expected e.g. http://127.0.0.1:8080)")
         })?
@@ -270,7 +273,8 @@ pub fn connect(
         .tcp_nodelay(true)
         .http2_keep_alive_interval(Duration::from_secs(10))
         .keep_alive_timeout(Duration::from_secs(20));
-    Ok(AcquisitionClient::new(endpoint.connect_lazy())
+    let bearer = crate::auth::Bearer::new(token.as_deref())?;
+    Ok(AcquisitionClient::with_interceptor(endpoint.connect_lazy(), bearer)
         .max_decoding_message_size(64 << 20)
         .max_encoding_message_size(usize::MAX))
 }
@@ -283,7 +287,7 @@ async fn unary<T, F, Fut>(
     mut call: F,
 ) -> anyhow::Result<T>
 where
-    F: FnMut(AcquisitionClient<Channel>) -> Fut,
+    F: FnMut(Grpc) -> Fut,
     Fut: Future<Output = Result<tonic::Response<T>, Status>>,
 {
     let started = Instant::now();

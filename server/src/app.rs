@@ -11,11 +11,13 @@ use axum::Router;
 use helmholtz_proto::v1::acquisition_server::AcquisitionServer;
 use tonic::server::NamedService;
 use tower::ServiceExt;
+use tower_http::request_id::{MakeRequestUuid, PropagateRequestIdLayer, RequestId, SetRequestIdLayer};
 use tower_http::trace::TraceLayer;
 
 use crate::api::grpc::AcquisitionService;
 use crate::api::{AppState, rest};
 use crate::jobs::{PoolConfig, WorkerPool};
+use crate::limits::Limits;
 use crate::store::Store;
 
 /// Everything the service needs to start.
@@ -29,6 +31,10 @@ pub struct Config {
     pub workers: usize,
     /// Job lease length.
     pub lease: Duration,
+    /// Caps on requests, sessions, labs and tokens.
+    pub limits: Limits,
+    /// Where to serve Prometheus metrics (`GET /metrics`); None: not served.
+    pub metrics_listen: Option<SocketAddr>,
 }
 
 impl Default for Config {
@@ -38,6 +44,8 @@ impl Default for Config {
             data_dir: PathBuf::from("helmholtz-data"),
             workers: std::thread::available_parallelism().map(|n| n.get()).unwrap_or(2),
             lease: Duration::from_secs(30),
+            limits: Limits::default(),
+            metrics_listen: None,
         }
     }
 }
@@ -49,6 +57,7 @@ pub struct Application {
     router: Router,
     workers: WorkerPool,
     store: Store,
+    metrics: Option<(tokio::net::TcpListener, SocketAddr, metrics_exporter_prometheus::PrometheusHandle)>,
 }
 
 impl Application {
@@ -57,23 +66,49 @@ impl Application {
             .await
             .with_context(|| format!("cannot listen on {} (try --listen 127.0.0.1:0 for any free port)", config.listen))?;
         let addr = listener.local_addr()?;
+        let metrics = match config.metrics_listen {
+            None => None,
+            Some(at) => {
+                let l = crate::telemetry::bind(at).await?;
+                let a = l.local_addr()?;
+                Some((l, a, crate::telemetry::recorder()?))
+            }
+        };
         let store = Store::open(&config.data_dir)
             .await
             .with_context(|| format!("opening the database in {}", config.data_dir.display()))?;
         let workers = WorkerPool::start(
             store.clone(),
             tokio::runtime::Handle::current(),
-            PoolConfig { workers: config.workers, lease: config.lease, ..PoolConfig::default() },
+            PoolConfig {
+                workers: config.workers,
+                lease: config.lease,
+                max_running_per_lab: config.limits.max_running_jobs_per_lab,
+                ..PoolConfig::default()
+            },
         );
-        let state = AppState::new(store.clone(), workers.notifier());
+        let state = AppState::new(store.clone(), workers.notifier(), config.limits.clone());
         let (health_reporter, health_service) = tonic_health::server::health_reporter();
         health_reporter.set_serving::<AcquisitionServer<AcquisitionService>>().await;
         let acquisition = AcquisitionService::new(state.clone()).into_server();
         let router = rest::router(state)
             .route_service(&format!("/{}/{{*rpc}}", <AcquisitionServer<AcquisitionService> as NamedService>::NAME), grpc_route(acquisition))
             .route_service(&format!("/{}/{{*rpc}}", health_name(&health_service)), grpc_route(health_service))
-            .layer(TraceLayer::new_for_http());
-        Ok(Application { listener, addr, router, workers, store })
+            .layer(axum::middleware::from_fn(crate::telemetry::record_latency))
+            // Outermost first: set (or keep the client's) x-request-id, log in a span that
+            // carries it, and copy it to the response (HTTP header / gRPC initial metadata).
+            .layer(PropagateRequestIdLayer::x_request_id())
+            .layer(TraceLayer::new_for_http().make_span_with(|request: &http::Request<_>| {
+                let id = request
+                    .extensions()
+                    .get::<RequestId>()
+                    .and_then(|id| id.header_value().to_str().ok())
+                    .unwrap_or("-")
+                    .to_string();
+                tracing::info_span!("request", request_id = %id, method = %request.method(), path = %request.uri().path())
+            }))
+            .layer(SetRequestIdLayer::x_request_id(MakeRequestUuid));
+        Ok(Application { listener, addr, router, workers, store, metrics })
     }
 
     pub fn local_addr(&self) -> SocketAddr {
@@ -85,17 +120,37 @@ impl Application {
         format!("http://{}", self.addr)
     }
 
+    /// `http://host:port/metrics` when metrics are served.
+    pub fn metrics_url(&self) -> Option<String> {
+        self.metrics.as_ref().map(|(_, a, _)| format!("http://{a}/metrics"))
+    }
+
     pub fn store(&self) -> &Store {
         &self.store
     }
 
-    /// Serves until `shutdown` resolves, then stops the workers (running jobs give their lease
-    /// back) and closes the database.
+    /// Serves until `shutdown` resolves, then: stops accepting connections and lets requests
+    /// in flight finish (an upload stream commits every chunk it has received; the client
+    /// resumes the rest elsewhere or later), stops the workers (running jobs stop at their next
+    /// check and give their lease back without spending an attempt), and closes the database.
     pub async fn run_until(self, shutdown: impl Future<Output = ()> + Send + 'static) -> anyhow::Result<()> {
-        let Application { listener, router, workers, store, .. } = self;
+        let Application { listener, router, workers, store, metrics, .. } = self;
+        let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+        let metrics_task = metrics.map(|(l, _, handle)| {
+            let mut rx = stop_rx.clone();
+            tokio::spawn(crate::telemetry::serve(l, handle, store.clone(), async move {
+                let _ = rx.wait_for(|s| *s).await;
+            }))
+        });
         axum::serve(listener, router).with_graceful_shutdown(shutdown).await?;
+        tracing::info!("no longer serving; stopping the workers");
+        let _ = stop_tx.send(true);
         tokio::task::spawn_blocking(move || workers.shutdown()).await?;
+        if let Some(t) = metrics_task {
+            let _ = t.await;
+        }
         store.close().await;
+        tracing::info!("shut down cleanly");
         Ok(())
     }
 }

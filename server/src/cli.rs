@@ -7,9 +7,11 @@ use std::time::Duration;
 use clap::{Parser, Subcommand};
 
 use crate::app::{Application, Config};
+use crate::auth::Roles;
+use crate::limits::Limits;
 
 #[derive(Parser, Debug)]
-#[command(name = "helmholtz-server", version, about = "Helmholtz: dual photography and ghost imaging reconstruction service.\n\nServes the gRPC acquisition API (helmholtz.v1.Acquisition) and the REST API on one address, stores sessions in SQLite and reconstructs on a pool of CPU workers.")]
+#[command(name = "helmholtz-server", version, about = "Helmholtz: dual photography and ghost imaging reconstruction service.\n\nServes the gRPC acquisition API (helmholtz.v1.Acquisition) and the REST API on one address, stores sessions in SQLite and reconstructs on a pool of CPU workers.\n\nEvery call but the health checks needs a lab's token (Authorization: Bearer hz_...); create the first with `helmholtz-server token create --lab LAB --role admin` (or rig, reader).")]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -32,6 +34,95 @@ struct ServeArgs {
     /// Job lease in seconds: a job whose worker stops heart-beating for this long is taken up again.
     #[arg(long, default_value_t = 30)]
     lease_seconds: u64,
+    /// Serve Prometheus metrics (GET /metrics) on this separate address; port 0 picks a free
+    /// port (printed on the first line). Off unless given.
+    #[arg(long, env = "HELMHOLTZ_METRICS_LISTEN")]
+    metrics_listen: Option<SocketAddr>,
+    #[command(flatten)]
+    limits: LimitArgs,
+}
+
+/// Caps; each refusal names its limit.
+#[derive(clap::Args, Debug, Clone)]
+struct LimitArgs {
+    /// Largest gRPC message in bytes (tonic refuses larger ones with OUT_OF_RANGE naming the limit).
+    #[arg(long, default_value_t = Limits::default().max_message_bytes)]
+    max_message_bytes: usize,
+    /// Largest REST request body in bytes (413 above it).
+    #[arg(long, default_value_t = Limits::default().max_body_bytes)]
+    max_body_bytes: usize,
+    /// Largest upload chunk (bucket values of one MeasurementChunk) in bytes.
+    #[arg(long, default_value_t = Limits::default().max_chunk_bytes)]
+    max_chunk_bytes: usize,
+    /// Most patterns (rows) a session may declare.
+    #[arg(long, default_value_t = Limits::default().max_patterns)]
+    max_patterns: u64,
+    /// Most pixels (width x height) of a session's patterns.
+    #[arg(long, default_value_t = Limits::default().max_pixels)]
+    max_pixels: u64,
+    /// Most sessions one lab may hold.
+    #[arg(long, default_value_t = Limits::default().max_sessions_per_lab)]
+    max_sessions_per_lab: u64,
+    /// Most reconstructions one lab may have queued or running.
+    #[arg(long, default_value_t = Limits::default().max_pending_jobs_per_lab)]
+    max_pending_jobs_per_lab: u64,
+    /// Most reconstructions of one lab running at once (0: no cap beyond --workers).
+    #[arg(long, default_value_t = Limits::default().max_running_jobs_per_lab)]
+    max_running_jobs_per_lab: u32,
+    /// Sustained requests per second per token (0: unlimited).
+    #[arg(long, default_value_t = Limits::default().rate_per_second)]
+    rate_per_second: f64,
+    /// Burst of requests per token above the sustained rate.
+    #[arg(long, default_value_t = Limits::default().rate_burst)]
+    rate_burst: f64,
+}
+
+impl LimitArgs {
+    fn limits(&self) -> Limits {
+        Limits {
+            max_message_bytes: self.max_message_bytes,
+            max_body_bytes: self.max_body_bytes,
+            max_chunk_bytes: self.max_chunk_bytes,
+            max_patterns: self.max_patterns,
+            max_pixels: self.max_pixels,
+            max_sessions_per_lab: self.max_sessions_per_lab,
+            max_pending_jobs_per_lab: self.max_pending_jobs_per_lab,
+            max_running_jobs_per_lab: self.max_running_jobs_per_lab,
+            rate_per_second: self.rate_per_second,
+            rate_burst: self.rate_burst,
+        }
+    }
+}
+
+#[derive(Subcommand, Debug)]
+enum TokenCommand {
+    /// Create a token for a lab and print it (once: only its SHA-256 is stored).
+    Create {
+        /// The lab the token belongs to (1-64 characters of A-Z a-z 0-9 . _ -).
+        #[arg(long)]
+        lab: String,
+        /// Role: rig (create sessions, upload), reader (read, request and cancel
+        /// reconstructions), admin (manage the lab's tokens). Repeat or comma-separate for several.
+        #[arg(long = "role", required = true, value_delimiter = ',')]
+        roles: Vec<String>,
+        /// A note to recognise the token by in `token list`.
+        #[arg(long, default_value = "")]
+        note: String,
+        /// Print JSON (id, lab, roles, token) instead of the bare token.
+        #[arg(long)]
+        json: bool,
+    },
+    /// List tokens (never their secrets).
+    List {
+        /// Only this lab's tokens.
+        #[arg(long)]
+        lab: Option<String>,
+    },
+    /// Revoke a token by id; it stops working at once.
+    Revoke {
+        /// The token's id (from `token list` or `token create --json`).
+        id: i64,
+    },
 }
 
 #[derive(Subcommand, Debug)]
@@ -47,6 +138,14 @@ enum Command {
         #[arg(long)]
         exit_after_demo: bool,
     },
+    /// Manage access tokens directly in the database (works whether or not the server runs).
+    Token {
+        #[command(subcommand)]
+        command: TokenCommand,
+        /// Directory of the SQLite database.
+        #[arg(long, env = "HELMHOLTZ_DATA_DIR", default_value = "helmholtz-data", global = true)]
+        data_dir: PathBuf,
+    },
 }
 
 impl ServeArgs {
@@ -55,6 +154,8 @@ impl ServeArgs {
             listen: self.listen,
             data_dir: self.data_dir.clone(),
             lease: Duration::from_secs(self.lease_seconds.max(1)),
+            limits: self.limits.limits(),
+            metrics_listen: self.metrics_listen,
             ..Config::default()
         };
         if let Some(w) = self.workers {
@@ -72,6 +173,7 @@ pub fn main() {
         match cli.command {
             Command::Serve(args) => serve(args.config()).await,
             Command::Demo { serve, exit_after_demo } => crate::demo::run(serve.config(), exit_after_demo).await,
+            Command::Token { command, data_dir } => token(command, &data_dir).await,
         }
     });
     if let Err(e) = result {
@@ -104,6 +206,53 @@ pub async fn shutdown_signal() {
     tracing::info!("shutting down: finishing requests, giving running jobs' leases back");
 }
 
+async fn token(command: TokenCommand, data_dir: &std::path::Path) -> anyhow::Result<()> {
+    use anyhow::Context;
+    let store = crate::store::Store::open(data_dir)
+        .await
+        .with_context(|| format!("opening the database in {}", data_dir.display()))?;
+    let result = async {
+        match command {
+            TokenCommand::Create { lab, roles, note, json } => {
+                crate::auth::valid_lab(&lab).map_err(|e| anyhow::anyhow!("--lab: {e}"))?;
+                let roles = Roles::parse(&roles.join(",")).map_err(|e| anyhow::anyhow!("--role: {e}"))?;
+                if note.len() > 256 || note.chars().any(char::is_control) {
+                    anyhow::bail!("--note: at most 256 characters without control characters");
+                }
+                let (info, secret) = store.create_token(&lab, roles, &note).await?;
+                if json {
+                    let mut v = serde_json::to_value(&info)?;
+                    v["token"] = serde_json::json!(secret);
+                    println!("{v}");
+                } else {
+                    println!("{secret}");
+                    eprintln!("token {} for lab {:?} with roles {}: shown once, store it now", info.id, info.lab, info.roles);
+                }
+            }
+            TokenCommand::List { lab } => {
+                for t in store.list_tokens(lab.as_deref()).await? {
+                    println!(
+                        "{}\t{}\t{}\t{}\t{}",
+                        t.id,
+                        t.lab,
+                        t.roles,
+                        if t.revoked_unix_ms.is_some() { "revoked" } else { "valid" },
+                        t.note
+                    );
+                }
+            }
+            TokenCommand::Revoke { id } => {
+                let t = store.revoke_token(id, None).await?.ok_or_else(|| anyhow::anyhow!("no token with id {id}"))?;
+                println!("token {} of lab {:?} revoked", t.id, t.lab);
+            }
+        }
+        Ok(())
+    }
+    .await;
+    store.close().await;
+    result
+}
+
 async fn serve(config: Config) -> anyhow::Result<()> {
     let app = Application::build(config.clone()).await?;
     announce(&app, &config);
@@ -113,8 +262,9 @@ async fn serve(config: Config) -> anyhow::Result<()> {
 /// The first line on stdout says where the service is (tests and scripts read it).
 pub fn announce(app: &Application, config: &Config) {
     use std::io::Write;
+    let metrics = app.metrics_url().map(|u| format!(", metrics on {u}")).unwrap_or_default();
     println!(
-        "helmholtz-server listening on {} (gRPC + REST), data in {}, {} workers",
+        "helmholtz-server listening on {} (gRPC + REST){metrics}, data in {}, {} workers",
         app.base_url(),
         config.data_dir.display(),
         config.workers

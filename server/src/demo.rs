@@ -10,6 +10,7 @@ use helmholtz_client::{NewSession, PatternSpec, UploadOptions};
 use tokio::sync::oneshot;
 
 use crate::app::{Application, Config};
+use crate::auth::{Role, Roles};
 use crate::cli::{announce, shutdown_signal};
 
 struct DemoRig {
@@ -42,10 +43,23 @@ fn rigs() -> Vec<DemoRig> {
     ]
 }
 
+/// The demo's lab: its sessions and tokens belong to it.
+pub const DEMO_LAB: &str = "demo";
+
 pub async fn run(config: Config, exit_after_demo: bool) -> anyhow::Result<()> {
     let app = Application::build(config.clone()).await?;
     announce(&app, &config);
     let base = app.base_url();
+    // Fresh tokens each run (the secrets are not stored, so earlier ones cannot be shown again).
+    let (_, rig_token) = app.store().create_token(DEMO_LAB, Roles::of(&[Role::Rig]), "demo rig").await?;
+    let (_, reader_token) = app.store().create_token(DEMO_LAB, Roles::of(&[Role::Reader]), "demo reader").await?;
+    println!("\nTokens for lab {DEMO_LAB:?} (shown once; `helmholtz-server token list` lists them, `token revoke ID` revokes):");
+    println!("   rig    (create sessions, upload):           {rig_token}");
+    println!("   reader (sessions, reconstructions, images): {reader_token}");
+    println!("   e.g.  curl -H 'Authorization: Bearer {reader_token}' {base}/v1/sessions");
+    println!("         helmholtz --server {base} --token {reader_token} status");
+    let rig = helmholtz_client::auth::with_token(&base, &rig_token);
+    let reader = helmholtz_client::auth::with_token(&base, &reader_token);
     let (demo_done_tx, demo_done_rx) = oneshot::channel::<()>();
     let server = tokio::spawn(app.run_until(async move {
         if exit_after_demo {
@@ -54,7 +68,7 @@ pub async fn run(config: Config, exit_after_demo: bool) -> anyhow::Result<()> {
             shutdown_signal().await;
         }
     }));
-    let outcome = run_rigs(&base).await;
+    let outcome = run_rigs(&base, &rig, &reader).await;
     let _ = demo_done_tx.send(());
     if let Err(e) = &outcome {
         eprintln!("demo rig failed: {e:#}");
@@ -65,7 +79,10 @@ pub async fn run(config: Config, exit_after_demo: bool) -> anyhow::Result<()> {
     outcome
 }
 
-async fn run_rigs(base: &str) -> anyhow::Result<()> {
+/// The simulated rig uploads with the rig token; reconstructions are requested and awaited with
+/// the reader token. `base` (without a token) is only printed.
+async fn run_rigs(base: &str, rig: &str, reader: &str) -> anyhow::Result<()> {
+    let rig_url = rig;
     for rig in rigs() {
         let spec: PatternSpec = serde_json::from_str(rig.spec).expect("demo spec is valid");
         println!("\n== {}: {}", rig.session_id, rig.what);
@@ -79,17 +96,17 @@ async fn run_rigs(base: &str) -> anyhow::Result<()> {
             .with_rig("demo-rig")
             .with_metadata("scene", rig.scene)
             .with_ground_truth(spec.width(), spec.height(), transport);
-        helmholtz_client::create_session(base, &session).await?;
-        let upload = helmholtz_client::upload(base, rig.session_id, 1, &sim.values, &UploadOptions::default()).await?;
-        helmholtz_client::finish_session(base, rig.session_id).await?;
+        helmholtz_client::create_session(rig_url, &session).await?;
+        let upload = helmholtz_client::upload(rig_url, rig.session_id, 1, &sim.values, &UploadOptions::default()).await?;
+        helmholtz_client::finish_session(rig_url, rig.session_id).await?;
         println!(
             "   uploaded {} rows ({} already stored) in {:.2} s",
             upload.rows,
             upload.rows_skipped,
             upload.seconds
         );
-        let rec = helmholtz_client::request_reconstruction(base, rig.session_id, rig.method, &serde_json::json!({})).await?;
-        let rec = helmholtz_client::wait_reconstruction(base, rec.id, Duration::from_secs(600)).await?;
+        let rec = helmholtz_client::request_reconstruction(reader, rig.session_id, rig.method, &serde_json::json!({})).await?;
+        let rec = helmholtz_client::wait_reconstruction(reader, rec.id, Duration::from_secs(600)).await?;
         anyhow::ensure!(rec.is_done(), "reconstruction {} ended {}: {:?}", rec.id, rec.state, rec.error);
         let q = &rec.report["quality"][0];
         println!(

@@ -2,8 +2,9 @@
 //! numerics off the async runtime. Each running job has a heartbeat task that extends its lease;
 //! losing the lease (or a cancel) stops the computation at its next check.
 
+use std::collections::HashMap;
 use std::panic::AssertUnwindSafe;
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
@@ -24,11 +25,13 @@ pub struct PoolConfig {
     pub lease: Duration,
     /// How often an idle worker looks for work when not woken.
     pub idle_poll: Duration,
+    /// Most jobs of one lab running at once (0: no cap).
+    pub max_running_per_lab: u32,
 }
 
 impl Default for PoolConfig {
     fn default() -> Self {
-        PoolConfig { workers: 2, lease: Duration::from_secs(30), idle_poll: Duration::from_millis(500) }
+        PoolConfig { workers: 2, lease: Duration::from_secs(30), idle_poll: Duration::from_millis(500), max_running_per_lab: 0 }
     }
 }
 
@@ -37,15 +40,30 @@ pub struct WorkerPool {
     threads: Vec<JoinHandle<()>>,
     stop: Arc<AtomicBool>,
     wake: Arc<Notify>,
+    running: Running,
 }
 
-/// Wakes idle workers when a job is queued.
+/// The jobs this process is computing, by id, with their cancellation handles.
+type Running = Arc<Mutex<HashMap<i64, Arc<Control>>>>;
+
+/// Wakes idle workers when a job is queued; stops a running job at once when it is cancelled.
 #[derive(Clone, Debug)]
-pub struct JobNotifier(Arc<Notify>);
+pub struct JobNotifier {
+    wake: Arc<Notify>,
+    running: Running,
+}
 
 impl JobNotifier {
     pub fn job_queued(&self) {
-        self.0.notify_waiters();
+        self.wake.notify_waiters();
+    }
+
+    /// Tells the worker computing job `id` (if it runs in this process) to stop at its next
+    /// check; the store already says `cancelled`, so its result would be fenced out anyway.
+    pub fn cancel_running(&self, id: i64) {
+        if let Some(control) = self.running.lock().expect("running lock").get(&id) {
+            control.cancel();
+        }
     }
 }
 
@@ -53,6 +71,7 @@ impl WorkerPool {
     pub fn start(store: Store, runtime: Handle, config: PoolConfig) -> WorkerPool {
         let stop = Arc::new(AtomicBool::new(false));
         let wake = Arc::new(Notify::new());
+        let running: Running = Arc::default();
         let threads = (0..config.workers.max(1))
             .map(|n| {
                 let worker = Worker {
@@ -62,6 +81,7 @@ impl WorkerPool {
                     config: config.clone(),
                     stop: stop.clone(),
                     wake: wake.clone(),
+                    running: running.clone(),
                 };
                 std::thread::Builder::new()
                     .name(format!("recon-worker-{n}"))
@@ -69,17 +89,20 @@ impl WorkerPool {
                     .expect("spawn worker thread")
             })
             .collect();
-        WorkerPool { threads, stop, wake }
+        WorkerPool { threads, stop, wake, running }
     }
 
     pub fn notifier(&self) -> JobNotifier {
-        JobNotifier(self.wake.clone())
+        JobNotifier { wake: self.wake.clone(), running: self.running.clone() }
     }
 
     /// Stops taking work; running jobs are cancelled and their leases given back (not counted as
     /// an attempt), so the next start picks them up again.
     pub fn shutdown(self) {
         self.stop.store(true, Ordering::SeqCst);
+        for control in self.running.lock().expect("running lock").values() {
+            control.cancel();
+        }
         self.wake.notify_waiters();
         for t in self.threads {
             let _ = t.join();
@@ -94,13 +117,14 @@ struct Worker {
     config: PoolConfig,
     stop: Arc<AtomicBool>,
     wake: Arc<Notify>,
+    running: Running,
 }
 
 impl Worker {
     fn run(self) {
         let lease_ms = self.config.lease.as_millis() as i64;
         while !self.stop.load(Ordering::SeqCst) {
-            match self.runtime.block_on(self.store.claim_job(&self.id, lease_ms)) {
+            match self.runtime.block_on(self.store.claim_job(&self.id, lease_ms, self.config.max_running_per_lab)) {
                 Ok(Some(job)) => self.run_job(job),
                 Ok(None) => self.idle(),
                 Err(e) => {
@@ -128,6 +152,10 @@ impl Worker {
         let _enter = span.enter();
         tracing::info!(session = %job.reconstruction.session_id, rows = job.reconstruction.rows_used, "job started");
         let control = Arc::new(Control::new());
+        self.running.lock().expect("running lock").insert(id, control.clone());
+        if self.stop.load(Ordering::SeqCst) {
+            control.cancel();
+        }
         let heartbeat = self.spawn_heartbeat(id, attempt, control.clone());
         let started = Instant::now();
         let heap_base = crate::alloc::live_bytes();
@@ -143,6 +171,15 @@ impl Worker {
             });
         let seconds = started.elapsed().as_secs_f64();
         heartbeat.abort();
+        self.running.lock().expect("running lock").remove(&id);
+        let outcome_label = match &outcome {
+            Ok(_) => "done",
+            Err(JobError::Recon(ReconError::Cancelled)) if self.stop.load(Ordering::SeqCst) => "released",
+            Err(JobError::Recon(ReconError::Cancelled)) => "cancelled",
+            Err(_) => "failed",
+        };
+        metrics::histogram!("helmholtz_job_duration_seconds", "method" => job.reconstruction.method.clone(), "outcome" => outcome_label)
+            .record(seconds);
         let store = &self.store;
         let result = match outcome {
             Ok((images, mut report)) => {
@@ -165,6 +202,7 @@ impl Worker {
         };
         match result {
             Ok(true) => tracing::info!(seconds, "job ended"),
+            Ok(false) if outcome_label == "cancelled" => tracing::info!(seconds, "job stopped: cancelled"),
             Ok(false) => tracing::warn!(seconds, "job ended without its lease (cancelled or taken over)"),
             Err(e) => tracing::error!(error = %e, "recording the job's end failed"),
         }

@@ -6,11 +6,14 @@
 pub mod alloc;
 pub mod api;
 pub mod app;
+pub mod auth;
 pub mod bench;
 pub mod cli;
 mod demo;
 pub mod jobs;
+pub mod limits;
 pub mod recon;
 pub mod store;
+pub mod telemetry;
 
 pub use app::{Application, Config};

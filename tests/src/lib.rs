@@ -7,8 +7,7 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, bail};
-use helmholtz_proto::v1::acquisition_client::AcquisitionClient;
-use tonic::transport::Channel;
+use helmholtz_client::auth::Grpc;
 
 /// Path of a workspace binary built beside this test executable (`cargo test --workspace`
 /// builds them: the server and client packages each have an integration test). Note that
@@ -26,23 +25,70 @@ pub fn binary(name: &str) -> PathBuf {
     path
 }
 
+/// The lab of the harness's default token.
+pub const E2E_LAB: &str = "e2e";
+
+/// Creates a token with the real `helmholtz-server token create` against `data_dir` (the
+/// server may be running) and returns its secret.
+pub fn create_token(data_dir: &Path, lab: &str, roles: &str) -> anyhow::Result<String> {
+    create_token_with(&binary("helmholtz-server"), data_dir, lab, roles)
+}
+
+/// [`create_token`] by the server binary at `server_bin`.
+pub fn create_token_with(server_bin: &Path, data_dir: &Path, lab: &str, roles: &str) -> anyhow::Result<String> {
+    let out = Command::new(server_bin)
+        .args(["token", "create", "--lab", lab, "--role", roles, "--data-dir"])
+        .arg(data_dir)
+        .env("RUST_LOG", "warn")
+        .output()
+        .context("running helmholtz-server token create")?;
+    if !out.status.success() {
+        bail!("token create failed: {}", String::from_utf8_lossy(&out.stderr));
+    }
+    let token = String::from_utf8(out.stdout)?.trim().to_string();
+    anyhow::ensure!(token.starts_with("hz_"), "unexpected token output {token:?}");
+    Ok(token)
+}
+
 /// A running server process. Killed (SIGKILL) when dropped.
+///
+/// `base_url` carries the harness's token for lab [`E2E_LAB`] with roles rig and reader as its
+/// user part (`http://hz_...@127.0.0.1:PORT`): the client library sends it as a bearer token and
+/// reqwest as HTTP Basic, so existing calls through `base_url` / `url()` are authenticated.
+/// `address` is the same server without a token.
 pub struct ServerProcess {
     child: Child,
     pub base_url: String,
+    pub address: String,
+    pub token: String,
     pub port: u16,
     pub data_dir: PathBuf,
+    /// `http://127.0.0.1:PORT/metrics` when started with `--metrics-listen`.
+    pub metrics_url: Option<String>,
     stdout_thread: Option<std::thread::JoinHandle<()>>,
 }
 
 impl ServerProcess {
-    /// Starts `helmholtz-server serve` on 127.0.0.1 port 0 (or `port`) with `data_dir`.
+    /// Starts `helmholtz-server serve` on 127.0.0.1 port 0 (or `port`) with `data_dir`, after
+    /// making sure `data_dir` holds the harness's token (kept in `data_dir/.e2e-token` so a
+    /// restarted server on the same data accepts the same token).
     pub fn start(data_dir: &Path, port: u16, extra: &[&str]) -> anyhow::Result<ServerProcess> {
         Self::start_binary(&binary("helmholtz-server"), data_dir, port, extra)
     }
 
-    /// [`ServerProcess::start`] with the server binary at `server_bin`.
+    /// [`ServerProcess::start`] with the server binary at `server_bin` (which also creates the
+    /// harness's token).
     pub fn start_binary(server_bin: &Path, data_dir: &Path, port: u16, extra: &[&str]) -> anyhow::Result<ServerProcess> {
+        std::fs::create_dir_all(data_dir)?;
+        let token_file = data_dir.join(".e2e-token");
+        let token = match std::fs::read_to_string(&token_file) {
+            Ok(t) => t.trim().to_string(),
+            Err(_) => {
+                let t = create_token_with(server_bin, data_dir, E2E_LAB, "rig,reader")?;
+                std::fs::write(&token_file, &t)?;
+                t
+            }
+        };
         let mut child = Command::new(server_bin)
             .arg("serve")
             .arg("--listen")
@@ -68,13 +114,31 @@ impl ServerProcess {
             }
         });
         let line = rx.recv_timeout(Duration::from_secs(60)).context("server printed no address")?;
-        let base_url = line
-            .split_whitespace()
-            .find(|w| w.starts_with("http://"))
-            .with_context(|| format!("no address in {line:?}"))?
-            .to_string();
-        let port = base_url.rsplit(':').next().and_then(|p| p.parse().ok()).context("port")?;
-        Ok(ServerProcess { child, base_url, port, data_dir: data_dir.to_path_buf(), stdout_thread: Some(stdout_thread) })
+        let mut urls = line.split_whitespace().filter(|w| w.starts_with("http://"));
+        let address = urls.next().with_context(|| format!("no address in {line:?}"))?.to_string();
+        let metrics_url = urls.next().map(|u| u.trim_end_matches(',').to_string());
+        let port = address.rsplit(':').next().and_then(|p| p.parse().ok()).context("port")?;
+        let base_url = helmholtz_client::auth::with_token(&address, &token);
+        Ok(ServerProcess {
+            child,
+            base_url,
+            address,
+            token,
+            port,
+            data_dir: data_dir.to_path_buf(),
+            metrics_url,
+            stdout_thread: Some(stdout_thread),
+        })
+    }
+
+    /// A new token of `lab` with `roles` (comma-separated), made by the real CLI.
+    pub fn create_token(&self, lab: &str, roles: &str) -> anyhow::Result<String> {
+        create_token(&self.data_dir, lab, roles)
+    }
+
+    /// This server's address carrying `token`.
+    pub fn url_with(&self, token: &str) -> String {
+        helmholtz_client::auth::with_token(&self.address, token)
     }
 
     /// SIGKILL: no graceful shutdown, no chance to flush anything.
@@ -84,6 +148,13 @@ impl ServerProcess {
         if let Some(t) = self.stdout_thread.take() {
             let _ = t.join();
         }
+    }
+
+    /// Sends SIGTERM and returns at once (the server shuts down gracefully meanwhile).
+    pub fn signal_term(&self) -> anyhow::Result<()> {
+        let status = Command::new("kill").args(["-TERM", &self.child.id().to_string()]).status()?;
+        anyhow::ensure!(status.success(), "kill -TERM failed");
+        Ok(())
     }
 
     /// SIGTERM, then wait for a clean exit.
@@ -102,8 +173,14 @@ impl ServerProcess {
         }
     }
 
-    pub async fn grpc(&self) -> anyhow::Result<AcquisitionClient<Channel>> {
-        Ok(AcquisitionClient::connect(self.base_url.clone()).await?)
+    /// A gRPC client sending the harness's token.
+    pub async fn grpc(&self) -> anyhow::Result<Grpc> {
+        self.grpc_as(&self.base_url)
+    }
+
+    /// A gRPC client for `server` (an address with or without a token).
+    pub fn grpc_as(&self, server: &str) -> anyhow::Result<Grpc> {
+        helmholtz_client::upload::connect(server, Duration::from_secs(5))
     }
 
     /// The server's process id (for /proc/PID/status).

@@ -1,11 +1,11 @@
 //! The gRPC acquisition contract against the real server: idempotent sessions, resumable
 //! uploads, and bad input refused with a clear status and nothing stored.
 
-use helmholtz_proto::v1::{self, acquisition_client::AcquisitionClient};
+use helmholtz_client::auth::Grpc;
+use helmholtz_proto::v1;
 use helmholtz_proto::wire::encode_values;
 use helmholtz_tests::{ServerProcess, parse_npy};
 use tonic::Code;
-use tonic::transport::Channel;
 
 fn spec(family: v1::PatternFamily, w: u32, h: u32, count: u64) -> v1::PatternSpec {
     v1::PatternSpec { family: family as i32, width: w, height: h, count, seed: 7, params: None }
@@ -27,11 +27,11 @@ fn chunk(id: &str, start: u64, channels: u32, values: &[f64]) -> v1::Measurement
     v1::MeasurementChunk { session_id: id.into(), start_row: start, channels, values_f64le: bytes, crc32c: crc }
 }
 
-async fn send(client: &mut AcquisitionClient<Channel>, chunks: Vec<v1::MeasurementChunk>) -> Result<v1::UploadResponse, tonic::Status> {
+async fn send(client: &mut Grpc, chunks: Vec<v1::MeasurementChunk>) -> Result<v1::UploadResponse, tonic::Status> {
     client.upload_measurements(tokio_stream::iter(chunks)).await.map(|r| r.into_inner())
 }
 
-async fn committed(client: &mut AcquisitionClient<Channel>, id: &str) -> u64 {
+async fn committed(client: &mut Grpc, id: &str) -> u64 {
     client.get_upload_status(v1::SessionRef { session_id: id.into() }).await.unwrap().into_inner().committed_rows
 }
 
@@ -211,7 +211,7 @@ async fn reconstruction_requests_are_validated() {
 async fn health_is_served_on_grpc_and_http() {
     let dir = tempfile::tempdir().unwrap();
     let server = ServerProcess::start(dir.path(), 0, &[]).unwrap();
-    let channel = tonic::transport::Channel::from_shared(server.base_url.clone()).unwrap().connect().await.unwrap();
+    let channel = tonic::transport::Channel::from_shared(server.address.clone()).unwrap().connect().await.unwrap();
     let mut health = tonic_health::pb::health_client::HealthClient::new(channel);
     let reply = health
         .check(tonic_health::pb::HealthCheckRequest { service: "helmholtz.v1.Acquisition".into() })
@@ -219,6 +219,6 @@ async fn health_is_served_on_grpc_and_http() {
         .unwrap()
         .into_inner();
     assert_eq!(reply.status, tonic_health::pb::health_check_response::ServingStatus::Serving as i32);
-    let http: serde_json::Value = reqwest::get(server.url("/healthz")).await.unwrap().json().await.unwrap();
+    let http: serde_json::Value = reqwest::get(format!("{}/healthz", server.address)).await.unwrap().json().await.unwrap();
     assert_eq!(http["status"], "serving");
 }

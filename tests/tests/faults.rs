@@ -56,6 +56,10 @@ async fn twenty_spooled_uploads_survive_the_server_killed_at_random_moments() {
     let mut sent: Vec<(String, u64, Vec<f64>)> = Vec::new();
     let mut rigs = Vec::new();
     let done = Arc::new(AtomicUsize::new(0));
+    // Every rig keeps its session open (unsealed) until the server has been killed at least
+    // MIN_KILLS times, so the kills land mid-upload however fast the machine is.
+    const MIN_KILLS: usize = 3;
+    let kills_seen = Arc::new(AtomicUsize::new(0));
     for k in 0..20u64 {
         let rows = rng.range(2_000, 6_000);
         let channels = rng.range(1, 3);
@@ -73,7 +77,7 @@ async fn twenty_spooled_uploads_survive_the_server_killed_at_random_moments() {
         let batch = rng.range(50, 400) as usize;
         let pause = Duration::from_millis(rng.range(1, 15));
         sent.push((id.clone(), channels, values.clone()));
-        let (base, options, done) = (base.clone(), options.clone(), done.clone());
+        let (base, options, done, kills_seen) = (base.clone(), options.clone(), done.clone(), kills_seen.clone());
         rigs.push(tokio::spawn(async move {
             let drainer = tokio::spawn({
                 let (spool, base, options) = (spool.clone(), base.clone(), options.clone());
@@ -82,6 +86,9 @@ async fn twenty_spooled_uploads_survive_the_server_killed_at_random_moments() {
             for rows in values.chunks(batch * channels as usize) {
                 spool.append(rows).unwrap();
                 tokio::time::sleep(pause).await;
+            }
+            while kills_seen.load(Ordering::SeqCst) < MIN_KILLS {
+                tokio::time::sleep(Duration::from_millis(10)).await;
             }
             spool.seal().unwrap();
             let report = drainer.await.unwrap();
@@ -101,6 +108,7 @@ async fn twenty_spooled_uploads_survive_the_server_killed_at_random_moments() {
         }
         server.kill();
         kills += 1;
+        kills_seen.store(kills, Ordering::SeqCst);
         tokio::time::sleep(Duration::from_millis(rng.range(0, 300))).await;
         server = ServerProcess::start(&data, port, &[]).unwrap();
         assert!(
@@ -110,7 +118,7 @@ async fn twenty_spooled_uploads_survive_the_server_killed_at_random_moments() {
     }
     println!("killed the server {kills} times");
     assert!(
-        kills >= 3,
+        kills >= MIN_KILLS,
         "the server must die several times mid-upload (only {kills}); seed {seed}"
     );
 
@@ -198,7 +206,9 @@ async fn uploads_through_a_proxy_that_cuts_connections_store_every_row_once() {
         spool.append(&values).unwrap();
         spool.seal().unwrap();
         sent.push((id, values));
-        let (url, options) = (proxy.url(), options.clone());
+        // The proxy's address with the harness's token (the server checks it).
+        let url = helmholtz_client::auth::with_token(&proxy.url(), &server.token);
+        let options = options.clone();
         rigs.push(tokio::spawn(async move {
             spool::drain(&url, spool, &options, false).await
         }));

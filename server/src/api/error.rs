@@ -29,6 +29,18 @@ pub enum ApiError {
     /// Another writer holds the session.
     #[error("{0}")]
     Aborted(String),
+    /// No usable credential (missing, malformed, unknown or revoked token).
+    #[error("{0}")]
+    Unauthenticated(String),
+    /// A valid token whose roles do not allow the call.
+    #[error("{0}")]
+    PermissionDenied(String),
+    /// A cap or the request rate; `retry_after` seconds when waiting helps.
+    #[error("{limit}: {message}")]
+    ResourceExhausted { limit: &'static str, message: String, retry_after: Option<u64> },
+    /// A request body over the size limit.
+    #[error("{limit}: {message}")]
+    TooLarge { limit: &'static str, message: String },
     #[error("internal error")]
     Internal(String),
 }
@@ -47,6 +59,10 @@ impl ApiError {
             ApiError::OutOfRange(_) => ("out-of-range", "Out of range"),
             ApiError::DataLoss(_) => ("data-loss", "Checksum mismatch"),
             ApiError::Aborted(_) => ("aborted", "Concurrent writer"),
+            ApiError::Unauthenticated(_) => ("unauthenticated", "Unauthenticated"),
+            ApiError::PermissionDenied(_) => ("permission-denied", "Permission denied"),
+            ApiError::ResourceExhausted { .. } => ("resource-exhausted", "Limit reached"),
+            ApiError::TooLarge { .. } => ("too-large", "Request too large"),
             ApiError::Internal(_) => ("internal", "Internal error"),
         }
     }
@@ -60,6 +76,10 @@ impl ApiError {
             }
             ApiError::OutOfRange(_) => StatusCode::RANGE_NOT_SATISFIABLE,
             ApiError::DataLoss(_) => StatusCode::UNPROCESSABLE_ENTITY,
+            ApiError::Unauthenticated(_) => StatusCode::UNAUTHORIZED,
+            ApiError::PermissionDenied(_) => StatusCode::FORBIDDEN,
+            ApiError::ResourceExhausted { .. } => StatusCode::TOO_MANY_REQUESTS,
+            ApiError::TooLarge { .. } => StatusCode::PAYLOAD_TOO_LARGE,
             ApiError::Internal(_) => StatusCode::INTERNAL_SERVER_ERROR,
         }
     }
@@ -75,7 +95,7 @@ impl From<StoreError> for ApiError {
     fn from(e: StoreError) -> Self {
         match e {
             StoreError::SessionNotFound(_) | StoreError::ReconstructionNotFound(_) => ApiError::NotFound(e.to_string()),
-            StoreError::SessionConflict(..) => ApiError::AlreadyExists(e.to_string()),
+            StoreError::SessionConflict(..) | StoreError::SessionIdTaken(_) => ApiError::AlreadyExists(e.to_string()),
             StoreError::Gap { .. } | StoreError::PastEnd { .. } => ApiError::OutOfRange(e.to_string()),
             StoreError::Finished(_) | StoreError::Incomplete { .. } => ApiError::FailedPrecondition(e.to_string()),
             StoreError::Corrupt(_) | StoreError::Db(_) | StoreError::Migrate(_) => ApiError::Internal(e.to_string()),
@@ -97,10 +117,18 @@ impl IntoResponse for ApiError {
         if let ApiError::InvalidArgument { field, .. } = &self {
             body["field"] = json!(field);
         }
+        if let ApiError::ResourceExhausted { limit, .. } | ApiError::TooLarge { limit, .. } = &self {
+            body["limit"] = json!(limit);
+        }
         let mut response = (status, body.to_string()).into_response();
-        response
-            .headers_mut()
-            .insert(header::CONTENT_TYPE, HeaderValue::from_static("application/problem+json"));
+        let headers = response.headers_mut();
+        headers.insert(header::CONTENT_TYPE, HeaderValue::from_static("application/problem+json"));
+        if let ApiError::ResourceExhausted { retry_after: Some(s), .. } = &self {
+            headers.insert(header::RETRY_AFTER, HeaderValue::from(*s));
+        }
+        if let ApiError::Unauthenticated(_) = &self {
+            headers.insert(header::WWW_AUTHENTICATE, HeaderValue::from_static("Bearer realm=\"helmholtz\""));
+        }
         response
     }
 }
@@ -117,6 +145,18 @@ impl From<ApiError> for tonic::Status {
             ApiError::OutOfRange(_) => tonic::Status::out_of_range(message),
             ApiError::DataLoss(_) => tonic::Status::data_loss(message),
             ApiError::Aborted(_) => tonic::Status::aborted(message),
+            ApiError::Unauthenticated(_) => tonic::Status::unauthenticated(message),
+            ApiError::PermissionDenied(_) => tonic::Status::permission_denied(message),
+            ApiError::ResourceExhausted { retry_after, .. } => {
+                let mut status = tonic::Status::resource_exhausted(message);
+                if let Some(s) = retry_after
+                    && let Ok(v) = s.to_string().parse()
+                {
+                    status.metadata_mut().insert("retry-after", v);
+                }
+                status
+            }
+            ApiError::TooLarge { .. } => tonic::Status::resource_exhausted(message),
             ApiError::Internal(_) => tonic::Status::internal(message),
         }
     }

@@ -5,11 +5,8 @@ use helmholtz_proto::wire::{self, WireError};
 use tonic::{Request, Response, Status, Streaming};
 
 use super::{ApiError, AppState, validate};
+use crate::auth::{Principal, Role};
 use crate::store::{ReconstructionRow, SessionRow, SessionState};
-
-/// Largest accepted gRPC message: 32 MiB (a session's ground truth on a 2048 x 2048 grid is
-/// 16 MiB; upload chunks are typically 256 KiB).
-pub const MAX_MESSAGE_BYTES: usize = 32 << 20;
 
 #[derive(Clone, Debug)]
 pub struct AcquisitionService {
@@ -21,10 +18,20 @@ impl AcquisitionService {
         AcquisitionService { state }
     }
 
+    /// The service with the message-size cap (`max_message_bytes`; a session's ground truth on
+    /// a 2048 x 2048 grid is 16 MiB, upload chunks are typically 256 KiB).
     pub fn into_server(self) -> v1::acquisition_server::AcquisitionServer<Self> {
-        v1::acquisition_server::AcquisitionServer::new(self)
-            .max_decoding_message_size(MAX_MESSAGE_BYTES)
-            .max_encoding_message_size(MAX_MESSAGE_BYTES)
+        let max = self.state.limits.max_message_bytes;
+        v1::acquisition_server::AcquisitionServer::new(self).max_decoding_message_size(max).max_encoding_message_size(max)
+    }
+
+    /// The caller of a gRPC request, holding one of `roles` (or UNAUTHENTICATED /
+    /// PERMISSION_DENIED / RESOURCE_EXHAUSTED).
+    async fn caller<T>(&self, request: &Request<T>, roles: &[Role]) -> Result<Principal, ApiError> {
+        let authorization = request.metadata().get("authorization").map(|v| v.as_bytes());
+        let caller = self.state.authenticate(authorization).await?;
+        caller.require_any(roles)?;
+        Ok(caller)
     }
 }
 
@@ -74,10 +81,26 @@ impl Acquisition for AcquisitionService {
         &self,
         request: Request<v1::CreateSessionRequest>,
     ) -> Result<Response<v1::CreateSessionResponse>, Status> {
-        let new = validate::new_session(request.get_ref())?;
+        let caller = self.caller(&request, &[Role::Rig]).await?;
+        let new = validate::new_session(request.get_ref(), &caller.lab, &self.state.limits)?;
+        let existing = self.state.store.get_session(&new.id).await.map_err(ApiError::from)?;
+        if existing.is_none() {
+            let held = self.state.store.count_sessions(&caller.lab).await.map_err(ApiError::from)?;
+            if held >= self.state.limits.max_sessions_per_lab {
+                return Err(ApiError::ResourceExhausted {
+                    limit: "max_sessions_per_lab",
+                    message: format!(
+                        "lab {:?} holds {held} sessions (limit {}); no new session was created",
+                        caller.lab, self.state.limits.max_sessions_per_lab
+                    ),
+                    retry_after: None,
+                }
+                .into());
+            }
+        }
         let (session, created) = self.state.store.create_session(&new).await.map_err(ApiError::from)?;
         if created {
-            tracing::info!(session = %session.id, rig = %session.rig, spec = %session.spec.to_json(), "session created");
+            tracing::info!(session = %session.id, lab = %session.lab, rig = %session.rig, spec = %session.spec.to_json(), "session created");
         }
         Ok(Response::new(v1::CreateSessionResponse { session: Some(session_message(&session)), created }))
     }
@@ -86,16 +109,21 @@ impl Acquisition for AcquisitionService {
         &self,
         request: Request<Streaming<v1::MeasurementChunk>>,
     ) -> Result<Response<v1::UploadResponse>, Status> {
+        let caller = self.caller(&request, &[Role::Rig]).await?;
         let mut stream = request.into_inner();
         let mut session: Option<(SessionRow, super::WriterGuard)> = None;
         let (mut written, mut skipped, mut committed) = (0u64, 0u64, 0u64);
+        let max_chunk = self.state.limits.max_chunk_bytes;
         // Each chunk is validated and committed before the next is read: nothing is buffered,
         // and an error leaves every earlier chunk durable.
         while let Some(chunk) = stream.message().await? {
             if session.is_none() {
                 validate::session_id(&chunk.session_id, "session_id")?;
-                let row = self.state.store.session(&chunk.session_id).await.map_err(ApiError::from)?;
+                let row = self.state.own_session(&caller, &chunk.session_id).await?;
                 let guard = self.state.lock_writer(&row.id)?;
+                if chunk.start_row > 0 || row.committed_rows > 0 {
+                    metrics::counter!("helmholtz_upload_resumed_total").increment(1);
+                }
                 session = Some((row, guard));
             }
             let (row, _) = session.as_ref().expect("set above");
@@ -113,7 +141,22 @@ impl Acquisition for AcquisitionService {
             if chunk.values_f64le.is_empty() {
                 return Err(ApiError::invalid("values_f64le", "chunk holds no rows").into());
             }
-            let values = wire::decode_values(&chunk.values_f64le, channels, chunk.crc32c).map_err(wire_error)?;
+            if chunk.values_f64le.len() > max_chunk {
+                return Err(ApiError::TooLarge {
+                    limit: "max_chunk_bytes",
+                    message: format!(
+                        "values_f64le holds {} bytes; chunks may hold at most {max_chunk} bytes (send fewer rows per chunk)",
+                        chunk.values_f64le.len()
+                    ),
+                }
+                .into());
+            }
+            let values = wire::decode_values(&chunk.values_f64le, channels, chunk.crc32c).map_err(|e| {
+                if matches!(e, WireError::Checksum { .. }) {
+                    metrics::counter!("helmholtz_checksum_failures_total").increment(1);
+                }
+                wire_error(e)
+            })?;
             let outcome = self
                 .state
                 .store
@@ -122,6 +165,8 @@ impl Acquisition for AcquisitionService {
                 .map_err(ApiError::from)?;
             written += outcome.written;
             skipped += outcome.skipped;
+            metrics::counter!("helmholtz_upload_rows_total").increment(outcome.written);
+            metrics::counter!("helmholtz_upload_bytes_total").increment(outcome.written * channels as u64 * 8);
             committed = outcome.committed_rows;
         }
         if let Some((row, _)) = &session {
@@ -131,9 +176,10 @@ impl Acquisition for AcquisitionService {
     }
 
     async fn get_upload_status(&self, request: Request<v1::SessionRef>) -> Result<Response<v1::UploadStatus>, Status> {
+        let caller = self.caller(&request, &[Role::Rig, Role::Reader]).await?;
         let id = &request.get_ref().session_id;
         validate::session_id(id, "session_id")?;
-        let s = self.state.store.session(id).await.map_err(ApiError::from)?;
+        let s = self.state.own_session(&caller, id).await?;
         let m = session_message(&s);
         Ok(Response::new(v1::UploadStatus {
             session_id: s.id,
@@ -144,8 +190,10 @@ impl Acquisition for AcquisitionService {
     }
 
     async fn finish_session(&self, request: Request<v1::SessionRef>) -> Result<Response<v1::Session>, Status> {
+        let caller = self.caller(&request, &[Role::Rig]).await?;
         let id = &request.get_ref().session_id;
         validate::session_id(id, "session_id")?;
+        self.state.own_session(&caller, id).await?;
         let s = self.state.store.finish_session(id).await.map_err(ApiError::from)?;
         Ok(Response::new(session_message(&s)))
     }
@@ -154,6 +202,7 @@ impl Acquisition for AcquisitionService {
         &self,
         request: Request<v1::ReconstructionRequest>,
     ) -> Result<Response<v1::Reconstruction>, Status> {
+        let caller = self.caller(&request, &[Role::Reader]).await?;
         let req = request.get_ref();
         validate::session_id(&req.session_id, "session_id")?;
         let params: serde_json::Value = if req.params_json.trim().is_empty() {
@@ -162,7 +211,7 @@ impl Acquisition for AcquisitionService {
             serde_json::from_str(&req.params_json)
                 .map_err(|e| ApiError::invalid("params_json", format!("not JSON: {e}")))?
         };
-        let row = self.state.request_reconstruction(&req.session_id, &req.method, &params).await?;
+        let row = self.state.request_reconstruction(&caller, &req.session_id, &req.method, &params).await?;
         Ok(Response::new(reconstruction_message(&row)))
     }
 
@@ -170,7 +219,8 @@ impl Acquisition for AcquisitionService {
         &self,
         request: Request<v1::ReconstructionRef>,
     ) -> Result<Response<v1::Reconstruction>, Status> {
-        let row = self.state.store.reconstruction(request.get_ref().reconstruction_id).await.map_err(ApiError::from)?;
+        let caller = self.caller(&request, &[Role::Reader]).await?;
+        let row = self.state.own_reconstruction(&caller, request.get_ref().reconstruction_id).await?;
         Ok(Response::new(reconstruction_message(&row)))
     }
 }

@@ -1,11 +1,11 @@
-//! The only place that speaks HTTP or gRPC. Handlers validate, call the store or the job queue,
-//! and map errors once (see [`error`]).
+//! The only place that speaks HTTP or gRPC. Handlers authenticate, validate, call the store or
+//! the job queue, and map errors once (see [`error`]).
 
 pub mod error;
 pub mod grpc;
 pub mod images;
 pub mod rest;
-mod validate;
+pub mod validate;
 
 use std::collections::HashSet;
 use std::sync::{Arc, Mutex};
@@ -14,15 +14,19 @@ use serde_json::Value;
 
 pub use error::ApiError;
 
+use crate::auth::{self, CredentialError, Principal, Role};
 use crate::jobs::JobNotifier;
+use crate::limits::{Limits, RateLimiter};
 use crate::recon::{MethodConfig, Problem};
-use crate::store::{ReconstructionRow, Store};
+use crate::store::{ReconstructionRow, SessionRow, Store, StoreError};
 
 /// Shared by every handler.
 #[derive(Clone, Debug)]
 pub struct AppState {
     pub store: Store,
     pub jobs: JobNotifier,
+    pub limits: Arc<Limits>,
+    rate: Arc<RateLimiter>,
     writers: Arc<Mutex<HashSet<String>>>,
 }
 
@@ -38,9 +42,85 @@ impl Drop for WriterGuard {
     }
 }
 
+impl Principal {
+    /// PERMISSION_DENIED / 403 unless the token carries `role`.
+    pub fn require(&self, role: Role) -> Result<(), ApiError> {
+        if self.roles.contains(role) {
+            Ok(())
+        } else {
+            Err(ApiError::PermissionDenied(format!(
+                "this needs the {role} role; this token (id {}) has {}",
+                self.token_id, self.roles
+            )))
+        }
+    }
+
+    /// Like [`require`](Self::require), for calls any of several roles may make.
+    pub fn require_any(&self, roles: &[Role]) -> Result<(), ApiError> {
+        if roles.iter().any(|r| self.roles.contains(*r)) {
+            return Ok(());
+        }
+        let names: Vec<&str> = roles.iter().map(|r| r.name()).collect();
+        Err(ApiError::PermissionDenied(format!(
+            "this needs one of the roles {}; this token (id {}) has {}",
+            names.join(", "),
+            self.token_id,
+            self.roles
+        )))
+    }
+}
+
 impl AppState {
-    pub fn new(store: Store, jobs: JobNotifier) -> Self {
-        AppState { store, jobs, writers: Arc::default() }
+    pub fn new(store: Store, jobs: JobNotifier, limits: Limits) -> Self {
+        AppState { store, jobs, limits: Arc::new(limits), rate: Arc::default(), writers: Arc::default() }
+    }
+
+    /// The caller behind an `Authorization` header value (401 / UNAUTHENTICATED when there is
+    /// none or it is not a valid token), charged one request against its rate limit (429 /
+    /// RESOURCE_EXHAUSTED with a retry delay).
+    pub async fn authenticate(&self, authorization: Option<&[u8]>) -> Result<Principal, ApiError> {
+        let token = auth::token_from_authorization(authorization).map_err(|e| match e {
+            CredentialError::Missing => ApiError::Unauthenticated(
+                "missing credentials: send \"Authorization: Bearer <token>\" (helmholtz --token or HELMHOLTZ_TOKEN)".into(),
+            ),
+            CredentialError::Malformed(why) => ApiError::Unauthenticated(format!("malformed Authorization header: {why}")),
+        })?;
+        let principal = self
+            .store
+            .authenticate(&token)
+            .await?
+            .ok_or_else(|| ApiError::Unauthenticated("unknown or revoked token".into()))?;
+        if let Err(wait) = self.rate.check(principal.token_id, self.limits.rate_per_second, self.limits.rate_burst) {
+            metrics::counter!("helmholtz_rate_limited_total").increment(1);
+            return Err(ApiError::ResourceExhausted {
+                limit: "rate_per_second",
+                message: format!(
+                    "this token may make {} requests per second (bursts of {}); retry in {:.1} s",
+                    self.limits.rate_per_second,
+                    self.limits.rate_burst,
+                    wait.as_secs_f64()
+                ),
+                retry_after: Some(wait.as_secs_f64().ceil().max(1.0) as u64),
+            });
+        }
+        Ok(principal)
+    }
+
+    /// The caller's session `id`. Another lab's session is NOT_FOUND with exactly the message
+    /// of a session that does not exist.
+    pub async fn own_session(&self, caller: &Principal, id: &str) -> Result<SessionRow, ApiError> {
+        match self.store.get_session(id).await? {
+            Some(s) if s.lab == caller.lab => Ok(s),
+            _ => Err(StoreError::SessionNotFound(id.to_string()).into()),
+        }
+    }
+
+    /// The caller's reconstruction `id`; another lab's is NOT_FOUND like a missing one.
+    pub async fn own_reconstruction(&self, caller: &Principal, id: i64) -> Result<ReconstructionRow, ApiError> {
+        match self.store.get_reconstruction(id).await? {
+            Some(r) if r.lab == caller.lab => Ok(r),
+            _ => Err(StoreError::ReconstructionNotFound(id).into()),
+        }
     }
 
     /// One uploader per session at a time: a second concurrent stream is ABORTED.
@@ -57,20 +137,58 @@ impl AppState {
     /// Validates and queues a reconstruction of the session's rows committed so far.
     pub async fn request_reconstruction(
         &self,
+        caller: &Principal,
         session_id: &str,
         method: &str,
         params: &Value,
     ) -> Result<ReconstructionRow, ApiError> {
         let config = MethodConfig::parse(method, params)
             .map_err(|e| ApiError::invalid(e.field.clone(), e.message.clone()))?;
-        let session = self.store.session(session_id).await?;
+        let session = self.own_session(caller, session_id).await?;
         let problem = Problem { spec: &session.spec, channels: session.channels.len(), rows: session.committed_rows };
         config.check(&problem).map_err(|e| ApiError::FailedPrecondition(e.to_string()))?;
+        let pending = self.store.pending_jobs_for_lab(&caller.lab).await?;
+        if pending >= self.limits.max_pending_jobs_per_lab {
+            return Err(ApiError::ResourceExhausted {
+                limit: "max_pending_jobs_per_lab",
+                message: format!(
+                    "lab {:?} has {pending} reconstructions queued or running (limit {}); wait for some to finish or cancel them",
+                    caller.lab, self.limits.max_pending_jobs_per_lab
+                ),
+                retry_after: None,
+            });
+        }
         let row = self
             .store
-            .enqueue_reconstruction(session_id, config.name(), &config.params_json().to_string(), session.committed_rows, 3)
+            .enqueue_reconstruction(
+                &caller.lab,
+                session_id,
+                config.name(),
+                &config.params_json().to_string(),
+                session.committed_rows,
+                3,
+            )
             .await?;
         self.jobs.job_queued();
         Ok(row)
+    }
+
+    /// Cancels a queued or running reconstruction of the caller's lab; a running worker stops
+    /// at its next cancellation check.
+    pub async fn cancel_reconstruction(&self, caller: &Principal, id: i64) -> Result<ReconstructionRow, ApiError> {
+        let r = self.own_reconstruction(caller, id).await?;
+        if !self.store.cancel_job(id).await? {
+            let now = self.store.reconstruction(id).await?;
+            if now.state == "cancelled" {
+                return Ok(now);
+            }
+            return Err(ApiError::FailedPrecondition(format!(
+                "reconstruction {id} is {}; only queued or running reconstructions can be cancelled",
+                now.state
+            )));
+        }
+        self.jobs.cancel_running(r.id);
+        tracing::info!(reconstruction = id, lab = %caller.lab, "reconstruction cancelled");
+        Ok(self.store.reconstruction(id).await?)
     }
 }

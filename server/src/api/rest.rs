@@ -3,16 +3,19 @@
 use std::collections::HashMap;
 
 use axum::Router;
-use axum::body::Bytes;
-use axum::extract::{Path, Query, State};
+use axum::body::{Body, Bytes};
+use axum::extract::{FromRequestParts, State};
+use axum::extract::rejection::{PathRejection, QueryRejection};
+use axum::http::request::Parts;
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
-use axum::routing::get;
+use axum::routing::{get, post};
 use serde_json::{Value, json};
 
 use super::images::{self, Scale};
 use super::{ApiError, AppState, validate};
-use crate::store::{ReconstructionRow, SessionRow, StoredImage};
+use crate::auth::{Principal, Role, Roles};
+use crate::store::{ReconstructionRow, SessionRow, StoredImage, TokenInfo};
 
 pub fn router(state: AppState) -> Router {
     Router::new()
@@ -23,8 +26,11 @@ pub fn router(state: AppState) -> Router {
         .route("/v1/sessions/{id}/reconstructions", get(list_reconstructions).post(post_reconstruction))
         // measurements.npy, dual.png, dual.tiff, dual.npy
         .route("/v1/sessions/{id}/{file}", get(session_file))
-        .route("/v1/reconstructions/{id}", get(get_reconstruction))
+        .route("/v1/reconstructions/{id}", get(get_reconstruction).delete(cancel_reconstruction))
+        .route("/v1/reconstructions/{id}/cancel", post(cancel_reconstruction))
         .route("/v1/reconstructions/{id}/{file}", get(reconstruction_file))
+        .route("/v1/tokens", get(list_tokens).post(create_token))
+        .route("/v1/tokens/{id}", axum::routing::delete(revoke_token))
         .fallback(not_found)
         .method_not_allowed_fallback(method_not_allowed)
         .with_state(state)
@@ -42,7 +48,51 @@ async fn method_not_allowed() -> Response {
     r
 }
 
-async fn index() -> axum::Json<Value> {
+/// The authenticated caller of a REST request (401 problem+json without a valid token, 429
+/// over its rate). Handlers then check the role with [`Principal::require`].
+pub struct Caller(pub Principal);
+
+impl FromRequestParts<AppState> for Caller {
+    type Rejection = ApiError;
+
+    async fn from_request_parts(parts: &mut Parts, state: &AppState) -> Result<Self, ApiError> {
+        let authorization = parts.headers.get(header::AUTHORIZATION).map(|v| v.as_bytes());
+        state.authenticate(authorization).await.map(Caller)
+    }
+}
+
+/// Path parameters; a bad one (e.g. invalid percent-encoding) is a 400 problem naming the path.
+#[derive(FromRequestParts)]
+#[from_request(via(axum::extract::Path), rejection(ApiError))]
+struct Path<T>(T);
+
+/// Query parameters; undecodable ones are a 400 problem naming the query.
+#[derive(FromRequestParts)]
+#[from_request(via(axum::extract::Query), rejection(ApiError))]
+struct Query<T>(T);
+
+impl From<PathRejection> for ApiError {
+    fn from(e: PathRejection) -> Self {
+        ApiError::invalid("path", e.body_text())
+    }
+}
+
+impl From<QueryRejection> for ApiError {
+    fn from(e: QueryRejection) -> Self {
+        ApiError::invalid("query", e.body_text())
+    }
+}
+
+/// A request body of at most `max_body_bytes` (413 problem+json naming the limit).
+async fn read_body(state: &AppState, body: Body) -> Result<Bytes, ApiError> {
+    let max = state.limits.max_body_bytes;
+    axum::body::to_bytes(body, max).await.map_err(|_| ApiError::TooLarge {
+        limit: "max_body_bytes",
+        message: format!("request bodies may hold at most {max} bytes"),
+    })
+}
+
+async fn index(Caller(_caller): Caller) -> axum::Json<Value> {
     axum::Json(json!({
         "service": "helmholtz",
         "version": env!("CARGO_PKG_VERSION"),
@@ -54,11 +104,15 @@ async fn index() -> axum::Json<Value> {
             "GET /v1/sessions/{id}/measurements.npy (the committed bucket rows, float64, shape (rows, channels))",
             "GET /v1/reconstructions/{id}",
             "GET /v1/reconstructions/{id}/dual.png|dual.tiff|dual.npy?channel=NAME&scale=percentile|minmax",
-            "GET /healthz"
-        ]
+            "POST /v1/reconstructions/{id}/cancel (or DELETE /v1/reconstructions/{id})",
+            "GET /v1/tokens, POST /v1/tokens {\"roles\": [\"rig\"], \"note\": \"...\"}, DELETE /v1/tokens/{id} (admin)",
+            "GET /healthz (no token needed)"
+        ],
+        "auth": "every route but /healthz needs \"Authorization: Bearer <token>\"; tokens belong to one lab and carry roles rig, reader, admin"
     }))
 }
 
+/// Open (no token): load balancers and probes call it.
 async fn healthz(State(state): State<AppState>) -> Response {
     if state.store.ping().await {
         axum::Json(json!({"status": "serving"})).into_response()
@@ -124,9 +178,11 @@ fn recon_path(id: &str) -> Result<i64, ApiError> {
 }
 
 async fn list_sessions(
+    Caller(caller): Caller,
     State(state): State<AppState>,
     Query(query): Query<HashMap<String, String>>,
 ) -> Result<axum::Json<Value>, ApiError> {
+    caller.require(Role::Reader)?;
     let limit = match query.get("limit") {
         None => 100,
         Some(v) => v
@@ -135,7 +191,7 @@ async fn list_sessions(
             .filter(|n| (1..=1000).contains(n))
             .ok_or_else(|| ApiError::invalid("limit", format!("must be an integer in 1..=1000, got {v:?}")))?,
     };
-    let sessions = state.store.list_sessions(limit).await?;
+    let sessions = state.store.list_sessions(&caller.lab, limit).await?;
     let mut out = Vec::with_capacity(sessions.len());
     for s in &sessions {
         out.push(session_json(s, state.store.latest_done(&s.id).await?));
@@ -143,29 +199,39 @@ async fn list_sessions(
     Ok(axum::Json(json!({ "sessions": out })))
 }
 
-async fn get_session(State(state): State<AppState>, Path(id): Path<String>) -> Result<axum::Json<Value>, ApiError> {
+async fn get_session(
+    Caller(caller): Caller,
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<axum::Json<Value>, ApiError> {
+    caller.require(Role::Reader)?;
     session_path(&id)?;
-    let s = state.store.session(&id).await?;
+    let s = state.own_session(&caller, &id).await?;
     let latest = state.store.latest_done(&id).await?;
     Ok(axum::Json(session_json(&s, latest)))
 }
 
 async fn list_reconstructions(
+    Caller(caller): Caller,
     State(state): State<AppState>,
     Path(id): Path<String>,
 ) -> Result<axum::Json<Value>, ApiError> {
+    caller.require(Role::Reader)?;
     session_path(&id)?;
-    state.store.session(&id).await?;
+    state.own_session(&caller, &id).await?;
     let rows = state.store.session_reconstructions(&id).await?;
     Ok(axum::Json(json!({ "reconstructions": rows.iter().map(reconstruction_json).collect::<Vec<_>>() })))
 }
 
 async fn post_reconstruction(
+    Caller(caller): Caller,
     State(state): State<AppState>,
     Path(id): Path<String>,
-    body: Bytes,
+    body: Body,
 ) -> Result<Response, ApiError> {
+    caller.require(Role::Reader)?;
     session_path(&id)?;
+    let body = read_body(&state, body).await?;
     let body: Value = serde_json::from_slice(&body)
         .map_err(|e| ApiError::invalid("body", format!("must be a JSON object like {{\"method\": \"dgi\", \"params\": {{}}}}: {e}")))?;
     let Value::Object(body) = body else {
@@ -180,7 +246,7 @@ async fn post_reconstruction(
         None => return Err(ApiError::invalid("method", "is required")),
     };
     let params = body.get("params").cloned().unwrap_or(Value::Null);
-    let row = state.request_reconstruction(&id, &method, &params).await?;
+    let row = state.request_reconstruction(&caller, &id, &method, &params).await?;
     let location = format!("/v1/reconstructions/{}", row.id);
     let mut response = (StatusCode::ACCEPTED, axum::Json(reconstruction_json(&row))).into_response();
     response.headers_mut().insert(header::LOCATION, HeaderValue::from_str(&location).expect("ascii"));
@@ -188,8 +254,8 @@ async fn post_reconstruction(
 }
 
 /// The committed bucket rows exactly as stored: float64, shape (rows, channels).
-async fn measurements_npy(state: &AppState, id: &str) -> Result<Response, ApiError> {
-    let session = state.store.session(id).await?;
+async fn measurements_npy(state: &AppState, caller: &Principal, id: &str) -> Result<Response, ApiError> {
+    let session = state.own_session(caller, id).await?;
     let mut values = Vec::with_capacity(session.committed_rows as usize * session.channels.len());
     let mut next = 0u64;
     loop {
@@ -205,11 +271,94 @@ async fn measurements_npy(state: &AppState, id: &str) -> Result<Response, ApiErr
 }
 
 async fn get_reconstruction(
+    Caller(caller): Caller,
     State(state): State<AppState>,
     Path(id): Path<String>,
 ) -> Result<axum::Json<Value>, ApiError> {
+    caller.require(Role::Reader)?;
     let id = recon_path(&id)?;
-    Ok(axum::Json(reconstruction_json(&state.store.reconstruction(id).await?)))
+    Ok(axum::Json(reconstruction_json(&state.own_reconstruction(&caller, id).await?)))
+}
+
+/// `POST /v1/reconstructions/{id}/cancel` or `DELETE /v1/reconstructions/{id}`: 200 with the
+/// cancelled reconstruction; 409 if it already ended.
+async fn cancel_reconstruction(
+    Caller(caller): Caller,
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<axum::Json<Value>, ApiError> {
+    caller.require(Role::Reader)?;
+    let id = recon_path(&id)?;
+    Ok(axum::Json(reconstruction_json(&state.cancel_reconstruction(&caller, id).await?)))
+}
+
+fn token_json(t: &TokenInfo) -> Value {
+    serde_json::to_value(t).expect("token json")
+}
+
+/// `GET /v1/tokens`: the admin's lab's tokens (never their secrets).
+async fn list_tokens(Caller(caller): Caller, State(state): State<AppState>) -> Result<axum::Json<Value>, ApiError> {
+    caller.require(Role::Admin)?;
+    let tokens = state.store.list_tokens(Some(&caller.lab)).await?;
+    Ok(axum::Json(json!({ "tokens": tokens.iter().map(token_json).collect::<Vec<_>>() })))
+}
+
+/// `POST /v1/tokens {"roles": ["rig"], "note": "..."}`: a new token of the admin's lab; 201 with
+/// the secret, shown this once.
+async fn create_token(Caller(caller): Caller, State(state): State<AppState>, body: Body) -> Result<Response, ApiError> {
+    caller.require(Role::Admin)?;
+    let body = read_body(&state, body).await?;
+    let body: Value = serde_json::from_slice(&body)
+        .map_err(|e| ApiError::invalid("body", format!("must be a JSON object like {{\"roles\": [\"rig\"]}}: {e}")))?;
+    let Value::Object(body) = body else {
+        return Err(ApiError::invalid("body", "must be a JSON object"));
+    };
+    if let Some(key) = body.keys().find(|k| !matches!(k.as_str(), "roles" | "note")) {
+        return Err(ApiError::invalid(key.clone(), "unknown field; expected \"roles\" and \"note\""));
+    }
+    let roles = match body.get("roles") {
+        Some(Value::Array(items)) => {
+            let mut names = Vec::new();
+            for (i, item) in items.iter().enumerate() {
+                let name = item.as_str().ok_or_else(|| ApiError::invalid(format!("roles[{i}]"), "must be a string"))?;
+                let role = Role::parse(name).map_err(|e| ApiError::invalid(format!("roles[{i}]"), e))?;
+                names.push(role);
+            }
+            if names.is_empty() {
+                return Err(ApiError::invalid("roles", "name at least one of rig, reader, admin"));
+            }
+            Roles::of(&names)
+        }
+        Some(_) => return Err(ApiError::invalid("roles", "must be an array like [\"rig\", \"reader\"]")),
+        None => return Err(ApiError::invalid("roles", "is required")),
+    };
+    let note = match body.get("note") {
+        None => "",
+        Some(Value::String(s)) if s.len() <= 256 && !s.chars().any(char::is_control) => s.as_str(),
+        Some(_) => return Err(ApiError::invalid("note", "must be a string of at most 256 characters without control characters")),
+    };
+    let (info, secret) = state.store.create_token(&caller.lab, roles, note).await?;
+    tracing::info!(token = info.id, lab = %info.lab, roles = %info.roles, by = caller.token_id, "token created");
+    let mut out = token_json(&info);
+    out["token"] = json!(secret);
+    Ok((StatusCode::CREATED, axum::Json(out)).into_response())
+}
+
+/// `DELETE /v1/tokens/{id}`: revokes a token of the admin's lab (another lab's is 404).
+async fn revoke_token(
+    Caller(caller): Caller,
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+) -> Result<axum::Json<Value>, ApiError> {
+    caller.require(Role::Admin)?;
+    let id = id.parse::<i64>().map_err(|_| ApiError::invalid("id", format!("a token id is an integer, got {id:?}")))?;
+    let info = state
+        .store
+        .revoke_token(id, Some(&caller.lab))
+        .await?
+        .ok_or_else(|| ApiError::NotFound(format!("token {id} not found")))?;
+    tracing::info!(token = id, lab = %info.lab, by = caller.token_id, "token revoked");
+    Ok(axum::Json(token_json(&info)))
 }
 
 #[derive(Clone, Copy)]
@@ -229,41 +378,48 @@ fn dual_format(file: &str) -> Result<Format, ApiError> {
 }
 
 async fn reconstruction_file(
+    Caller(caller): Caller,
     State(state): State<AppState>,
     Path((id, file)): Path<(String, String)>,
     Query(query): Query<HashMap<String, String>>,
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
+    caller.require(Role::Reader)?;
     let id = recon_path(&id)?;
     let format = dual_format(&file)?;
-    serve_dual(&state, id, &query, &headers, format).await
+    let r = state.own_reconstruction(&caller, id).await?;
+    serve_dual(&state, r, &query, &headers, format).await
 }
 
 async fn session_file(
+    Caller(caller): Caller,
     State(state): State<AppState>,
     Path((id, file)): Path<(String, String)>,
     Query(query): Query<HashMap<String, String>>,
     headers: HeaderMap,
 ) -> Result<Response, ApiError> {
+    caller.require(Role::Reader)?;
     session_path(&id)?;
     if file == "measurements.npy" {
-        return measurements_npy(&state, &id).await;
+        return measurements_npy(&state, &caller, &id).await;
     }
     let format = dual_format(&file)?;
-    state.store.session(&id).await?;
+    state.own_session(&caller, &id).await?;
     let Some(latest) = state.store.latest_done(&id).await? else {
         return Err(ApiError::NotFound(format!("session {id:?} has no finished reconstruction yet")));
     };
-    serve_dual(&state, latest, &query, &headers, format).await
+    let r = state.store.reconstruction(latest).await?;
+    serve_dual(&state, r, &query, &headers, format).await
 }
 
 async fn serve_dual(
     state: &AppState,
-    id: i64,
+    r: ReconstructionRow,
     query: &HashMap<String, String>,
     headers: &HeaderMap,
     format: Format,
 ) -> Result<Response, ApiError> {
+    let id = r.id;
     if let Some(key) = query.keys().find(|k| !matches!(k.as_str(), "channel" | "scale")) {
         return Err(ApiError::invalid(key.clone(), "unknown query parameter; expected channel or scale"));
     }
@@ -272,7 +428,6 @@ async fn serve_dual(
         Some("minmax") => Scale::MinMax,
         Some(other) => return Err(ApiError::invalid("scale", format!("must be percentile or minmax, got {other:?}"))),
     };
-    let r = state.store.reconstruction(id).await?;
     if r.state != "done" {
         return Err(ApiError::FailedPrecondition(format!(
             "reconstruction {id} is {}{}; its dual image exists once it is done",

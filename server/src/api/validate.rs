@@ -5,6 +5,7 @@ use std::collections::{BTreeMap, HashSet};
 use helmholtz_proto::{PatternSpec, v1};
 
 use super::ApiError;
+use crate::limits::Limits;
 use crate::store::NewSession;
 
 pub const MAX_ID_LEN: usize = 128;
@@ -32,12 +33,31 @@ fn name(value: &str, field: &str, max: usize) -> Result<(), ApiError> {
     Ok(())
 }
 
-pub fn new_session(req: &v1::CreateSessionRequest) -> Result<NewSession, ApiError> {
+/// Validates a session declaration for `lab` against the server's `limits`.
+pub fn new_session(req: &v1::CreateSessionRequest, lab: &str, limits: &Limits) -> Result<NewSession, ApiError> {
     session_id(&req.session_id, "session_id")?;
     name(&req.rig, "rig", MAX_ID_LEN)?;
     let spec_msg = req.patterns.as_ref().ok_or_else(|| ApiError::invalid("patterns", "is required"))?;
     let spec = PatternSpec::try_from(spec_msg)
         .map_err(|e| ApiError::invalid(format!("patterns.{}", e.field), e.message))?;
+    if spec.count() > limits.max_patterns {
+        return Err(ApiError::invalid(
+            "patterns.count",
+            format!("{} patterns exceed this server's limit of {} per session (max_patterns)", spec.count(), limits.max_patterns),
+        ));
+    }
+    if spec.pixels() as u64 > limits.max_pixels {
+        return Err(ApiError::invalid(
+            "patterns.width",
+            format!(
+                "{}x{} = {} pixels exceed this server's limit of {} per pattern (max_pixels)",
+                spec.width(),
+                spec.height(),
+                spec.pixels(),
+                limits.max_pixels
+            ),
+        ));
+    }
     let channels = req.detector.as_ref().map(|d| d.channels.clone()).unwrap_or_default();
     if channels.is_empty() || channels.len() > MAX_CHANNELS {
         return Err(ApiError::invalid(
@@ -90,6 +110,7 @@ pub fn new_session(req: &v1::CreateSessionRequest) -> Result<NewSession, ApiErro
     };
     Ok(NewSession {
         id: req.session_id.clone(),
+        lab: lab.to_string(),
         rig: req.rig.clone(),
         spec,
         channels,

@@ -13,6 +13,8 @@ use super::{Store, StoreError, f32_to_le, le_to_f32, now_ms};
 #[derive(Clone, Debug, PartialEq)]
 pub struct ReconstructionRow {
     pub id: i64,
+    /// The lab of its session.
+    pub lab: String,
     pub session_id: String,
     pub method: String,
     pub params_json: String,
@@ -46,12 +48,13 @@ pub struct StoredImage {
     pub data: Vec<f32>,
 }
 
-const RECON_COLUMNS: &str = "r.id, r.session_id, r.method, r.params_json, r.rows_used, j.state, \
+const RECON_COLUMNS: &str = "r.id, j.lab, r.session_id, r.method, r.params_json, r.rows_used, j.state, \
      j.progress, j.attempt, j.last_error, r.report_json, r.seconds, j.created_ms, j.started_ms, j.finished_ms";
 
 fn recon_from_row(row: &SqliteRow) -> ReconstructionRow {
     ReconstructionRow {
         id: row.get("id"),
+        lab: row.get("lab"),
         session_id: row.get("session_id"),
         method: row.get("method"),
         params_json: row.get("params_json"),
@@ -72,6 +75,7 @@ impl Store {
     /// Queues a reconstruction of the first `rows_used` rows of a session.
     pub async fn enqueue_reconstruction(
         &self,
+        lab: &str,
         session_id: &str,
         method: &str,
         params_json: &str,
@@ -81,11 +85,12 @@ impl Store {
         let now = now_ms();
         let mut tx = self.pool.begin_with("BEGIN IMMEDIATE").await?;
         let id: i64 = sqlx::query(
-            "INSERT INTO jobs (kind, state, run_at_ms, max_attempts, created_ms) \
-             VALUES ('reconstruction', 'queued', $1, $2, $1) RETURNING id",
+            "INSERT INTO jobs (kind, state, run_at_ms, max_attempts, created_ms, lab) \
+             VALUES ('reconstruction', 'queued', $1, $2, $1, $3) RETURNING id",
         )
         .bind(now)
         .bind(max_attempts as i64)
+        .bind(lab)
         .fetch_one(&mut *tx)
         .await?
         .get(0);
@@ -135,9 +140,13 @@ impl Store {
         Ok(row.map(|r| r.get(0)))
     }
 
-    /// Claims the next runnable job. Running jobs whose lease expired are taken over while they
-    /// have attempts left; those out of attempts are marked failed here.
-    pub async fn claim_job(&self, worker_id: &str, lease_ms: i64) -> Result<Option<ClaimedJob>, StoreError> {
+    /// Claims the next runnable job, fairly across labs: among runnable jobs, the lab with the
+    /// fewest running jobs goes first, then the lab served least recently (so one lab's backlog
+    /// alternates with every other lab's jobs instead of draining first), then priority and age.
+    /// A lab already running `max_running_per_lab` jobs (0: no cap) is skipped. Running jobs
+    /// whose lease expired are taken over while they have attempts left; those out of attempts
+    /// are marked failed here.
+    pub async fn claim_job(&self, worker_id: &str, lease_ms: i64, max_running_per_lab: u32) -> Result<Option<ClaimedJob>, StoreError> {
         let now = now_ms();
         let mut tx = self.pool.begin_with("BEGIN IMMEDIATE").await?;
         sqlx::query(
@@ -149,16 +158,25 @@ impl Store {
         .execute(&mut *tx)
         .await?;
         let claimed = sqlx::query(
-            "UPDATE jobs SET state = 'running', attempt = attempt + 1, lease_until_ms = $1 + $2, \
-             worker_id = $3, started_ms = COALESCE(started_ms, $1), progress = 0 \
-             WHERE id = (SELECT id FROM jobs WHERE run_at_ms <= $1 AND \
-                 (state = 'queued' OR (state = 'running' AND lease_until_ms < $1 AND attempt < max_attempts)) \
-                 ORDER BY priority DESC, run_at_ms, id LIMIT 1) \
+            "WITH lab_load AS ( \
+                 SELECT lab, \
+                        SUM(state = 'running' AND lease_until_ms >= $1) AS running, \
+                        MAX(started_ms) AS last_start \
+                 FROM jobs WHERE lab IN (SELECT DISTINCT lab FROM jobs WHERE state IN ('queued', 'running')) \
+                 GROUP BY lab) \
+             UPDATE jobs SET state = 'running', attempt = attempt + 1, lease_until_ms = $1 + $2, \
+             worker_id = $3, started_ms = $1, progress = 0 \
+             WHERE id = (SELECT j.id FROM jobs j JOIN lab_load l ON l.lab = j.lab \
+                 WHERE j.run_at_ms <= $1 AND \
+                 (j.state = 'queued' OR (j.state = 'running' AND j.lease_until_ms < $1 AND j.attempt < j.max_attempts)) \
+                 AND ($4 <= 0 OR l.running < $4) \
+                 ORDER BY l.running, COALESCE(l.last_start, 0), j.priority DESC, j.run_at_ms, j.id LIMIT 1) \
              RETURNING id, attempt",
         )
         .bind(now)
         .bind(lease_ms)
         .bind(worker_id)
+        .bind(max_running_per_lab as i64)
         .fetch_optional(&mut *tx)
         .await?;
         tx.commit().await?;
@@ -283,6 +301,27 @@ impl Store {
         .await?
         .rows_affected();
         Ok(changed == 1)
+    }
+
+    /// A lab's jobs waiting or running.
+    pub async fn pending_jobs_for_lab(&self, lab: &str) -> Result<u64, StoreError> {
+        let n: i64 = sqlx::query("SELECT COUNT(*) FROM jobs WHERE lab = $1 AND state IN ('queued', 'running')")
+            .bind(lab)
+            .fetch_one(&self.pool)
+            .await?
+            .get(0);
+        Ok(n as u64)
+    }
+
+    /// Jobs by state: (queued, running).
+    pub async fn queue_depth(&self) -> Result<(u64, u64), StoreError> {
+        let row = sqlx::query(
+            "SELECT COALESCE(SUM(state = 'queued'), 0), COALESCE(SUM(state = 'running'), 0) FROM jobs \
+             WHERE state IN ('queued', 'running')",
+        )
+        .fetch_one(&self.pool)
+        .await?;
+        Ok((row.get::<i64, _>(0) as u64, row.get::<i64, _>(1) as u64))
     }
 
     /// Number of jobs waiting or running.

@@ -14,10 +14,12 @@ use sqlx::{Row, SqlitePool};
 mod jobs;
 mod rows;
 mod sessions;
+mod tokens;
 
 pub use jobs::{ClaimedJob, ReconstructionRow, StoredImage};
 pub use rows::AppendOutcome;
 pub use sessions::{NewSession, SessionRow, SessionState};
+pub use tokens::TokenInfo;
 
 /// Storage errors, by what the caller should tell its user.
 #[derive(Debug, thiserror::Error)]
@@ -26,6 +28,8 @@ pub enum StoreError {
     SessionNotFound(String),
     #[error("reconstruction {0} not found")]
     ReconstructionNotFound(i64),
+    #[error("session id {0:?} is already in use; choose another id")]
+    SessionIdTaken(String),
     #[error("session {0:?} exists with a different declaration ({1} differs)")]
     SessionConflict(String, &'static str),
     #[error("rows must continue at row {committed}; this chunk starts at {start} (a gap)")]

@@ -19,6 +19,8 @@ pub enum SessionState {
 #[derive(Clone, Debug, PartialEq)]
 pub struct NewSession {
     pub id: String,
+    /// The lab that owns it (the creating token's).
+    pub lab: String,
     pub rig: String,
     pub spec: PatternSpec,
     pub channels: Vec<String>,
@@ -31,6 +33,7 @@ pub struct NewSession {
 #[derive(Clone, Debug, PartialEq)]
 pub struct SessionRow {
     pub id: String,
+    pub lab: String,
     pub rig: String,
     pub spec: PatternSpec,
     pub channels: Vec<String>,
@@ -43,13 +46,14 @@ pub struct SessionRow {
     pub finished_ms: Option<i64>,
 }
 
-const SESSION_COLUMNS: &str = "id, rig, spec_json, channels_json, metadata_json, expected_rows, \
+const SESSION_COLUMNS: &str = "id, lab, rig, spec_json, channels_json, metadata_json, expected_rows, \
      committed_rows, state, gt_transport IS NOT NULL AS has_gt, created_ms, finished_ms";
 
 fn session_from_row(row: &SqliteRow) -> Result<SessionRow, StoreError> {
     let corrupt = |what: &str, e: serde_json::Error| StoreError::Corrupt(format!("{what}: {e}"));
     Ok(SessionRow {
         id: row.get("id"),
+        lab: row.get("lab"),
         rig: row.get("rig"),
         spec: parse_spec(row.get("spec_json"))?,
         channels: serde_json::from_str(row.get("channels_json")).map_err(|e| corrupt("channels", e))?,
@@ -77,7 +81,7 @@ impl Store {
         };
         let inserted = sqlx::query(
             "INSERT INTO sessions (id, rig, spec_json, channels_json, metadata_json, expected_rows, \
-             gt_width, gt_height, gt_transport, created_ms) VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10) \
+             gt_width, gt_height, gt_transport, created_ms, lab) VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11) \
              ON CONFLICT (id) DO NOTHING",
         )
         .bind(&new.id)
@@ -90,12 +94,17 @@ impl Store {
         .bind(gt_h)
         .bind(gt_blob)
         .bind(now_ms())
+        .bind(&new.lab)
         .execute(&self.pool)
         .await?
         .rows_affected()
             == 1;
         let existing = self.get_session(&new.id).await?.ok_or_else(|| StoreError::SessionNotFound(new.id.clone()))?;
         if !inserted {
+            if existing.lab != new.lab {
+                // Ids are global; another lab's session is not described (not even that it differs).
+                return Err(StoreError::SessionIdTaken(new.id.clone()));
+            }
             let differs = if existing.rig != new.rig {
                 Some("rig")
             } else if existing.spec != new.spec {
@@ -126,11 +135,23 @@ impl Store {
         self.get_session(id).await?.ok_or_else(|| StoreError::SessionNotFound(id.to_string()))
     }
 
-    /// Newest first.
-    pub async fn list_sessions(&self, limit: u32) -> Result<Vec<SessionRow>, StoreError> {
-        let sql = format!("SELECT {SESSION_COLUMNS} FROM sessions ORDER BY created_ms DESC, id LIMIT $1");
-        let rows = sqlx::query(sqlx::AssertSqlSafe(sql)).bind(limit as i64).fetch_all(&self.pool).await?;
+    /// A lab's sessions, newest first.
+    pub async fn list_sessions(&self, lab: &str, limit: u32) -> Result<Vec<SessionRow>, StoreError> {
+        let sql = format!("SELECT {SESSION_COLUMNS} FROM sessions WHERE lab = $2 ORDER BY created_ms DESC, id LIMIT $1");
+        let rows = sqlx::query(sqlx::AssertSqlSafe(sql)).bind(limit as i64).bind(lab).fetch_all(&self.pool).await?;
         rows.iter().map(session_from_row).collect()
+    }
+
+    /// How many sessions a lab has.
+    pub async fn count_sessions(&self, lab: &str) -> Result<u64, StoreError> {
+        let n: i64 = sqlx::query("SELECT COUNT(*) FROM sessions WHERE lab = $1").bind(lab).fetch_one(&self.pool).await?.get(0);
+        Ok(n as u64)
+    }
+
+    /// Total rows stored in all sessions (for the operator's metrics).
+    pub async fn count_all(&self) -> Result<(u64, u64), StoreError> {
+        let row = sqlx::query("SELECT COUNT(*), COALESCE(SUM(committed_rows), 0) FROM sessions").fetch_one(&self.pool).await?;
+        Ok((row.get::<i64, _>(0) as u64, row.get::<i64, _>(1) as u64))
     }
 
     /// Marks the session finished once every declared row is committed. Idempotent.

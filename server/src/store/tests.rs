@@ -13,6 +13,7 @@ async fn store() -> (tempfile::TempDir, Store) {
 fn new_session(id: &str, count: u64) -> NewSession {
     NewSession {
         id: id.into(),
+        lab: "default".into(),
         rig: "bench".into(),
         spec: PatternSpec::new(Family::Bernoulli { fill: 0.5 }, 4, 4, count, 1).unwrap(),
         channels: vec!["a".into(), "b".into()],
@@ -76,15 +77,15 @@ async fn appends_skip_overlap_reject_gaps_and_read_back_exactly() {
 async fn leases_expire_and_fencing_stops_stale_workers() {
     let (_d, s) = store().await;
     s.create_session(&new_session("s", 10)).await.unwrap();
-    let r = s.enqueue_reconstruction("s", "gi", "{}", 10, 3).await.unwrap();
+    let r = s.enqueue_reconstruction("default", "s", "gi", "{}", 10, 3).await.unwrap();
     assert_eq!(r.state, "queued");
-    let first = s.claim_job("w1", 200).await.unwrap().unwrap();
+    let first = s.claim_job("w1", 200, 0).await.unwrap().unwrap();
     assert_eq!((first.id, first.attempt), (r.id, 1));
     // While the lease holds, nobody else gets the job.
-    assert!(s.claim_job("w2", 60_000).await.unwrap().is_none());
+    assert!(s.claim_job("w2", 60_000, 0).await.unwrap().is_none());
     tokio::time::sleep(std::time::Duration::from_millis(250)).await;
     // The lease has expired (the worker died or stalled): another worker takes the job over.
-    let second = s.claim_job("w2", 60_000).await.unwrap().unwrap();
+    let second = s.claim_job("w2", 60_000, 0).await.unwrap().unwrap();
     assert_eq!((second.id, second.attempt), (r.id, 2));
     // The stale worker can neither heartbeat nor complete.
     assert!(!s.heartbeat(r.id, 1, 60_000, 0.5).await.unwrap());
@@ -96,25 +97,146 @@ async fn leases_expire_and_fencing_stops_stale_workers() {
     assert_eq!((done.state.as_str(), done.attempt), ("done", 2));
     assert_eq!(s.dual_images(r.id).await.unwrap(), vec![image]);
     assert_eq!(s.latest_done("s").await.unwrap(), Some(r.id));
-    assert!(s.claim_job("w3", 60_000).await.unwrap().is_none());
+    assert!(s.claim_job("w3", 60_000, 0).await.unwrap().is_none());
 }
 
 #[tokio::test]
 async fn failures_retry_then_give_up() {
     let (_d, s) = store().await;
     s.create_session(&new_session("s", 10)).await.unwrap();
-    let r = s.enqueue_reconstruction("s", "gi", "{}", 10, 2).await.unwrap();
-    let c = s.claim_job("w", 60_000).await.unwrap().unwrap();
+    let r = s.enqueue_reconstruction("default", "s", "gi", "{}", 10, 2).await.unwrap();
+    let c = s.claim_job("w", 60_000, 0).await.unwrap().unwrap();
     assert!(s.fail_job(r.id, c.attempt, "disk hiccup", true).await.unwrap());
     assert_eq!(s.reconstruction(r.id).await.unwrap().state, "queued");
     // Retries wait a little (run_at in the future), so nothing is claimable right now.
-    assert!(s.claim_job("w", 60_000).await.unwrap().is_none());
-    let r2 = s.enqueue_reconstruction("s", "dgi", "{}", 10, 1).await.unwrap();
-    let c2 = s.claim_job("w", 60_000).await.unwrap().unwrap();
+    assert!(s.claim_job("w", 60_000, 0).await.unwrap().is_none());
+    let r2 = s.enqueue_reconstruction("default", "s", "dgi", "{}", 10, 1).await.unwrap();
+    let c2 = s.claim_job("w", 60_000, 0).await.unwrap().unwrap();
     assert_eq!(c2.id, r2.id);
     assert!(s.fail_job(r2.id, c2.attempt, "unsolvable", false).await.unwrap());
     let failed = s.reconstruction(r2.id).await.unwrap();
     assert_eq!((failed.state.as_str(), failed.last_error.as_deref()), ("failed", Some("unsolvable")));
     assert!(s.cancel_job(r.id).await.unwrap());
     assert_eq!(s.reconstruction(r.id).await.unwrap().state, "cancelled");
+}
+
+fn lab_session(lab: &str, id: &str) -> NewSession {
+    NewSession { lab: lab.into(), ..new_session(id, 10) }
+}
+
+#[tokio::test]
+async fn claims_alternate_between_labs_and_respect_the_per_lab_cap() {
+    let (_d, s) = store().await;
+    s.create_session(&lab_session("a", "sa")).await.unwrap();
+    s.create_session(&lab_session("b", "sb")).await.unwrap();
+    let mut a_jobs = Vec::new();
+    for _ in 0..5 {
+        a_jobs.push(s.enqueue_reconstruction("a", "sa", "gi", "{}", 10, 3).await.unwrap().id);
+        tokio::time::sleep(std::time::Duration::from_millis(2)).await;
+    }
+    let b_job = s.enqueue_reconstruction("b", "sb", "gi", "{}", 10, 3).await.unwrap().id;
+    // One worker, finishing each job before claiming the next: lab b's single job is the second
+    // to run, not the sixth.
+    let mut order = Vec::new();
+    while let Some(job) = s.claim_job("w", 60_000, 0).await.unwrap() {
+        order.push(job.id);
+        assert!(s.complete_reconstruction(job.id, job.attempt, &[], "{}", 0.0).await.unwrap());
+        tokio::time::sleep(std::time::Duration::from_millis(2)).await;
+    }
+    assert_eq!(order.len(), 6);
+    assert_eq!(order[1], b_job, "order {order:?}");
+    assert_eq!(order.iter().filter(|&&id| id != b_job).copied().collect::<Vec<_>>(), a_jobs, "a's jobs keep their order");
+
+    // Cap 1 per lab: with a's job running, a second of a's is not claimed, b's is.
+    let a1 = s.enqueue_reconstruction("a", "sa", "gi", "{}", 10, 3).await.unwrap().id;
+    let a2 = s.enqueue_reconstruction("a", "sa", "gi", "{}", 10, 3).await.unwrap().id;
+    let b1 = s.enqueue_reconstruction("b", "sb", "gi", "{}", 10, 3).await.unwrap().id;
+    let first = s.claim_job("w1", 60_000, 1).await.unwrap().unwrap();
+    let second = s.claim_job("w2", 60_000, 1).await.unwrap().unwrap();
+    assert_eq!((first.id, second.id), (b1, a1), "b was served least recently, then a's oldest");
+    let _ = a2;
+    assert!(s.claim_job("w3", 60_000, 1).await.unwrap().is_none(), "a is at its cap");
+    assert_eq!(s.pending_jobs_for_lab("a").await.unwrap(), 2);
+    assert_eq!(s.queue_depth().await.unwrap(), (1, 2));
+}
+
+#[tokio::test]
+async fn sessions_belong_to_labs_and_ids_are_not_shared() {
+    let (_d, s) = store().await;
+    s.create_session(&lab_session("a", "x")).await.unwrap();
+    let err = s.create_session(&lab_session("b", "x")).await.unwrap_err();
+    assert!(matches!(err, StoreError::SessionIdTaken(_)), "{err}");
+    assert!(!err.to_string().contains("differ"), "says nothing about a's session: {err}");
+    assert_eq!(s.list_sessions("a", 10).await.unwrap().len(), 1);
+    assert!(s.list_sessions("b", 10).await.unwrap().is_empty());
+    assert_eq!(s.count_sessions("a").await.unwrap(), 1);
+    assert_eq!(s.session("x").await.unwrap().lab, "a");
+}
+
+#[tokio::test]
+async fn tokens_are_stored_hashed_and_revocable() {
+    use crate::auth::{Role, Roles};
+    let (_d, s) = store().await;
+    let (info, secret) = s.create_token("optics", Roles::of(&[Role::Rig, Role::Reader]), "bench").await.unwrap();
+    assert_eq!(info.roles, "rig,reader");
+    let p = s.authenticate(&secret).await.unwrap().unwrap();
+    assert_eq!((p.lab.as_str(), p.token_id), ("optics", info.id));
+    assert!(p.roles.contains(Role::Rig) && !p.roles.contains(Role::Admin));
+    assert!(s.authenticate(&crate::auth::generate_token()).await.unwrap().is_none());
+    // The secret itself is nowhere in the database file's token table.
+    let stored: Vec<u8> = sqlx::query("SELECT sha256 FROM tokens").fetch_one(&s.pool).await.unwrap().get(0);
+    assert_eq!(stored, crate::auth::token_hash(&secret).to_vec());
+    assert!(s.revoke_token(info.id, Some("other")).await.unwrap().is_none(), "another lab cannot revoke it");
+    assert!(s.authenticate(&secret).await.unwrap().is_some());
+    let revoked = s.revoke_token(info.id, Some("optics")).await.unwrap().unwrap();
+    assert!(revoked.revoked_unix_ms.is_some());
+    assert!(s.authenticate(&secret).await.unwrap().is_none());
+    assert_eq!(s.list_tokens(Some("optics")).await.unwrap().len(), 1);
+    assert!(s.list_tokens(Some("other")).await.unwrap().is_empty());
+}
+
+#[tokio::test]
+async fn upgrading_a_database_keeps_its_sessions_and_jobs_in_the_default_lab() {
+    use sqlx::sqlite::SqliteConnectOptions;
+    use std::str::FromStr;
+    let dir = tempfile::tempdir().unwrap();
+    // A database as the first schema left it.
+    let first = dir.path().join("first-migration");
+    std::fs::create_dir_all(&first).unwrap();
+    std::fs::write(first.join("0001_sessions_jobs.sql"), include_str!("../../../migrations/0001_sessions_jobs.sql")).unwrap();
+    let data = dir.path().join("data");
+    std::fs::create_dir_all(&data).unwrap();
+    let options = SqliteConnectOptions::from_str(&format!("sqlite://{}", data.join("helmholtz.sqlite").display()))
+        .unwrap()
+        .create_if_missing(true);
+    let pool = sqlx::SqlitePool::connect_with(options).await.unwrap();
+    sqlx::migrate::Migrator::new(first.as_path()).await.unwrap().run(&pool).await.unwrap();
+    for id in ["old-run", "demo-usaf-hadamard"] {
+        sqlx::query(
+            "INSERT INTO sessions (id, rig, spec_json, channels_json, metadata_json, expected_rows, committed_rows, created_ms) \
+             VALUES ($1, 'r', $2, '[\"a\"]', '{}', 16, 0, 1)",
+        )
+        .bind(id)
+        .bind(r#"{"family":"raster","width":4,"height":4,"count":16,"seed":0}"#)
+        .execute(&pool)
+        .await
+        .unwrap();
+    }
+    sqlx::query("INSERT INTO jobs (id, kind, state, run_at_ms, created_ms) VALUES (1, 'reconstruction', 'queued', 1, 1)")
+        .execute(&pool)
+        .await
+        .unwrap();
+    sqlx::query("INSERT INTO reconstructions (id, session_id, method, params_json, rows_used) VALUES (1, 'old-run', 'gi', '{}', 0)")
+        .execute(&pool)
+        .await
+        .unwrap();
+    pool.close().await;
+    // Opening it applies 0002: nothing is lost, everything has a lab.
+    let s = Store::open(&data).await.unwrap();
+    assert_eq!(s.session("old-run").await.unwrap().lab, "default");
+    assert_eq!(s.session("demo-usaf-hadamard").await.unwrap().lab, "demo");
+    let r = s.reconstruction(1).await.unwrap();
+    assert_eq!((r.lab.as_str(), r.state.as_str()), ("default", "queued"));
+    assert_eq!(s.list_sessions("default", 10).await.unwrap().len(), 1);
+    assert!(s.claim_job("w", 60_000, 0).await.unwrap().is_some(), "the queued job still runs");
 }

@@ -164,7 +164,11 @@ async fn main() -> anyhow::Result<()> {
     }
     let extra: Vec<&str> = extra.iter().map(String::as_str).collect();
     let mut server = ServerProcess::start_binary(&bin, &dir.path().join("data"), 0, &extra)?;
-    let base = server.base_url.clone();
+    // The harness's token rides in `base_url`; `--token` replaces it.
+    let base = match &args.token {
+        Some(token) => helmholtz_client::auth::with_token(&server.address, token),
+        None => server.base_url.clone(),
+    };
     let pid = server.pid();
     eprintln!("server {} (pid {pid}) at {base}", bin.display());
 

@@ -1,0 +1,91 @@
+//! Caps on what one request, session or lab may use. Each refusal names the limit.
+
+use std::collections::HashMap;
+use std::sync::Mutex;
+use std::time::{Duration, Instant};
+
+/// Service limits (`helmholtz-server serve --help` lists the flags).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Limits {
+    /// Largest gRPC message, bytes (a CreateSession with ground truth, an upload chunk).
+    pub max_message_bytes: usize,
+    /// Largest REST request body, bytes.
+    pub max_body_bytes: usize,
+    /// Largest upload chunk (one MeasurementChunk's values), bytes.
+    pub max_chunk_bytes: usize,
+    /// Most patterns (rows) one session may declare.
+    pub max_patterns: u64,
+    /// Most pixels (width x height) of one session's patterns.
+    pub max_pixels: u64,
+    /// Most sessions one lab may hold.
+    pub max_sessions_per_lab: u64,
+    /// Most reconstructions one lab may have queued or running at once.
+    pub max_pending_jobs_per_lab: u64,
+    /// Most reconstructions of one lab running at once on the workers (0: no cap beyond the
+    /// worker count); the others wait while other labs' jobs run.
+    pub max_running_jobs_per_lab: u32,
+    /// Sustained requests per second per token.
+    pub rate_per_second: f64,
+    /// Requests a token may make in a burst above the sustained rate.
+    pub rate_burst: f64,
+}
+
+impl Default for Limits {
+    fn default() -> Self {
+        Limits {
+            max_message_bytes: 32 << 20,
+            max_body_bytes: 1 << 20,
+            max_chunk_bytes: 8 << 20,
+            max_patterns: helmholtz_proto::patterns::MAX_COUNT,
+            max_pixels: helmholtz_proto::patterns::MAX_PIXELS,
+            max_sessions_per_lab: 10_000,
+            max_pending_jobs_per_lab: 1_000,
+            max_running_jobs_per_lab: 0,
+            rate_per_second: 100.0,
+            rate_burst: 200.0,
+        }
+    }
+}
+
+/// Token-bucket rate limiter keyed by token id.
+#[derive(Debug, Default)]
+pub struct RateLimiter {
+    buckets: Mutex<HashMap<i64, (f64, Instant)>>,
+}
+
+impl RateLimiter {
+    /// Takes one request from `key`'s bucket; `Err(wait)` when it is empty.
+    pub fn check(&self, key: i64, rate: f64, burst: f64) -> Result<(), Duration> {
+        if rate <= 0.0 {
+            return Ok(());
+        }
+        let now = Instant::now();
+        let burst = burst.max(1.0);
+        let mut buckets = self.buckets.lock().expect("rate limiter lock");
+        let (tokens, last) = buckets.entry(key).or_insert((burst, now));
+        *tokens = (*tokens + now.duration_since(*last).as_secs_f64() * rate).min(burst);
+        *last = now;
+        if *tokens >= 1.0 {
+            *tokens -= 1.0;
+            Ok(())
+        } else {
+            Err(Duration::from_secs_f64((1.0 - *tokens) / rate))
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn bucket_allows_the_burst_then_refuses_with_a_wait() {
+        let r = RateLimiter::default();
+        for _ in 0..3 {
+            r.check(1, 1.0, 3.0).unwrap();
+        }
+        let wait = r.check(1, 1.0, 3.0).unwrap_err();
+        assert!(wait > Duration::from_millis(900) && wait <= Duration::from_secs(1), "{wait:?}");
+        r.check(2, 1.0, 3.0).expect("another token has its own bucket");
+    }
+}

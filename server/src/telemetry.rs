@@ -1,0 +1,130 @@
+//! Observability: Prometheus metrics (served on their own listener) and per-request latency
+//! recording; request ids are set in `app` (tower-http) and carried in every log span.
+//!
+//! Series:
+//! - `helmholtz_upload_rows_total`, `helmholtz_upload_bytes_total`: rows (and their f64 bytes) committed
+//! - `helmholtz_upload_resumed_total`: upload streams continuing a session that already had rows
+//! - `helmholtz_checksum_failures_total`: chunks refused for a CRC-32C mismatch
+//! - `helmholtz_rate_limited_total`: requests refused by the per-token rate limit
+//! - `helmholtz_queue_depth{state="queued"|"running"}`: reconstruction jobs
+//! - `helmholtz_job_duration_seconds{method, outcome}`: done, failed, cancelled, released
+//! - `helmholtz_http_request_duration_seconds{method, route, status}`: REST, by matched route
+//! - `helmholtz_grpc_request_duration_seconds{rpc, code}`: gRPC, by method and status code
+
+use std::net::SocketAddr;
+use std::sync::OnceLock;
+use std::time::Instant;
+
+use axum::extract::{MatchedPath, Request, State};
+use axum::middleware::Next;
+use axum::response::{IntoResponse, Response};
+use metrics_exporter_prometheus::{PrometheusBuilder, PrometheusHandle};
+
+use crate::store::Store;
+
+static HANDLE: OnceLock<PrometheusHandle> = OnceLock::new();
+
+const LATENCY_BUCKETS: &[f64] = &[0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0];
+const JOB_BUCKETS: &[f64] = &[0.01, 0.05, 0.1, 0.5, 1.0, 2.0, 5.0, 10.0, 30.0, 60.0, 120.0, 300.0, 600.0, 1800.0];
+
+/// Installs the process-wide Prometheus recorder (once; later calls reuse it).
+pub fn recorder() -> anyhow::Result<PrometheusHandle> {
+    if let Some(h) = HANDLE.get() {
+        return Ok(h.clone());
+    }
+    let handle = PrometheusBuilder::new()
+        .set_buckets_for_metric(metrics_exporter_prometheus::Matcher::Suffix("request_duration_seconds".into()), LATENCY_BUCKETS)?
+        .set_buckets_for_metric(metrics_exporter_prometheus::Matcher::Full("helmholtz_job_duration_seconds".into()), JOB_BUCKETS)?
+        .install_recorder()?;
+    describe();
+    Ok(HANDLE.get_or_init(|| handle).clone())
+}
+
+fn describe() {
+    metrics::describe_counter!("helmholtz_upload_rows_total", "Bucket rows committed by uploads");
+    metrics::describe_counter!("helmholtz_upload_bytes_total", "Bytes of bucket values (f64) committed by uploads");
+    metrics::describe_counter!("helmholtz_upload_resumed_total", "Upload streams that continued a session already holding rows");
+    metrics::describe_counter!("helmholtz_checksum_failures_total", "Upload chunks refused for a CRC-32C mismatch");
+    metrics::describe_counter!("helmholtz_rate_limited_total", "Requests refused by the per-token rate limit");
+    metrics::describe_gauge!("helmholtz_queue_depth", "Reconstruction jobs queued or running");
+    metrics::describe_histogram!("helmholtz_job_duration_seconds", "Reconstruction job run time by method and outcome");
+    metrics::describe_histogram!("helmholtz_http_request_duration_seconds", "REST latency by matched route");
+    metrics::describe_histogram!("helmholtz_grpc_request_duration_seconds", "gRPC latency (to the response head) by method");
+}
+
+/// Serves `GET /metrics` on `listener` until `shutdown`.
+pub async fn serve(
+    listener: tokio::net::TcpListener,
+    handle: PrometheusHandle,
+    store: Store,
+    shutdown: impl std::future::Future<Output = ()> + Send + 'static,
+) -> std::io::Result<()> {
+    let app = axum::Router::new()
+        .route("/metrics", axum::routing::get(render))
+        .with_state((handle, store));
+    axum::serve(listener, app).with_graceful_shutdown(shutdown).await
+}
+
+async fn render(State((handle, store)): State<(PrometheusHandle, Store)>) -> Response {
+    if let Ok((queued, running)) = store.queue_depth().await {
+        metrics::gauge!("helmholtz_queue_depth", "state" => "queued").set(queued as f64);
+        metrics::gauge!("helmholtz_queue_depth", "state" => "running").set(running as f64);
+    }
+    handle.run_upkeep();
+    ([(http::header::CONTENT_TYPE, "text/plain; version=0.0.4")], handle.render()).into_response()
+}
+
+/// The gRPC methods this server knows (labels stay bounded whatever paths clients send).
+const RPCS: &[&str] = &[
+    "/helmholtz.v1.Acquisition/CreateSession",
+    "/helmholtz.v1.Acquisition/UploadMeasurements",
+    "/helmholtz.v1.Acquisition/GetUploadStatus",
+    "/helmholtz.v1.Acquisition/FinishSession",
+    "/helmholtz.v1.Acquisition/RequestReconstruction",
+    "/helmholtz.v1.Acquisition/GetReconstruction",
+    "/grpc.health.v1.Health/Check",
+    "/grpc.health.v1.Health/Watch",
+];
+
+/// Records each request's latency: gRPC by method and status code, REST by matched route.
+pub async fn record_latency(request: Request, next: Next) -> Response {
+    let started = Instant::now();
+    let path = request.uri().path().to_string();
+    let route = request.extensions().get::<MatchedPath>().map(|m| m.as_str().to_string());
+    let method = request.method().clone();
+    let is_grpc = request
+        .headers()
+        .get(http::header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .is_some_and(|v| v.starts_with("application/grpc"));
+    let response = next.run(request).await;
+    let seconds = started.elapsed().as_secs_f64();
+    if is_grpc {
+        let rpc = RPCS.iter().find(|r| **r == path).copied().unwrap_or("unknown");
+        // Errors come as trailers-only responses (grpc-status in the head); a head without it
+        // is a call that succeeded (or failed later in its stream, which these RPCs do not).
+        let code = response
+            .headers()
+            .get("grpc-status")
+            .and_then(|v| v.to_str().ok())
+            .map(str::to_string)
+            .unwrap_or_else(|| "0".into());
+        metrics::histogram!("helmholtz_grpc_request_duration_seconds", "rpc" => rpc, "code" => code).record(seconds);
+    } else {
+        let route = route.unwrap_or_else(|| "unmatched".into());
+        metrics::histogram!(
+            "helmholtz_http_request_duration_seconds",
+            "method" => method.to_string(),
+            "route" => route,
+            "status" => response.status().as_u16().to_string()
+        )
+        .record(seconds);
+    }
+    response
+}
+
+/// Binds the metrics listener (before anything else starts, so a bad address fails early).
+pub async fn bind(addr: SocketAddr) -> anyhow::Result<tokio::net::TcpListener> {
+    use anyhow::Context;
+    tokio::net::TcpListener::bind(addr).await.with_context(|| format!("cannot listen for metrics on {addr} (--metrics-listen)"))
+}
