@@ -3,7 +3,10 @@
 //! against the ground truth, and written as JSON, Markdown tables and SVG plots.
 //!
 //! `cargo run --release -p helmholtz-server --bin helmholtz-bench -- --preset full`
+//!
+//! `--preset compare` runs the side-by-side comparison with other tools instead ([`compare`]).
 
+pub mod compare;
 mod grid;
 mod plot;
 mod report;
@@ -22,10 +25,11 @@ use crate::recon::{self, Control, MethodConfig, Problem, SliceSource, metrics};
 pub use grid::{Case, Noise, Preset};
 
 #[derive(Parser, Debug)]
-#[command(name = "helmholtz-bench", about = "Speed against error of every reconstruction method on a grid of simulated acquisitions.\n\nWrites DIR/benchmarks.md (tables and plots) and DIR/benchmarks.json (raw figures).")]
+#[command(name = "helmholtz-bench", about = "Speed against error of every reconstruction method on a grid of simulated acquisitions.\n\nWrites DIR/benchmarks.md (tables and plots) and DIR/benchmarks.json (raw figures); the smaller presets write DIR/benchmarks-PRESET.{md,json}.\n\n--preset compare runs the target problems side by side with other tools (pylops, pyproximal, spyrit; bench/compare/run.py in a venv under target/compare-venv, created on first use) and writes DIR/comparison.md and DIR/comparison.json.")]
 struct Args {
-    /// smoke: a few small cases (CI); targets: the target problems; full: the whole grid.
-    #[arg(long, default_value = "targets", value_parser = ["smoke", "targets", "full"])]
+    /// smoke: a few small cases (CI); targets: the target problems; full: the whole grid;
+    /// compare: the target problems against other tools.
+    #[arg(long, default_value = "targets", value_parser = ["smoke", "targets", "full", "compare"])]
     preset: String,
     /// Output directory.
     #[arg(long, default_value = "docs")]
@@ -37,6 +41,19 @@ struct Args {
     /// run; the numerics are deterministic). Shared 2-core VMs vary by tens of percent run to run.
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u32).range(1..=20))]
     repeat: u32,
+    /// compare: where the exported problems and every tool's images go.
+    #[arg(long, default_value_os_t = compare::repo_root().join("target/compare"))]
+    work_dir: PathBuf,
+    /// compare: the Python interpreter that starts bench/compare/run.py (which then re-runs itself
+    /// in its venv).
+    #[arg(long, default_value = "python3")]
+    python: String,
+    /// compare: export the problems and run only our methods (no Python).
+    #[arg(long)]
+    only_ours: bool,
+    /// compare: only these problems (comma-separated names, e.g. camera128-hadamard10).
+    #[arg(long, value_delimiter = ',')]
+    problems: Option<Vec<String>>,
 }
 
 /// One measured reconstruction.
@@ -72,6 +89,22 @@ impl Measurement {
 
 pub fn main() {
     let args = Args::parse();
+    if args.preset == "compare" {
+        let opts = compare::Options {
+            out: args.out.clone(),
+            work: args.work_dir.clone(),
+            python: args.python.clone(),
+            repeat: args.repeat,
+            only_ours: args.only_ours,
+            problems: args.problems.clone(),
+        };
+        if let Err(e) = compare::run(&opts) {
+            eprintln!("helmholtz-bench: {e:#}");
+            std::process::exit(1);
+        }
+        eprintln!("wrote {}/comparison.md and comparison.json", args.out.display());
+        return;
+    }
     let preset: Preset = args.preset.parse().expect("clap checked the preset");
     let mut cases = preset.cases();
     if let Some(methods) = &args.methods {
@@ -137,6 +170,11 @@ pub fn run_cases_repeated(cases: &[Case], repeat: usize, mut progress: impl FnMu
 }
 
 fn measure(case: &Case, spec: &PatternSpec, truth: &[f32], values: &[f64]) -> Measurement {
+    measure_with_image(case, spec, truth, values).0
+}
+
+/// [`measure`], also handing back the reconstructed image (channel 0; `None` on error).
+pub(crate) fn measure_with_image(case: &Case, spec: &PatternSpec, truth: &[f32], values: &[f64]) -> (Measurement, Option<Vec<f32>>) {
     let problem = Problem { spec, channels: 1, rows: spec.count() };
     let config = MethodConfig::parse(&case.method, &serde_json::Value::Null).expect("grid methods exist");
     let control = Control::new();
@@ -149,12 +187,13 @@ fn measure(case: &Case, spec: &PatternSpec, truth: &[f32], values: &[f64]) -> Me
     let peak = crate::alloc::installed().then(|| crate::alloc::peak_bytes().saturating_sub(base));
     let k = spec.pixels() as f64;
     match result {
-        Ok(r) => {
-            let image = &r.images[0].data;
+        Ok(mut r) => {
+            let data = std::mem::take(&mut r.images[0].data);
+            let image = &data;
             let (a, b) = metrics::fit_affine(image, truth);
             let fitted: Vec<f32> = image.iter().map(|&v| (a * v as f64 + b) as f32).collect();
             let (w, h) = (spec.width() as usize, spec.height() as usize);
-            Measurement {
+            let m = Measurement {
                 case: case.clone(),
                 rows: spec.count(),
                 seconds,
@@ -167,9 +206,10 @@ fn measure(case: &Case, spec: &PatternSpec, truth: &[f32], values: &[f64]) -> Me
                 report: without_histories(serde_json::to_value(&r.report).unwrap_or_default()),
                 error: None,
                 all_seconds: Vec::new(),
-            }
+            };
+            (m, Some(data))
         }
-        Err(e) => Measurement {
+        Err(e) => (Measurement {
             case: case.clone(),
             rows: spec.count(),
             seconds,
@@ -182,7 +222,7 @@ fn measure(case: &Case, spec: &PatternSpec, truth: &[f32], values: &[f64]) -> Me
             report: serde_json::Value::Null,
             error: Some(e.to_string()),
             all_seconds: Vec::new(),
-        },
+        }, None),
     }
 }
 
