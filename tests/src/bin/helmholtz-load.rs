@@ -158,7 +158,9 @@ async fn main() -> anyhow::Result<()> {
     let machine = machine();
     let bin = server_binary(&args)?;
     let dir = tempfile::tempdir()?;
-    let mut extra: Vec<String> = Vec::new();
+    // The benchmark measures throughput, not the per-lab session cap (10,000 by default, which
+    // 50 rigs pass within a minute here): lift it.
+    let mut extra: Vec<String> = vec!["--max-sessions-per-lab".into(), "100000000".into()];
     if let Some(w) = args.workers {
         extra.extend(["--workers".into(), w.to_string()]);
     }
@@ -236,6 +238,19 @@ async fn main() -> anyhow::Result<()> {
         chunk_rows: args.chunk_rows,
         ..UploadOptions::default()
     };
+    // As in a lab, every rig has its own rig token and the queries a reader token (the server
+    // limits requests per token); `--token` makes everyone share that one token instead.
+    use helmholtz_tests::create_token_with;
+    let (rig_bases, query_base) = match &args.token {
+        Some(_) => (vec![base.clone(); args.rigs], base.clone()),
+        None => {
+            let mut bases = Vec::with_capacity(args.rigs);
+            for _ in 0..args.rigs {
+                bases.push(server.url_with(&create_token_with(&bin, &server.data_dir, helmholtz_tests::E2E_LAB, "rig")?));
+            }
+            (bases, server.url_with(&create_token_with(&bin, &server.data_dir, helmholtz_tests::E2E_LAB, "reader")?))
+        }
+    };
     let started = Instant::now();
     let deadline = started + Duration::from_secs_f64(args.seconds);
     eprintln!(
@@ -245,7 +260,7 @@ async fn main() -> anyhow::Result<()> {
 
     let mut rigs = Vec::new();
     for (k, values) in rig_values.into_iter().enumerate() {
-        let (base, spools, options) = (base.clone(), spools.clone(), options.clone());
+        let (base, spools, options) = (rig_bases[k].clone(), spools.clone(), options.clone());
         let (uploads, totals) = (uploads.clone(), totals.clone());
         let s = spec(args.rows, k as u64);
         let batch = args.batch_rows.max(1);
@@ -311,10 +326,10 @@ async fn main() -> anyhow::Result<()> {
         let (session, rec) = reference[(i / kinds.len()) % reference.len()].clone();
         i += 1;
         let url = match kind {
-            0 => format!("{base}/v1/reconstructions/{rec}/dual.png"),
-            1 => format!("{base}/v1/reconstructions/{rec}/dual.npy"),
-            2 => format!("{base}/v1/reconstructions/{rec}"),
-            _ => format!("{base}/v1/sessions/{session}/dual.tiff"),
+            0 => format!("{query_base}/v1/reconstructions/{rec}/dual.png"),
+            1 => format!("{query_base}/v1/reconstructions/{rec}/dual.npy"),
+            2 => format!("{query_base}/v1/reconstructions/{rec}"),
+            _ => format!("{query_base}/v1/sessions/{session}/dual.tiff"),
         };
         let (http, queries) = (http.clone(), queries.clone());
         in_flight.push(tokio::spawn(async move {
