@@ -365,6 +365,7 @@ impl NewSession {
             patterns: Some(v1::PatternSpec::from(&self.spec)),
             detector: Some(v1::DetectorLayout {
                 channels: self.channels.clone(),
+                ..Default::default()
             }),
             metadata: self.metadata.clone().into_iter().collect(),
             ground_truth: self.ground_truth.clone(),
@@ -775,6 +776,7 @@ pub fn make_chunk(
         channels,
         values_f64le: bytes,
         crc32c: crc,
+        ..Default::default()
     }
 }
 
@@ -827,6 +829,7 @@ async fn stream_rows(
                 channels,
                 values_f64le: bytes,
                 crc32c: crc,
+                ..Default::default()
             };
             let bytes = chunk.values_f64le.len() as u64;
             if tx.send(chunk).await.is_err() {

@@ -16,7 +16,7 @@ fn create(id: &str, spec: v1::PatternSpec, channels: &[&str]) -> v1::CreateSessi
         session_id: id.into(),
         rig: "bench-1".into(),
         patterns: Some(spec),
-        detector: Some(v1::DetectorLayout { channels: channels.iter().map(|c| c.to_string()).collect() }),
+        detector: Some(v1::DetectorLayout { channels: channels.iter().map(|c| c.to_string()).collect(), ..Default::default() }),
         metadata: [("operator".to_string(), "e2e".to_string())].into(),
         ground_truth: None,
     }
@@ -24,7 +24,7 @@ fn create(id: &str, spec: v1::PatternSpec, channels: &[&str]) -> v1::CreateSessi
 
 fn chunk(id: &str, start: u64, channels: u32, values: &[f64]) -> v1::MeasurementChunk {
     let (bytes, crc) = encode_values(values);
-    v1::MeasurementChunk { session_id: id.into(), start_row: start, channels, values_f64le: bytes, crc32c: crc }
+    v1::MeasurementChunk { session_id: id.into(), start_row: start, channels, values_f64le: bytes, crc32c: crc, ..Default::default() }
 }
 
 async fn send(client: &mut Grpc, chunks: Vec<v1::MeasurementChunk>) -> Result<v1::UploadResponse, tonic::Status> {

@@ -240,7 +240,7 @@ async fn every_route_and_rpc_by_role_and_lab() {
     // gRPC: every RPC of helmholtz.v1.Acquisition, plus the open health check.
     let chunk = |id: &str| {
         let (bytes, crc) = encode_values(&[1.0, 2.0, 3.0]);
-        v1::MeasurementChunk { session_id: id.into(), start_row: 0, channels: 1, values_f64le: bytes, crc32c: crc }
+        v1::MeasurementChunk { session_id: id.into(), start_row: 0, channels: 1, values_f64le: bytes, crc32c: crc, ..Default::default() }
     };
     let create = |id: &str| helmholtz_client::NewSession::new(id, spec(), vec!["bucket".into()]).to_request();
     let recon_req = |id: &str| v1::ReconstructionRequest { session_id: id.into(), method: "direct".into(), params_json: String::new() };

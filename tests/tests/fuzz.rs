@@ -120,7 +120,7 @@ fn plausible_create_strategy() -> impl Strategy<Value = v1::CreateSessionRequest
             session_id,
             rig: "rig".into(),
             patterns: Some(v1::PatternSpec { family, width, height, count, seed, params: None }),
-            detector: Some(v1::DetectorLayout { channels }),
+            detector: Some(v1::DetectorLayout { channels, ..Default::default() }),
             metadata: Default::default(),
             ground_truth: gt.map(|v| v1::GroundTruth { width, height, transport: vec![v; (width * height) as usize] }),
         })
@@ -148,7 +148,7 @@ fn arbitrary_create_strategy() -> impl Strategy<Value = v1::CreateSessionRequest
             session_id,
             rig,
             patterns,
-            detector: channels.map(|channels| v1::DetectorLayout { channels }),
+            detector: channels.map(|channels| v1::DetectorLayout { channels, ..Default::default() }),
             metadata: metadata.into_iter().collect(),
             ground_truth,
         })
@@ -210,7 +210,7 @@ fn upload_chunks() {
         session_id: "target".into(),
         rig: "r".into(),
         patterns: Some(spec),
-        detector: Some(v1::DetectorLayout { channels: vec!["a".into(), "b".into()] }),
+        detector: Some(v1::DetectorLayout { channels: vec!["a".into(), "b".into()], ..Default::default() }),
         metadata: Default::default(),
         ground_truth: None,
     };
@@ -236,7 +236,7 @@ fn upload_chunks() {
             let before = *committed.lock().unwrap();
             let start = (before as i64 + start_offset).max(0) as u64;
             let crc32c = if good_crc { crc32c::crc32c(&bytes) } else { crc };
-            let chunk = v1::MeasurementChunk { session_id: session_id.clone(), start_row: start, channels, values_f64le: bytes.clone(), crc32c };
+            let chunk = v1::MeasurementChunk { session_id: session_id.clone(), start_row: start, channels, values_f64le: bytes.clone(), crc32c, ..Default::default() };
             let result = h.rt.block_on(c.upload_measurements(tokio_stream::iter(vec![chunk])));
             let now = h.rt.block_on(c.get_upload_status(v1::SessionRef { session_id: "target".into() })).unwrap().into_inner().committed_rows;
             match result {
@@ -315,7 +315,7 @@ fn reconstruction_request_bodies() {
         session_id: "empty".into(),
         rig: "r".into(),
         patterns: Some(spec),
-        detector: Some(v1::DetectorLayout { channels: vec!["a".into()] }),
+        detector: Some(v1::DetectorLayout { channels: vec!["a".into()], ..Default::default() }),
         metadata: Default::default(),
         ground_truth: None,
     };

@@ -146,7 +146,7 @@ fn create(id: &str, family: v1::PatternFamily, w: u32, h: u32, count: u64) -> v1
         session_id: id.into(),
         rig: "r".into(),
         patterns: Some(v1::PatternSpec { family: family as i32, width: w, height: h, count, seed: 1, params: None }),
-        detector: Some(v1::DetectorLayout { channels: vec!["a".into()] }),
+        detector: Some(v1::DetectorLayout { channels: vec!["a".into()], ..Default::default() }),
         metadata: Default::default(),
         ground_truth: None,
     }
@@ -154,7 +154,7 @@ fn create(id: &str, family: v1::PatternFamily, w: u32, h: u32, count: u64) -> v1
 
 fn chunk(id: &str, start: u64, values: &[f64]) -> v1::MeasurementChunk {
     let (bytes, crc) = encode_values(values);
-    v1::MeasurementChunk { session_id: id.into(), start_row: start, channels: 1, values_f64le: bytes, crc32c: crc }
+    v1::MeasurementChunk { session_id: id.into(), start_row: start, channels: 1, values_f64le: bytes, crc32c: crc, ..Default::default() }
 }
 
 fn refused<T: std::fmt::Debug>(r: Result<T, tonic::Status>, code: Code, mentions: &[&str]) {

@@ -40,7 +40,7 @@ pub fn session_message(s: &SessionRow) -> v1::Session {
         session_id: s.id.clone(),
         rig: s.rig.clone(),
         patterns: Some((&s.spec).into()),
-        detector: Some(v1::DetectorLayout { channels: s.channels.clone() }),
+        detector: Some(v1::DetectorLayout { channels: s.channels.clone(), ..Default::default() }),
         metadata: s.metadata.iter().map(|(k, v)| (k.clone(), v.clone())).collect(),
         committed_rows: s.committed_rows,
         expected_rows: s.expected_rows,
