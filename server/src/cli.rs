@@ -60,6 +60,12 @@ struct LimitArgs {
     /// Most pixels (width x height) of a session's patterns.
     #[arg(long, default_value_t = Limits::default().max_pixels)]
     max_pixels: u64,
+    /// Most pixels (width x height) of one camera frame.
+    #[arg(long, default_value_t = Limits::default().max_frame_pixels)]
+    max_frame_pixels: u64,
+    /// Most ground-truth values a simulated session may send (a camera session's T is m x k).
+    #[arg(long, default_value_t = Limits::default().max_ground_truth_values)]
+    max_ground_truth_values: u64,
     /// Most sessions one lab may hold.
     #[arg(long, default_value_t = Limits::default().max_sessions_per_lab)]
     max_sessions_per_lab: u64,
@@ -85,6 +91,8 @@ impl LimitArgs {
             max_chunk_bytes: self.max_chunk_bytes,
             max_patterns: self.max_patterns,
             max_pixels: self.max_pixels,
+            max_frame_pixels: self.max_frame_pixels,
+            max_ground_truth_values: self.max_ground_truth_values,
             max_sessions_per_lab: self.max_sessions_per_lab,
             max_pending_jobs_per_lab: self.max_pending_jobs_per_lab,
             max_running_jobs_per_lab: self.max_running_jobs_per_lab,

@@ -274,12 +274,16 @@ impl Worker {
 
 /// Quality against the simulator's ground truth, per channel: raw PSNR/SSIM, and PSNR after the
 /// least-squares affine fit (correlation methods estimate t only up to scale and offset).
+/// `truth` holds one image shared by every channel, or one per channel.
 fn quality(images: &[recon::DualImage], channels: &[String], w: u32, h: u32, truth: &[f32]) -> Value {
+    let k = w as usize * h as usize;
     let per_channel: Vec<Value> = images
         .iter()
         .zip(channels)
-        .filter(|(img, _)| img.width == w && img.height == h)
-        .map(|(img, name)| {
+        .enumerate()
+        .filter(|(_, (img, _))| img.width == w && img.height == h)
+        .map(|(c, (img, name))| {
+            let truth = if truth.len() >= (c + 1) * k && truth.len() > k { &truth[c * k..(c + 1) * k] } else { &truth[..k] };
             let (a, b) = recon::metrics::fit_affine(&img.data, truth);
             let fitted: Vec<f32> = img.data.iter().map(|&v| (a * v as f64 + b) as f32).collect();
             json!({

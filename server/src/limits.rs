@@ -17,6 +17,10 @@ pub struct Limits {
     pub max_patterns: u64,
     /// Most pixels (width x height) of one session's patterns.
     pub max_pixels: u64,
+    /// Most pixels (width x height) of one camera frame.
+    pub max_frame_pixels: u64,
+    /// Most values of a session's ground truth (a camera session's T is m x k).
+    pub max_ground_truth_values: u64,
     /// Most sessions one lab may hold.
     pub max_sessions_per_lab: u64,
     /// Most reconstructions one lab may have queued or running at once.
@@ -38,6 +42,8 @@ impl Default for Limits {
             max_chunk_bytes: 8 << 20,
             max_patterns: helmholtz_proto::patterns::MAX_COUNT,
             max_pixels: helmholtz_proto::patterns::MAX_PIXELS,
+            max_frame_pixels: 256 * 256,
+            max_ground_truth_values: 1 << 22,
             max_sessions_per_lab: 10_000,
             max_pending_jobs_per_lab: 1_000,
             max_running_jobs_per_lab: 0,

@@ -245,7 +245,7 @@ async fn every_route_and_rpc_by_role_and_lab() {
     let create = |id: &str| helmholtz_client::NewSession::new(id, spec(), vec!["bucket".into()]).to_request();
     let recon_req = |id: &str| v1::ReconstructionRequest { session_id: id.into(), method: "direct".into(), params_json: String::new() };
     let channel = tonic::transport::Channel::from_shared(s.address.clone()).unwrap().connect().await.unwrap();
-    let rpcs: [(&str, Need, (Code, Code)); 7] = [
+    let rpcs: [(&str, Need, (Code, Code)); 8] = [
         // Creating a new id succeeds; another lab's existing id is taken (ids are global).
         ("CreateSession", Need::Rig, (Code::Ok, Code::AlreadyExists)),
         ("UploadMeasurements", Need::Rig, (Code::Ok, Code::NotFound)),
@@ -253,6 +253,8 @@ async fn every_route_and_rpc_by_role_and_lab() {
         ("FinishSession", Need::Rig, (Code::Ok, Code::NotFound)),
         ("RequestReconstruction", Need::Reader, (Code::Ok, Code::NotFound)),
         ("GetReconstruction", Need::Reader, (Code::Ok, Code::NotFound)),
+        // The lab's own reconstruction has ended: cancelling it is refused, and changes nothing.
+        ("CancelReconstruction", Need::Reader, (Code::FailedPrecondition, Code::NotFound)),
         ("grpc.health.v1.Health/Check", Need::Open, (Code::Ok, Code::Ok)),
     ];
     for (rpc, need, (own_code, other_code)) in rpcs {
@@ -290,6 +292,9 @@ async fn every_route_and_rpc_by_role_and_lab() {
                     "GetReconstruction" => {
                         client.get_reconstruction(v1::ReconstructionRef { reconstruction_id: recon }).await.map(|_| ())
                     }
+                    "CancelReconstruction" => {
+                        client.cancel_reconstruction(v1::ReconstructionRef { reconstruction_id: recon }).await.map(|_| ())
+                    }
                     _ => {
                         let mut health = tonic_health::pb::health_client::HealthClient::new(channel.clone());
                         health.check(tonic_health::pb::HealthCheckRequest { service: String::new() }).await.map(|_| ())
@@ -307,7 +312,7 @@ async fn every_route_and_rpc_by_role_and_lab() {
         }
     }
     assert!(failures.is_empty(), "{} of {checked} calls had the wrong status:\n{}", failures.len(), failures.join("\n"));
-    assert_eq!(checked, (rest.len() + 7) * callers.len() * 2);
+    assert_eq!(checked, (rest.len() + 8) * callers.len() * 2);
 
     // Another lab's resources answer exactly as missing ones do (same problem, same words).
     let reader = callers[1].header.clone().unwrap();

@@ -6,7 +6,7 @@ use tonic::{Request, Response, Status, Streaming};
 
 use super::{ApiError, AppState, validate};
 use crate::auth::{Principal, Role};
-use crate::store::{ReconstructionRow, SessionRow, SessionState};
+use crate::store::{ReconstructionRow, SampleFormat, SessionRow, SessionState};
 
 #[derive(Clone, Debug)]
 pub struct AcquisitionService {
@@ -40,7 +40,19 @@ pub fn session_message(s: &SessionRow) -> v1::Session {
         session_id: s.id.clone(),
         rig: s.rig.clone(),
         patterns: Some((&s.spec).into()),
-        detector: Some(v1::DetectorLayout { channels: s.channels.clone(), ..Default::default() }),
+        detector: Some(v1::DetectorLayout {
+            channels: s.channels.clone(),
+            directions: s.directions.iter().map(|d| v1::Direction { x: d[0], y: d[1], z: d[2] }).collect(),
+            camera: s.camera.map(|c| v1::CameraLayout {
+                width: c.width,
+                height: c.height,
+                format: match c.format {
+                    SampleFormat::F64 => v1::SampleFormat::F64,
+                    SampleFormat::F32 => v1::SampleFormat::F32,
+                    SampleFormat::U16 => v1::SampleFormat::U16,
+                } as i32,
+            }),
+        }),
         metadata: s.metadata.iter().map(|(k, v)| (k.clone(), v.clone())).collect(),
         committed_rows: s.committed_rows,
         expected_rows: s.expected_rows,
@@ -73,6 +85,71 @@ fn wire_error(e: WireError) -> ApiError {
         WireError::Checksum { .. } => ApiError::DataLoss(e.to_string()),
         WireError::Ragged { .. } | WireError::NotFinite { .. } => ApiError::invalid("values_f64le", e.to_string()),
     }
+}
+
+/// The chunk's payload in the session's sample format, checked (exactly that payload set, whole
+/// rows, checksum, finite floats, size cap): the bytes to store as they are.
+fn checked_payload<'c>(chunk: &'c v1::MeasurementChunk, session: &SessionRow, max_chunk: usize) -> Result<&'c [u8], ApiError> {
+    let format = session.sample_format();
+    let payloads = [
+        ("values_f64le", SampleFormat::F64, &chunk.values_f64le),
+        ("values_f32le", SampleFormat::F32, &chunk.values_f32le),
+        ("values_u16le", SampleFormat::U16, &chunk.values_u16le),
+    ];
+    let (field, _, bytes) = payloads.iter().find(|(_, f, _)| *f == format).expect("every format has a field");
+    if let Some((other, _, _)) = payloads.iter().find(|(_, f, b)| *f != format && !b.is_empty()) {
+        let kind = if session.camera.is_some() { "camera" } else { "bucket" };
+        return Err(ApiError::invalid(
+            *other,
+            format!("session {:?} is a {kind} session of {} samples: send them in {field} only", session.id, format.name()),
+        ));
+    }
+    if bytes.is_empty() {
+        return Err(ApiError::invalid(*field, "chunk holds no rows"));
+    }
+    if bytes.len() > max_chunk {
+        return Err(ApiError::TooLarge {
+            limit: "max_chunk_bytes",
+            message: format!(
+                "{field} holds {} bytes; chunks may hold at most {max_chunk} bytes (send fewer rows per chunk)",
+                bytes.len()
+            ),
+        });
+    }
+    if format == SampleFormat::F64 {
+        wire::decode_values(bytes, session.row_values(), chunk.crc32c).map_err(|e| {
+            if matches!(e, WireError::Checksum { .. }) {
+                metrics::counter!("helmholtz_checksum_failures_total").increment(1);
+            }
+            wire_error(e)
+        })?;
+        return Ok(bytes);
+    }
+    let actual = crc32c::crc32c(bytes);
+    if actual != chunk.crc32c {
+        metrics::counter!("helmholtz_checksum_failures_total").increment(1);
+        return Err(ApiError::DataLoss(format!("crc32c mismatch: chunk says {:#010x}, payload has {actual:#010x}", chunk.crc32c)));
+    }
+    let row_bytes = session.row_bytes();
+    if !bytes.len().is_multiple_of(row_bytes) {
+        return Err(ApiError::invalid(
+            *field,
+            format!(
+                "{} bytes are not whole frames of {} x {} {} pixels ({row_bytes} bytes each)",
+                bytes.len(),
+                session.camera.map(|c| c.width).unwrap_or(0),
+                session.camera.map(|c| c.height).unwrap_or(0),
+                format.name()
+            ),
+        ));
+    }
+    if format == SampleFormat::F32
+        && let Some(i) = bytes.chunks_exact(4).position(|b| !f32::from_le_bytes(b.try_into().expect("4")).is_finite())
+    {
+        let per_row = session.row_values();
+        return Err(ApiError::invalid(*field, format!("value at row {}, pixel {} is not finite", i / per_row, i % per_row)));
+    }
+    Ok(bytes)
 }
 
 #[tonic::async_trait]
@@ -130,43 +207,26 @@ impl Acquisition for AcquisitionService {
             if chunk.session_id != row.id {
                 return Err(ApiError::invalid("session_id", "every chunk of a stream must name the same session").into());
             }
-            let channels = row.channels.len();
+            let channels = row.row_values();
             if chunk.channels as usize != channels {
+                let what = if row.camera.is_some() { "pixels per frame" } else { "channels" };
                 return Err(ApiError::invalid(
                     "channels",
-                    format!("session {:?} has {channels} channels, chunk says {}", row.id, chunk.channels),
+                    format!("session {:?} has {channels} {what}, chunk says {}", row.id, chunk.channels),
                 )
                 .into());
             }
-            if chunk.values_f64le.is_empty() {
-                return Err(ApiError::invalid("values_f64le", "chunk holds no rows").into());
-            }
-            if chunk.values_f64le.len() > max_chunk {
-                return Err(ApiError::TooLarge {
-                    limit: "max_chunk_bytes",
-                    message: format!(
-                        "values_f64le holds {} bytes; chunks may hold at most {max_chunk} bytes (send fewer rows per chunk)",
-                        chunk.values_f64le.len()
-                    ),
-                }
-                .into());
-            }
-            let values = wire::decode_values(&chunk.values_f64le, channels, chunk.crc32c).map_err(|e| {
-                if matches!(e, WireError::Checksum { .. }) {
-                    metrics::counter!("helmholtz_checksum_failures_total").increment(1);
-                }
-                wire_error(e)
-            })?;
+            let payload = checked_payload(&chunk, row, max_chunk)?;
             let outcome = self
                 .state
                 .store
-                .append_rows(&row.id, chunk.start_row, channels, &values)
+                .append_raw(&row.id, chunk.start_row, row.row_bytes(), payload)
                 .await
                 .map_err(ApiError::from)?;
             written += outcome.written;
             skipped += outcome.skipped;
             metrics::counter!("helmholtz_upload_rows_total").increment(outcome.written);
-            metrics::counter!("helmholtz_upload_bytes_total").increment(outcome.written * channels as u64 * 8);
+            metrics::counter!("helmholtz_upload_bytes_total").increment(outcome.written * row.row_bytes() as u64);
             committed = outcome.committed_rows;
         }
         if let Some((row, _)) = &session {
@@ -221,6 +281,15 @@ impl Acquisition for AcquisitionService {
     ) -> Result<Response<v1::Reconstruction>, Status> {
         let caller = self.caller(&request, &[Role::Reader]).await?;
         let row = self.state.own_reconstruction(&caller, request.get_ref().reconstruction_id).await?;
+        Ok(Response::new(reconstruction_message(&row)))
+    }
+
+    async fn cancel_reconstruction(
+        &self,
+        request: Request<v1::ReconstructionRef>,
+    ) -> Result<Response<v1::Reconstruction>, Status> {
+        let caller = self.caller(&request, &[Role::Reader]).await?;
+        let row = self.state.cancel_reconstruction(&caller, request.get_ref().reconstruction_id).await?;
         Ok(Response::new(reconstruction_message(&row)))
     }
 }

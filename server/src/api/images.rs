@@ -72,7 +72,7 @@ pub fn npy_f64(rows: u64, channels: usize, data: &[f64]) -> Vec<u8> {
     out
 }
 
-fn npy_header(descr: &str, shape: &str, payload: usize) -> Vec<u8> {
+pub(crate) fn npy_header(descr: &str, shape: &str, payload: usize) -> Vec<u8> {
     let mut header = format!("{{'descr': '{descr}', 'fortran_order': False, 'shape': {shape}, }}");
     // Magic (6) + version (2) + header length (2) + header must be a multiple of 64, ending in '\n'.
     let total = 10 + header.len() + 1;

@@ -15,7 +15,8 @@ use serde_json::{Value, json};
 use super::images::{self, Scale};
 use super::{ApiError, AppState, validate};
 use crate::auth::{Principal, Role, Roles};
-use crate::store::{ReconstructionRow, SessionRow, StoredImage, TokenInfo};
+use crate::store::{ReconstructionRow, SampleFormat, SessionRow, StoredImage, TokenInfo};
+use futures::StreamExt;
 
 pub fn router(state: AppState) -> Router {
     Router::new()
@@ -127,6 +128,8 @@ pub fn session_json(s: &SessionRow, latest: Option<i64>) -> Value {
         "rig": s.rig,
         "patterns": serde_json::to_value(&s.spec).expect("spec json"),
         "channels": s.channels,
+        "directions": s.directions,
+        "camera": s.camera,
         "metadata": s.metadata,
         "committed_rows": s.committed_rows,
         "expected_rows": s.expected_rows,
@@ -253,20 +256,51 @@ async fn post_reconstruction(
     Ok(response)
 }
 
-/// The committed bucket rows exactly as stored: float64, shape (rows, channels).
+/// The committed rows exactly as stored, streamed page by page (a camera session can be
+/// gigabytes): bucket sessions float64 of shape (rows, channels); camera sessions their frames,
+/// uint16 or float32 of shape (rows, height, width).
 async fn measurements_npy(state: &AppState, caller: &Principal, id: &str) -> Result<Response, ApiError> {
     let session = state.own_session(caller, id).await?;
-    let mut values = Vec::with_capacity(session.committed_rows as usize * session.channels.len());
-    let mut next = 0u64;
-    loop {
-        let page = state.store.read_chunks(id, next, 256).await?;
-        let Some((start, last)) = page.last() else { break };
-        next = start + (last.len() / session.channels.len()) as u64;
-        values.extend(page.into_iter().flat_map(|(_, v)| v));
-    }
-    let rows = (values.len() / session.channels.len()) as u64;
-    let mut response = images::npy_f64(rows, session.channels.len(), &values).into_response();
+    let rows = session.committed_rows;
+    let format = session.sample_format();
+    let (descr, shape) = match (session.camera, format) {
+        (Some(c), SampleFormat::U16) => ("<u2", format!("({rows}, {}, {})", c.height, c.width)),
+        (Some(c), _) => ("<f4", format!("({rows}, {}, {})", c.height, c.width)),
+        (None, _) => ("<f8", format!("({rows}, {})", session.channels.len())),
+    };
+    let header = images::npy_header(descr, &shape, 0);
+    let length = header.len() as u64 + rows * session.row_bytes() as u64;
+    let store = state.store.clone();
+    let (sid, sample_bytes) = (session.id.clone(), format.bytes());
+    // Pages of chunks in row order up to the committed count at the time of the request.
+    let pages = futures::stream::unfold(Some(0u64), move |next| {
+        let (store, sid) = (store.clone(), sid.clone());
+        async move {
+            let from = next?;
+            if from >= rows {
+                return None;
+            }
+            match store.read_raw_chunks(&sid, from, 16, sample_bytes).await {
+                Ok(page) if page.is_empty() => None,
+                Ok(page) => {
+                    let (start, count, _) = page.last().expect("non-empty");
+                    let after = start + count;
+                    let mut bytes = Vec::new();
+                    for (start, count, data) in page {
+                        // Never past the count announced in the header.
+                        let keep = count.min(rows.saturating_sub(start)) as usize;
+                        bytes.extend_from_slice(&data[..keep * (data.len() / count as usize)]);
+                    }
+                    Some((Ok::<_, std::io::Error>(Bytes::from(bytes)), Some(after)))
+                }
+                Err(e) => Some((Err(std::io::Error::other(e.to_string())), None)),
+            }
+        }
+    });
+    let body = futures::stream::once(async move { Ok::<_, std::io::Error>(Bytes::from(header)) }).chain(pages);
+    let mut response = Body::from_stream(body).into_response();
     response.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static("application/octet-stream"));
+    response.headers_mut().insert(header::CONTENT_LENGTH, HeaderValue::from(length));
     Ok(response)
 }
 

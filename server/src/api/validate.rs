@@ -6,7 +6,7 @@ use helmholtz_proto::{PatternSpec, v1};
 
 use super::ApiError;
 use crate::limits::Limits;
-use crate::store::NewSession;
+use crate::store::{CameraLayout, NewSession, SampleFormat};
 
 pub const MAX_ID_LEN: usize = 128;
 pub const MAX_CHANNELS: usize = 64;
@@ -58,20 +58,8 @@ pub fn new_session(req: &v1::CreateSessionRequest, lab: &str, limits: &Limits) -
             ),
         ));
     }
-    let channels = req.detector.as_ref().map(|d| d.channels.clone()).unwrap_or_default();
-    if channels.is_empty() || channels.len() > MAX_CHANNELS {
-        return Err(ApiError::invalid(
-            "detector.channels",
-            format!("must name 1-{MAX_CHANNELS} channels, got {}", channels.len()),
-        ));
-    }
-    let mut seen = HashSet::new();
-    for (i, c) in channels.iter().enumerate() {
-        session_id(c, &format!("detector.channels[{i}]"))?;
-        if !seen.insert(c) {
-            return Err(ApiError::invalid(format!("detector.channels[{i}]"), format!("duplicate channel {c:?}")));
-        }
-    }
+    let detector = req.detector.clone().unwrap_or_default();
+    let (channels, directions, camera) = detector_layout(&detector, limits)?;
     if req.metadata.len() > MAX_METADATA_ENTRIES {
         return Err(ApiError::invalid("metadata", format!("at most {MAX_METADATA_ENTRIES} entries")));
     }
@@ -96,10 +84,31 @@ pub fn new_session(req: &v1::CreateSessionRequest, lab: &str, limits: &Limits) -
                     ),
                 ));
             }
-            if gt.transport.len() != spec.pixels() {
+            let k = spec.pixels();
+            let allowed: Vec<usize> = match &camera {
+                Some(c) => vec![c.pixels() * k],
+                None if channels.len() > 1 => vec![k, channels.len() * k],
+                None => vec![k],
+            };
+            if !allowed.contains(&gt.transport.len()) {
+                let what = match &camera {
+                    Some(c) => format!("camera pixels x pattern pixels = {} x {k}", c.pixels()),
+                    None if channels.len() > 1 => format!("width * height = {k}, or channels * width * height = {}", channels.len() * k),
+                    None => format!("width * height = {k}"),
+                };
                 return Err(ApiError::invalid(
                     "ground_truth.transport",
-                    format!("must hold width * height = {} values, got {}", spec.pixels(), gt.transport.len()),
+                    format!("must hold {what} values, got {}", gt.transport.len()),
+                ));
+            }
+            if gt.transport.len() as u64 > limits.max_ground_truth_values {
+                return Err(ApiError::invalid(
+                    "ground_truth.transport",
+                    format!(
+                        "{} values exceed this server's limit of {} (max_ground_truth_values); send no ground truth",
+                        gt.transport.len(),
+                        limits.max_ground_truth_values
+                    ),
                 ));
             }
             if let Some(i) = gt.transport.iter().position(|v| !v.is_finite()) {
@@ -114,7 +123,85 @@ pub fn new_session(req: &v1::CreateSessionRequest, lab: &str, limits: &Limits) -
         rig: req.rig.clone(),
         spec,
         channels,
+        directions,
+        camera,
         metadata: req.metadata.iter().map(|(k, v)| (k.clone(), v.clone())).collect::<BTreeMap<_, _>>(),
         ground_truth,
     })
+}
+
+type Detector = (Vec<String>, Vec<[f64; 3]>, Option<CameraLayout>);
+
+/// Bucket channels (with optional detector directions), or a camera.
+fn detector_layout(d: &v1::DetectorLayout, limits: &Limits) -> Result<Detector, ApiError> {
+    if let Some(cam) = &d.camera {
+        if !d.channels.is_empty() || !d.directions.is_empty() {
+            return Err(ApiError::invalid(
+                "detector.camera",
+                "a camera session has no bucket channels or directions; leave detector.channels and detector.directions empty",
+            ));
+        }
+        if cam.width == 0 || cam.height == 0 {
+            return Err(ApiError::invalid("detector.camera.width", format!("camera must be at least 1x1, got {}x{}", cam.width, cam.height)));
+        }
+        let pixels = cam.width as u64 * cam.height as u64;
+        if pixels > limits.max_frame_pixels {
+            return Err(ApiError::invalid(
+                "detector.camera.width",
+                format!(
+                    "{}x{} = {pixels} pixels per frame exceed this server's limit of {} (max_frame_pixels)",
+                    cam.width, cam.height, limits.max_frame_pixels
+                ),
+            ));
+        }
+        let format = match v1::SampleFormat::try_from(cam.format) {
+            Ok(v1::SampleFormat::F32) => SampleFormat::F32,
+            Ok(v1::SampleFormat::U16) => SampleFormat::U16,
+            _ => {
+                return Err(ApiError::invalid(
+                    "detector.camera.format",
+                    format!("must be SAMPLE_FORMAT_F32 or SAMPLE_FORMAT_U16, got {}", cam.format),
+                ));
+            }
+        };
+        return Ok((Vec::new(), Vec::new(), Some(CameraLayout { width: cam.width, height: cam.height, format })));
+    }
+    let channels = d.channels.clone();
+    if channels.is_empty() || channels.len() > MAX_CHANNELS {
+        return Err(ApiError::invalid(
+            "detector.channels",
+            format!("must name 1-{MAX_CHANNELS} channels (or set detector.camera), got {}", channels.len()),
+        ));
+    }
+    let mut seen = HashSet::new();
+    for (i, c) in channels.iter().enumerate() {
+        session_id(c, &format!("detector.channels[{i}]"))?;
+        if !seen.insert(c) {
+            return Err(ApiError::invalid(format!("detector.channels[{i}]"), format!("duplicate channel {c:?}")));
+        }
+    }
+    if !d.directions.is_empty() && d.directions.len() != channels.len() {
+        return Err(ApiError::invalid(
+            "detector.directions",
+            format!("give one direction per channel ({}) or none, got {}", channels.len(), d.directions.len()),
+        ));
+    }
+    let mut directions = Vec::with_capacity(d.directions.len());
+    for (i, v) in d.directions.iter().enumerate() {
+        let n = (v.x * v.x + v.y * v.y + v.z * v.z).sqrt();
+        if !n.is_finite() || (n - 1.0).abs() > 1e-3 {
+            return Err(ApiError::invalid(
+                format!("detector.directions[{i}]"),
+                format!("must be a unit vector, got ({}, {}, {}) of length {n}", v.x, v.y, v.z),
+            ));
+        }
+        if v.z <= 0.0 {
+            return Err(ApiError::invalid(
+                format!("detector.directions[{i}]"),
+                format!("must point toward the projector's side of the scene (z > 0), got z = {}", v.z),
+            ));
+        }
+        directions.push([v.x / n, v.y / n, v.z / n]);
+    }
+    Ok((channels, directions, None))
 }

@@ -18,7 +18,7 @@ mod tokens;
 
 pub use jobs::{ClaimedJob, ReconstructionRow, StoredImage};
 pub use rows::AppendOutcome;
-pub use sessions::{NewSession, SessionRow, SessionState};
+pub use sessions::{CameraLayout, NewSession, SampleFormat, SessionRow, SessionState};
 pub use tokens::TokenInfo;
 
 /// Storage errors, by what the caller should tell its user.

@@ -28,7 +28,21 @@ impl Store {
         values: &[f64],
     ) -> Result<AppendOutcome, StoreError> {
         debug_assert!(channels > 0 && values.len().is_multiple_of(channels));
-        let rows = (values.len() / channels) as u64;
+        let blob: Vec<u8> = values.iter().flat_map(|v| v.to_le_bytes()).collect();
+        self.append_raw(session_id, start_row, channels * 8, &blob).await
+    }
+
+    /// Appends rows already encoded in the session's sample format (`row_bytes` bytes each,
+    /// validated by the caller), with the resume semantics of [`Store::append_rows`].
+    pub async fn append_raw(
+        &self,
+        session_id: &str,
+        start_row: u64,
+        row_bytes: usize,
+        payload: &[u8],
+    ) -> Result<AppendOutcome, StoreError> {
+        debug_assert!(row_bytes > 0 && payload.len().is_multiple_of(row_bytes));
+        let rows = (payload.len() / row_bytes) as u64;
         // BEGIN IMMEDIATE takes the write lock up front: read-then-write without upgrade failures.
         let mut tx = self.pool.begin_with("BEGIN IMMEDIATE").await?;
         let row = sqlx::query("SELECT committed_rows, expected_rows, state FROM sessions WHERE id = $1")
@@ -53,8 +67,7 @@ impl Store {
             return Err(StoreError::Finished(session_id.to_string()));
         }
         let skip = committed - start_row;
-        let fresh = &values[skip as usize * channels..];
-        let blob: Vec<u8> = fresh.iter().flat_map(|v| v.to_le_bytes()).collect();
+        let blob = &payload[skip as usize * row_bytes..];
         sqlx::query("INSERT INTO measurement_chunks (session_id, start_row, row_count, data) VALUES ($1, $2, $3, $4)")
             .bind(session_id)
             .bind(committed as i64)
@@ -81,6 +94,22 @@ impl Store {
         from_row: u64,
         max_chunks: u32,
     ) -> Result<Vec<(u64, Vec<f64>)>, StoreError> {
+        let raw = self.read_raw_chunks(session_id, from_row, max_chunks, 8).await?;
+        Ok(raw
+            .into_iter()
+            .map(|(start, _, data)| (start, data.chunks_exact(8).map(|b| f64::from_le_bytes(b.try_into().expect("8"))).collect()))
+            .collect())
+    }
+
+    /// Like [`Store::read_chunks`] but undecoded: (start_row, row_count, bytes) with
+    /// `sample_bytes` bytes per stored value.
+    pub async fn read_raw_chunks(
+        &self,
+        session_id: &str,
+        from_row: u64,
+        max_chunks: u32,
+        sample_bytes: usize,
+    ) -> Result<Vec<(u64, u64, Vec<u8>)>, StoreError> {
         let rows = sqlx::query(
             "SELECT start_row, row_count, data FROM measurement_chunks \
              WHERE session_id = $1 AND start_row >= $2 ORDER BY start_row LIMIT $3",
@@ -96,14 +125,16 @@ impl Store {
             let start = row.get::<i64, _>("start_row") as u64;
             let count = row.get::<i64, _>("row_count") as u64;
             let data: Vec<u8> = row.get("data");
-            if start != expect || !data.len().is_multiple_of(8) || count == 0 || !((data.len() / 8) as u64).is_multiple_of(count) {
+            if start != expect
+                || !data.len().is_multiple_of(sample_bytes)
+                || count == 0
+                || !((data.len() / sample_bytes) as u64).is_multiple_of(count)
+            {
                 return Err(StoreError::Corrupt(format!(
                     "session {session_id}: chunk at row {start} does not continue row {expect}"
                 )));
             }
-            let values =
-                data.chunks_exact(8).map(|b| f64::from_le_bytes(b.try_into().expect("8"))).collect();
-            out.push((start, values));
+            out.push((start, count, data));
             expect = start + count;
         }
         Ok(out)

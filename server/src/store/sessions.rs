@@ -8,6 +8,62 @@ use sqlx::sqlite::SqliteRow;
 
 use super::{Store, StoreError, f32_to_le, le_to_f32, now_ms, parse_spec};
 
+/// How one stored value is encoded (little-endian).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SampleFormat {
+    F64,
+    F32,
+    U16,
+}
+
+impl SampleFormat {
+    pub fn bytes(self) -> usize {
+        match self {
+            SampleFormat::F64 => 8,
+            SampleFormat::F32 => 4,
+            SampleFormat::U16 => 2,
+        }
+    }
+    pub fn name(self) -> &'static str {
+        match self {
+            SampleFormat::F64 => "f64",
+            SampleFormat::F32 => "f32",
+            SampleFormat::U16 => "u16",
+        }
+    }
+    fn parse(name: &str) -> Result<Self, StoreError> {
+        match name {
+            "f64" => Ok(SampleFormat::F64),
+            "f32" => Ok(SampleFormat::F32),
+            "u16" => Ok(SampleFormat::U16),
+            other => Err(StoreError::Corrupt(format!("unknown sample format {other:?}"))),
+        }
+    }
+    /// Decodes little-endian samples (a whole number of them) to f32.
+    pub fn decode_f32(self, bytes: &[u8], out: &mut Vec<f32>) {
+        match self {
+            SampleFormat::F64 => out.extend(bytes.chunks_exact(8).map(|b| f64::from_le_bytes(b.try_into().expect("8")) as f32)),
+            SampleFormat::F32 => out.extend(bytes.chunks_exact(4).map(|b| f32::from_le_bytes(b.try_into().expect("4")))),
+            SampleFormat::U16 => out.extend(bytes.chunks_exact(2).map(|b| u16::from_le_bytes(b.try_into().expect("2")) as f32)),
+        }
+    }
+}
+
+/// A camera in place of bucket detectors: one frame of `width x height` per pattern.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+pub struct CameraLayout {
+    pub width: u32,
+    pub height: u32,
+    pub format: SampleFormat,
+}
+
+impl CameraLayout {
+    pub fn pixels(&self) -> usize {
+        self.width as usize * self.height as usize
+    }
+}
+
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum SessionState {
@@ -23,9 +79,14 @@ pub struct NewSession {
     pub lab: String,
     pub rig: String,
     pub spec: PatternSpec,
+    /// Bucket channel names (empty for a camera session).
     pub channels: Vec<String>,
+    /// Unit vectors toward the bucket detectors, one per channel, or none.
+    pub directions: Vec<[f64; 3]>,
+    pub camera: Option<CameraLayout>,
     pub metadata: BTreeMap<String, String>,
-    /// Simulated sessions: the transport the simulator used (width, height, row-major values).
+    /// Simulated sessions: the transport the simulator used (width, height, row-major values:
+    /// one image shared by all channels, one per channel, or a camera session's T, m x k).
     pub ground_truth: Option<(u32, u32, Vec<f32>)>,
 }
 
@@ -36,7 +97,10 @@ pub struct SessionRow {
     pub lab: String,
     pub rig: String,
     pub spec: PatternSpec,
+    /// Bucket channel names (empty for a camera session).
     pub channels: Vec<String>,
+    pub directions: Vec<[f64; 3]>,
+    pub camera: Option<CameraLayout>,
     pub metadata: BTreeMap<String, String>,
     pub expected_rows: u64,
     pub committed_rows: u64,
@@ -46,12 +110,34 @@ pub struct SessionRow {
     pub finished_ms: Option<i64>,
 }
 
+impl SessionRow {
+    /// Values per row: the channel count, or a camera frame's pixel count.
+    pub fn row_values(&self) -> usize {
+        self.camera.map(|c| c.pixels()).unwrap_or(self.channels.len())
+    }
+    pub fn sample_format(&self) -> SampleFormat {
+        self.camera.map(|c| c.format).unwrap_or(SampleFormat::F64)
+    }
+    /// Bytes one stored row takes.
+    pub fn row_bytes(&self) -> usize {
+        self.row_values() * self.sample_format().bytes()
+    }
+}
+
 const SESSION_COLUMNS: &str = "id, lab, rig, spec_json, channels_json, metadata_json, expected_rows, \
-     committed_rows, state, gt_transport IS NOT NULL AS has_gt, created_ms, finished_ms";
+     committed_rows, state, gt_transport IS NOT NULL AS has_gt, created_ms, finished_ms, \
+     camera_width, camera_height, sample_format, directions_json";
 
 fn session_from_row(row: &SqliteRow) -> Result<SessionRow, StoreError> {
     let corrupt = |what: &str, e: serde_json::Error| StoreError::Corrupt(format!("{what}: {e}"));
+    let format = SampleFormat::parse(row.get("sample_format"))?;
+    let camera = match (row.get::<Option<i64>, _>("camera_width"), row.get::<Option<i64>, _>("camera_height")) {
+        (Some(w), Some(h)) => Some(CameraLayout { width: w as u32, height: h as u32, format }),
+        _ => None,
+    };
     Ok(SessionRow {
+        directions: serde_json::from_str(row.get("directions_json")).map_err(|e| corrupt("directions", e))?,
+        camera,
         id: row.get("id"),
         lab: row.get("lab"),
         rig: row.get("rig"),
@@ -81,7 +167,8 @@ impl Store {
         };
         let inserted = sqlx::query(
             "INSERT INTO sessions (id, rig, spec_json, channels_json, metadata_json, expected_rows, \
-             gt_width, gt_height, gt_transport, created_ms, lab) VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11) \
+             gt_width, gt_height, gt_transport, created_ms, lab, camera_width, camera_height, sample_format, directions_json) \
+             VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $12, $13, $14, $15) \
              ON CONFLICT (id) DO NOTHING",
         )
         .bind(&new.id)
@@ -95,6 +182,10 @@ impl Store {
         .bind(gt_blob)
         .bind(now_ms())
         .bind(&new.lab)
+        .bind(new.camera.map(|c| c.width as i64))
+        .bind(new.camera.map(|c| c.height as i64))
+        .bind(new.camera.map(|c| c.format).unwrap_or(SampleFormat::F64).name())
+        .bind(serde_json::to_string(&new.directions).expect("json"))
         .execute(&self.pool)
         .await?
         .rows_affected()
@@ -109,7 +200,7 @@ impl Store {
                 Some("rig")
             } else if existing.spec != new.spec {
                 Some("patterns")
-            } else if existing.channels != new.channels {
+            } else if existing.channels != new.channels || existing.camera != new.camera || existing.directions != new.directions {
                 Some("detector")
             } else if existing.metadata != new.metadata {
                 Some("metadata")

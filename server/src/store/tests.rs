@@ -17,6 +17,8 @@ fn new_session(id: &str, count: u64) -> NewSession {
         rig: "bench".into(),
         spec: PatternSpec::new(Family::Bernoulli { fill: 0.5 }, 4, 4, count, 1).unwrap(),
         channels: vec!["a".into(), "b".into()],
+        directions: Vec::new(),
+        camera: None,
         metadata: BTreeMap::from([("lab".into(), "optics".into())]),
         ground_truth: None,
     }
