@@ -35,6 +35,10 @@ pub struct Config {
     pub limits: Limits,
     /// Where to serve Prometheus metrics (`GET /metrics`); None: not served.
     pub metrics_listen: Option<SocketAddr>,
+    /// Working-set budget of one camera-session reconstruction, bytes.
+    pub worker_memory: usize,
+    /// Decoded transport matrices kept in memory for relighting, bytes.
+    pub transport_cache: usize,
 }
 
 impl Default for Config {
@@ -45,6 +49,8 @@ impl Default for Config {
             workers: std::thread::available_parallelism().map(|n| n.get()).unwrap_or(2),
             lease: Duration::from_secs(30),
             limits: Limits::default(),
+            worker_memory: crate::recon::transport::DEFAULT_MEMORY_BUDGET,
+            transport_cache: 2 << 30,
             metrics_listen: None,
         }
     }
@@ -84,10 +90,11 @@ impl Application {
                 workers: config.workers,
                 lease: config.lease,
                 max_running_per_lab: config.limits.max_running_jobs_per_lab,
+                memory_budget: config.worker_memory,
                 ..PoolConfig::default()
             },
         );
-        let state = AppState::new(store.clone(), workers.notifier(), config.limits.clone());
+        let state = AppState::new(store.clone(), workers.notifier(), config.limits.clone()).with_transport_cache(config.transport_cache);
         let (health_reporter, health_service) = tonic_health::server::health_reporter();
         health_reporter.set_serving::<AcquisitionServer<AcquisitionService>>().await;
         let acquisition = AcquisitionService::new(state.clone()).into_server();

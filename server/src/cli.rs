@@ -34,6 +34,14 @@ struct ServeArgs {
     /// Job lease in seconds: a job whose worker stops heart-beating for this long is taken up again.
     #[arg(long, default_value_t = 30)]
     lease_seconds: u64,
+    /// Working-set budget of one camera-session reconstruction in MiB: T is solved a block of
+    /// camera pixels at a time, the block sized to stay within it.
+    #[arg(long, env = "HELMHOLTZ_WORKER_MEMORY_MIB", default_value_t = 1024, value_parser = clap::value_parser!(u64).range(1..))]
+    worker_memory_mib: u64,
+    /// Memory for decoded transport matrices kept for relighting, in MiB (least recently used
+    /// ones are dropped first).
+    #[arg(long, default_value_t = 2048)]
+    transport_cache_mib: u64,
     /// Serve Prometheus metrics (GET /metrics) on this separate address; port 0 picks a free
     /// port (printed on the first line). Off unless given.
     #[arg(long, env = "HELMHOLTZ_METRICS_LISTEN")]
@@ -164,6 +172,8 @@ impl ServeArgs {
             lease: Duration::from_secs(self.lease_seconds.max(1)),
             limits: self.limits.limits(),
             metrics_listen: self.metrics_listen,
+            worker_memory: (self.worker_memory_mib as usize) << 20,
+            transport_cache: (self.transport_cache_mib as usize) << 20,
             ..Config::default()
         };
         if let Some(w) = self.workers {

@@ -13,8 +13,9 @@ use serde_json::{Value, json};
 use tokio::runtime::Handle;
 use tokio::sync::Notify;
 
+use crate::recon::transport::{self, CameraGrid, FrameSource, TransportConfig};
 use crate::recon::{self, BucketBlock, BucketSource, Control, MethodConfig, Problem, ReconError, SourceError};
-use crate::store::{ClaimedJob, StoredImage, Store};
+use crate::store::{CameraLayout, ClaimedJob, SessionRow, StoredImage, Store};
 
 /// How the pool runs.
 #[derive(Clone, Debug)]
@@ -27,11 +28,20 @@ pub struct PoolConfig {
     pub idle_poll: Duration,
     /// Most jobs of one lab running at once (0: no cap).
     pub max_running_per_lab: u32,
+    /// Working-set budget of one reconstruction of a camera session (frame blocks, solutions,
+    /// scratch): the transport solver picks its block of camera pixels to stay within it.
+    pub memory_budget: usize,
 }
 
 impl Default for PoolConfig {
     fn default() -> Self {
-        PoolConfig { workers: 2, lease: Duration::from_secs(30), idle_poll: Duration::from_millis(500), max_running_per_lab: 0 }
+        PoolConfig {
+            workers: 2,
+            lease: Duration::from_secs(30),
+            idle_poll: Duration::from_millis(500),
+            max_running_per_lab: 0,
+            memory_budget: transport::DEFAULT_MEMORY_BUDGET,
+        }
     }
 }
 
@@ -182,14 +192,14 @@ impl Worker {
             .record(seconds);
         let store = &self.store;
         let result = match outcome {
-            Ok((images, mut report)) => {
+            Ok(Computed { images, transport, mut report }) => {
                 if crate::alloc::installed() {
                     // Process-wide: includes other jobs' live memory if several run at once.
                     report["peak_memory_bytes"] = json!(crate::alloc::peak_bytes().saturating_sub(heap_base));
                 }
                 report["seconds"] = json!(seconds);
                 let report = report.to_string();
-                self.runtime.block_on(store.complete_reconstruction(id, attempt, &images, &report, seconds))
+                self.runtime.block_on(store.complete_reconstruction(id, attempt, &images, transport.as_deref(), &report, seconds))
             }
             Err(JobError::Recon(ReconError::Cancelled)) if self.stop.load(Ordering::SeqCst) => {
                 self.runtime.block_on(store.release_job(id, attempt))
@@ -232,9 +242,12 @@ impl Worker {
         })
     }
 
-    fn compute(&self, job: &ClaimedJob, control: &Control) -> Result<(Vec<StoredImage>, Value), JobError> {
+    fn compute(&self, job: &ClaimedJob, control: &Control) -> Result<Computed, JobError> {
         let r = &job.reconstruction;
         let session = self.runtime.block_on(self.store.session(&r.session_id)).map_err(|e| JobError::Source(SourceError(e.to_string())))?;
+        if let Some(camera) = session.camera {
+            return self.compute_transport(job, &session, camera, control);
+        }
         let params: Value = serde_json::from_str(&r.params_json).map_err(|e| JobError::Internal(e.to_string()))?;
         let config = MethodConfig::parse(&r.method, &params).map_err(|e| JobError::Internal(e.to_string()))?;
         let problem = Problem { spec: &session.spec, channels: session.channels.len(), rows: r.rows_used };
@@ -268,7 +281,185 @@ impl Worker {
                 data: img.data,
             })
             .collect();
-        Ok((images, report))
+        Ok(Computed { images, transport: None, report })
+    }
+
+    /// A camera session: the transport matrix T (stored encoded), its dual image under the whole
+    /// camera as the light (`T^T 1`, channel "camera"), and the ambient image (channel
+    /// "ambient": what the camera sees that no projector pixel explains, e.g. dark level and
+    /// room light, `mean frame - T mean pattern`).
+    fn compute_transport(&self, job: &ClaimedJob, session: &SessionRow, camera: CameraLayout, control: &Control) -> Result<Computed, JobError> {
+        let r = &job.reconstruction;
+        let heap_base = crate::alloc::live_bytes();
+        let params: Value = serde_json::from_str(&r.params_json).map_err(|e| JobError::Internal(e.to_string()))?;
+        let config = TransportConfig::parse(&params).map_err(|e| JobError::Internal(e.to_string()))?.with_memory_budget(self.config.memory_budget);
+        let grid = CameraGrid { width: camera.width, height: camera.height };
+        let mut source = StoreFrames::new(&self.store, &self.runtime, &r.session_id, r.rows_used, camera);
+        let (t, result_report) = transport::reconstruct_transport(&session.spec, grid, r.rows_used, &config, &mut source, control).map_err(JobError::Recon)?;
+        let ambient = source.ambient(&session.spec, &t, control).map_err(JobError::Recon)?;
+        let m = camera.pixels();
+        let summed = t.relight(&vec![1.0; m]);
+        // The reconstruction's own peak, before the ground truth (m x k) is loaded to score it.
+        let working_peak = crate::alloc::installed().then(|| crate::alloc::peak_bytes().saturating_sub(heap_base));
+        let mut report = serde_json::to_value(&result_report).map_err(|e| JobError::Internal(e.to_string()))?;
+        if let Some(peak) = working_peak {
+            report["details"]["reconstruction_peak_bytes"] = json!(peak);
+        }
+        report["details"]["ambient_mean"] = json!(ambient.iter().map(|&v| v as f64).sum::<f64>() / m as f64);
+        report["details"]["frame_passes"] = json!(source.passes);
+        if session.has_ground_truth {
+            let truth = self.runtime.block_on(self.store.ground_truth(&r.session_id)).map_err(|e| JobError::Source(SourceError(e.to_string())))?;
+            if let Some((w, h, truth)) = truth {
+                report["quality"] = transport_quality(&t, &summed, w, h, &truth);
+            }
+        }
+        let (pw, ph) = t.projector();
+        let images = vec![
+            StoredImage { channel_index: 0, channel_name: "camera".into(), width: pw, height: ph, data: summed },
+            StoredImage { channel_index: 1, channel_name: "ambient".into(), width: camera.width, height: camera.height, data: ambient },
+        ];
+        Ok(Computed { images, transport: Some(t.encode()), report })
+    }
+}
+
+/// What a finished job stores.
+struct Computed {
+    images: Vec<StoredImage>,
+    /// A camera session's encoded T.
+    transport: Option<Vec<u8>>,
+    report: Value,
+}
+
+/// T against the simulator's (m x k): relative Frobenius error, the worst row's relative error,
+/// and the dual image under the full camera (`T^T 1`) against the truth's column sums.
+fn transport_quality(t: &transport::TransportMatrix, summed: &[f32], w: u32, h: u32, truth: &[f32]) -> Value {
+    let k = w as usize * h as usize;
+    let m = truth.len() / k.max(1);
+    if k == 0 || truth.len() != m * k || t.camera().0 as usize * t.camera().1 as usize != m {
+        return json!({"unavailable": "the ground truth does not match the camera and pattern sizes"});
+    }
+    let (mut err2, mut norm2, mut worst) = (0.0f64, 0.0f64, 0.0f64);
+    let mut column_sums = vec![0f32; k];
+    for j in 0..m {
+        let row = t.row(j);
+        let want = &truth[j * k..(j + 1) * k];
+        let (mut e, mut n) = (0.0f64, 0.0f64);
+        for ((a, b), s) in row.iter().zip(want).zip(column_sums.iter_mut()) {
+            e += (*a as f64 - *b as f64).powi(2);
+            n += (*b as f64).powi(2);
+            *s += b;
+        }
+        err2 += e;
+        norm2 += n;
+        if n > 0.0 {
+            worst = worst.max((e / n).sqrt());
+        }
+    }
+    json!({
+        "transport_relative_error": finite_or_null((err2 / norm2).sqrt()),
+        "worst_row_relative_error": finite_or_null(worst),
+        "camera_dual_psnr_db": finite_or_null(recon::metrics::psnr(summed, &column_sums)),
+        "camera_dual_ssim": finite_or_null(recon::metrics::ssim(summed, &column_sums, w as usize, h as usize)),
+    })
+}
+
+/// A camera session's stored frames, read a block of camera pixels at a time (one pass over
+/// the stored chunks per block, a few chunks in memory at once).
+struct StoreFrames<'a> {
+    store: &'a Store,
+    runtime: &'a Handle,
+    session_id: &'a str,
+    rows: u64,
+    camera: CameraLayout,
+    /// Passes made over the stored frames.
+    passes: u64,
+}
+
+/// Stored chunks read per query: one, so the frames in memory beyond the solver's block are a
+/// single upload chunk (at most `max_chunk_bytes`).
+const CHUNKS_PER_PAGE: u32 = 1;
+
+impl<'a> StoreFrames<'a> {
+    fn new(store: &'a Store, runtime: &'a Handle, session_id: &'a str, rows: u64, camera: CameraLayout) -> Self {
+        StoreFrames { store, runtime, session_id, rows, camera, passes: 0 }
+    }
+
+    /// Calls `visit(row, frame bytes)` for rows 0..rows in order.
+    fn each_frame(&mut self, mut visit: impl FnMut(u64, &[u8]) -> Result<(), ReconError>) -> Result<(), ReconError> {
+        self.passes += 1;
+        let row_bytes = self.camera.pixels() * self.camera.format.bytes();
+        let mut next = 0u64;
+        while next < self.rows {
+            let page = self
+                .runtime
+                .block_on(self.store.read_raw_chunks(self.session_id, next, CHUNKS_PER_PAGE, self.camera.format.bytes()))
+                .map_err(|e| ReconError::Source(SourceError(e.to_string())))?;
+            if page.is_empty() {
+                return Err(ReconError::Source(SourceError(format!("frames end at row {next} before {}", self.rows))));
+            }
+            for (start, count, data) in page {
+                for (i, frame) in data.chunks_exact(row_bytes).enumerate().take(count as usize) {
+                    let row = start + i as u64;
+                    if row >= self.rows {
+                        return Ok(());
+                    }
+                    visit(row, frame)?;
+                }
+                next = start + count;
+            }
+        }
+        Ok(())
+    }
+
+    /// `mean frame - T mean pattern` over the rows used.
+    fn ambient(&mut self, spec: &helmholtz_proto::PatternSpec, t: &transport::TransportMatrix, control: &Control) -> Result<Vec<f32>, ReconError> {
+        let m = self.camera.pixels();
+        let format = self.camera.format;
+        let mut sum = vec![0f64; m];
+        let mut decoded = Vec::with_capacity(m);
+        self.each_frame(|_, frame| {
+            decoded.clear();
+            format.decode_f32(frame, &mut decoded);
+            sum.iter_mut().zip(&decoded).for_each(|(s, v)| *s += *v as f64);
+            Ok(())
+        })?;
+        if control.is_cancelled() {
+            return Err(ReconError::Cancelled);
+        }
+        let k = spec.pixels();
+        let generator = helmholtz_proto::PatternGenerator::new(spec);
+        let mut mean_pattern = vec![0f64; k];
+        let mut pattern = vec![0f32; k];
+        for i in 0..self.rows {
+            generator.fill_values(i, &mut pattern);
+            mean_pattern.iter_mut().zip(&pattern).for_each(|(a, p)| *a += *p as f64);
+        }
+        let n = self.rows as f64;
+        let mean_pattern: Vec<f32> = mean_pattern.iter().map(|v| (v / n) as f32).collect();
+        let explained = t.primal(&mean_pattern);
+        Ok(sum.iter().zip(explained).map(|(s, e)| (s / n) as f32 - e).collect())
+    }
+}
+
+impl FrameSource for StoreFrames<'_> {
+    fn read_pixels(&mut self, pixels: std::ops::Range<usize>) -> Result<Vec<f32>, SourceError> {
+        let m = self.camera.pixels();
+        if pixels.end > m || pixels.start > pixels.end {
+            return Err(SourceError(format!("camera pixels {pixels:?} outside 0..{m}")));
+        }
+        let format = self.camera.format;
+        let sb = format.bytes();
+        let mut out = Vec::with_capacity(self.rows as usize * pixels.len());
+        let range = pixels.start * sb..pixels.end * sb;
+        self.each_frame(|_, frame| {
+            format.decode_f32(&frame[range.clone()], &mut out);
+            Ok(())
+        })
+        .map_err(|e| match e {
+            ReconError::Source(s) => s,
+            other => SourceError(other.to_string()),
+        })?;
+        Ok(out)
     }
 }
 

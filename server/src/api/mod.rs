@@ -4,6 +4,7 @@
 pub mod error;
 pub mod grpc;
 pub mod images;
+pub mod relight;
 pub mod rest;
 pub mod validate;
 
@@ -17,6 +18,7 @@ pub use error::ApiError;
 use crate::auth::{self, CredentialError, Principal, Role};
 use crate::jobs::JobNotifier;
 use crate::limits::{Limits, RateLimiter};
+use crate::recon::transport::TransportConfig;
 use crate::recon::{MethodConfig, Problem};
 use crate::store::{ReconstructionRow, SessionRow, Store, StoreError};
 
@@ -28,6 +30,10 @@ pub struct AppState {
     pub limits: Arc<Limits>,
     rate: Arc<RateLimiter>,
     writers: Arc<Mutex<HashSet<String>>>,
+    /// Decoded transport matrices of camera reconstructions, for relighting.
+    pub transports: Arc<relight::TransportCache>,
+    /// Relight and primal responses by ETag.
+    pub responses: Arc<relight::ResponseCache>,
 }
 
 /// Holds a session's single-writer slot until dropped.
@@ -72,7 +78,21 @@ impl Principal {
 
 impl AppState {
     pub fn new(store: Store, jobs: JobNotifier, limits: Limits) -> Self {
-        AppState { store, jobs, limits: Arc::new(limits), rate: Arc::default(), writers: Arc::default() }
+        AppState {
+            store,
+            jobs,
+            limits: Arc::new(limits),
+            rate: Arc::default(),
+            writers: Arc::default(),
+            transports: Arc::new(relight::TransportCache::new(2 << 30)),
+            responses: Arc::new(relight::ResponseCache::new(64 << 20)),
+        }
+    }
+
+    /// Keeps at most `bytes` of decoded transport matrices in memory.
+    pub fn with_transport_cache(mut self, bytes: usize) -> Self {
+        self.transports = Arc::new(relight::TransportCache::new(bytes));
+        self
     }
 
     /// The caller behind an `Authorization` header value (401 / UNAUTHENTICATED when there is
@@ -142,11 +162,32 @@ impl AppState {
         method: &str,
         params: &Value,
     ) -> Result<ReconstructionRow, ApiError> {
-        let config = MethodConfig::parse(method, params)
-            .map_err(|e| ApiError::invalid(e.field.clone(), e.message.clone()))?;
+        let (name, params_json) = if method == "transport" {
+            let config = TransportConfig::parse(params).map_err(|e| ApiError::invalid(e.field.clone(), e.message.clone()))?;
+            let session = self.own_session(caller, session_id).await?;
+            if session.camera.is_none() {
+                return Err(ApiError::FailedPrecondition(format!(
+                    "session {session_id:?} has bucket detectors, not a camera; transport reconstructs camera sessions (use gi, dgi, ngi, direct, zero_filled, levels, lsq, cs, tv or auto)"
+                )));
+            }
+            if session.committed_rows == 0 {
+                return Err(ApiError::FailedPrecondition(format!("session {session_id:?} has no frames yet")));
+            }
+            ("transport", config.params_json())
+        } else {
+            let config = MethodConfig::parse(method, params)
+                .map_err(|e| ApiError::invalid(e.field.clone(), e.message.clone()))?;
+            let session = self.own_session(caller, session_id).await?;
+            if session.camera.is_some() {
+                return Err(ApiError::FailedPrecondition(format!(
+                    "session {session_id:?} is a camera session: reconstruct its transport matrix with method \"transport\""
+                )));
+            }
+            let problem = Problem { spec: &session.spec, channels: session.channels.len(), rows: session.committed_rows };
+            config.check(&problem).map_err(|e| ApiError::FailedPrecondition(e.to_string()))?;
+            (config.name(), config.params_json())
+        };
         let session = self.own_session(caller, session_id).await?;
-        let problem = Problem { spec: &session.spec, channels: session.channels.len(), rows: session.committed_rows };
-        config.check(&problem).map_err(|e| ApiError::FailedPrecondition(e.to_string()))?;
         let pending = self.store.pending_jobs_for_lab(&caller.lab).await?;
         if pending >= self.limits.max_pending_jobs_per_lab {
             return Err(ApiError::ResourceExhausted {
@@ -163,8 +204,8 @@ impl AppState {
             .enqueue_reconstruction(
                 &caller.lab,
                 session_id,
-                config.name(),
-                &config.params_json().to_string(),
+                name,
+                &params_json.to_string(),
                 session.committed_rows,
                 3,
             )

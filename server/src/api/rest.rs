@@ -29,6 +29,8 @@ pub fn router(state: AppState) -> Router {
         .route("/v1/sessions/{id}/{file}", get(session_file))
         .route("/v1/reconstructions/{id}", get(get_reconstruction).delete(cancel_reconstruction))
         .route("/v1/reconstructions/{id}/cancel", post(cancel_reconstruction))
+        .route("/v1/reconstructions/{id}/relight", post(relight))
+        .route("/v1/reconstructions/{id}/primal", post(primal))
         .route("/v1/reconstructions/{id}/{file}", get(reconstruction_file))
         .route("/v1/tokens", get(list_tokens).post(create_token))
         .route("/v1/tokens/{id}", axum::routing::delete(revoke_token))
@@ -106,6 +108,8 @@ async fn index(Caller(_caller): Caller) -> axum::Json<Value> {
             "GET /v1/reconstructions/{id}",
             "GET /v1/reconstructions/{id}/dual.png|dual.tiff|dual.npy?channel=NAME&scale=percentile|minmax",
             "POST /v1/reconstructions/{id}/cancel (or DELETE /v1/reconstructions/{id})",
+            "POST /v1/reconstructions/{id}/relight?format=png|tiff|npy {\"light\": {\"preset\": \"full\"|\"disc\"|\"stripe\", ...} | {\"weights\": {CHANNEL: W}}} or a camera-sized PNG/NPY body: the dual image T^T c'",
+            "POST /v1/reconstructions/{id}/primal?format=png|tiff|npy&ambient=include|exclude {\"pattern_index\": I} or a projector-sized PNG/NPY body: the camera image T p (+ ambient), with x-helmholtz-relative-error for a measured pattern",
             "GET /v1/tokens, POST /v1/tokens {\"roles\": [\"rig\"], \"note\": \"...\"}, DELETE /v1/tokens/{id} (admin)",
             "GET /healthz (no token needed)"
         ],
@@ -302,6 +306,36 @@ async fn measurements_npy(state: &AppState, caller: &Principal, id: &str) -> Res
     response.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static("application/octet-stream"));
     response.headers_mut().insert(header::CONTENT_LENGTH, HeaderValue::from(length));
     Ok(response)
+}
+
+/// `POST /v1/reconstructions/{id}/relight` ([`relight`](super::relight)).
+async fn relight(
+    Caller(caller): Caller,
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    Query(query): Query<HashMap<String, String>>,
+    headers: HeaderMap,
+    body: Body,
+) -> Result<Response, ApiError> {
+    caller.require(Role::Reader)?;
+    let id = recon_path(&id)?;
+    let body = read_body(&state, body).await?;
+    super::relight::relight(&state, &caller, id, &query, &headers, body).await
+}
+
+/// `POST /v1/reconstructions/{id}/primal` ([`relight`](super::relight)).
+async fn primal(
+    Caller(caller): Caller,
+    State(state): State<AppState>,
+    Path(id): Path<String>,
+    Query(query): Query<HashMap<String, String>>,
+    headers: HeaderMap,
+    body: Body,
+) -> Result<Response, ApiError> {
+    caller.require(Role::Reader)?;
+    let id = recon_path(&id)?;
+    let body = read_body(&state, body).await?;
+    super::relight::primal(&state, &caller, id, &query, &headers, body).await
 }
 
 async fn get_reconstruction(

@@ -20,6 +20,7 @@ pub mod holdout;
 pub mod linop;
 pub mod ops;
 pub mod solve;
+pub mod transport;
 pub mod transforms;
 pub mod method;
 pub mod metrics;

@@ -9,6 +9,9 @@ use sqlx::sqlite::SqliteRow;
 
 use super::{Store, StoreError, f32_to_le, le_to_f32, now_ms};
 
+/// Largest blob of one stored transport part.
+const TRANSPORT_PART_BYTES: usize = 64 << 20;
+
 /// A reconstruction and the state of its job.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ReconstructionRow {
@@ -211,6 +214,7 @@ impl Store {
         id: i64,
         attempt: i64,
         images: &[StoredImage],
+        transport: Option<&[u8]>,
         report_json: &str,
         seconds: f64,
     ) -> Result<bool, StoreError> {
@@ -249,8 +253,32 @@ impl Store {
             .execute(&mut *tx)
             .await?;
         }
+        for (part, data) in transport.unwrap_or_default().chunks(TRANSPORT_PART_BYTES).enumerate() {
+            sqlx::query("INSERT INTO transports (reconstruction_id, part, data) VALUES ($1, $2, $3)")
+                .bind(id)
+                .bind(part as i64)
+                .bind(data)
+                .execute(&mut *tx)
+                .await?;
+        }
         tx.commit().await?;
         Ok(true)
+    }
+
+    /// A camera reconstruction's encoded transport matrix (its parts joined), if it has one.
+    pub async fn transport(&self, id: i64) -> Result<Option<Vec<u8>>, StoreError> {
+        let parts = sqlx::query("SELECT data FROM transports WHERE reconstruction_id = $1 ORDER BY part")
+            .bind(id)
+            .fetch_all(&self.pool)
+            .await?;
+        if parts.is_empty() {
+            return Ok(None);
+        }
+        let mut out = Vec::new();
+        for p in parts {
+            out.extend_from_slice(&p.get::<Vec<u8>, _>("data"));
+        }
+        Ok(Some(out))
     }
 
     /// Records a failed run. `retry` puts the job back in the queue if attempts are left

@@ -139,4 +139,27 @@ impl Store {
         }
         Ok(out)
     }
+
+    /// Stored row `row` (`row_bytes` bytes in the session's format), or `None` past the
+    /// committed rows.
+    pub async fn read_row(&self, session_id: &str, row: u64, row_bytes: usize) -> Result<Option<Vec<u8>>, StoreError> {
+        let found = sqlx::query(
+            "SELECT start_row, row_count, data FROM measurement_chunks \
+             WHERE session_id = $1 AND start_row <= $2 ORDER BY start_row DESC LIMIT 1",
+        )
+        .bind(session_id)
+        .bind(row as i64)
+        .fetch_optional(&self.pool)
+        .await?;
+        let Some(found) = found else { return Ok(None) };
+        let (start, count) = (found.get::<i64, _>("start_row") as u64, found.get::<i64, _>("row_count") as u64);
+        if row >= start + count {
+            return Ok(None);
+        }
+        let data: Vec<u8> = found.get("data");
+        let offset = (row - start) as usize * row_bytes;
+        data.get(offset..offset + row_bytes)
+            .map(|b| Some(b.to_vec()))
+            .ok_or_else(|| StoreError::Corrupt(format!("session {session_id}: chunk at row {start} is shorter than its rows")))
+    }
 }

@@ -92,9 +92,9 @@ async fn leases_expire_and_fencing_stops_stale_workers() {
     // The stale worker can neither heartbeat nor complete.
     assert!(!s.heartbeat(r.id, 1, 60_000, 0.5).await.unwrap());
     let image = StoredImage { channel_index: 0, channel_name: "a".into(), width: 1, height: 1, data: vec![1.0] };
-    assert!(!s.complete_reconstruction(r.id, 1, std::slice::from_ref(&image), "{}", 0.1).await.unwrap());
+    assert!(!s.complete_reconstruction(r.id, 1, std::slice::from_ref(&image), None, "{}", 0.1).await.unwrap());
     assert!(s.heartbeat(r.id, 2, 60_000, 0.5).await.unwrap());
-    assert!(s.complete_reconstruction(r.id, 2, std::slice::from_ref(&image), "{\"ok\":1}", 0.1).await.unwrap());
+    assert!(s.complete_reconstruction(r.id, 2, std::slice::from_ref(&image), None, "{\"ok\":1}", 0.1).await.unwrap());
     let done = s.reconstruction(r.id).await.unwrap();
     assert_eq!((done.state.as_str(), done.attempt), ("done", 2));
     assert_eq!(s.dual_images(r.id).await.unwrap(), vec![image]);
@@ -142,7 +142,7 @@ async fn claims_alternate_between_labs_and_respect_the_per_lab_cap() {
     let mut order = Vec::new();
     while let Some(job) = s.claim_job("w", 60_000, 0).await.unwrap() {
         order.push(job.id);
-        assert!(s.complete_reconstruction(job.id, job.attempt, &[], "{}", 0.0).await.unwrap());
+        assert!(s.complete_reconstruction(job.id, job.attempt, &[], None, "{}", 0.0).await.unwrap());
         tokio::time::sleep(std::time::Duration::from_millis(2)).await;
     }
     assert_eq!(order.len(), 6);
