@@ -22,9 +22,10 @@ use crate::frames;
 use crate::measurements::{self, Measurements};
 use crate::rest::{self, FetchTarget, ImageFormat, Reconstruction};
 use crate::scene::Scene;
+use crate::simulate::lambert;
 use crate::simulate::{self, NoiseModel};
 use crate::spool::{self, DrainReport, SpoolDir};
-use crate::upload::{self, NewSession, UploadOptions};
+use crate::upload::{self, NewSession, SampleBuf, SampleFormat, UploadOptions};
 
 const ABOUT: &str = "Helmholtz edge client: simulate a single-pixel / dual-photography rig, upload \
 bucket measurements, and fetch reconstructed dual (ghost) images.";
@@ -34,6 +35,10 @@ const LONG_ABOUT: &str = "Helmholtz edge client.
 A projector shows known patterns p_i (declared by a pattern spec and regenerated from its seed), a \
 bucket detector records c_i = t . p_i + noise per pattern and channel, and the server reconstructs \
 the light transport t on the pattern grid: the dual image.
+
+A camera session replaces the bucket detector by a camera: every pattern's row is a whole frame \
+(f32 or u16), and the server reconstructs the light transport T, which `relight` and `primal` then \
+use (relight the scene from any virtual light, predict the camera image of any pattern).
 
 One server address serves gRPC (uploads) and REST (reconstructions, images).
 
@@ -80,6 +85,11 @@ pub enum Command {
     /// resume, finish, and with --reconstruct request a reconstruction (--wait / --out wait for it
     /// and save the image). Re-running an interrupted command with the same --session-id
     /// continues from what was spooled and committed.
+    ///
+    /// --scene lambert is an analytic Lambertian scene with a known transport for any direction:
+    /// bucket detectors around it (--detectors, declared with their directions), colour filters
+    /// (--colour), or a camera (--camera WxH: each pattern's row is a whole f32 or u16 frame,
+    /// rendered batch by batch and spooled as it is).
     Simulate(SimulateArgs),
     /// Upload a real rig's measurements (CSV or NPY) to a session, creating it if needed.
     ///
@@ -102,6 +112,24 @@ pub enum Command {
     Fetch(FetchArgs),
     /// Request a reconstruction of a session; optionally wait for it and save the image.
     Reconstruct(ReconstructArgs),
+    /// Relight a reconstructed transport: the dual image (projector-sized) under a virtual light.
+    ///
+    /// POST /v1/reconstructions/{id}/relight. The light shines from the camera (camera sessions:
+    /// --full, --disc, --stripe in camera pixel units, or --light, a camera-sized PNG/NPY image
+    /// sent as it is) or from the bucket detectors (--weights, one weight per channel).
+    Relight(RelightArgs),
+    /// Predict the camera image of a projector pattern from a reconstructed transport.
+    ///
+    /// POST /v1/reconstructions/{id}/primal with a measured pattern (--pattern-index; the server
+    /// then also compares the prediction with the measured frame, printed as relative error and
+    /// PSNR) or any pattern image (--pattern, projector-sized PNG/NPY).
+    Primal(PrimalArgs),
+    /// Download the surface normals a reconstruction of a multi-detector session estimated.
+    ///
+    /// GET /v1/reconstructions/{id}/normals.png (an RGB normal map) or normals.npy.
+    Normals(NormalsArgs),
+    /// Cancel a queued or running reconstruction (an ended one is refused with 409).
+    Cancel(CancelArgs),
     /// Write pattern frames as 8-bit grey PNGs (frame_000000.png, ...) for a projector or DMD.
     Patterns(PatternsArgs),
     /// The local spool of measured rows: what is pending, and uploading it.
@@ -367,15 +395,65 @@ pub struct ResultArgs {
     pub channel: Option<String>,
 }
 
+/// How a simulated camera's frames are stored and sent.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum FrameFormatArg {
+    /// 32-bit floats in signal units.
+    F32,
+    /// 16-bit counts: the brightest noiseless pixel reads about 60000.
+    U16,
+}
+
+impl From<FrameFormatArg> for SampleFormat {
+    fn from(f: FrameFormatArg) -> Self {
+        match f {
+            FrameFormatArg::F32 => SampleFormat::F32,
+            FrameFormatArg::U16 => SampleFormat::U16,
+        }
+    }
+}
+
 #[derive(Debug, Clone, Args)]
 pub struct SimulateArgs {
     /// Scene: camera, shapes, usaf (USAF-1951 chart), double-slit, or a PNG file (grey or colour,
-    /// 8/16 bit; resampled to the pattern grid).
+    /// 8/16 bit; resampled to the pattern grid): one bucket detector sees it as its transport.
+    /// Or lambert: an analytic Lambertian scene (ground plane, hemisphere, box; cast shadows, one
+    /// diffuse bounce) with a known light transport for any detector direction or camera (see
+    /// --detectors, --colour, --camera); without those, one bucket detector at the projector.
     #[arg(long)]
     pub scene: String,
+    /// lambert: seed of the scene's albedo texture.
+    #[arg(long, default_value_t = 1)]
+    pub scene_seed: u64,
+    /// lambert: bucket detectors, comma separated names. n, e, s, w (or north, ...) stand at
+    /// azimuths 270, 0, 90, 180 degrees (y is down the image: north is -y); other names are
+    /// spread evenly from +x. Each channel's dual image is the scene seen from its direction,
+    /// and the directions are declared with the session.
+    #[arg(long, value_delimiter = ',', value_name = "NAMES")]
+    pub detectors: Option<Vec<String>>,
+    /// lambert: elevation of the --detectors above the ground plane, in degrees (0, 90].
+    #[arg(long, default_value_t = 45.0, value_name = "DEG")]
+    pub detector_elevation: f64,
+    /// lambert: colour-filtered buckets: channels r, g, b of one detector at the projector (or
+    /// NAME-r, NAME-g, NAME-b for each of --detectors).
+    #[arg(long, alias = "color")]
+    pub colour: bool,
+    /// lambert: a camera of WIDTHxHEIGHT pixels (at most 256x256) in place of bucket detectors:
+    /// each pattern's row is a whole frame (the session measures the light transport T).
+    /// Ground truth (T itself) is sent when camera pixels x pattern pixels <= 4,194,304.
+    #[arg(long, value_name = "WxH")]
+    pub camera: Option<String>,
+    /// lambert --camera: tilt of the camera from the projector's axis toward +x, in degrees.
+    #[arg(long, default_value_t = 0.0, value_name = "DEG")]
+    pub camera_tilt: f64,
+    /// lambert --camera: frame format, f32 (signal units) or u16 (counts; the brightest
+    /// noiseless pixel reads about 60000, the rest is clamped to 0..65535 and rounded).
+    #[arg(long, value_enum, default_value = "f32")]
+    pub frame_format: FrameFormatArg,
     #[command(flatten)]
     pub patterns: PatternArgs,
     /// Detector channel names, comma separated (each sees the same scene, see --channel-gains).
+    /// Image scenes only (lambert names its channels by --detectors / --colour).
     #[arg(long, value_delimiter = ',', default_value = "bucket")]
     pub channels: Vec<String>,
     /// Per-channel scale of the scene, comma separated (default 1 for every channel).
@@ -406,10 +484,12 @@ pub struct SimulateArgs {
     /// spooled (and uploaded as they arrive) [default: as fast as the disk allows].
     #[arg(long, value_name = "HZ")]
     pub frame_rate: Option<f64>,
-    /// Rows per spool write: each batch is fsync'ed before it counts as measured.
+    /// Rows per spool write: each batch is fsync'ed before it counts as measured (camera
+    /// frames: at most 8 MiB a write).
     #[arg(long, default_value_t = 1024, value_parser = clap::value_parser!(u64).range(1..))]
     pub batch_rows: u64,
-    /// Write the scene as seen on the pattern grid (8-bit PNG) to this file.
+    /// Write the scene as seen on the pattern grid (8-bit PNG) to this file (lambert: the first
+    /// channel's dual image, or what the camera sees of the scene, scaled to its maximum).
     #[arg(long, value_name = "FILE")]
     pub scene_out: Option<PathBuf>,
     /// Request a reconstruction after the upload: gi, dgi, ngi, direct, zero_filled, levels, lsq,
@@ -525,6 +605,76 @@ pub struct ReconstructArgs {
 }
 
 #[derive(Debug, Clone, Args)]
+#[command(group(clap::ArgGroup::new("light_source").required(true).args(["full", "disc", "stripe", "weights", "light"])))]
+pub struct RelightArgs {
+    /// Reconstruction id.
+    #[arg(long)]
+    pub reconstruction: i64,
+    /// Every camera pixel lit.
+    #[arg(long)]
+    pub full: bool,
+    /// A disc of camera pixels: centre X,Y and radius R (camera pixel units).
+    #[arg(long, value_name = "X,Y,R")]
+    pub disc: Option<String>,
+    /// Camera columns X0 <= x < X1 lit.
+    #[arg(long, value_name = "X0,X1")]
+    pub stripe: Option<String>,
+    /// Bucket sessions: a weight per detector channel, e.g. n=1,e=0.5.
+    #[arg(long, value_name = "NAME=W,...")]
+    pub weights: Option<String>,
+    /// A camera-sized light image (.png or .npy), sent as it is.
+    #[arg(long, value_name = "FILE")]
+    pub light: Option<PathBuf>,
+    /// Image format of the result [default: from --out's extension, else png].
+    #[arg(long, value_enum)]
+    pub format: Option<ImageFormat>,
+    /// Output file.
+    #[arg(long, value_name = "FILE")]
+    pub out: PathBuf,
+}
+
+#[derive(Debug, Clone, Args)]
+#[command(group(clap::ArgGroup::new("pattern_source").required(true).args(["pattern_index", "pattern"])))]
+pub struct PrimalArgs {
+    /// Reconstruction id.
+    #[arg(long)]
+    pub reconstruction: i64,
+    /// A measured pattern of the session (0-based): the server also scores the prediction
+    /// against the measured frame.
+    #[arg(long, value_name = "I")]
+    pub pattern_index: Option<u64>,
+    /// Any projector-sized pattern image (.png or .npy), sent as it is.
+    #[arg(long, value_name = "FILE")]
+    pub pattern: Option<PathBuf>,
+    /// Image format of the result [default: from --out's extension, else png].
+    #[arg(long, value_enum)]
+    pub format: Option<ImageFormat>,
+    /// Output file.
+    #[arg(long, value_name = "FILE")]
+    pub out: PathBuf,
+}
+
+#[derive(Debug, Clone, Args)]
+pub struct NormalsArgs {
+    /// Reconstruction id.
+    #[arg(long)]
+    pub reconstruction: i64,
+    /// png (an RGB normal map) or npy [default: from --out's extension, else png].
+    #[arg(long, value_enum)]
+    pub format: Option<ImageFormat>,
+    /// Output file.
+    #[arg(long, value_name = "FILE")]
+    pub out: PathBuf,
+}
+
+#[derive(Debug, Clone, Args)]
+pub struct CancelArgs {
+    /// Reconstruction id.
+    #[arg(long)]
+    pub reconstruction: i64,
+}
+
+#[derive(Debug, Clone, Args)]
 pub struct PatternsArgs {
     #[command(flatten)]
     pub spec: SpecSource,
@@ -540,6 +690,7 @@ pub struct PatternsArgs {
 }
 
 /// What a command prints.
+#[derive(Debug)]
 pub struct Outcome {
     pub json: Value,
     pub text: String,
@@ -607,6 +758,10 @@ pub async fn run(cli: Cli) -> anyhow::Result<Outcome> {
         Command::Fetch(a) => fetch_cmd(server, a).await,
         Command::Reconstruct(a) => reconstruct_cmd(server, a, progress).await,
         Command::Patterns(a) => patterns_cmd(a),
+        Command::Relight(a) => relight_cmd(server, a).await,
+        Command::Primal(a) => primal_cmd(server, a).await,
+        Command::Normals(a) => normals_cmd(server, a).await,
+        Command::Cancel(a) => cancel_cmd(server, a).await,
         Command::Acquire(a) => acquire_cmd(server, &spools, a).await,
     }
 }
@@ -679,10 +834,14 @@ fn upload_text(r: &DrainReport, spooled_before: u64) -> String {
     s
 }
 
+/// Rows `start..end` of a session, made on demand (from memory, or rendered by a simulator).
+pub type RowsFn<'a> = dyn Fn(u64, u64) -> anyhow::Result<SampleBuf> + Sync + 'a;
+
+/// Spool writes of camera frames hold at most this many bytes (whatever --batch-rows says).
+const MAX_BATCH_BYTES: usize = 8 << 20;
+
 /// Spools `values` (rows x channels, every row of the session from row 0) for `session` and
-/// uploads them: rows an earlier run already spooled are checked to be the same and not written
-/// again; a background task drains the spool as batches of `batch_rows` land (paced at
-/// `frame_rate` rows per second if given). Returns the drain report and the rows spooled before.
+/// uploads them; see [`spool_and_upload_rows`].
 #[allow(clippy::too_many_arguments)]
 async fn spool_and_upload(
     server: &str,
@@ -694,10 +853,39 @@ async fn spool_and_upload(
     frame_rate: Option<f64>,
     opts: &UploadOptions,
 ) -> anyhow::Result<(DrainReport, u64)> {
-    let ch = session.channels.len();
-    let total = (values.len() / ch) as u64;
+    let ch = session.channel_count() as usize;
+    let total = (values.len() / ch.max(1)) as u64;
+    let rows = |start: u64, end: u64| {
+        Ok(SampleBuf::F64(
+            values[start as usize * ch..end as usize * ch].to_vec(),
+        ))
+    };
+    spool_and_upload_rows(
+        server, spools, session, finish, total, &rows, batch_rows, frame_rate, opts,
+    )
+    .await
+}
+
+/// Spools rows `0..total` of `session` (made by `rows`, in the session's sample format) and
+/// uploads them: rows an earlier run already spooled are checked to be the same (byte for byte)
+/// and not written again; a background task drains the spool as batches of `batch_rows` land
+/// (camera frames: at most 8 MiB a batch), paced at `frame_rate` rows per second if given.
+/// Returns the drain report and the rows spooled before.
+#[allow(clippy::too_many_arguments)]
+async fn spool_and_upload_rows(
+    server: &str,
+    spools: &SpoolDir,
+    session: &NewSession,
+    finish: bool,
+    total: u64,
+    rows: &RowsFn<'_>,
+    batch_rows: u64,
+    frame_rate: Option<f64>,
+    opts: &UploadOptions,
+) -> anyhow::Result<(DrainReport, u64)> {
     let id = &session.session_id;
     let spool = Arc::new(spools.create_or_open(session, finish)?);
+    let row_bytes = spool.manifest().row_bytes();
     let have = spool.rows();
     anyhow::ensure!(
         have <= total,
@@ -706,19 +894,18 @@ async fn spool_and_upload(
     );
     // The rows an earlier run spooled must be the ones given now.
     let base = spool.base_row();
+    let step = (MAX_BATCH_BYTES / row_bytes).max(1) as u64;
     let mut row = base;
     while row < have {
-        let end = (row + 65_536).min(have);
-        let held = spool.read(row, end)?;
-        if let Some(i) = held
-            .iter()
-            .zip(&values[row as usize * ch..end as usize * ch])
-            .position(|(a, b)| a.to_bits() != b.to_bits())
-        {
+        let end = (row + step).min(have);
+        let held = spool.read_bytes(row, end)?;
+        let given = rows(row, end)?.as_samples().encode();
+        if let Some(i) = held.iter().zip(&given).position(|(a, b)| a != b) {
             bail!(
-                "the spool {} holds different values for row {} of session {id} than the ones given now;                  upload the spooled session first (`helmholtz spool upload {id}`) or use another session id",
+                "the spool {} holds different values for row {} of session {id} than the ones given now; \
+                 upload the spooled session first (`helmholtz spool upload {id}`) or use another session id",
                 spool.dir().display(),
-                row + (i / ch) as u64
+                row + (i / row_bytes) as u64
             );
         }
         row = end;
@@ -726,6 +913,11 @@ async fn spool_and_upload(
     if have < total {
         spool.unseal()?;
     }
+    let batch_rows = if session.camera.is_some() {
+        batch_rows.clamp(1, step)
+    } else {
+        batch_rows.max(1)
+    };
     let drainer = tokio::spawn({
         let (spool, server, opts) = (spool.clone(), server.to_string(), opts.clone());
         async move { spool::drain(&server, spool, &opts, true).await }
@@ -734,15 +926,15 @@ async fn spool_and_upload(
         let started = Instant::now();
         let mut next = have;
         while next < total {
-            let end = (next + batch_rows.max(1)).min(total);
+            let end = (next + batch_rows).min(total);
             if let Some(rate) = frame_rate {
                 // The batch is complete when its last pattern has been shown.
                 let due = started + Duration::from_secs_f64((end - have) as f64 / rate);
                 tokio::time::sleep_until(due.into()).await;
             }
-            let batch = values[next as usize * ch..end as usize * ch].to_vec();
+            let batch = rows(next, end)?;
             let s = spool.clone();
-            tokio::task::spawn_blocking(move || s.append(&batch))
+            tokio::task::spawn_blocking(move || s.append_samples(batch.as_samples()))
                 .await
                 .context("spool writer panicked")??;
             next = end;
@@ -880,89 +1072,24 @@ fn sim_progress(len: u64, wanted: bool) -> ProgressBar {
     bar
 }
 
-async fn simulate_cmd(
-    server: &str,
-    spools: &SpoolDir,
-    a: &SimulateArgs,
-    progress: bool,
-) -> anyhow::Result<Outcome> {
-    let spec = a.patterns.to_spec()?;
-    let model = a.noise.model();
-    model.validate()?;
-    anyhow::ensure!(
-        a.noise.gain > 0.0 && a.noise.gain.is_finite(),
-        "--gain must be > 0"
-    );
-    anyhow::ensure!(
-        !a.channels.is_empty() && a.channels.iter().all(|c| !c.trim().is_empty()),
-        "--channels: empty channel name"
-    );
-    let gains: Vec<f32> = if a.channel_gains.is_empty() {
-        vec![1.0; a.channels.len()]
-    } else {
-        anyhow::ensure!(
-            a.channel_gains.len() == a.channels.len(),
-            "--channel-gains has {} values for {} channels",
-            a.channel_gains.len(),
-            a.channels.len()
-        );
-        a.channel_gains.clone()
-    };
-    let session_id = a.session_id.clone().unwrap_or_else(generated_session_id);
-    anyhow::ensure!(
-        upload::valid_session_id(&session_id),
-        "--session-id {session_id:?}: use 1-128 of A-Z a-z 0-9 . _ -"
-    );
-    let params = parse_params(a.result.params.as_deref())?;
-    let metadata = parse_metadata(&a.metadata)?;
-    if a.offline && (a.reconstruct.is_some() || a.result.out.is_some()) {
-        bail!("--offline contacts no server: --reconstruct and --out need one");
-    }
-    if let Some(rate) = a.frame_rate {
-        anyhow::ensure!(
-            rate > 0.0 && rate.is_finite(),
-            "--frame-rate must be > 0 patterns per second"
-        );
-    }
-    let opts = a.transfer.options(progress)?;
-
-    // Scene -> transport on the pattern grid.
-    let scene = Scene::load(&a.scene, spec.width(), spec.height())?;
-    let transport = scene.transport(a.noise.gain);
-    if let Some(path) = &a.scene_out {
-        rest::write_atomically(path, &scene.to_png()?)?;
-    }
-    let per_channel: Vec<Vec<f32>> = gains
+/// `values` scaled to [0, 1] by their maximum, as an 8-bit PNG.
+fn normalised_png(width: u32, height: u32, values: &[f64]) -> anyhow::Result<Vec<u8>> {
+    let max = values.iter().copied().fold(0.0f64, f64::max);
+    let pixels = values
         .iter()
-        .map(|g| transport.iter().map(|t| t * g).collect())
+        .map(|&v| if max > 0.0 { (v / max) as f32 } else { 0.0 })
         .collect();
+    Scene {
+        width,
+        height,
+        pixels,
+    }
+    .to_png()
+}
 
-    let t0 = Instant::now();
-    let bar = sim_progress(spec.count(), progress);
-    let sim = {
-        let spec = spec.clone();
-        let model = model.clone();
-        let bar = bar.clone();
-        tokio::task::spawn_blocking(move || {
-            let refs: Vec<&[f32]> = per_channel.iter().map(Vec::as_slice).collect();
-            simulate::simulate(&spec, &refs, &model, Some(&bar))
-        })
-        .await
-        .context("simulation thread panicked")?
-    };
-    bar.finish_and_clear();
-    let sim_seconds = t0.elapsed().as_secs_f64();
-
-    let mut text = format!(
-        "simulated {} ({}) with {} channel(s) in {:.2} s; scene {} scaled to peak {}\n",
-        session_id,
-        spec_summary(&spec),
-        sim.channels,
-        sim_seconds,
-        a.scene,
-        a.noise.gain
-    );
-    for (name, ch) in a.channels.iter().zip(&sim.noise.channels) {
+fn noise_text(names: &[String], noise: &simulate::NoiseReport) -> String {
+    let mut text = String::new();
+    for (name, ch) in names.iter().zip(&noise.channels) {
         text.push_str(&format!(
             "  {name}: mean signal {:.4}, effective SNR {}{}\n",
             ch.mean_signal,
@@ -978,15 +1105,280 @@ async fn simulate_cmd(
             }
         ));
     }
+    text
+}
+
+async fn simulate_cmd(
+    server: &str,
+    spools: &SpoolDir,
+    a: &SimulateArgs,
+    progress: bool,
+) -> anyhow::Result<Outcome> {
+    let spec = a.patterns.to_spec()?;
+    let model = a.noise.model();
+    model.validate()?;
+    anyhow::ensure!(
+        a.noise.gain > 0.0 && a.noise.gain.is_finite(),
+        "--gain must be > 0"
+    );
+    let is_lambert = a.scene == "lambert";
+    if is_lambert {
+        anyhow::ensure!(
+            a.channels == ["bucket"],
+            "--channels: with --scene lambert the channels are named by --detectors and --colour"
+        );
+        anyhow::ensure!(
+            spec.width() >= 4 && spec.height() >= 4,
+            "--scene lambert needs patterns of at least 4x4 pixels"
+        );
+        if a.camera.is_some() {
+            anyhow::ensure!(
+                a.detectors.is_none() && !a.colour && a.channel_gains.is_empty(),
+                "--camera replaces bucket detectors: drop --detectors, --colour and --channel-gains"
+            );
+            anyhow::ensure!(
+                a.values_out.is_none(),
+                "--values-out writes bucket values; a camera session's frames go to the spool and the server"
+            );
+        }
+    } else {
+        anyhow::ensure!(
+            a.camera.is_none() && a.detectors.is_none() && !a.colour,
+            "--camera, --detectors and --colour need --scene lambert (a scene with a known transport for every direction)"
+        );
+        anyhow::ensure!(
+            !a.channels.is_empty() && a.channels.iter().all(|c| !c.trim().is_empty()),
+            "--channels: empty channel name"
+        );
+    }
+    let session_id = a.session_id.clone().unwrap_or_else(generated_session_id);
+    anyhow::ensure!(
+        upload::valid_session_id(&session_id),
+        "--session-id {session_id:?}: use 1-128 of A-Z a-z 0-9 . _ -"
+    );
+    let params = parse_params(a.result.params.as_deref())?;
+    let metadata = parse_metadata(&a.metadata)?;
+    if a.offline && (a.reconstruct.is_some() || a.result.out.is_some()) {
+        bail!("--offline contacts no server: --reconstruct and --out need one");
+    }
+    if a.reconstruct.is_none() && (a.result.out.is_some() || a.result.wait) {
+        bail!("--wait and --out need --reconstruct METHOD");
+    }
+    if let Some(rate) = a.frame_rate {
+        anyhow::ensure!(
+            rate > 0.0 && rate.is_finite(),
+            "--frame-rate must be > 0 patterns per second"
+        );
+    }
+    let opts = a.transfer.options(progress)?;
     let mut out = serde_json::Map::new();
     out.insert("session_id".into(), json!(session_id));
     out.insert("spec".into(), spec_json(&spec));
-    out.insert("channels".into(), json!(a.channels));
     out.insert("noise_model".into(), serde_json::to_value(&model)?);
+    let mut session_metadata = metadata;
+    session_metadata.insert("scene".into(), a.scene.clone());
+    if is_lambert {
+        session_metadata.insert("scene_seed".into(), a.scene_seed.to_string());
+    }
+
+    if let Some(camera) = &a.camera {
+        let (cw, ch) = lambert::parse_size(camera)?;
+        let format = SampleFormat::from(a.frame_format);
+        upload::CameraLayout {
+            width: cw,
+            height: ch,
+            format,
+        }
+        .validate()
+        .context("--camera")?;
+        anyhow::ensure!(
+            a.camera_tilt.is_finite() && a.camera_tilt.abs() < 90.0,
+            "--camera-tilt must be within (-90, 90) degrees"
+        );
+        let scene = helmholtz_scenes::Scene::demo(spec.width(), spec.height(), a.scene_seed);
+        let rig = helmholtz_scenes::Camera::tilted(cw, ch, a.camera_tilt);
+        let t0 = Instant::now();
+        let sim =
+            lambert::FrameSimulator::new(&scene, rig, &spec, a.noise.gain as f64, format, &model)?;
+        let stats = sim.stats();
+        if let Some(path) = &a.scene_out {
+            let seen = sim.view().relight(&vec![1.0; sim.pixels()]);
+            rest::write_atomically(path, &normalised_png(spec.width(), spec.height(), &seen)?)?;
+        }
+        let mut text = format!(
+            "simulating {} ({}) with a {cw}x{ch} camera tilted {} deg, {} frames; noiseless pixels: mean {:.4}, max {:.4} (signal units)\n",
+            session_id,
+            spec_summary(&spec),
+            a.camera_tilt,
+            format.name(),
+            stats.mean,
+            stats.max
+        );
+        if format == SampleFormat::U16 {
+            text.push_str(&format!(
+                "  u16 counts: {:.3} counts per signal unit\n",
+                sim.counts_per_unit()
+            ));
+            session_metadata.insert(
+                "counts_per_unit".into(),
+                format!("{}", sim.counts_per_unit()),
+            );
+        }
+        session_metadata.insert("camera_tilt_degrees".into(), a.camera_tilt.to_string());
+        out.insert(
+            "camera".into(),
+            json!({"width": cw, "height": ch, "format": format.name(), "tilt_degrees": a.camera_tilt,
+                   "counts_per_unit": sim.counts_per_unit()}),
+        );
+        out.insert("frame_stats".into(), serde_json::to_value(stats)?);
+        let total = spec.count();
+        let rows = |start: u64, end: u64| Ok(sim.frames(start, end));
+        if a.offline {
+            let step = (MAX_BATCH_BYTES / (sim.pixels() * format.bytes())).max(1) as u64;
+            let mut next = 0;
+            while next < total {
+                let end = (next + step).min(total);
+                rows(next, end)?;
+                next = end;
+            }
+            let noise = sim.noise_report();
+            text.push_str(&noise_text(&["camera".to_string()], &noise));
+            out.insert("noise".into(), serde_json::to_value(&noise)?);
+            out.insert("simulate_seconds".into(), json!(t0.elapsed().as_secs_f64()));
+            return Ok(Outcome {
+                json: Value::Object(out),
+                text,
+            });
+        }
+        let mut session = NewSession::camera(session_id.clone(), spec.clone(), cw, ch, format)
+            .with_rig(a.rig.clone());
+        session.metadata = session_metadata;
+        if !a.no_ground_truth {
+            match sim.ground_truth(upload::MAX_CAMERA_GROUND_TRUTH) {
+                Some(t) => session = session.with_ground_truth(spec.width(), spec.height(), t),
+                None => text.push_str(&format!(
+                    "  no ground truth sent: {} camera pixels x {} pattern pixels exceed {} values\n",
+                    sim.pixels(),
+                    spec.pixels(),
+                    upload::MAX_CAMERA_GROUND_TRUTH
+                )),
+            }
+        }
+        let (report, spooled_before) = spool_and_upload_rows(
+            server,
+            spools,
+            &session,
+            true,
+            total,
+            &rows,
+            a.batch_rows,
+            a.frame_rate,
+            &opts,
+        )
+        .await?;
+        let noise = sim.noise_report();
+        if spooled_before == 0 {
+            text.push_str(&noise_text(&["camera".to_string()], &noise));
+            out.insert("noise".into(), serde_json::to_value(&noise)?);
+        }
+        out.insert("simulate_seconds".into(), json!(t0.elapsed().as_secs_f64()));
+        return finish_simulated_upload(
+            server,
+            spools,
+            a,
+            &session_id,
+            report,
+            spooled_before,
+            &params,
+            progress,
+            out,
+            text,
+        )
+        .await;
+    }
+
+    // Bucket detectors: names, directions and one transport per channel.
+    let (names, directions, mut transports, ground_truth) = if is_lambert {
+        let plan = lambert::detector_plan(a.detectors.as_deref(), a.detector_elevation, a.colour)?;
+        let scene = helmholtz_scenes::Scene::demo(spec.width(), spec.height(), a.scene_seed);
+        let transports = lambert::plan_transports(&scene, &plan, a.noise.gain as f64);
+        (plan.names, plan.directions, transports, None)
+    } else {
+        let scene = Scene::load(&a.scene, spec.width(), spec.height())?;
+        let transport = scene.transport(a.noise.gain);
+        if let Some(path) = &a.scene_out {
+            rest::write_atomically(path, &scene.to_png()?)?;
+        }
+        (
+            a.channels.clone(),
+            Vec::new(),
+            vec![transport.clone(); a.channels.len()],
+            Some(transport),
+        )
+    };
+    if !a.channel_gains.is_empty() {
+        anyhow::ensure!(
+            a.channel_gains.len() == names.len(),
+            "--channel-gains has {} values for {} channels",
+            a.channel_gains.len(),
+            names.len()
+        );
+        for (t, g) in transports.iter_mut().zip(&a.channel_gains) {
+            t.iter_mut().for_each(|v| *v *= g);
+        }
+    }
+    // Image scenes: the scene (all channels share it); lambert: one dual image per channel.
+    let ground_truth = ground_truth.unwrap_or_else(|| {
+        if transports.len() == 1 {
+            transports[0].clone()
+        } else {
+            transports.concat()
+        }
+    });
+    if let Some(path) = a.scene_out.as_ref().filter(|_| is_lambert) {
+        // The first channel's dual image.
+        let first: Vec<f64> = transports[0].iter().map(|&v| v as f64).collect();
+        rest::write_atomically(path, &normalised_png(spec.width(), spec.height(), &first)?)?;
+    }
+
+    let t0 = Instant::now();
+    let bar = sim_progress(spec.count(), progress);
+    let sim = {
+        let spec = spec.clone();
+        let model = model.clone();
+        let bar = bar.clone();
+        tokio::task::spawn_blocking(move || {
+            let refs: Vec<&[f32]> = transports.iter().map(Vec::as_slice).collect();
+            simulate::simulate(&spec, &refs, &model, Some(&bar))
+        })
+        .await
+        .context("simulation thread panicked")?
+    };
+    bar.finish_and_clear();
+    let sim_seconds = t0.elapsed().as_secs_f64();
+
+    let mut text = format!(
+        "simulated {} ({}) with {} channel(s) in {:.2} s; scene {} {}\n",
+        session_id,
+        spec_summary(&spec),
+        sim.channels,
+        sim_seconds,
+        a.scene,
+        if is_lambert {
+            format!("(seed {}) times gain {}", a.scene_seed, a.noise.gain)
+        } else {
+            format!("scaled to peak {}", a.noise.gain)
+        }
+    );
+    text.push_str(&noise_text(&names, &sim.noise));
+    out.insert("channels".into(), json!(names));
+    if !directions.is_empty() {
+        out.insert("directions".into(), json!(directions));
+    }
     out.insert("noise".into(), serde_json::to_value(&sim.noise)?);
     out.insert("simulate_seconds".into(), json!(sim_seconds));
     if let Some(path) = &a.values_out {
-        write_values(path, &a.channels, sim.rows, &sim.values)?;
+        write_values(path, &names, sim.rows, &sim.values)?;
         text.push_str(&format!("wrote values to {}\n", path.display()));
         out.insert("values_out".into(), json!(path));
     }
@@ -997,12 +1389,12 @@ async fn simulate_cmd(
         });
     }
 
-    let mut session = NewSession::new(session_id.clone(), spec.clone(), a.channels.clone())
-        .with_rig(a.rig.clone());
-    session.metadata = metadata;
-    session.metadata.insert("scene".into(), a.scene.clone());
+    let mut session = NewSession::new(session_id.clone(), spec.clone(), names.clone())
+        .with_rig(a.rig.clone())
+        .with_directions(directions);
+    session.metadata = session_metadata;
     if !a.no_ground_truth {
-        session = session.with_ground_truth(spec.width(), spec.height(), transport.clone());
+        session = session.with_ground_truth(spec.width(), spec.height(), ground_truth);
     }
     let (report, spooled_before) = spool_and_upload(
         server,
@@ -1015,8 +1407,38 @@ async fn simulate_cmd(
         &opts,
     )
     .await?;
+    finish_simulated_upload(
+        server,
+        spools,
+        a,
+        &session_id,
+        report,
+        spooled_before,
+        &params,
+        progress,
+        out,
+        text,
+    )
+    .await
+}
+
+/// The end of `simulate` once the rows are spooled and uploaded: report, check the session is
+/// finished, reconstruct if asked.
+#[allow(clippy::too_many_arguments)]
+async fn finish_simulated_upload(
+    server: &str,
+    spools: &SpoolDir,
+    a: &SimulateArgs,
+    session_id: &str,
+    report: DrainReport,
+    spooled_before: u64,
+    params: &Value,
+    progress: bool,
+    mut out: serde_json::Map<String, Value>,
+    mut text: String,
+) -> anyhow::Result<Outcome> {
     text.push_str(&upload_text(&report, spooled_before));
-    out.insert("spool".into(), json!(spools.session_dir(&session_id)));
+    out.insert("spool".into(), json!(spools.session_dir(session_id)));
     out.insert("spooled_before".into(), json!(spooled_before));
     out.insert("upload".into(), serde_json::to_value(&report)?);
     anyhow::ensure!(
@@ -1029,12 +1451,9 @@ async fn simulate_cmd(
         "session {} finished with {} rows\n",
         session_id, report.committed_rows
     ));
-
     if let Some(method) = &a.reconstruct {
-        let rec = upload::request_reconstruction(server, &session_id, method, &params).await?;
+        let rec = upload::request_reconstruction(server, session_id, method, params).await?;
         finish_reconstruction(server, rec, &a.result, progress, &mut out, &mut text).await?;
-    } else if a.result.out.is_some() || a.result.wait {
-        bail!("--wait and --out need --reconstruct METHOD");
     }
     Ok(Outcome {
         json: Value::Object(out),
@@ -1590,6 +2009,109 @@ async fn reconstruct_cmd(
     })
 }
 
+/// `N` comma-separated numbers of flag `flag`.
+fn numbers<const N: usize>(text: &str, flag: &str, form: &str) -> anyhow::Result<[f64; N]> {
+    let values: Vec<f64> = text
+        .split(',')
+        .map(|v| v.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .map_err(|_| anyhow::anyhow!("{flag} {text:?}: expected {form} (numbers)"))?;
+    values
+        .try_into()
+        .map_err(|_| anyhow::anyhow!("{flag} {text:?}: expected {form}"))
+}
+
+/// The light `relight` sends, from its flags.
+pub fn light_of(a: &RelightArgs) -> anyhow::Result<rest::Light> {
+    use rest::Light;
+    Ok(if a.full {
+        Light::Full
+    } else if let Some(d) = &a.disc {
+        let [x, y, radius] = numbers::<3>(d, "--disc", "X,Y,R")?;
+        Light::Disc { x, y, radius }
+    } else if let Some(st) = &a.stripe {
+        let [x0, x1] = numbers::<2>(st, "--stripe", "X0,X1")?;
+        Light::Stripe { x0, x1 }
+    } else if let Some(w) = &a.weights {
+        Light::Weights(rest::parse_weights(w)?)
+    } else if let Some(path) = &a.light {
+        Light::Image(path.clone())
+    } else {
+        bail!("give one of --full, --disc, --stripe, --weights or --light")
+    })
+}
+
+/// The pattern `primal` sends, from its flags.
+pub fn pattern_of(a: &PrimalArgs) -> anyhow::Result<rest::PatternInput> {
+    match (a.pattern_index, &a.pattern) {
+        (Some(i), _) => Ok(rest::PatternInput::Index(i)),
+        (None, Some(path)) => Ok(rest::PatternInput::Image(path.clone())),
+        (None, None) => bail!("give --pattern-index I or --pattern FILE"),
+    }
+}
+
+fn saved_text(report: &rest::ImageReport) -> String {
+    format!(
+        "saved {} ({} bytes{})\n",
+        report.path.display(),
+        report.bytes,
+        report
+            .content_type
+            .as_deref()
+            .map(|c| format!(", {c}"))
+            .unwrap_or_default()
+    )
+}
+
+async fn relight_cmd(server: &str, a: &RelightArgs) -> anyhow::Result<Outcome> {
+    let light = light_of(a)?;
+    let format = output_format(a.format, &a.out);
+    let report = rest::relight(server, a.reconstruction, &light, format, &a.out).await?;
+    Ok(Outcome {
+        text: saved_text(&report),
+        json: serde_json::to_value(&report)?,
+    })
+}
+
+async fn primal_cmd(server: &str, a: &PrimalArgs) -> anyhow::Result<Outcome> {
+    let pattern = pattern_of(a)?;
+    let format = output_format(a.format, &a.out);
+    let report = rest::primal(server, a.reconstruction, &pattern, format, &a.out).await?;
+    let mut text = saved_text(&report);
+    if report.relative_error.is_some() || report.psnr_db.is_some() {
+        let show = |v: Option<f64>, unit: &str| {
+            v.map(|v| format!("{v:.6}{unit}"))
+                .unwrap_or_else(|| "?".to_string())
+        };
+        text.push_str(&format!(
+            "prediction vs the measured frame: relative error {}, PSNR {}\n",
+            show(report.relative_error, ""),
+            show(report.psnr_db, " dB")
+        ));
+    }
+    Ok(Outcome {
+        text,
+        json: serde_json::to_value(&report)?,
+    })
+}
+
+async fn normals_cmd(server: &str, a: &NormalsArgs) -> anyhow::Result<Outcome> {
+    let format = output_format(a.format, &a.out);
+    let report = rest::normals(server, a.reconstruction, format, &a.out).await?;
+    Ok(Outcome {
+        text: saved_text(&report),
+        json: serde_json::to_value(&report)?,
+    })
+}
+
+async fn cancel_cmd(server: &str, a: &CancelArgs) -> anyhow::Result<Outcome> {
+    let rec = rest::cancel_reconstruction(server, a.reconstruction).await?;
+    Ok(Outcome {
+        text: recon_text(&rec),
+        json: serde_json::to_value(&rec)?,
+    })
+}
+
 fn patterns_cmd(a: &PatternsArgs) -> anyhow::Result<Outcome> {
     let spec = a.spec.load()?;
     let paths = frames::write_frames(&spec, a.first, a.count, &a.out)?;
@@ -1615,6 +2137,278 @@ mod tests {
     #[test]
     fn cli_definition_is_consistent() {
         Cli::command().debug_assert();
+    }
+
+    #[test]
+    fn relight_primal_normals_cancel_flags() {
+        let light = |args: &[&str]| {
+            let mut all = vec!["relight", "--reconstruction", "4", "--out", "r.png"];
+            all.extend_from_slice(args);
+            let Command::Relight(a) = parse(&all).command else {
+                panic!("not relight")
+            };
+            light_of(&a)
+        };
+        use rest::Light;
+        assert_eq!(light(&["--full"]).unwrap(), Light::Full);
+        assert_eq!(
+            light(&["--disc", "10,12.5,3"]).unwrap(),
+            Light::Disc {
+                x: 10.0,
+                y: 12.5,
+                radius: 3.0
+            }
+        );
+        assert_eq!(
+            light(&["--stripe", "0,8"]).unwrap(),
+            Light::Stripe { x0: 0.0, x1: 8.0 }
+        );
+        assert_eq!(
+            light(&["--weights", "n=1,e=0.5"]).unwrap(),
+            Light::Weights(vec![("n".into(), 1.0), ("e".into(), 0.5)])
+        );
+        assert_eq!(
+            light(&["--light", "l.npy"]).unwrap(),
+            Light::Image("l.npy".into())
+        );
+        assert!(
+            light(&["--disc", "1,2"])
+                .unwrap_err()
+                .to_string()
+                .contains("X,Y,R")
+        );
+        assert!(light(&["--stripe", "a,b"]).is_err());
+        // Exactly one light.
+        for args in [
+            vec!["relight", "--reconstruction", "4", "--out", "r.png"],
+            vec![
+                "relight",
+                "--reconstruction",
+                "4",
+                "--out",
+                "r.png",
+                "--full",
+                "--stripe",
+                "0,1",
+            ],
+        ] {
+            assert!(Cli::try_parse_from(std::iter::once("helmholtz").chain(args)).is_err());
+        }
+        let Command::Primal(a) = parse(&[
+            "primal",
+            "--reconstruction",
+            "2",
+            "--pattern-index",
+            "7",
+            "--out",
+            "p.tiff",
+        ])
+        .command
+        else {
+            panic!()
+        };
+        assert_eq!(pattern_of(&a).unwrap(), rest::PatternInput::Index(7));
+        assert_eq!(output_format(a.format, &a.out), ImageFormat::Tiff);
+        assert!(
+            Cli::try_parse_from([
+                "helmholtz",
+                "primal",
+                "--reconstruction",
+                "2",
+                "--out",
+                "p.png"
+            ])
+            .is_err()
+        );
+        assert!(
+            Cli::try_parse_from([
+                "helmholtz",
+                "primal",
+                "--reconstruction",
+                "2",
+                "--pattern-index",
+                "1",
+                "--pattern",
+                "x.png",
+                "--out",
+                "p.png"
+            ])
+            .is_err()
+        );
+        let Command::Normals(a) =
+            parse(&["normals", "--reconstruction", "3", "--out", "n.npy"]).command
+        else {
+            panic!()
+        };
+        assert_eq!(output_format(a.format, &a.out), ImageFormat::Npy);
+        let Command::Cancel(a) = parse(&["cancel", "--reconstruction", "9"]).command else {
+            panic!()
+        };
+        assert_eq!(a.reconstruction, 9);
+    }
+
+    #[tokio::test]
+    async fn offline_lambert_rigs_report_their_channels_and_directions() {
+        let run_json = |args: &[&str]| {
+            let mut all = vec![
+                "helmholtz",
+                "--json",
+                "simulate",
+                "--scene",
+                "lambert",
+                "--offline",
+            ];
+            all.extend_from_slice(args);
+            run(Cli::try_parse_from(all).unwrap())
+        };
+        let out = run_json(&[
+            "--detectors",
+            "n,e,s,w",
+            "--count",
+            "50",
+            "--width",
+            "16",
+            "--height",
+            "16",
+        ])
+        .await
+        .unwrap()
+        .json;
+        assert_eq!(out["channels"], json!(["n", "e", "s", "w"]));
+        let dirs: Vec<[f64; 3]> = serde_json::from_value(out["directions"].clone()).unwrap();
+        let h = 0.5f64.sqrt();
+        let want = [[0.0, -h, h], [h, 0.0, h], [0.0, h, h], [-h, 0.0, h]];
+        assert_eq!(dirs.len(), 4);
+        for (d, w) in dirs.iter().zip(want) {
+            assert!(
+                (0..3).all(|i| (d[i] - w[i]).abs() < 1e-12),
+                "{d:?} vs {w:?}"
+            );
+            assert!(
+                d[0] == 0.0 || d[1] == 0.0,
+                "compass detectors lie exactly on an axis: {d:?}"
+            );
+        }
+        let out = run_json(&[
+            "--colour", "--count", "50", "--width", "16", "--height", "16",
+        ])
+        .await
+        .unwrap()
+        .json;
+        assert_eq!(out["channels"], json!(["r", "g", "b"]));
+        assert_eq!(
+            out["directions"],
+            json!([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
+        );
+        let out = run_json(&["--count", "50", "--width", "16", "--height", "16"])
+            .await
+            .unwrap()
+            .json;
+        assert_eq!(out["channels"], json!(["bucket"]));
+        assert_eq!(out["directions"], json!([[0.0, 0.0, 1.0]]));
+        let out = run_json(&[
+            "--camera",
+            "8x6",
+            "--frame-format",
+            "u16",
+            "--family",
+            "hadamard",
+            "--width",
+            "16",
+            "--height",
+            "16",
+        ])
+        .await
+        .unwrap()
+        .json;
+        assert_eq!(out["camera"]["format"], "u16");
+        assert_eq!(out["noise"]["channels"][0]["saturated"], 0);
+        // Bad combinations are refused with the flag named.
+        for (args, says) in [
+            (
+                vec!["--camera", "8x6", "--detectors", "n"],
+                "--camera replaces",
+            ),
+            (vec!["--camera", "300x300"], "65536"),
+            (
+                vec![
+                    "--camera",
+                    "8x6",
+                    "--frame-format",
+                    "u16",
+                    "--adc-bits",
+                    "12",
+                ],
+                "--adc-bits",
+            ),
+            (vec!["--channels", "a,b"], "--channels"),
+            (
+                vec!["--detectors", "n", "--detector-elevation", "95"],
+                "--detector-elevation",
+            ),
+        ] {
+            let mut full = args.clone();
+            full.extend(["--family", "hadamard", "--width", "16", "--height", "16"]);
+            let e = format!("{:#}", run_json(&full).await.unwrap_err());
+            assert!(e.contains(says), "{args:?}: {e}");
+        }
+    }
+
+    #[test]
+    fn lambert_simulation_flags() {
+        let Command::Simulate(a) = parse(&[
+            "simulate",
+            "--scene",
+            "lambert",
+            "--camera",
+            "32x24",
+            "--camera-tilt",
+            "15",
+            "--frame-format",
+            "u16",
+            "--family",
+            "hadamard",
+            "--width",
+            "32",
+            "--height",
+            "32",
+        ])
+        .command
+        else {
+            panic!()
+        };
+        assert_eq!(
+            lambert::parse_size(a.camera.as_deref().unwrap()).unwrap(),
+            (32, 24)
+        );
+        assert_eq!(
+            (a.camera_tilt, SampleFormat::from(a.frame_format)),
+            (15.0, SampleFormat::U16)
+        );
+        let Command::Simulate(a) = parse(&[
+            "simulate",
+            "--scene",
+            "lambert",
+            "--detectors",
+            "n,e,s,w",
+            "--detector-elevation",
+            "30",
+            "--colour",
+            "--count",
+            "10",
+        ])
+        .command
+        else {
+            panic!()
+        };
+        assert_eq!(a.detectors.as_deref().unwrap(), ["n", "e", "s", "w"]);
+        assert!(a.colour && a.detector_elevation == 30.0);
+        let Command::Simulate(a) =
+            parse(&["simulate", "--scene", "lambert", "--color", "--count", "10"]).command
+        else {
+            panic!()
+        };
+        assert!(a.colour && a.detectors.is_none() && a.camera.is_none());
     }
 
     fn parse(args: &[&str]) -> Cli {

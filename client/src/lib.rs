@@ -1,8 +1,8 @@
 //! The Helmholtz edge client: what runs next to a rig.
 //!
 //! A rig shows known patterns `p_i` (declared by a [`PatternSpec`], regenerated on both sides from
-//! the seed) and records one bucket value per pattern and detector channel, `c_i = t · p_i + noise`.
-//! This crate
+//! the seed) and records one bucket value per pattern and detector channel, `c_i = t · p_i + noise`
+//! (or, in a camera session, a whole frame `T p_i + noise` per pattern). This crate
 //!
 //! - loads or draws a scene ([`scene`]) and simulates a rig measuring it ([`simulate`]),
 //! - reads a real rig's measurements from CSV or NPY ([`measurements`]),
@@ -53,11 +53,13 @@ pub mod upload;
 
 pub use helmholtz_proto::PatternSpec;
 pub use rest::{
-    ApiError, FetchReport, FetchTarget, ImageFormat, Reconstruction, SessionView, fetch,
-    get_reconstruction, get_session, list_sessions, request_reconstruction_rest,
-    wait_reconstruction, wait_reconstruction_with,
+    ApiError, FetchReport, FetchTarget, ImageFormat, ImageReport, Light, PatternInput,
+    Reconstruction, SessionView, cancel_reconstruction, fetch, get_reconstruction, get_session,
+    list_sessions, normals, primal, relight, request_reconstruction_rest, wait_reconstruction,
+    wait_reconstruction_with,
 };
 pub use upload::{
-    Backoff, CreatedSession, NewSession, RetryPolicy, UploadOptions, UploadReport, create_session,
-    finish_session, request_reconstruction, upload, upload_status,
+    Backoff, CameraLayout, CreatedSession, NewSession, RetryPolicy, SampleFormat, Samples,
+    UploadOptions, UploadReport, create_session, finish_session, request_reconstruction, upload,
+    upload_samples, upload_status,
 };

@@ -414,6 +414,256 @@ pub async fn fetch(
     })
 }
 
+/// A virtual light for [`relight`]: what shines from the camera (or the bucket detectors).
+#[derive(Clone, Debug, PartialEq)]
+pub enum Light {
+    /// Every camera pixel at 1.
+    Full,
+    /// A disc of camera pixels, centre `(x, y)`, radius `radius` (camera pixel units).
+    Disc { x: f64, y: f64, radius: f64 },
+    /// Camera columns `x0 <= x < x1`.
+    Stripe { x0: f64, x1: f64 },
+    /// Bucket sessions: a weight per detector channel.
+    Weights(Vec<(String, f64)>),
+    /// A camera-sized light image (PNG or NPY file).
+    Image(PathBuf),
+}
+
+/// A projector pattern for [`primal`]: a measured one by index, or any pattern image.
+#[derive(Clone, Debug, PartialEq)]
+pub enum PatternInput {
+    Index(u64),
+    Image(PathBuf),
+}
+
+/// A request body and its content type.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Body {
+    pub content_type: String,
+    pub bytes: Vec<u8>,
+}
+
+impl Body {
+    fn json(value: serde_json::Value) -> Body {
+        Body {
+            content_type: "application/json".to_string(),
+            bytes: serde_json::to_vec(&value).expect("JSON serialises"),
+        }
+    }
+
+    /// An image file sent as it is: `image/png` for .png, `application/x-npy` for .npy.
+    pub fn image_file(path: &Path, what: &str) -> anyhow::Result<Body> {
+        let content_type = match path
+            .extension()
+            .and_then(|e| e.to_str())
+            .map(str::to_ascii_lowercase)
+            .as_deref()
+        {
+            Some("png") => "image/png",
+            Some("npy") => "application/x-npy",
+            _ => anyhow::bail!("{what} {}: use a .png or .npy file", path.display()),
+        };
+        let bytes =
+            std::fs::read(path).with_context(|| format!("{what}: reading {}", path.display()))?;
+        Ok(Body {
+            content_type: content_type.to_string(),
+            bytes,
+        })
+    }
+}
+
+fn finite(value: f64, what: &str) -> anyhow::Result<f64> {
+    anyhow::ensure!(value.is_finite(), "{what} must be a finite number, got {value}");
+    Ok(value)
+}
+
+/// The body of `POST /v1/reconstructions/{id}/relight` for `light`.
+pub fn light_body(light: &Light) -> anyhow::Result<Body> {
+    use serde_json::json;
+    Ok(match light {
+        Light::Full => Body::json(json!({"light": {"preset": "full"}})),
+        Light::Disc { x, y, radius } => {
+            let (x, y) = (finite(*x, "--disc X")?, finite(*y, "--disc Y")?);
+            let radius = finite(*radius, "--disc R")?;
+            anyhow::ensure!(radius > 0.0, "--disc R must be > 0, got {radius}");
+            Body::json(json!({"light": {"preset": "disc", "x": x, "y": y, "radius": radius}}))
+        }
+        Light::Stripe { x0, x1 } => {
+            let (x0, x1) = (finite(*x0, "--stripe X0")?, finite(*x1, "--stripe X1")?);
+            anyhow::ensure!(
+                x0 < x1,
+                "--stripe X0,X1 lights columns X0 <= x < X1: X0 must be below X1, got {x0},{x1}"
+            );
+            Body::json(json!({"light": {"preset": "stripe", "x0": x0, "x1": x1}}))
+        }
+        Light::Weights(weights) => {
+            anyhow::ensure!(!weights.is_empty(), "--weights: name at least one channel");
+            let mut map = serde_json::Map::new();
+            for (name, w) in weights {
+                anyhow::ensure!(!name.is_empty(), "--weights: empty channel name");
+                let w = finite(*w, &format!("--weights {name}"))?;
+                anyhow::ensure!(
+                    map.insert(name.clone(), json!(w)).is_none(),
+                    "--weights: channel {name:?} given twice"
+                );
+            }
+            Body::json(json!({"light": {"weights": map}}))
+        }
+        Light::Image(path) => Body::image_file(path, "--light")?,
+    })
+}
+
+/// Parses `--weights NAME=W,...`.
+pub fn parse_weights(text: &str) -> anyhow::Result<Vec<(String, f64)>> {
+    text.split(',')
+        .filter(|item| !item.trim().is_empty())
+        .map(|item| {
+            let (name, w) = item
+                .split_once('=')
+                .with_context(|| format!("--weights {item:?}: expected NAME=WEIGHT"))?;
+            let w: f64 = w
+                .trim()
+                .parse()
+                .map_err(|_| anyhow::anyhow!("--weights {item:?}: {w:?} is not a number"))?;
+            Ok((name.trim().to_string(), w))
+        })
+        .collect()
+}
+
+/// The body of `POST /v1/reconstructions/{id}/primal` for `pattern`.
+pub fn pattern_body(pattern: &PatternInput) -> anyhow::Result<Body> {
+    Ok(match pattern {
+        PatternInput::Index(i) => Body::json(serde_json::json!({ "pattern_index": i })),
+        PatternInput::Image(path) => Body::image_file(path, "--pattern")?,
+    })
+}
+
+/// `/v1/reconstructions/{id}/{action}?format=...` (relight, primal).
+pub fn image_action_path(id: i64, action: &str, format: ImageFormat) -> String {
+    format!("/v1/reconstructions/{id}/{action}?format={}", format.extension())
+}
+
+/// `/v1/reconstructions/{id}/normals.{png,npy}`.
+pub fn normals_path(id: i64, format: ImageFormat) -> anyhow::Result<String> {
+    anyhow::ensure!(
+        format != ImageFormat::Tiff,
+        "normal maps come as png or npy, not tiff"
+    );
+    Ok(format!("/v1/reconstructions/{id}/normals.{}", format.extension()))
+}
+
+/// What [`relight`], [`primal`] and [`normals`] wrote.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct ImageReport {
+    pub url: String,
+    pub path: PathBuf,
+    pub bytes: u64,
+    pub content_type: Option<String>,
+    /// `x-helmholtz-relative-error`: a measured pattern's prediction against its frame.
+    pub relative_error: Option<f64>,
+    /// `x-helmholtz-psnr-db`: the same comparison as PSNR.
+    pub psnr_db: Option<f64>,
+}
+
+/// Sends `body` (or nothing: a GET) to `path` and saves the image the server answers.
+async fn image_request(
+    server: &str,
+    path: &str,
+    body: Option<Body>,
+    out: &Path,
+) -> anyhow::Result<ImageReport> {
+    let u = url(server, path);
+    let (method, request) = match body {
+        Some(body) => (
+            "POST",
+            http()?
+                .post(&u)
+                .header(reqwest::header::CONTENT_TYPE, body.content_type)
+                .body(body.bytes),
+        ),
+        None => ("GET", http()?.get(&u)),
+    };
+    let response = auth(request, server)
+        .send()
+        .await
+        .with_context(|| format!("{method} {u}: cannot reach the server"))?;
+    let response = check(method, &u, response).await?;
+    let header = |name: &str| {
+        response
+            .headers()
+            .get(name)
+            .and_then(|v| v.to_str().ok())
+            .map(str::to_string)
+    };
+    let content_type = header(reqwest::header::CONTENT_TYPE.as_str());
+    let number = |name: &str| header(name).and_then(|v| v.trim().parse::<f64>().ok());
+    let relative_error = number("x-helmholtz-relative-error");
+    let psnr_db = number("x-helmholtz-psnr-db");
+    let body = response
+        .bytes()
+        .await
+        .with_context(|| format!("{method} {u}: download interrupted"))?;
+    write_atomically(out, &body)?;
+    Ok(ImageReport {
+        url: u,
+        path: out.to_path_buf(),
+        bytes: body.len() as u64,
+        content_type,
+        relative_error,
+        psnr_db,
+    })
+}
+
+/// `POST /v1/reconstructions/{id}/relight`: the dual image (projector-sized) under `light`,
+/// saved to `out`.
+pub async fn relight(
+    server: &str,
+    id: i64,
+    light: &Light,
+    format: ImageFormat,
+    out: &Path,
+) -> anyhow::Result<ImageReport> {
+    let body = light_body(light)?;
+    image_request(server, &image_action_path(id, "relight", format), Some(body), out).await
+}
+
+/// `POST /v1/reconstructions/{id}/primal`: the camera image the reconstructed transport
+/// predicts for `pattern`, saved to `out` (with the server's error figures for a measured one).
+pub async fn primal(
+    server: &str,
+    id: i64,
+    pattern: &PatternInput,
+    format: ImageFormat,
+    out: &Path,
+) -> anyhow::Result<ImageReport> {
+    let body = pattern_body(pattern)?;
+    image_request(server, &image_action_path(id, "primal", format), Some(body), out).await
+}
+
+/// `GET /v1/reconstructions/{id}/normals.{png,npy}`, saved to `out`.
+pub async fn normals(
+    server: &str,
+    id: i64,
+    format: ImageFormat,
+    out: &Path,
+) -> anyhow::Result<ImageReport> {
+    image_request(server, &normals_path(id, format)?, None, out).await
+}
+
+/// `POST /v1/reconstructions/{id}/cancel`: the cancelled reconstruction (409 once it ended).
+pub async fn cancel_reconstruction(server: &str, id: i64) -> anyhow::Result<Reconstruction> {
+    let u = url(server, &format!("/v1/reconstructions/{id}/cancel"));
+    let response = auth(http()?.post(&u), server)
+        .send()
+        .await
+        .with_context(|| format!("POST {u}: cannot reach the server"))?;
+    let response = check("POST", &u, response).await?;
+    response
+        .json()
+        .await
+        .with_context(|| format!("POST {u}: unexpected response body"))
+}
+
 /// Writes `bytes` to `path` via a temporary sibling and a rename.
 pub fn write_atomically(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
     if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
@@ -493,6 +743,64 @@ mod tests {
             Some(ImageFormat::Tiff)
         );
         assert_eq!(ImageFormat::from_path(Path::new("dual")), None);
+    }
+
+    #[test]
+    fn relight_and_primal_requests_are_built_as_specified() {
+        let json = |b: Body| {
+            assert_eq!(b.content_type, "application/json");
+            serde_json::from_slice::<serde_json::Value>(&b.bytes).unwrap()
+        };
+        assert_eq!(
+            json(light_body(&Light::Full).unwrap()),
+            serde_json::json!({"light": {"preset": "full"}})
+        );
+        assert_eq!(
+            json(light_body(&Light::Disc { x: 12.0, y: 7.5, radius: 4.0 }).unwrap()),
+            serde_json::json!({"light": {"preset": "disc", "x": 12.0, "y": 7.5, "radius": 4.0}})
+        );
+        assert_eq!(
+            json(light_body(&Light::Stripe { x0: 3.0, x1: 9.0 }).unwrap()),
+            serde_json::json!({"light": {"preset": "stripe", "x0": 3.0, "x1": 9.0}})
+        );
+        let w = parse_weights("n=1, e=0.5").unwrap();
+        assert_eq!(w, [("n".to_string(), 1.0), ("e".to_string(), 0.5)]);
+        assert_eq!(
+            json(light_body(&Light::Weights(w)).unwrap()),
+            serde_json::json!({"light": {"weights": {"n": 1.0, "e": 0.5}}})
+        );
+        assert_eq!(
+            json(pattern_body(&PatternInput::Index(17)).unwrap()),
+            serde_json::json!({"pattern_index": 17})
+        );
+        // Bad lights are refused before anything is sent.
+        for bad in [
+            Light::Disc { x: 1.0, y: 1.0, radius: 0.0 },
+            Light::Disc { x: f64::NAN, y: 1.0, radius: 2.0 },
+            Light::Stripe { x0: 5.0, x1: 5.0 },
+            Light::Weights(vec![]),
+            Light::Weights(vec![("n".into(), 1.0), ("n".into(), 2.0)]),
+            Light::Image(PathBuf::from("light.jpg")),
+        ] {
+            assert!(light_body(&bad).is_err(), "{bad:?}");
+        }
+        assert!(parse_weights("n:1").is_err() && parse_weights("n=x").is_err());
+        // Images go as they are, typed by extension.
+        let dir = tempfile::tempdir().unwrap();
+        let png = dir.path().join("light.PNG");
+        std::fs::write(&png, b"\x89PNG fake").unwrap();
+        let b = light_body(&Light::Image(png)).unwrap();
+        assert_eq!((b.content_type.as_str(), b.bytes.as_slice()), ("image/png", &b"\x89PNG fake"[..]));
+        let npy = dir.path().join("p.npy");
+        std::fs::write(&npy, b"\x93NUMPY").unwrap();
+        let b = pattern_body(&PatternInput::Image(npy)).unwrap();
+        assert_eq!(b.content_type, "application/x-npy");
+        assert!(pattern_body(&PatternInput::Image(dir.path().join("missing.png"))).is_err());
+        // Paths.
+        assert_eq!(image_action_path(5, "relight", ImageFormat::Tiff), "/v1/reconstructions/5/relight?format=tiff");
+        assert_eq!(image_action_path(5, "primal", ImageFormat::Png), "/v1/reconstructions/5/primal?format=png");
+        assert_eq!(normals_path(8, ImageFormat::Npy).unwrap(), "/v1/reconstructions/8/normals.npy");
+        assert!(normals_path(8, ImageFormat::Tiff).is_err());
     }
 
     #[test]

@@ -9,8 +9,9 @@
 //! ```text
 //! <root>/<session_id>/
 //!   session.pb      the CreateSessionRequest (protobuf), written before the manifest
-//!   manifest.json   session id, channels, expected rows, whether to finish, crc32c of session.pb;
-//!                   written atomically (temp file, fsync, rename, fsync of the directory): a
+//!   manifest.json   session id, channels (values a row: a camera frame's pixels), sample format
+//!                   (f64, f32 or u16; absent in spools of older clients: f64), expected rows,
+//!                   whether to finish, crc32c of session.pb; written atomically (temp file, fsync, rename, fsync of the directory): a
 //!                   directory without it is an unfinished creation and is ignored
 //!   seg-<first row, 20 digits>.rows
 //!                   append-only segments of frames (below)
@@ -21,8 +22,9 @@
 //! ```
 //!
 //! A frame is `len: u32 LE` (payload bytes), `crc32c: u32 LE` (of the 8 start-row bytes and the
-//! payload), `start_row: u64 LE`, then `len` bytes of row-major f64 LE values: one or more whole
-//! rows. [`Spool::append`] writes its frames and fsyncs the segment before it returns: a row is
+//! payload), `start_row: u64 LE`, then `len` bytes of row-major little-endian values in the
+//! session's sample format (f64 for bucket sessions; a camera session's f32 or u16 frames are
+//! stored as they are, never widened): one or more whole rows. [`Spool::append`] writes its frames and fsyncs the segment before it returns: a row is
 //! *spooled* only then. On open, frames are checked in order (length, checksum, the start row
 //! following on); the first bad frame of the last segment is a torn tail from a crash and is
 //! truncated away; a bad frame anywhere else is damage, reported and never silently dropped.
@@ -53,7 +55,8 @@ use serde::{Deserialize, Serialize};
 use tokio::sync::watch;
 
 use crate::upload::{
-    self, Disposition, NewSession, RetryPolicy, RowSource, RpcError, UploadOptions, UploadReport,
+    self, Disposition, NewSession, RetryPolicy, RowSource, RpcError, SampleFormat, Samples,
+    UploadOptions, UploadReport,
 };
 
 const MANIFEST: &str = "manifest.json";
@@ -88,10 +91,14 @@ pub fn default_root() -> PathBuf {
 /// What a session's spool declares (`manifest.json`).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Manifest {
-    /// Layout version (1).
+    /// Layout version: 1 (f64 rows, as every older client wrote), 2 (f32 or u16 frames).
     pub format: u32,
     pub session_id: String,
+    /// Values a row (a camera session: pixels a frame).
     pub channels: u32,
+    /// How the values are stored (absent in older spools: f64).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sample_format: Option<SampleFormat>,
     /// Rows the session's spec declares.
     pub expected_rows: u64,
     /// Finish the session (FinishSession) once every row of the spec is committed.
@@ -99,6 +106,18 @@ pub struct Manifest {
     pub created_unix_ms: u64,
     /// CRC-32C of `session.pb`.
     pub request_crc32c: u32,
+}
+
+impl Manifest {
+    /// The format the rows are stored in (f64 when the manifest names none).
+    pub fn sample(&self) -> SampleFormat {
+        self.sample_format.unwrap_or(SampleFormat::F64)
+    }
+
+    /// Bytes of one row.
+    pub fn row_bytes(&self) -> usize {
+        self.sample().bytes() * self.channels as usize
+    }
 }
 
 /// The uploader's last view of a session (`state.json`): informative, never authoritative.
@@ -199,10 +218,10 @@ struct Scan {
 fn parse_frames(
     bytes: &[u8],
     segment: u64,
-    channels: u32,
+    row_bytes: usize,
     mut next_row: u64,
 ) -> (Vec<Frame>, u64, u64, Option<String>) {
-    let row_bytes = 8 * channels as usize;
+    let payload_max = frame_payload_max(row_bytes);
     let mut frames = Vec::new();
     let mut pos = 0usize;
     let problem = loop {
@@ -216,7 +235,7 @@ fn parse_frames(
         let len = u32::from_le_bytes(rest[0..4].try_into().unwrap()) as usize;
         let crc = u32::from_le_bytes(rest[4..8].try_into().unwrap());
         let start = u64::from_le_bytes(rest[8..16].try_into().unwrap());
-        if len == 0 || len > FRAME_PAYLOAD_MAX || !len.is_multiple_of(row_bytes) {
+        if len == 0 || len > payload_max || !len.is_multiple_of(row_bytes) {
             break Some(format!("bad frame length {len} at offset {pos}"));
         }
         if rest.len() < FRAME_HEADER + len {
@@ -244,9 +263,14 @@ fn parse_frames(
     (frames, pos as u64, next_row, problem)
 }
 
-/// Checks every segment of `dir`. A bad frame in the last segment is a torn tail (`torn_bytes`);
-/// anywhere else it is an error.
-fn scan(dir: &Path, channels: u32) -> anyhow::Result<Scan> {
+/// The largest frame payload: [`FRAME_PAYLOAD_MAX`], or one row if a row is larger.
+fn frame_payload_max(row_bytes: usize) -> usize {
+    FRAME_PAYLOAD_MAX.max(row_bytes)
+}
+
+/// Checks every segment of `dir` (rows of `row_bytes` bytes). A bad frame in the last segment is
+/// a torn tail (`torn_bytes`); anywhere else it is an error.
+fn scan(dir: &Path, row_bytes: usize) -> anyhow::Result<Scan> {
     let mut firsts: Vec<u64> = Vec::new();
     for entry in std::fs::read_dir(dir).with_context(|| format!("reading {}", dir.display()))? {
         let entry = entry?;
@@ -274,7 +298,7 @@ fn scan(dir: &Path, channels: u32) -> anyhow::Result<Scan> {
             );
         }
         let bytes = std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?;
-        let (frames, valid_len, end_row, problem) = parse_frames(&bytes, first, channels, first);
+        let (frames, valid_len, end_row, problem) = parse_frames(&bytes, first, row_bytes, first);
         if let Some(problem) = problem {
             if i + 1 < firsts.len() {
                 bail!(
@@ -303,10 +327,22 @@ fn read_manifest(dir: &Path) -> anyhow::Result<(Manifest, v1::CreateSessionReque
     let manifest: Manifest = serde_json::from_slice(&text)
         .with_context(|| format!("{}: not a spool manifest", path.display()))?;
     anyhow::ensure!(
-        manifest.format == 1,
-        "{}: spool format {} is not supported (this client writes 1)",
+        manifest.format == 1 || manifest.format == 2,
+        "{}: spool format {} is not supported (this client reads 1 and 2)",
         path.display(),
         manifest.format
+    );
+    anyhow::ensure!(
+        (manifest.format == 1) == (manifest.sample() == SampleFormat::F64),
+        "{}: spool format {} does not go with {} values",
+        path.display(),
+        manifest.format,
+        manifest.sample().name()
+    );
+    anyhow::ensure!(
+        manifest.channels > 0,
+        "{}: a spool needs at least one value a row",
+        path.display()
     );
     let pb_path = dir.join(SESSION_PB);
     let pb = std::fs::read(&pb_path).with_context(|| format!("reading {}", pb_path.display()))?;
@@ -390,6 +426,7 @@ impl SpoolDir {
     /// once every row is committed (an existing spool's flag is only ever turned on).
     pub fn create_or_open(&self, session: &NewSession, finish: bool) -> anyhow::Result<Spool> {
         check_session_id(&session.session_id)?;
+        session.validate()?;
         let request = session.to_request();
         let dir = self.session_dir(&session.session_id);
         std::fs::create_dir_all(&self.root)
@@ -403,10 +440,13 @@ impl SpoolDir {
         if !dir.join(MANIFEST).is_file() {
             let pb = request.encode_to_vec();
             write_durably(&dir, SESSION_PB, &pb)?;
+            let sample = session.sample_format();
             let manifest = Manifest {
-                format: 1,
+                // Format 1 stays readable by older clients; frames need format 2.
+                format: if sample == SampleFormat::F64 { 1 } else { 2 },
                 session_id: session.session_id.clone(),
-                channels: session.channels.len() as u32,
+                channels: session.channel_count(),
+                sample_format: Some(sample),
                 expected_rows: session.spec.count(),
                 finish,
                 created_unix_ms: now_ms(),
@@ -456,7 +496,7 @@ impl SpoolDir {
         check_session_id(session_id)?;
         let dir = self.session_dir(session_id);
         let (manifest, _) = read_manifest(&dir)?;
-        let scan = scan(&dir, manifest.channels)?;
+        let scan = scan(&dir, manifest.row_bytes())?;
         Ok(SpoolInfo {
             session_id: session_id.to_string(),
             dir: dir.clone(),
@@ -464,6 +504,7 @@ impl SpoolDir {
             base_row: scan.base_row,
             expected_rows: manifest.expected_rows,
             channels: manifest.channels,
+            sample_format: manifest.sample(),
             sealed: dir.join(SEALED).exists(),
             finish: manifest.finish,
             busy: is_locked(&dir),
@@ -485,6 +526,7 @@ pub struct SpoolInfo {
     pub base_row: u64,
     pub expected_rows: u64,
     pub channels: u32,
+    pub sample_format: SampleFormat,
     /// The producer wrote every row it will write.
     pub sealed: bool,
     /// The session is to be finished once complete.
@@ -569,7 +611,7 @@ impl std::fmt::Debug for Spool {
 impl Spool {
     fn open_locked(dir: PathBuf, lock: File, segment_bytes: u64) -> anyhow::Result<Spool> {
         let (manifest, request) = read_manifest(&dir)?;
-        let scan = scan(&dir, manifest.channels)?;
+        let scan = scan(&dir, manifest.row_bytes())?;
         if scan.torn_bytes > 0 {
             let last = scan.segments.last().expect("torn bytes lie in a segment");
             let f = OpenOptions::new()
@@ -650,14 +692,27 @@ impl Spool {
         self.progress.subscribe()
     }
 
-    /// Appends whole rows (`channels` values each, row-major, all finite) after the spooled
-    /// ones and fsyncs them: when this returns `Ok`, they are spooled. Bad input (a non-finite
-    /// value, more rows than the spec declares) is refused and spools nothing. On an I/O error a
-    /// partly written frame is cut off again; rows an earlier segment already made durable
-    /// (appends spanning a segment change) stay spooled, as [`Spool::rows`] says. Returns the
-    /// spooled row count.
+    /// Appends whole rows of f64 values (a bucket session's spool); see [`Spool::append_samples`].
     pub fn append(&self, values: &[f64]) -> anyhow::Result<u64> {
+        self.append_samples(Samples::F64(values))
+    }
+
+    /// Appends whole rows (`channels` values each, row-major, all finite, in the spool's sample
+    /// format) after the spooled ones and fsyncs them: when this returns `Ok`, they are spooled.
+    /// Bad input (another sample format, a non-finite value, more rows than the spec declares)
+    /// is refused and spools nothing. On an I/O error a partly written frame is cut off again;
+    /// rows an earlier segment already made durable (appends spanning a segment change) stay
+    /// spooled, as [`Spool::rows`] says. Returns the spooled row count.
+    pub fn append_samples(&self, values: Samples<'_>) -> anyhow::Result<u64> {
         let ch = self.manifest.channels as usize;
+        let format = self.manifest.sample();
+        anyhow::ensure!(
+            values.format() == format,
+            "session {} stores {} values, not {}; nothing was spooled",
+            self.session_id(),
+            format.name(),
+            values.format().name()
+        );
         anyhow::ensure!(
             !values.is_empty() && values.len().is_multiple_of(ch),
             "{} values are not a whole, non-zero number of rows of {ch} channel(s)",
@@ -669,12 +724,12 @@ impl Spool {
             "the spool of session {} is sealed: no more rows",
             self.session_id()
         );
-        if let Some(pos) = values.iter().position(|v| !v.is_finite()) {
+        if let Some(pos) = values.first_non_finite() {
             bail!(
                 "row {}, channel {}: value {} is not finite; nothing was spooled",
                 inner.rows + (pos / ch) as u64,
                 pos % ch,
-                values[pos]
+                values.get_f64(pos)
             );
         }
         let new_rows = (values.len() / ch) as u64;
@@ -685,11 +740,14 @@ impl Spool {
             inner.rows + new_rows,
             self.session_id()
         );
-        let rows_per_frame = (FRAME_PAYLOAD_MAX / (8 * ch)).max(1);
+        let row_bytes = self.manifest.row_bytes();
+        let rows_per_frame = (frame_payload_max(row_bytes) / row_bytes).max(1);
         let mut start = inner.rows;
         let mut pending: Vec<Frame> = Vec::new();
         let mut buf: Vec<u8> = Vec::new();
-        for rows in values.chunks(rows_per_frame * ch) {
+        let mut from = 0usize;
+        while from < values.len() {
+            let to = (from + rows_per_frame * ch).min(values.len());
             // A new segment once the last one (with what is buffered for it) is full.
             let full = inner
                 .segments
@@ -703,17 +761,14 @@ impl Spool {
             }
             let seg = inner.segments.last().expect("a segment");
             let offset = seg.valid_len + buf.len() as u64;
-            let mut payload = Vec::with_capacity(rows.len() * 8);
-            for v in rows {
-                payload.extend_from_slice(&v.to_le_bytes());
-            }
+            let payload = values.encode_range(from, to);
             let start_bytes = start.to_le_bytes();
             let crc = crc32c::crc32c_append(crc32c::crc32c(&start_bytes), &payload);
             buf.extend_from_slice(&(payload.len() as u32).to_le_bytes());
             buf.extend_from_slice(&crc.to_le_bytes());
             buf.extend_from_slice(&start_bytes);
             buf.extend_from_slice(&payload);
-            let n = (rows.len() / ch) as u64;
+            let n = ((to - from) / ch) as u64;
             pending.push(Frame {
                 segment: seg.first_row,
                 offset,
@@ -721,6 +776,7 @@ impl Spool {
                 rows: n,
             });
             start += n;
+            from = to;
         }
         if !buf.is_empty() {
             self.flush(&mut inner, &mut buf, &mut pending)?;
@@ -821,9 +877,19 @@ impl Spool {
         Ok(())
     }
 
-    /// The values of rows `start..end` (row-major), checked against their frame checksums.
+    /// The values of rows `start..end` (row-major) widened to f64, checked against their frame
+    /// checksums.
     pub fn read(&self, start: u64, end: u64) -> anyhow::Result<Vec<f64>> {
-        let ch = self.manifest.channels as usize;
+        Ok(self
+            .manifest
+            .sample()
+            .decode_f64(&self.read_bytes(start, end)?))
+    }
+
+    /// Rows `start..end` as stored: little-endian values of the spool's sample format
+    /// (row-major), checked against their frame checksums.
+    pub fn read_bytes(&self, start: u64, end: u64) -> anyhow::Result<Vec<u8>> {
+        let row_bytes = self.manifest.row_bytes();
         let (frames, paths) = {
             let inner = self.inner();
             anyhow::ensure!(
@@ -854,7 +920,7 @@ impl Spool {
                 .collect();
             (frames, paths)
         };
-        let mut out = Vec::with_capacity((end - start) as usize * ch);
+        let mut out: Vec<u8> = Vec::with_capacity((end - start) as usize * row_bytes);
         let mut open: Option<(u64, File)> = None;
         for f in frames {
             if open.as_ref().is_none_or(|(k, _)| *k != f.segment) {
@@ -869,7 +935,7 @@ impl Spool {
                 ));
             }
             let file = &mut open.as_mut().expect("opened").1;
-            let len = f.rows as usize * 8 * ch;
+            let len = f.rows as usize * row_bytes;
             let mut frame = vec![0u8; FRAME_HEADER + len];
             file.seek(SeekFrom::Start(f.offset))
                 .and_then(|_| file.read_exact(&mut frame))
@@ -884,16 +950,13 @@ impl Spool {
             );
             let lo = start.max(f.start_row) - f.start_row;
             let hi = end.min(f.start_row + f.rows) - f.start_row;
-            let bytes =
-                &frame[FRAME_HEADER + lo as usize * 8 * ch..FRAME_HEADER + hi as usize * 8 * ch];
-            out.extend(
-                bytes
-                    .chunks_exact(8)
-                    .map(|b| f64::from_le_bytes(b.try_into().unwrap())),
+            out.extend_from_slice(
+                &frame[FRAME_HEADER + lo as usize * row_bytes
+                    ..FRAME_HEADER + hi as usize * row_bytes],
             );
         }
         anyhow::ensure!(
-            out.len() == (end - start) as usize * ch,
+            out.len() == (end - start) as usize * row_bytes,
             "the spool index of session {} is inconsistent",
             self.session_id()
         );
@@ -965,6 +1028,15 @@ impl RowSource for SpoolRows<'_> {
 
     fn read(&self, start: u64, end: u64) -> anyhow::Result<Cow<'_, [f64]>> {
         Ok(Cow::Owned(self.spool.read(start, end)?))
+    }
+
+    fn format(&self) -> SampleFormat {
+        self.spool.manifest.sample()
+    }
+
+    /// The stored bytes as they are: frames are sent in their own format, never widened.
+    fn read_payload(&self, start: u64, end: u64) -> anyhow::Result<Vec<u8>> {
+        self.spool.read_bytes(start, end)
     }
 }
 

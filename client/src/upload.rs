@@ -27,8 +27,164 @@ use tonic::{Code, Status};
 use crate::auth::Grpc;
 use crate::rest::Reconstruction;
 
-/// Default payload per chunk: 256 KiB of f64 values (tonic's default message limit is 4 MiB).
+/// Default payload per chunk: 256 KiB of values (tonic's default message limit is 4 MiB).
 pub const DEFAULT_CHUNK_BYTES: usize = 256 * 1024;
+
+/// The most payload bytes one chunk may carry (the server's default `max_chunk_bytes`): chunk
+/// sizes are capped here whatever `--chunk-rows` says (at least one row a chunk).
+pub const MAX_CHUNK_BYTES: usize = 8 << 20;
+
+/// The most pixels one camera frame may have (the server's cap: 256 x 256).
+pub const MAX_FRAME_PIXELS: u64 = 65_536;
+
+/// The most values a camera session's ground truth (`m * k`, one row of T per camera pixel) may
+/// hold; larger sessions send none.
+pub const MAX_CAMERA_GROUND_TRUTH: usize = 4_194_304;
+
+/// How one measured value is stored and sent: f64 for bucket sessions, f32 or u16 (counts) for
+/// camera frames.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum SampleFormat {
+    #[default]
+    F64,
+    F32,
+    U16,
+}
+
+impl SampleFormat {
+    /// Bytes of one value.
+    pub fn bytes(self) -> usize {
+        match self {
+            SampleFormat::F64 => 8,
+            SampleFormat::F32 => 4,
+            SampleFormat::U16 => 2,
+        }
+    }
+
+    pub fn name(self) -> &'static str {
+        match self {
+            SampleFormat::F64 => "f64",
+            SampleFormat::F32 => "f32",
+            SampleFormat::U16 => "u16",
+        }
+    }
+
+    pub fn to_proto(self) -> v1::SampleFormat {
+        match self {
+            SampleFormat::F64 => v1::SampleFormat::F64,
+            SampleFormat::F32 => v1::SampleFormat::F32,
+            SampleFormat::U16 => v1::SampleFormat::U16,
+        }
+    }
+
+    /// Decodes little-endian values of this format into f64 (exact for every format).
+    pub fn decode_f64(self, bytes: &[u8]) -> Vec<f64> {
+        match self {
+            SampleFormat::F64 => bytes
+                .chunks_exact(8)
+                .map(|b| f64::from_le_bytes(b.try_into().unwrap()))
+                .collect(),
+            SampleFormat::F32 => bytes
+                .chunks_exact(4)
+                .map(|b| f32::from_le_bytes(b.try_into().unwrap()) as f64)
+                .collect(),
+            SampleFormat::U16 => bytes
+                .chunks_exact(2)
+                .map(|b| u16::from_le_bytes(b.try_into().unwrap()) as f64)
+                .collect(),
+        }
+    }
+}
+
+/// Rows of values in one sample format (row-major), borrowed.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Samples<'a> {
+    F64(&'a [f64]),
+    F32(&'a [f32]),
+    U16(&'a [u16]),
+}
+
+impl Samples<'_> {
+    pub fn format(&self) -> SampleFormat {
+        match self {
+            Samples::F64(_) => SampleFormat::F64,
+            Samples::F32(_) => SampleFormat::F32,
+            Samples::U16(_) => SampleFormat::U16,
+        }
+    }
+
+    /// Number of values.
+    pub fn len(&self) -> usize {
+        match self {
+            Samples::F64(v) => v.len(),
+            Samples::F32(v) => v.len(),
+            Samples::U16(v) => v.len(),
+        }
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// The index of the first non-finite value (never for u16).
+    pub fn first_non_finite(&self) -> Option<usize> {
+        match self {
+            Samples::F64(v) => v.iter().position(|x| !x.is_finite()),
+            Samples::F32(v) => v.iter().position(|x| !x.is_finite()),
+            Samples::U16(_) => None,
+        }
+    }
+
+    /// Value `i` widened to f64 (for messages).
+    pub fn get_f64(&self, i: usize) -> f64 {
+        match self {
+            Samples::F64(v) => v[i],
+            Samples::F32(v) => v[i] as f64,
+            Samples::U16(v) => v[i] as f64,
+        }
+    }
+
+    /// Values `from..to` as little-endian bytes of their own format.
+    pub fn encode_range(&self, from: usize, to: usize) -> Vec<u8> {
+        let mut out = Vec::with_capacity((to - from) * self.format().bytes());
+        match self {
+            Samples::F64(v) => v[from..to]
+                .iter()
+                .for_each(|x| out.extend_from_slice(&x.to_le_bytes())),
+            Samples::F32(v) => v[from..to]
+                .iter()
+                .for_each(|x| out.extend_from_slice(&x.to_le_bytes())),
+            Samples::U16(v) => v[from..to]
+                .iter()
+                .for_each(|x| out.extend_from_slice(&x.to_le_bytes())),
+        }
+        out
+    }
+
+    /// Every value as little-endian bytes.
+    pub fn encode(&self) -> Vec<u8> {
+        self.encode_range(0, self.len())
+    }
+}
+
+/// Owned rows in one sample format.
+#[derive(Clone, Debug, PartialEq)]
+pub enum SampleBuf {
+    F64(Vec<f64>),
+    F32(Vec<f32>),
+    U16(Vec<u16>),
+}
+
+impl SampleBuf {
+    pub fn as_samples(&self) -> Samples<'_> {
+        match self {
+            SampleBuf::F64(v) => Samples::F64(v),
+            SampleBuf::F32(v) => Samples::F32(v),
+            SampleBuf::U16(v) => Samples::U16(v),
+        }
+    }
+}
 
 /// Jittered exponential backoff: attempt `n` waits `min(max, initial · multiplier^n)` scaled by a
 /// uniform factor in `[1 - jitter, 1]` (so concurrent clients do not retry in lock step).
@@ -136,10 +292,19 @@ impl UploadOptions {
         }
     }
 
-    /// Rows per chunk for `channels` channels.
+    /// Rows per chunk for `channels` channels of f64 values.
     pub fn rows_per_chunk(&self, channels: usize) -> usize {
+        self.rows_per_chunk_of(channels, SampleFormat::F64)
+    }
+
+    /// Rows (whole frames, for a camera) per chunk for `channels` values a row in `format`:
+    /// `chunk_rows`, else about [`DEFAULT_CHUNK_BYTES`]; never more than [`MAX_CHUNK_BYTES`] of
+    /// payload (unless a single row is larger), never less than one row.
+    pub fn rows_per_chunk_of(&self, channels: usize, format: SampleFormat) -> usize {
+        let row_bytes = format.bytes() * channels.max(1);
         self.chunk_rows
-            .unwrap_or(DEFAULT_CHUNK_BYTES / (8 * channels.max(1)))
+            .unwrap_or(DEFAULT_CHUNK_BYTES / row_bytes)
+            .min(MAX_CHUNK_BYTES / row_bytes)
             .max(1)
     }
 }
@@ -260,10 +425,7 @@ pub fn disposition(code: Code) -> Disposition {
 
 /// A lazily connecting client: no I/O happens until the first call, and a fresh one is made for
 /// each attempt so a restarted server is found again.
-pub fn connect(
-    server: &str,
-    connect_timeout: Duration,
-) -> anyhow::Result<Grpc> {
+pub fn connect(server: &str, connect_timeout: Duration) -> anyhow::Result<Grpc> {
     let (server, token) = crate::auth::split_server(server);
     let endpoint = Endpoint::from_shared(server.clone())
         .with_context(|| {
@@ -274,9 +436,11 @@ pub fn connect(
         .http2_keep_alive_interval(Duration::from_secs(10))
         .keep_alive_timeout(Duration::from_secs(20));
     let bearer = crate::auth::Bearer::new(token.as_deref())?;
-    Ok(AcquisitionClient::with_interceptor(endpoint.connect_lazy(), bearer)
-        .max_decoding_message_size(64 << 20)
-        .max_encoding_message_size(usize::MAX))
+    Ok(
+        AcquisitionClient::with_interceptor(endpoint.connect_lazy(), bearer)
+            .max_decoding_message_size(64 << 20)
+            .max_encoding_message_size(usize::MAX),
+    )
 }
 
 /// Runs an idempotent unary call, retrying retryable failures per `policy`.
@@ -319,11 +483,53 @@ pub struct NewSession {
     /// The rig's name (1-128 printable characters); [`NewSession::new`] starts with "rig".
     pub rig: String,
     pub spec: PatternSpec,
-    /// One name per bucket channel.
+    /// One name per bucket channel (empty for a camera session).
     pub channels: Vec<String>,
+    /// Optional: per bucket channel, the unit direction from the scene toward its detector
+    /// (empty: unknown).
+    pub directions: Vec<[f64; 3]>,
+    /// A camera in place of bucket detectors: each row is a `width x height` frame.
+    pub camera: Option<CameraLayout>,
     pub metadata: BTreeMap<String, String>,
     /// The noiseless scene of a simulated rig, so the server can score reconstructions.
     pub ground_truth: Option<v1::GroundTruth>,
+}
+
+/// A camera session's frames: `width x height` pixels (row-major) in `format` (F32 or U16).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+pub struct CameraLayout {
+    pub width: u32,
+    pub height: u32,
+    pub format: SampleFormat,
+}
+
+impl CameraLayout {
+    /// Pixels of one frame: the session's channel count.
+    pub fn pixels(&self) -> u64 {
+        self.width as u64 * self.height as u64
+    }
+
+    /// Checks the layout the server will accept: 1..=65,536 pixels, F32 or U16.
+    pub fn validate(&self) -> anyhow::Result<()> {
+        anyhow::ensure!(
+            self.width > 0 && self.height > 0,
+            "camera frames must be at least 1x1, got {}x{}",
+            self.width,
+            self.height
+        );
+        anyhow::ensure!(
+            self.pixels() <= MAX_FRAME_PIXELS,
+            "a {}x{} camera frame has {} pixels; the most is {MAX_FRAME_PIXELS} (256x256)",
+            self.width,
+            self.height,
+            self.pixels()
+        );
+        anyhow::ensure!(
+            self.format != SampleFormat::F64,
+            "camera frames are f32 or u16, not f64"
+        );
+        Ok(())
+    }
 }
 
 impl NewSession {
@@ -333,9 +539,82 @@ impl NewSession {
             rig: "rig".to_string(),
             spec,
             channels,
+            directions: Vec::new(),
+            camera: None,
             metadata: BTreeMap::new(),
             ground_truth: None,
         }
+    }
+
+    /// A camera session: every pattern's row is a `width x height` frame in `format`.
+    pub fn camera(
+        session_id: impl Into<String>,
+        spec: PatternSpec,
+        width: u32,
+        height: u32,
+        format: SampleFormat,
+    ) -> Self {
+        NewSession {
+            camera: Some(CameraLayout {
+                width,
+                height,
+                format,
+            }),
+            ..NewSession::new(session_id, spec, Vec::new())
+        }
+    }
+
+    /// Declares the direction toward each bucket channel's detector (one per channel).
+    pub fn with_directions(mut self, directions: Vec<[f64; 3]>) -> Self {
+        self.directions = directions;
+        self
+    }
+
+    /// Values per row: the bucket channels, or a camera frame's pixels.
+    pub fn channel_count(&self) -> u32 {
+        match &self.camera {
+            Some(c) => c.pixels() as u32,
+            None => self.channels.len() as u32,
+        }
+    }
+
+    /// The format rows are stored and sent in.
+    pub fn sample_format(&self) -> SampleFormat {
+        self.camera.map(|c| c.format).unwrap_or(SampleFormat::F64)
+    }
+
+    /// Checks the detector declaration: bucket channels (with one unit direction each, if
+    /// any), or a valid camera and no channels.
+    pub fn validate(&self) -> anyhow::Result<()> {
+        match &self.camera {
+            Some(camera) => {
+                camera.validate()?;
+                anyhow::ensure!(
+                    self.channels.is_empty() && self.directions.is_empty(),
+                    "a camera session has no bucket channels or detector directions"
+                );
+            }
+            None => {
+                anyhow::ensure!(
+                    !self.channels.is_empty(),
+                    "a session needs at least one channel"
+                );
+                anyhow::ensure!(
+                    self.directions.is_empty() || self.directions.len() == self.channels.len(),
+                    "{} detector directions given for {} channels (one per channel, or none)",
+                    self.directions.len(),
+                    self.channels.len()
+                );
+                for (d, name) in self.directions.iter().zip(&self.channels) {
+                    let norm = (d[0] * d[0] + d[1] * d[1] + d[2] * d[2]).sqrt();
+                    anyhow::ensure!(
+                        d.iter().all(|v| v.is_finite()) && (norm - 1.0).abs() < 1e-9,
+                        "the direction of channel {name} must be a unit vector, got {d:?}"
+                    );
+                }
+            }
+        }
+        Ok(())
     }
 
     pub fn with_rig(mut self, rig: impl Into<String>) -> Self {
@@ -348,7 +627,9 @@ impl NewSession {
         self
     }
 
-    /// `transport`: `width * height` values, row-major (the simulator's noiseless `t`).
+    /// `width x height`: the pattern grid. `transport`: the noiseless transport, row-major:
+    /// `width * height` values (every channel's), or one such image per channel, channel after
+    /// channel; for a camera session `m * k` values (one row of T per camera pixel).
     pub fn with_ground_truth(mut self, width: u32, height: u32, transport: Vec<f32>) -> Self {
         self.ground_truth = Some(v1::GroundTruth {
             width,
@@ -365,7 +646,20 @@ impl NewSession {
             patterns: Some(v1::PatternSpec::from(&self.spec)),
             detector: Some(v1::DetectorLayout {
                 channels: self.channels.clone(),
-                ..Default::default()
+                directions: self
+                    .directions
+                    .iter()
+                    .map(|d| v1::Direction {
+                        x: d[0],
+                        y: d[1],
+                        z: d[2],
+                    })
+                    .collect(),
+                camera: self.camera.map(|c| v1::CameraLayout {
+                    width: c.width,
+                    height: c.height,
+                    format: c.format.to_proto() as i32,
+                }),
             }),
             metadata: self.metadata.clone().into_iter().collect(),
             ground_truth: self.ground_truth.clone(),
@@ -397,10 +691,7 @@ pub async fn create_session(server: &str, session: &NewSession) -> anyhow::Resul
         "session id {:?} must be 1-128 characters of A-Z a-z 0-9 . _ -",
         session.session_id
     );
-    anyhow::ensure!(
-        !session.channels.is_empty(),
-        "a session needs at least one channel"
-    );
+    session.validate()?;
     create_session_request(server, &session.to_request(), &RetryPolicy::default()).await
 }
 
@@ -553,8 +844,86 @@ pub async fn upload(
 pub trait RowSource: Sync {
     /// Rows that can be read now.
     fn rows(&self) -> u64;
-    /// The values of rows `start..end` (`end <= rows()`), row-major.
+    /// The values of rows `start..end` (`end <= rows()`), row-major, widened to f64.
     fn read(&self, start: u64, end: u64) -> anyhow::Result<Cow<'_, [f64]>>;
+    /// The format the rows are sent in (f64 unless a camera session's f32 / u16 frames).
+    fn format(&self) -> SampleFormat {
+        SampleFormat::F64
+    }
+    /// Rows `start..end` as the chunk payload: little-endian values of [`RowSource::format`].
+    fn read_payload(&self, start: u64, end: u64) -> anyhow::Result<Vec<u8>> {
+        let values = self.read(start, end)?;
+        Ok(Samples::F64(&values).encode())
+    }
+}
+
+/// Rows in memory in any sample format (`channels` values a row).
+pub struct SampleRows<'a> {
+    pub samples: Samples<'a>,
+    pub channels: usize,
+}
+
+impl RowSource for SampleRows<'_> {
+    fn rows(&self) -> u64 {
+        (self.samples.len() / self.channels.max(1)) as u64
+    }
+
+    fn read(&self, start: u64, end: u64) -> anyhow::Result<Cow<'_, [f64]>> {
+        let ch = self.channels;
+        Ok(Cow::Owned(
+            (start as usize * ch..end as usize * ch)
+                .map(|i| self.samples.get_f64(i))
+                .collect(),
+        ))
+    }
+
+    fn format(&self) -> SampleFormat {
+        self.samples.format()
+    }
+
+    fn read_payload(&self, start: u64, end: u64) -> anyhow::Result<Vec<u8>> {
+        let ch = self.channels;
+        Ok(self
+            .samples
+            .encode_range(start as usize * ch, end as usize * ch))
+    }
+}
+
+/// [`upload`] for rows in any sample format (a camera session's f32 or u16 frames: `channels`
+/// = pixels per frame, whole frames only).
+pub async fn upload_samples(
+    server: &str,
+    session_id: &str,
+    channels: u32,
+    samples: Samples<'_>,
+    opts: &UploadOptions,
+) -> anyhow::Result<UploadReport> {
+    let ch = channels as usize;
+    anyhow::ensure!(ch > 0, "channels must be at least 1");
+    anyhow::ensure!(
+        samples.len().is_multiple_of(ch),
+        "{} values are not a whole number of rows of {ch} values",
+        samples.len()
+    );
+    if let Some(pos) = samples.first_non_finite() {
+        anyhow::bail!(
+            "value at row {}, column {} is not finite ({})",
+            pos / ch,
+            pos % ch,
+            samples.get_f64(pos)
+        );
+    }
+    upload_rows(
+        server,
+        session_id,
+        channels,
+        &SampleRows {
+            samples,
+            channels: ch,
+        },
+        opts,
+    )
+    .await
 }
 
 struct SliceRows<'a> {
@@ -586,7 +955,7 @@ pub async fn upload_rows(
 ) -> anyhow::Result<UploadReport> {
     anyhow::ensure!(channels > 0, "channels must be at least 1");
     let total = source.rows();
-    let chunk_rows = opts.rows_per_chunk(channels as usize);
+    let chunk_rows = opts.rows_per_chunk_of(channels as usize, source.format());
     let policy = opts.policy();
     let started = Instant::now();
     let bar = progress_bar(total, opts.progress);
@@ -760,6 +1129,55 @@ pub fn chunk_ranges(
         .map(move |s| (s, (s + step).min(total_rows)))
 }
 
+/// One chunk message carrying `payload` (rows from `start_row`, little-endian values of
+/// `format`) in the field of that format, with its CRC-32C.
+pub fn encode_chunk(
+    session_id: &str,
+    channels: u32,
+    format: SampleFormat,
+    start_row: u64,
+    payload: Vec<u8>,
+) -> v1::MeasurementChunk {
+    let crc32c = crc32c::crc32c(&payload);
+    let mut chunk = v1::MeasurementChunk {
+        session_id: session_id.to_string(),
+        start_row,
+        channels,
+        crc32c,
+        ..Default::default()
+    };
+    match format {
+        SampleFormat::F64 => chunk.values_f64le = payload,
+        SampleFormat::F32 => chunk.values_f32le = payload,
+        SampleFormat::U16 => chunk.values_u16le = payload,
+    }
+    chunk
+}
+
+/// The payload bytes a chunk carries (whichever field is set).
+pub fn chunk_payload_len(chunk: &v1::MeasurementChunk) -> usize {
+    chunk.values_f64le.len() + chunk.values_f32le.len() + chunk.values_u16le.len()
+}
+
+/// The chunk of rows `start..end` read from `source`.
+pub fn read_chunk(
+    session_id: &str,
+    channels: u32,
+    source: &dyn RowSource,
+    start: u64,
+    end: u64,
+) -> anyhow::Result<v1::MeasurementChunk> {
+    let payload = source.read_payload(start, end)?;
+    let format = source.format();
+    anyhow::ensure!(
+        payload.len() as u64 == (end - start) * channels as u64 * format.bytes() as u64,
+        "rows {start}..{end}: {} payload bytes read, not whole rows of {channels} {} values",
+        payload.len(),
+        format.name()
+    );
+    Ok(encode_chunk(session_id, channels, format, start, payload))
+}
+
 /// One chunk message for rows `start..end` of `values`.
 pub fn make_chunk(
     session_id: &str,
@@ -815,23 +1233,14 @@ async fn stream_rows(
     let producer = async {
         let tx = tx; // dropped when the producer ends: the end of the stream
         for (start, end) in chunk_ranges(total, from, chunk_rows) {
-            let values = match source.read(start, end) {
-                Ok(v) => v,
+            let chunk = match read_chunk(session_id, channels, source, start, end) {
+                Ok(c) => c,
                 Err(e) => {
                     *read_error.lock().expect("not poisoned") = Some(e);
                     return;
                 }
             };
-            let (bytes, crc) = wire::encode_values(&values);
-            let chunk = v1::MeasurementChunk {
-                session_id: session_id.to_string(),
-                start_row: start,
-                channels,
-                values_f64le: bytes,
-                crc32c: crc,
-                ..Default::default()
-            };
-            let bytes = chunk.values_f64le.len() as u64;
+            let bytes = chunk_payload_len(&chunk) as u64;
             if tx.send(chunk).await.is_err() {
                 return; // the call ended; its result says why
             }
@@ -985,6 +1394,86 @@ mod tests {
         assert_eq!(req.detector.unwrap().channels, ["bucket"]);
         assert_eq!(req.metadata["lens"], "50mm");
         assert_eq!(req.ground_truth.unwrap().transport.len(), 64);
+    }
+
+    #[test]
+    fn camera_and_direction_declarations() {
+        let spec: PatternSpec = serde_json::from_str(
+            r#"{"family":"hadamard","width":8,"height":8,"count":128,"seed":1}"#,
+        )
+        .unwrap();
+        let cam = NewSession::camera("c1", spec.clone(), 32, 16, SampleFormat::U16);
+        assert_eq!(
+            (cam.channel_count(), cam.sample_format()),
+            (512, SampleFormat::U16)
+        );
+        cam.validate().unwrap();
+        let det = cam.to_request().detector.unwrap();
+        assert!(det.channels.is_empty() && det.directions.is_empty());
+        assert_eq!(
+            det.camera,
+            Some(v1::CameraLayout {
+                width: 32,
+                height: 16,
+                format: v1::SampleFormat::U16 as i32
+            })
+        );
+        assert!(
+            NewSession::camera("c", spec.clone(), 256, 257, SampleFormat::F32)
+                .validate()
+                .is_err()
+        );
+        assert!(
+            NewSession::camera("c", spec.clone(), 4, 4, SampleFormat::F64)
+                .validate()
+                .is_err()
+        );
+        let s = 0.5f64.sqrt();
+        let buckets = NewSession::new("b", spec.clone(), vec!["n".into(), "e".into()])
+            .with_directions(vec![[0.0, -s, s], [s, 0.0, s]]);
+        buckets.validate().unwrap();
+        let det = buckets.to_request().detector.unwrap();
+        assert_eq!(
+            det.directions[0],
+            v1::Direction {
+                x: 0.0,
+                y: -s,
+                z: s
+            }
+        );
+        assert_eq!(det.camera, None);
+        assert_eq!(buckets.sample_format(), SampleFormat::F64);
+        let e = buckets
+            .clone()
+            .with_directions(vec![[0.0, 0.0, 1.0]])
+            .validate()
+            .unwrap_err();
+        assert!(
+            e.to_string()
+                .contains("1 detector directions given for 2 channels"),
+            "{e}"
+        );
+        assert!(
+            buckets
+                .with_directions(vec![[0.0, 0.0, 1.0], [1.0, 1.0, 0.0]])
+                .validate()
+                .is_err()
+        );
+        // Chunks of f64 rows keep their field; the byte cap holds for explicit chunk sizes.
+        let c = encode_chunk("b", 2, SampleFormat::F64, 3, vec![0; 16]);
+        assert_eq!(
+            (
+                c.values_f64le.len(),
+                c.values_f32le.len(),
+                c.values_u16le.len()
+            ),
+            (16, 0, 0)
+        );
+        let opts = UploadOptions {
+            chunk_rows: Some(10_000_000),
+            ..UploadOptions::default()
+        };
+        assert_eq!(opts.rows_per_chunk(4), MAX_CHUNK_BYTES / 32);
     }
 
     #[test]

@@ -17,7 +17,10 @@ fn help_names_every_command() {
     let out = helmholtz().arg("--help").output().unwrap();
     assert!(out.status.success());
     let text = String::from_utf8(out.stdout).unwrap();
-    for command in ["simulate", "upload", "acquire", "status", "fetch", "reconstruct", "patterns", "spool"] {
+    for command in [
+        "simulate", "upload", "acquire", "status", "fetch", "reconstruct", "relight", "primal", "normals", "cancel",
+        "patterns", "spool",
+    ] {
         assert!(text.contains(command), "--help lacks {command}: {text}");
     }
 }

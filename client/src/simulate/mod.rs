@@ -15,6 +15,7 @@
 //! `NoiseModel::seed` and independent of the number of threads: each row draws from its own
 //! counter-based stream.
 
+pub mod lambert;
 pub mod random;
 
 use std::sync::atomic::{AtomicUsize, Ordering};

@@ -286,3 +286,327 @@ fn default_root_follows_the_environment_conventions() {
         "{root:?}"
     );
 }
+
+// ---- camera sessions: f32 and u16 frames, stored as they are ----
+
+fn camera_session(id: &str, count: u64, w: u32, h: u32, format: SampleFormat) -> NewSession {
+    let spec: PatternSpec = serde_json::from_str(&format!(
+        r#"{{"family":"bernoulli","width":8,"height":8,"count":{count},"seed":3}}"#
+    ))
+    .unwrap();
+    NewSession::camera(id, spec, w, h, format)
+}
+
+/// `n` frames of `pixels` values from frame `start`, in `format`.
+fn frames(start: u64, n: u64, pixels: usize, format: SampleFormat) -> crate::upload::SampleBuf {
+    use crate::upload::SampleBuf;
+    let values =
+        (start..start + n).flat_map(|r| (0..pixels).map(move |p| (r * 7 + p as u64 * 3) % 60_000));
+    match format {
+        SampleFormat::F64 => SampleBuf::F64(values.map(|v| v as f64 * 0.5).collect()),
+        SampleFormat::F32 => SampleBuf::F32(values.map(|v| v as f32 * 0.25 + 0.125).collect()),
+        SampleFormat::U16 => SampleBuf::U16(values.map(|v| v as u16).collect()),
+    }
+}
+
+#[test]
+fn frames_round_trip_in_their_own_format_across_frames_and_segments() {
+    for format in [SampleFormat::F32, SampleFormat::U16] {
+        let tmp = tempfile::tempdir().unwrap();
+        let (w, h) = (6u32, 5u32);
+        let px = (w * h) as usize;
+        let row_bytes = px * format.bytes();
+        // Segments of about 3 appends of 4 frames.
+        let spools = SpoolDir::new(tmp.path()).with_segment_bytes((12 * row_bytes) as u64);
+        let spool = spools
+            .create_or_open(&camera_session("cam", 200, w, h, format), true)
+            .unwrap();
+        assert_eq!(spool.manifest().channels, 30);
+        assert_eq!(spool.manifest().sample(), format);
+        assert_eq!(spool.manifest().format, 2);
+        for i in 0..10 {
+            let f = frames(i * 4, 4, px, format);
+            assert_eq!(spool.append_samples(f.as_samples()).unwrap(), (i + 1) * 4);
+        }
+        assert!(spool.segment_count() >= 3, "{format:?}");
+        let all = frames(0, 40, px, format);
+        assert_eq!(spool.read_bytes(0, 40).unwrap(), all.as_samples().encode());
+        assert_eq!(
+            spool.read_bytes(5, 23).unwrap(),
+            frames(5, 18, px, format).as_samples().encode()
+        );
+        let widened: Vec<f64> = (0..all.as_samples().len())
+            .map(|i| all.as_samples().get_f64(i))
+            .collect();
+        assert_eq!(spool.read(0, 40).unwrap(), widened);
+        // Not widened on disk: 40 frames of `row_bytes` plus one header per append.
+        let on_disk: u64 = segments(spool.dir())
+            .iter()
+            .map(|p| std::fs::metadata(p).unwrap().len())
+            .sum();
+        assert_eq!(
+            on_disk,
+            (40 * row_bytes + 10 * FRAME_HEADER) as u64,
+            "{format:?}"
+        );
+        drop(spool);
+
+        let spool = spools.open("cam").unwrap();
+        assert_eq!(spool.rows(), 40);
+        assert_eq!(spool.read_bytes(0, 40).unwrap(), all.as_samples().encode());
+        let info = spools.inspect("cam").unwrap();
+        assert_eq!(
+            (info.sample_format, info.channels, info.torn_bytes),
+            (format, 30, 0)
+        );
+        // The wire request declares the camera.
+        let camera = spool.request().detector.clone().unwrap().camera.unwrap();
+        assert_eq!(
+            (camera.width, camera.height, camera.format),
+            (w, h, format.to_proto() as i32)
+        );
+    }
+}
+
+#[test]
+fn frame_spools_refuse_other_formats_bad_values_and_partial_frames() {
+    let tmp = tempfile::tempdir().unwrap();
+    let spools = SpoolDir::new(tmp.path());
+    let spool = spools
+        .create_or_open(&camera_session("f", 10, 4, 4, SampleFormat::F32), false)
+        .unwrap();
+    let e = spool.append(&[1.0; 16]).unwrap_err().to_string();
+    assert!(e.contains("stores f32 values, not f64"), "{e}");
+    let e = spool
+        .append_samples(Samples::U16(&[1; 16]))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("not u16"), "{e}");
+    let mut bad = vec![0.5f32; 32];
+    bad[21] = f32::INFINITY;
+    let e = spool
+        .append_samples(Samples::F32(&bad))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("row 1, channel 5") && e.contains("not finite"),
+        "{e}"
+    );
+    let e = spool
+        .append_samples(Samples::F32(&[0.5; 20]))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("whole"), "{e}");
+    assert_eq!(spool.rows(), 0);
+    // A camera layout the server would refuse never makes a spool.
+    for (w, h, f) in [
+        (257, 256, SampleFormat::U16),
+        (0, 4, SampleFormat::F32),
+        (4, 4, SampleFormat::F64),
+    ] {
+        assert!(
+            spools
+                .create_or_open(&camera_session("g", 10, w, h, f), false)
+                .is_err(),
+            "{w}x{h} {f:?}"
+        );
+    }
+    assert!(!spools.session_dir("g").join(MANIFEST).exists());
+}
+
+#[test]
+fn a_torn_frame_tail_is_truncated_and_frames_continue() {
+    for format in [SampleFormat::F32, SampleFormat::U16] {
+        let tmp = tempfile::tempdir().unwrap();
+        let spools = SpoolDir::new(tmp.path());
+        let px = 12;
+        let dir = spools.session_dir("t");
+        {
+            let spool = spools
+                .create_or_open(&camera_session("t", 50, 4, 3, format), false)
+                .unwrap();
+            spool
+                .append_samples(frames(0, 3, px, format).as_samples())
+                .unwrap();
+            spool
+                .append_samples(frames(3, 2, px, format).as_samples())
+                .unwrap();
+        }
+        let seg = segments(&dir).pop().unwrap();
+        let good_len = std::fs::metadata(&seg).unwrap().len();
+        let row_bytes = px * format.bytes();
+        let damages: Vec<(&str, Damage)> = vec![
+            (
+                "half a header",
+                Box::new(|b: &mut Vec<u8>| b.extend_from_slice(&[9, 0])),
+            ),
+            (
+                "a cut frame",
+                Box::new(move |b: &mut Vec<u8>| {
+                    b.extend_from_slice(&(row_bytes as u32).to_le_bytes());
+                    b.extend_from_slice(&0u32.to_le_bytes());
+                    b.extend_from_slice(&5u64.to_le_bytes());
+                    b.extend_from_slice(&vec![1; row_bytes / 2]);
+                }),
+            ),
+            (
+                "a bad checksum",
+                Box::new(move |b: &mut Vec<u8>| {
+                    b.extend_from_slice(&(row_bytes as u32).to_le_bytes());
+                    b.extend_from_slice(&777u32.to_le_bytes());
+                    b.extend_from_slice(&5u64.to_le_bytes());
+                    b.extend_from_slice(&vec![1; row_bytes]);
+                }),
+            ),
+            // Not a whole frame of this session's row size (an f64-sized row would not fit).
+            (
+                "a partial-row length",
+                Box::new(move |b: &mut Vec<u8>| {
+                    b.extend_from_slice(&(row_bytes as u32 + 2).to_le_bytes());
+                    b.extend_from_slice(&0u32.to_le_bytes());
+                    b.extend_from_slice(&5u64.to_le_bytes());
+                    b.extend_from_slice(&vec![1; row_bytes + 2]);
+                }),
+            ),
+        ];
+        for (what, damage) in damages {
+            let mut bytes = std::fs::read(&seg).unwrap();
+            bytes.truncate(good_len as usize);
+            damage(&mut bytes);
+            std::fs::write(&seg, &bytes).unwrap();
+            let info = spools.inspect("t").unwrap();
+            assert_eq!(info.spooled_rows, 5, "{what} {format:?}");
+            assert!(info.torn_bytes > 0, "{what} {format:?}");
+            let spool = spools.open("t").unwrap();
+            assert_eq!(spool.rows(), 5, "{what}");
+            assert_eq!(std::fs::metadata(&seg).unwrap().len(), good_len, "{what}");
+            spool
+                .append_samples(frames(5, 1, px, format).as_samples())
+                .unwrap();
+            assert_eq!(
+                spool.read_bytes(0, 6).unwrap(),
+                frames(0, 6, px, format).as_samples().encode(),
+                "{what} {format:?}"
+            );
+            drop(spool);
+            let bytes = std::fs::read(&seg).unwrap();
+            std::fs::write(&seg, &bytes[..good_len as usize]).unwrap();
+        }
+    }
+}
+
+#[test]
+fn an_old_manifest_without_a_sample_format_reads_as_f64() {
+    let tmp = tempfile::tempdir().unwrap();
+    let spools = SpoolDir::new(tmp.path());
+    {
+        let spool = spools.create_or_open(&session("old", 40, 2), true).unwrap();
+        spool.append(&rows(0, 7, 2)).unwrap();
+    }
+    // Rewrite the manifest exactly as clients before camera sessions wrote it.
+    let dir = spools.session_dir("old");
+    let mut manifest: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.join(MANIFEST)).unwrap()).unwrap();
+    assert_eq!(manifest["format"], 1, "f64 spools keep layout 1");
+    assert_eq!(manifest["sample_format"], "f64");
+    manifest.as_object_mut().unwrap().remove("sample_format");
+    std::fs::write(
+        dir.join(MANIFEST),
+        serde_json::to_vec_pretty(&manifest).unwrap(),
+    )
+    .unwrap();
+    let spool = spools.open("old").unwrap();
+    assert_eq!(spool.manifest().sample_format, None);
+    assert_eq!(spool.manifest().sample(), SampleFormat::F64);
+    assert_eq!(spool.read(0, 7).unwrap(), rows(0, 7, 2));
+    spool.append(&rows(7, 3, 2)).unwrap();
+    assert_eq!(spool.read(0, 10).unwrap(), rows(0, 10, 2));
+    assert_eq!(
+        spools.inspect("old").unwrap().sample_format,
+        SampleFormat::F64
+    );
+}
+
+#[test]
+fn camera_chunks_carry_whole_frames_in_their_own_field_under_the_byte_cap() {
+    use crate::upload::{MAX_CHUNK_BYTES, chunk_payload_len, chunk_ranges, read_chunk};
+    for (format, w, h) in [
+        (SampleFormat::F32, 256u32, 256u32),
+        (SampleFormat::U16, 256, 256),
+        (SampleFormat::U16, 16, 8),
+    ] {
+        let tmp = tempfile::tempdir().unwrap();
+        let spools = SpoolDir::new(tmp.path());
+        let px = (w * h) as usize;
+        let n = 40u64;
+        let spool = spools
+            .create_or_open(&camera_session("c", n, w, h, format), false)
+            .unwrap();
+        spool
+            .append_samples(frames(0, n, px, format).as_samples())
+            .unwrap();
+        let source = SpoolRows {
+            spool: &spool,
+            upto: n,
+        };
+        let row_bytes = px * format.bytes();
+        for chunk_rows in [None, Some(1000)] {
+            let opts = UploadOptions {
+                chunk_rows,
+                ..UploadOptions::default()
+            };
+            let per = opts.rows_per_chunk_of(px, format);
+            assert!(
+                per * row_bytes <= MAX_CHUNK_BYTES,
+                "{format:?} {w}x{h} {chunk_rows:?}"
+            );
+            let mut covered = 0;
+            for (s, e) in chunk_ranges(n, 0, per) {
+                let c = read_chunk("c", px as u32, &source, s, e).unwrap();
+                let (set, unset) = match format {
+                    SampleFormat::F32 => (&c.values_f32le, [&c.values_f64le, &c.values_u16le]),
+                    SampleFormat::U16 => (&c.values_u16le, [&c.values_f64le, &c.values_f32le]),
+                    SampleFormat::F64 => unreachable!(),
+                };
+                assert!(unset.iter().all(|u| u.is_empty()), "exactly one payload");
+                assert_eq!(set.len(), (e - s) as usize * row_bytes, "whole frames");
+                assert_eq!(chunk_payload_len(&c), set.len());
+                assert!(set.len() <= MAX_CHUNK_BYTES);
+                assert_eq!(c.crc32c, crc32c::crc32c(set));
+                assert_eq!((c.start_row, c.channels), (s, px as u32));
+                assert_eq!(*set, frames(s, e - s, px, format).as_samples().encode());
+                covered += e - s;
+            }
+            assert_eq!(covered, n);
+        }
+    }
+}
+
+#[test]
+fn frame_damage_before_the_last_segment_is_an_error() {
+    for format in [SampleFormat::F32, SampleFormat::U16] {
+        let tmp = tempfile::tempdir().unwrap();
+        let px = 16;
+        let spools = SpoolDir::new(tmp.path()).with_segment_bytes((2 * px * format.bytes()) as u64);
+        {
+            let spool = spools
+                .create_or_open(&camera_session("d", 30, 4, 4, format), false)
+                .unwrap();
+            for i in 0..3 {
+                spool
+                    .append_samples(frames(i * 2, 2, px, format).as_samples())
+                    .unwrap();
+            }
+            assert_eq!(spool.segment_count(), 3);
+        }
+        let first = segments(&spools.session_dir("d")).remove(0);
+        let mut bytes = std::fs::read(&first).unwrap();
+        bytes[FRAME_HEADER + 3] ^= 0x10;
+        std::fs::write(&first, &bytes).unwrap();
+        let e = format!("{:#}", spools.open("d").unwrap_err());
+        assert!(
+            e.contains("damaged") && e.contains("not the last"),
+            "{format:?}: {e}"
+        );
+    }
+}
