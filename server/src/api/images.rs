@@ -1,6 +1,9 @@
-//! Dual images as files: 8-bit PNG scaled for viewing, 32-bit float TIFF, float32 NPY.
+//! Dual images as files: 8-bit PNG scaled for viewing, 32-bit float TIFF, float32 NPY; RGB
+//! composites and normal maps as 8-bit RGB PNG, multi-channel float32 NPY `(h, w, c)`.
 
 use std::io::Cursor;
+
+use crate::recon::photometric::NormalMap;
 
 /// How a float image maps to 8 bits for viewing.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -72,6 +75,58 @@ pub fn npy_f64(rows: u64, channels: usize, data: &[f64]) -> Vec<u8> {
     out
 }
 
+/// 8-bit RGB PNG of an interleaved RGB image with values in [0, 1] (clamped; non-finite -> 0).
+/// Panics if `rgb` does not hold `3 * width * height` values.
+pub fn rgb_png(width: u32, height: u32, rgb: &[f32]) -> Vec<u8> {
+    assert_eq!(rgb.len(), 3 * width as usize * height as usize, "rgb holds 3 values per pixel");
+    let bytes: Vec<u8> =
+        rgb.iter().map(|&v| if v.is_finite() { (v.clamp(0.0, 1.0) * 255.0).round() as u8 } else { 0 }).collect();
+    png_rgb8(width, height, &bytes)
+}
+
+/// A normal map as 8-bit RGB PNG: RGB = (n + 1) / 2 with n in scene coordinates (x right, y down
+/// the image, z toward the viewer: the "DirectX" convention, green grows downward), so a normal
+/// facing the viewer is (128, 128, 255). Undetermined pixels (n = [0, 0, 0]) are black, which no
+/// unit normal with z >= 0 produces.
+pub fn normal_map_png(map: &NormalMap) -> Vec<u8> {
+    let bytes: Vec<u8> = map
+        .normals
+        .iter()
+        .flat_map(|n| {
+            if *n == [0.0; 3] || n.iter().any(|v| !v.is_finite()) {
+                [0u8; 3]
+            } else {
+                n.map(|v| ((v.clamp(-1.0, 1.0) + 1.0) * 0.5 * 255.0).round() as u8)
+            }
+        })
+        .collect();
+    png_rgb8(map.width, map.height, &bytes)
+}
+
+fn png_rgb8(width: u32, height: u32, bytes: &[u8]) -> Vec<u8> {
+    let mut out = Vec::new();
+    {
+        let mut encoder = png::Encoder::new(&mut out, width, height);
+        encoder.set_color(png::ColorType::Rgb);
+        encoder.set_depth(png::BitDepth::Eight);
+        let mut writer = encoder.write_header().expect("png header to memory");
+        writer.write_image_data(bytes).expect("png data to memory");
+    }
+    out
+}
+
+/// NPY format 1.0: little-endian float32, C order, shape (height, width, channels), from
+/// pixel-interleaved `data` (e.g. [`NormalMap::normals_interleaved`] or an RGB composite).
+/// Panics if `data` does not hold `width * height * channels` values.
+pub fn npy_f32_hwc(width: u32, height: u32, channels: usize, data: &[f32]) -> Vec<u8> {
+    assert_eq!(data.len(), width as usize * height as usize * channels, "data holds (h, w, c) values");
+    let mut out = npy_header("<f4", &format!("({height}, {width}, {channels})"), data.len() * 4);
+    for v in data {
+        out.extend_from_slice(&v.to_le_bytes());
+    }
+    out
+}
+
 pub(crate) fn npy_header(descr: &str, shape: &str, payload: usize) -> Vec<u8> {
     let mut header = format!("{{'descr': '{descr}', 'fortran_order': False, 'shape': {shape}, }}");
     // Magic (6) + version (2) + header length (2) + header must be a multiple of 64, ending in '\n'.
@@ -137,5 +192,54 @@ mod tests {
         let (lo, hi) = levels(&data, Scale::Percentile);
         assert!(lo < 0.01 && hi < 1.0, "{lo} {hi}");
         assert_eq!(levels(&data, Scale::MinMax).1, 1e6);
+    }
+
+    fn decode_rgb(bytes: Vec<u8>) -> (u32, u32, Vec<u8>) {
+        let decoder = png::Decoder::new(Cursor::new(bytes));
+        let mut reader = decoder.read_info().unwrap();
+        let mut buf = vec![0; reader.output_buffer_size().unwrap()];
+        let info = reader.next_frame(&mut buf).unwrap();
+        assert_eq!((info.color_type, info.bit_depth), (png::ColorType::Rgb, png::BitDepth::Eight));
+        buf.truncate(info.buffer_size());
+        (info.width, info.height, buf)
+    }
+
+    #[test]
+    fn rgb_png_round_trips() {
+        let rgb = [0.0, 0.5, 1.0, 2.0, -1.0, f32::NAN, 0.25, 0.75, 1.0 / 255.0, 1.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.1, 0.2, 0.3];
+        let (w, h, buf) = decode_rgb(rgb_png(3, 2, &rgb));
+        assert_eq!((w, h), (3, 2));
+        assert_eq!(buf, vec![0, 128, 255, 255, 0, 0, 64, 191, 1, 255, 255, 255, 0, 0, 0, 26, 51, 77]);
+    }
+
+    #[test]
+    fn normal_map_png_uses_normal_map_colours() {
+        let s = 0.5f32.sqrt();
+        let map = NormalMap {
+            width: 2,
+            height: 2,
+            normals: vec![[0.0, 0.0, 1.0], [s, 0.0, s], [0.0, -s, s], [0.0; 3]],
+            albedo: vec![1.0, 1.0, 1.0, f32::NAN],
+            residual: vec![0.0, 0.0, 0.0, f32::NAN],
+            lit: vec![4, 4, 4, 2],
+        };
+        let (w, h, buf) = decode_rgb(normal_map_png(&map));
+        assert_eq!((w, h), (2, 2));
+        assert_eq!(buf, vec![128, 128, 255, 218, 128, 218, 128, 37, 218, 0, 0, 0]);
+    }
+
+    #[test]
+    fn npy_hwc_header_has_three_axes() {
+        let data: Vec<f32> = (0..2 * 3 * 4).map(|i| i as f32 * 0.5).collect();
+        let bytes = npy_f32_hwc(3, 2, 4, &data);
+        assert_eq!(&bytes[..8], b"\x93NUMPY\x01\x00");
+        let hlen = u16::from_le_bytes([bytes[8], bytes[9]]) as usize;
+        assert_eq!((10 + hlen) % 64, 0);
+        let header = std::str::from_utf8(&bytes[10..10 + hlen]).unwrap();
+        assert!(header.starts_with("{'descr': '<f4', 'fortran_order': False, 'shape': (2, 3, 4), }"), "{header}");
+        assert!(header.ends_with('\n'));
+        let values: Vec<f32> =
+            bytes[10 + hlen..].chunks_exact(4).map(|b| f32::from_le_bytes(b.try_into().unwrap())).collect();
+        assert_eq!(values, data);
     }
 }

@@ -5,6 +5,9 @@
 //!
 //! Methods (see [`MethodConfig`]): `gi`, `dgi`, `ngi` are one-pass streaming correlators with O(k)
 //! state per channel; `direct` is the exact inverse of a complete raster or Hadamard set.
+//!
+//! On finished dual images: [`photometric`] recovers normals and albedo from several detectors at
+//! known directions (photometric stereo), [`colour`] composites channels behind r, g, b filters.
 
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 
@@ -12,6 +15,7 @@ use helmholtz_proto::PatternSpec;
 use serde::Serialize;
 
 pub mod auto;
+pub mod colour;
 pub mod compressive;
 pub mod correlate;
 pub mod direct;
@@ -19,6 +23,7 @@ pub mod fwht;
 pub mod holdout;
 pub mod linop;
 pub mod ops;
+pub mod photometric;
 pub mod solve;
 pub mod transport;
 pub mod transforms;
