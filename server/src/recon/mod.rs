@@ -21,6 +21,7 @@ pub mod linop;
 pub mod ops;
 pub mod solve;
 pub mod transforms;
+pub mod transport;
 pub mod method;
 pub mod metrics;
 pub(crate) mod simd;
