@@ -4,12 +4,14 @@
 //!
 //! `cargo run --release -p helmholtz-server --bin helmholtz-bench -- --preset full`
 //!
-//! `--preset compare` runs the side-by-side comparison with other tools instead ([`compare`]).
+//! `--preset compare` runs the side-by-side comparison with other tools instead ([`compare`]);
+//! `--preset transport` the camera-session (transport matrix) benchmark ([`transport`]).
 
 pub mod compare;
 mod grid;
 mod plot;
 mod report;
+mod transport;
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -25,11 +27,12 @@ use crate::recon::{self, Control, MethodConfig, Problem, SliceSource, metrics};
 pub use grid::{Case, Noise, Preset};
 
 #[derive(Parser, Debug)]
-#[command(name = "helmholtz-bench", about = "Speed against error of every reconstruction method on a grid of simulated acquisitions.\n\nWrites DIR/benchmarks.md (tables and plots) and DIR/benchmarks.json (raw figures); the smaller presets write DIR/benchmarks-PRESET.{md,json}.\n\n--preset compare runs the target problems side by side with other tools (pylops, pyproximal, spyrit; bench/compare/run.py in a venv under target/compare-venv, created on first use) and writes DIR/comparison.md and DIR/comparison.json.")]
+#[command(name = "helmholtz-bench", about = "Speed against error of every reconstruction method on a grid of simulated acquisitions.\n\nWrites DIR/benchmarks.md (tables and plots) and DIR/benchmarks.json (raw figures); the smaller presets write DIR/benchmarks-PRESET.{md,json}.\n\n--preset compare runs the target problems side by side with other tools (pylops, pyproximal, spyrit; bench/compare/run.py in a venv under target/compare-venv, created on first use) and writes DIR/comparison.md and DIR/comparison.json.\n\n--preset transport benchmarks camera sessions (transport matrix reconstruction, relight/primal latency) and writes DIR/benchmarks-transport.{md,json}.")]
 struct Args {
     /// smoke: a few small cases (CI); targets: the target problems; full: the whole grid;
-    /// compare: the target problems against other tools.
-    #[arg(long, default_value = "targets", value_parser = ["smoke", "targets", "full", "compare"])]
+    /// compare: the target problems against other tools; transport: camera sessions (transport
+    /// matrix time, size and error, relight/primal latency).
+    #[arg(long, default_value = "targets", value_parser = ["smoke", "targets", "full", "compare", "transport"])]
     preset: String,
     /// Output directory.
     #[arg(long, default_value = "docs")]
@@ -54,6 +57,12 @@ struct Args {
     /// compare: only these problems (comma-separated names, e.g. camera128-hadamard10).
     #[arg(long, value_delimiter = ',')]
     problems: Option<Vec<String>>,
+    /// transport: timed relight and primal calls per transform (median and p99 reported).
+    #[arg(long, default_value_t = 300, value_parser = clap::value_parser!(u32).range(10..=100_000))]
+    calls: u32,
+    /// transport: only the relight/primal latency, no reconstructions.
+    #[arg(long)]
+    latency_only: bool,
 }
 
 /// One measured reconstruction.
@@ -103,6 +112,14 @@ pub fn main() {
             std::process::exit(1);
         }
         eprintln!("wrote {}/comparison.md and comparison.json", args.out.display());
+        return;
+    }
+    if args.preset == "transport" {
+        if let Err(e) = transport::run(&args.out, args.calls as usize, args.latency_only) {
+            eprintln!("helmholtz-bench: {e:#}");
+            std::process::exit(1);
+        }
+        eprintln!("wrote {}/benchmarks-transport.md and benchmarks-transport.json", args.out.display());
         return;
     }
     let preset: Preset = args.preset.parse().expect("clap checked the preset");

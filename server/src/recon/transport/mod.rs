@@ -486,7 +486,9 @@ pub fn reconstruct_transport(
         mem = plan_memory(&plan, config.memory_budget_bytes, m, selecting, false)?;
     }
     let mut largest = 0usize;
-    let sample = config.sample_pixels.min(mem.block_pixels).min(m);
+    // At most half a block: the model choice also holds each sample pixel's image and
+    // predictions besides what a block pixel needs.
+    let sample = config.sample_pixels.min((mem.block_pixels / 2).max(1)).min(m);
     let mut details = serde_json::Map::new();
     let mut held_out = None;
     let mut held_out_unavailable = None;

@@ -218,7 +218,7 @@ fn blocked_equals_unblocked_and_reads_stay_within_the_budget() {
     let frame_bytes = f.len() * 4;
     let budget = 100_000;
     assert!(frame_bytes > budget, "the session's frames ({frame_bytes} B) must exceed the budget");
-    let config = TransportConfig { sample_pixels: 4, ..TransportConfig::default() };
+    let config = TransportConfig { sample_pixels: 2, ..TransportConfig::default() };
     let (whole, r1, s1) = run(&spec, camera, &f, &config.clone().with_memory_budget(64 << 20));
     let (blocked, r2, s2) = run(&spec, camera, &f, &config.clone().with_memory_budget(budget));
     println!("unblocked: {}; blocked: {}", r1.details["memory"], r2.details["memory"]);
