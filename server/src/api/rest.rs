@@ -107,6 +107,8 @@ async fn index(Caller(_caller): Caller) -> axum::Json<Value> {
             "GET /v1/sessions/{id}/measurements.npy (the committed bucket rows, float64, shape (rows, channels))",
             "GET /v1/reconstructions/{id}",
             "GET /v1/reconstructions/{id}/dual.png|dual.tiff|dual.npy?channel=NAME&scale=percentile|minmax",
+            "GET /v1/reconstructions/{id}/normals.png|normals.npy|albedo.png|albedo.npy|residual.npy|photometric.json?gains=auto|equal|estimate (photometric stereo from 3+ detectors with declared directions)",
+            "GET /v1/reconstructions/{id}/composite.png (channels r, g, b)",
             "POST /v1/reconstructions/{id}/cancel (or DELETE /v1/reconstructions/{id})",
             "POST /v1/reconstructions/{id}/relight?format=png|tiff|npy {\"light\": {\"preset\": \"full\"|\"disc\"|\"stripe\", ...} | {\"weights\": {CHANNEL: W}}} or a camera-sized PNG/NPY body: the dual image T^T c'",
             "POST /v1/reconstructions/{id}/primal?format=png|tiff|npy&ambient=include|exclude {\"pattern_index\": I} or a projector-sized PNG/NPY body: the camera image T p (+ ambient), with x-helmholtz-relative-error for a measured pattern",
@@ -441,7 +443,10 @@ fn dual_format(file: &str) -> Result<Format, ApiError> {
         "dual.png" => Ok(Format::Png),
         "dual.tiff" => Ok(Format::Tiff),
         "dual.npy" => Ok(Format::Npy),
-        _ => Err(ApiError::NotFound(format!("no file {file:?}; try dual.png, dual.tiff or dual.npy"))),
+        _ => Err(ApiError::NotFound(format!(
+            "no file {file:?}; try dual.png, dual.tiff or dual.npy (reconstructions also serve {})",
+            super::relight::DERIVED_FILES.join(", ")
+        ))),
     }
 }
 
@@ -454,6 +459,9 @@ async fn reconstruction_file(
 ) -> Result<Response, ApiError> {
     caller.require(Role::Reader)?;
     let id = recon_path(&id)?;
+    if super::relight::DERIVED_FILES.contains(&file.as_str()) {
+        return super::relight::derived(&state, &caller, id, &file, &query, &headers).await;
+    }
     let format = dual_format(&file)?;
     let r = state.own_reconstruction(&caller, id).await?;
     serve_dual(&state, r, &query, &headers, format).await

@@ -27,7 +27,6 @@ pub mod photometric;
 pub mod solve;
 pub mod transport;
 pub mod transforms;
-pub mod transport;
 pub mod method;
 pub mod metrics;
 pub(crate) mod simd;
