@@ -700,7 +700,15 @@ pub async fn derived(
         })
         .await
         .map_err(|e| ApiError::Internal(e.to_string()))?
-        .map_err(|e| ApiError::invalid(e.field(), e.to_string()))?;
+        .map_err(|e| {
+            // Query options are the request's fault; images and directions are the session's.
+            let field = e.field();
+            if field.starts_with("directions") || field.starts_with("images") || field == "width" || field == "height" {
+                ApiError::FailedPrecondition(format!("session {:?}: {field}: {e}", session.id))
+            } else {
+                ApiError::invalid(field, e.to_string())
+            }
+        })?;
         let extra = Vec::new();
         let finite = |v: &[f32]| v.iter().map(|x| if x.is_finite() { *x } else { 0.0 }).collect::<Vec<f32>>();
         match file {
