@@ -190,6 +190,29 @@ async fn every_route_and_rpc_by_role_and_lab() {
             ok: (409, 404),
         },
         RestCase { method: "DELETE", paths: (format!("/v1/reconstructions/{ra}"), format!("/v1/reconstructions/{rb}")), body: None, need: Need::Reader, ok: (409, 404) },
+        // Relighting a bucket session by its channel's weight; it has no camera (primal) and no
+        // detector directions (normals), so those are conflicts for the own lab.
+        RestCase {
+            method: "POST",
+            paths: (format!("/v1/reconstructions/{ra}/relight"), format!("/v1/reconstructions/{rb}/relight")),
+            body: Some(r#"{"light": {"weights": {"bucket": 2}}}"#),
+            need: Need::Reader,
+            ok: (200, 404),
+        },
+        RestCase {
+            method: "POST",
+            paths: (format!("/v1/reconstructions/{ra}/primal"), format!("/v1/reconstructions/{rb}/primal")),
+            body: Some(r#"{"pattern_index": 0}"#),
+            need: Need::Reader,
+            ok: (409, 404),
+        },
+        RestCase {
+            method: "GET",
+            paths: (format!("/v1/reconstructions/{ra}/normals.png"), format!("/v1/reconstructions/{rb}/normals.png")),
+            body: None,
+            need: Need::Reader,
+            ok: (409, 404),
+        },
         RestCase { method: "GET", paths: both("/v1/tokens"), body: None, need: Need::Admin, ok: (200, 200) },
         RestCase { method: "POST", paths: both("/v1/tokens"), body: Some(r#"{"roles": ["reader"], "note": "matrix"}"#), need: Need::Admin, ok: (201, 201) },
         RestCase {
