@@ -221,6 +221,40 @@ async fn main() -> anyhow::Result<()> {
     }
     let reference = Arc::new(reference);
 
+    // A camera session with its transport matrix, for relight queries: the Lambertian scene on
+    // a 64x64 projector (complete Hadamard set, 8192 frames) seen by a 32x32 camera.
+    eprintln!("reconstructing the camera reference session...");
+    let camera_rec = {
+        let scene = helmholtz_scenes::Scene::demo(64, 64, 1);
+        let view = scene.view(&helmholtz_scenes::Camera::tilted(32, 32, 25.0));
+        let s: PatternSpec =
+            serde_json::from_str(r#"{"family":"hadamard","width":64,"height":64,"count":8192,"seed":1}"#)?;
+        let generator = helmholtz_proto::PatternGenerator::new(&s);
+        let mut p = vec![0f32; s.pixels()];
+        let mut frames = Vec::with_capacity(8192 * view.pixels());
+        for i in 0..s.count() {
+            generator.fill_values(i, &mut p);
+            let p64: Vec<f64> = p.iter().map(|&v| v as f64).collect();
+            frames.extend(view.render(&p64).into_iter().map(|v| v as f32));
+        }
+        let id = "ref-camera";
+        let session = NewSession::camera(id, s, 32, 32, helmholtz_client::upload::SampleFormat::F32);
+        helmholtz_client::create_session(&base, &session).await?;
+        helmholtz_client::upload_samples(
+            &base,
+            id,
+            (32 * 32) as u32,
+            helmholtz_client::upload::Samples::F32(&frames),
+            &UploadOptions::default(),
+        )
+        .await?;
+        helmholtz_client::finish_session(&base, id).await?;
+        let rec = helmholtz_client::request_reconstruction(&base, id, "transport", &serde_json::json!({})).await?;
+        let rec = helmholtz_client::wait_reconstruction(&base, rec.id, Duration::from_secs(300)).await?;
+        anyhow::ensure!(rec.is_done(), "camera reference reconstruction failed: {rec:?}");
+        rec.id
+    };
+
     // One simulation per rig, reused for each of its sessions (new session ids).
     eprintln!("simulating {} rigs ({} rows each)...", args.rigs, args.rows);
     let rig_values: Vec<Arc<Vec<f64>>> = (0..args.rigs)
@@ -309,6 +343,8 @@ async fn main() -> anyhow::Result<()> {
         "dual.npy",
         "reconstruction json",
         "session dual.tiff",
+        "relight camera disc (npy)",
+        "relight bucket weights (png)",
     ];
     let queries: Arc<Vec<Mutex<Samples>>> = Arc::new(
         kinds
@@ -325,18 +361,35 @@ async fn main() -> anyhow::Result<()> {
         let kind = i % kinds.len();
         let (session, rec) = reference[(i / kinds.len()) % reference.len()].clone();
         i += 1;
-        let url = match kind {
-            0 => format!("{query_base}/v1/reconstructions/{rec}/dual.png"),
-            1 => format!("{query_base}/v1/reconstructions/{rec}/dual.npy"),
-            2 => format!("{query_base}/v1/reconstructions/{rec}"),
-            _ => format!("{query_base}/v1/sessions/{session}/dual.tiff"),
+        // Relight lights change with every query (a disc wandering over the camera, weights
+        // growing), so each is computed, not served from the response cache.
+        let (url, body) = match kind {
+            0 => (format!("{query_base}/v1/reconstructions/{rec}/dual.png"), None),
+            1 => (format!("{query_base}/v1/reconstructions/{rec}/dual.npy"), None),
+            2 => (format!("{query_base}/v1/reconstructions/{rec}"), None),
+            3 => (format!("{query_base}/v1/sessions/{session}/dual.tiff"), None),
+            4 => (
+                format!("{query_base}/v1/reconstructions/{camera_rec}/relight?format=npy"),
+                Some(format!(
+                    r#"{{"light": {{"preset": "disc", "x": {}, "y": {}, "radius": 4}}}}"#,
+                    i % 32,
+                    (i / 32) % 32
+                )),
+            ),
+            _ => (
+                format!("{query_base}/v1/reconstructions/{rec}/relight"),
+                Some(format!(r#"{{"light": {{"weights": {{"bucket": {}}}}}}}"#, 1 + i)),
+            ),
         };
         let (http, queries) = (http.clone(), queries.clone());
         in_flight.push(tokio::spawn(async move {
             let t0 = Instant::now();
             let result = async {
-                let response = http
-                    .get(&url)
+                let request = match body {
+                    None => http.get(&url),
+                    Some(body) => http.post(&url).header("content-type", "application/json").body(body),
+                };
+                let response = request
                     .send()
                     .await
                     .map_err(|e| format!("{url}: {e}"))?;
