@@ -499,7 +499,8 @@ async fn main() -> anyhow::Result<()> {
         &uploads,
     ));
     for (k, name) in kinds.iter().enumerate() {
-        md.push_str(&row(&format!("GET {name}"), &queries[k].lock().unwrap()));
+        let verb = if name.starts_with("relight") { "POST" } else { "GET" };
+        md.push_str(&row(&format!("{verb} {name}"), &queries[k].lock().unwrap()));
     }
     let mut first_errors: Vec<String> = Vec::new();
     first_errors.extend(uploads.first_error.clone());
