@@ -107,10 +107,14 @@ async fn queued_and_running_jobs_are_cancelled_and_the_worker_is_freed() {
     assert_eq!(problem["limit"], "max_pending_jobs_per_lab", "{problem}");
     wait_state(&server, &t, first, &["running"], Duration::from_secs(60)).await;
 
-    // The queued one: cancelled, never started.
-    let r = post(&server, &t, &format!("/v1/reconstructions/{second}/cancel"), "").await;
-    assert_eq!(r.status(), 200);
-    assert_eq!(r.json::<Value>().await.unwrap()["state"], "cancelled");
+    // The queued one, over gRPC (CancelReconstruction): cancelled, never started.
+    let mut grpc = server.grpc().await.unwrap();
+    let r = grpc
+        .cancel_reconstruction(helmholtz_proto::v1::ReconstructionRef { reconstruction_id: second })
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(r.state, "cancelled");
     // The running one (DELETE is the same): the worker stops at its next check.
     let cancelled_at = Instant::now();
     let r = reqwest::Client::new()
@@ -120,8 +124,14 @@ async fn queued_and_running_jobs_are_cancelled_and_the_worker_is_freed() {
         .await
         .unwrap();
     assert_eq!(r.status(), 200);
-    // Cancelling again is harmless; a finished job cannot be cancelled (409).
-    assert_eq!(post(&server, &t, &format!("/v1/reconstructions/{first}/cancel"), "").await.status(), 200);
+    // Cancelling again is harmless (here with `helmholtz cancel`); a finished job cannot be
+    // cancelled (409).
+    let out = std::process::Command::new(helmholtz_tests::binary("helmholtz"))
+        .args(["--server", &server.address, "--token", &t, "--json", "cancel", "--reconstruction", &first.to_string()])
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(String::from_utf8_lossy(&out.stdout).contains("cancelled"), "{}", String::from_utf8_lossy(&out.stdout));
     // The single worker is free again: a small job runs and finishes.
     acquire(&server.base_url, "small", r#"{"family":"raster","width":8,"height":8,"count":64}"#).await;
     let small = post(&server, &t, "/v1/sessions/small/reconstructions", r#"{"method": "direct"}"#).await;
