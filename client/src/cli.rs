@@ -510,7 +510,9 @@ pub struct UploadArgs {
     #[command(flatten)]
     pub spec: SpecSource,
     /// Measurements: CSV (one row per pattern, one column per channel, optional header of
-    /// channel names, '#' comments) or NPY (shape (n,) or (n, channels); float or int).
+    /// channel names, '#' comments) or NPY (shape (n,) or (n, channels); float or int). A camera
+    /// rig's frames: NPY of shape (n, height, width), uint16 or float32, which makes a camera
+    /// session (frames are read from the file batch by batch, never all at once).
     #[arg(long, value_name = "FILE")]
     pub values: PathBuf,
     /// Channel names, comma separated [default: the CSV header, else "bucket" for one column,
@@ -1515,6 +1517,9 @@ async fn upload_cmd(
         a.session_id
     );
     let spec = a.spec.load()?;
+    if let Some(frames) = measurements::npy_frames(&a.values)? {
+        return upload_frames_cmd(server, spools, a, progress, spec, frames).await;
+    }
     let m = measurements::read_measurements(&a.values)?;
     let names = channel_names(&a.channels, &m)?;
     check_rows(&a.values, m.rows, &spec, a.partial)?;
@@ -1557,6 +1562,64 @@ async fn upload_cmd(
         "session_id": a.session_id,
         "spec": spec_json(&spec),
         "channels": names,
+        "file": a.values,
+        "spooled_before": spooled_before,
+        "upload": report,
+        "finished": report.finished,
+    });
+    Ok(Outcome { json: out, text })
+}
+
+/// `helmholtz upload` of a camera rig's frames (a 3-D NPY file): a camera session, spooled and
+/// uploaded batch by batch straight from the file.
+async fn upload_frames_cmd(
+    server: &str,
+    spools: &SpoolDir,
+    a: &UploadArgs,
+    progress: bool,
+    spec: PatternSpec,
+    frames: measurements::NpyFrames,
+) -> anyhow::Result<Outcome> {
+    anyhow::ensure!(
+        a.channels.is_empty(),
+        "--channels does not apply to camera frames ({} is an NPY of shape ({}, {}, {}))",
+        a.values.display(),
+        frames.rows,
+        frames.height,
+        frames.width
+    );
+    check_rows(&a.values, frames.rows as usize, &spec, a.partial)?;
+    let mut session = NewSession::camera(a.session_id.clone(), spec.clone(), frames.width, frames.height, frames.format)
+        .with_rig(a.rig.clone());
+    session.metadata = parse_metadata(&a.metadata)?;
+    session.validate()?;
+    let opts = a.transfer.options(progress)?;
+    let rows = |start: u64, end: u64| frames.read(start, end);
+    let (report, spooled_before) =
+        spool_and_upload_rows(server, spools, &session, a.finish, frames.rows, &rows, a.batch_rows, None, &opts).await?;
+    let mut text = format!(
+        "session {} ({}; camera {}x{} {:?} frames)\n",
+        a.session_id,
+        spec_summary(&spec),
+        frames.width,
+        frames.height,
+        frames.format
+    );
+    text.push_str(&upload_text(&report, spooled_before));
+    if a.finish {
+        anyhow::ensure!(
+            report.finished,
+            "session {}: {} of {} rows committed, so it cannot be finished",
+            a.session_id,
+            report.committed_rows,
+            report.expected_rows
+        );
+        text.push_str(&format!("session finished with {} frames\n", report.committed_rows));
+    }
+    let out = json!({
+        "session_id": a.session_id,
+        "spec": spec_json(&spec),
+        "camera": {"width": frames.width, "height": frames.height},
         "file": a.values,
         "spooled_before": spooled_before,
         "upload": report,

@@ -120,3 +120,56 @@ async fn a_simulated_camera_rig_is_relit_and_predicted_from_the_command_line() {
     assert_eq!(shape, vec![10, 12]);
     assert!(stdout.contains("relative_error") || stdout.contains("relative error"), "{stdout}");
 }
+
+#[tokio::test]
+async fn a_camera_rigs_frames_upload_from_an_npy_file() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = ServerProcess::start(&dir.path().join("data"), 0, &[]).unwrap();
+    let spool = dir.path().join("spool");
+    // 512 u16 frames of a 10x8 camera (Hadamard 16x16, complete), written as a real rig's
+    // driver would: an NPY of shape (frames, height, width).
+    let spec_json = r#"{"family":"hadamard","width":16,"height":16,"count":512,"seed":0,"ordering":"sequency"}"#;
+    let spec: helmholtz_proto::PatternSpec = serde_json::from_str(spec_json).unwrap();
+    let scene = Scene::demo(16, 16, 8);
+    let view = scene.view(&helmholtz_scenes::Camera::tilted(10, 8, 15.0));
+    let generator = helmholtz_proto::PatternGenerator::new(&spec);
+    let mut p = vec![0f32; 256];
+    let counts_per_unit = 20000.0;
+    let mut data = Vec::new();
+    for i in 0..512 {
+        generator.fill_values(i, &mut p);
+        let p: Vec<f64> = p.iter().map(|&v| v as f64).collect();
+        for v in view.render(&p) {
+            data.extend_from_slice(&((v * counts_per_unit).round().clamp(0.0, 65535.0) as u16).to_le_bytes());
+        }
+    }
+    let mut npy = b"\x93NUMPY\x01\x00".to_vec();
+    let mut header = "{'descr': '<u2', 'fortran_order': False, 'shape': (512, 8, 10), }".to_string();
+    let total = 10 + header.len() + 1;
+    header.push_str(&" ".repeat(total.next_multiple_of(64) - total));
+    header.push('\n');
+    npy.extend_from_slice(&(header.len() as u16).to_le_bytes());
+    npy.extend_from_slice(header.as_bytes());
+    npy.extend_from_slice(&data);
+    let (frames, spec_file) = (dir.path().join("frames.npy"), dir.path().join("spec.json"));
+    std::fs::write(&frames, &npy).unwrap();
+    std::fs::write(&spec_file, spec_json).unwrap();
+    helmholtz(&server, &spool, &[
+        "upload", "--session-id", "camfile", "--spec", spec_file.to_str().unwrap(), "--values", frames.to_str().unwrap(), "--finish",
+    ]);
+    // Stored exactly as in the file.
+    let stored = reqwest::get(server.url("/v1/sessions/camfile/measurements.npy")).await.unwrap().bytes().await.unwrap();
+    assert_eq!(&stored[stored.len() - data.len()..], &data[..]);
+    let doc: serde_json::Value = reqwest::get(server.url("/v1/sessions/camfile")).await.unwrap().json().await.unwrap();
+    assert_eq!(doc["camera"], serde_json::json!({"width": 10, "height": 8, "format": "u16"}));
+    // And T reconstructs from it: the full-camera dual image against the truth, in counts.
+    let rec = helmholtz_client::request_reconstruction(&server.base_url, "camfile", "transport", &serde_json::json!({})).await.unwrap();
+    let rec = helmholtz_client::wait_reconstruction(&server.base_url, rec.id, std::time::Duration::from_secs(120)).await.unwrap();
+    assert!(rec.is_done(), "{rec:?}");
+    let npy = reqwest::get(server.url(&format!("/v1/reconstructions/{}/dual.npy", rec.id))).await.unwrap().bytes().await.unwrap();
+    let (_, summed) = parse_npy(&npy).unwrap();
+    let want: Vec<f64> = view.relight(&vec![1.0; 80]).iter().map(|v| v * counts_per_unit).collect();
+    let e = helmholtz_tests::relative_error(&summed, &want);
+    // Rounding to whole counts (about 0.3 count rms per pixel against ~10^3-10^4 counts).
+    assert!(e < 1e-3, "relative error {e}");
+}
