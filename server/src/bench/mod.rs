@@ -63,6 +63,10 @@ struct Args {
     /// transport: only the relight/primal latency, no reconstructions.
     #[arg(long)]
     latency_only: bool,
+    /// transport: only the reconstruction cases whose name contains one of these
+    /// (comma-separated, e.g. "hadamard 50,bernoulli 10").
+    #[arg(long, value_delimiter = ',')]
+    cases: Option<Vec<String>>,
 }
 
 /// One measured reconstruction.
@@ -115,7 +119,7 @@ pub fn main() {
         return;
     }
     if args.preset == "transport" {
-        if let Err(e) = transport::run(&args.out, args.calls as usize, args.latency_only) {
+        if let Err(e) = transport::run(&args.out, args.calls as usize, args.latency_only, args.cases.as_deref()) {
             eprintln!("helmholtz-bench: {e:#}");
             std::process::exit(1);
         }

@@ -93,7 +93,7 @@ fn percentile(sorted: &[f64], q: f64) -> f64 {
     sorted[((sorted.len() - 1) as f64 * q).round() as usize]
 }
 
-pub fn run(out: &Path, calls: usize, latency_only: bool) -> anyhow::Result<()> {
+pub fn run(out: &Path, calls: usize, latency_only: bool, only: Option<&[String]>) -> anyhow::Result<()> {
     let (pw, ph, cw, chh) = (64u32, 64u32, 32u32, 32u32);
     let scene = Scene::demo(pw, ph, 7);
     let view = scene.view(&Camera::tilted(cw, chh, 25.0));
@@ -113,6 +113,9 @@ pub fn run(out: &Path, calls: usize, latency_only: bool) -> anyhow::Result<()> {
     ];
     if latency_only {
         cases.clear();
+    }
+    if let Some(only) = only {
+        cases.retain(|c| only.iter().any(|o| c.0.contains(o.as_str())));
     }
     let mut rows = Vec::new();
     let mut cache: Option<(String, Vec<f32>)> = None;

@@ -81,6 +81,21 @@ pub fn split(rows: usize, fraction: f64) -> Result<Split, String> {
     Ok(Split { fraction, train, test })
 }
 
+/// Rows `0..rows` split so that the held-out rows are the LAST `fraction` of them (at least
+/// [`MIN_HELD_OUT`]): for ordered designs (Hadamard subsets taken in sequency or Russian-doll
+/// order) the rows a session did not measure lie beyond the measured ones, so a model is judged
+/// by how well it predicts measured rows beyond those it was fitted on, which is the task the
+/// unmeasured rows set it. (Randomly held-out rows of such a design lie among the fitted ones and
+/// are predicted well by any model that fits, whatever it does with the unmeasured rows.)
+pub fn tail(rows: usize, fraction: f64) -> Result<Split, String> {
+    let test_len = ((rows as f64 * fraction).round() as usize).max(MIN_HELD_OUT);
+    if test_len + MIN_HELD_OUT > rows {
+        return Err(format!("{rows} rows cannot hold out the last {test_len} and still leave {MIN_HELD_OUT} to fit"));
+    }
+    let cut = rows - test_len;
+    Ok(Split { fraction: test_len as f64 / rows as f64, train: (0..cut).collect(), test: (cut..rows).collect() })
+}
+
 /// Accumulates `||c - c_hat||^2` and the centred `||c - mean(c)||^2` over held-out rows, per
 /// channel (Welford-free: two-pass is not possible when streaming, so the spread is accumulated
 /// around the first value seen, which is exact in exact arithmetic and avoids the cancellation
@@ -203,6 +218,16 @@ mod tests {
         // Unrelated to parity (Hadamard frames come in pairs; orderings have structure).
         let odd = s.test.iter().filter(|&&i| i % 2 == 1).count() as f64 / s.test.len() as f64;
         assert!((odd - 0.5).abs() < 0.05, "odd share {odd}");
+    }
+
+    #[test]
+    fn tail_holds_out_the_last_rows() {
+        let s = tail(1000, 0.1).unwrap();
+        assert_eq!(s.test, (900..1000).collect::<Vec<_>>());
+        assert_eq!(s.train, (0..900).collect::<Vec<_>>());
+        // At least MIN_HELD_OUT rows, and something left to fit.
+        assert_eq!(tail(40, 0.1).unwrap().test.len(), MIN_HELD_OUT);
+        assert!(tail(15, 0.1).is_err());
     }
 
     #[test]

@@ -23,9 +23,20 @@
 //!   threads), `lambda` a fraction of each row's own `lambda_max`. The data choose the transform
 //!   and the fraction: on a sample of camera pixels (runs spread over the camera) each candidate
 //!   transform is fitted along a warm-started path of fractions without the held-out rows
-//!   ([`crate::recon::holdout`]) and scored on them; the best (transform, fraction) is then
-//!   applied to all camera pixels with all rows. The rows keep only their nonzero coefficients
-//!   (the soft threshold zeroes the rest), so the stored size follows the scene's complexity.
+//!   ([`crate::recon::holdout`]) and scored on them. Held-out rows are hashed out of random
+//!   designs; of a Hadamard subset they are the LAST measured pairs ([`holdout::tail`]): its
+//!   rows are ordered coarse to fine, the unmeasured ones lie beyond the measured ones, and
+//!   randomly held-out pairs (among the fitted ones) would be predicted well by any model that
+//!   fits, whatever it puts in the unmeasured coefficients (they remain blind to error in the
+//!   unmeasured coefficients, a test documents the case). The choice is the sparsest model
+//!   (fewest nonzeros) whose held-out score is within one standard error of the best one (the
+//!   error from the spread of the held-out rows' residuals): noise-free data otherwise pull the
+//!   weight to the smallest one tried, where hundreds of tiny coefficients buy a fraction of a
+//!   percent of held-out error. The chosen model's rows then drop their smallest coefficients
+//!   carrying the largest share of the row's energy ([`PRUNE_ENERGY`]) that leaves the held-out
+//!   score within one standard error. The chosen (transform, fraction, share) is applied to all
+//!   camera pixels with all rows; the rows keep only their nonzero coefficients, so the stored
+//!   size follows the scene's complexity.
 //!   `t >= 0` is not imposed (the prox would become iterative); the reported held-out error is
 //!   that of the chosen model on the sample pixels.
 //!   The final fit of every row runs down a continuation path (the larger fractions of
@@ -430,12 +441,58 @@ fn parents(pixels: usize, w: usize) -> Vec<Vec<usize>> {
     out
 }
 
+/// Shares of a row's energy its smallest coefficients may carry and be dropped, tried largest
+/// first (the model choice keeps the largest that leaves the held-out score unchanged within
+/// its standard error).
+const PRUNE_ENERGY: [f64; 7] = [1e-2, 3e-3, 1e-3, 3e-4, 1e-4, 1e-5, 0.0];
+
+/// The magnitude at or below which a row's smallest coefficients carry at most `share` of its
+/// energy (`sum s_i^2`); 0 keeps every nonzero coefficient.
+fn prune_threshold(s: &[f64], share: f64) -> f64 {
+    if share <= 0.0 {
+        return 0.0;
+    }
+    let mut mags: Vec<f64> = s.iter().map(|v| v.abs()).filter(|&v| v > 0.0).collect();
+    mags.sort_by(|a, b| a.total_cmp(b));
+    let budget = share * mags.iter().map(|v| v * v).sum::<f64>();
+    let mut dropped = 0.0;
+    let mut tau = 0.0;
+    for &v in &mags {
+        dropped += v * v;
+        if dropped > budget {
+            break;
+        }
+        tau = v;
+    }
+    tau
+}
+
+fn finite(v: f64) -> Value {
+    if v.is_finite() { json!(v) } else { Value::Null }
+}
+
+/// Relative standard error of a held-out relative residual `sqrt(sum e / spread)` from its
+/// rows' squared residuals `e`: the sum's standard error `sqrt(H var(e))` over the sum, halved
+/// for the square root (delta method). 0 for fewer than two rows or a zero sum.
+fn relative_standard_error(e: &[f64]) -> f64 {
+    let h = e.len();
+    let sum: f64 = e.iter().sum();
+    if h < 2 || sum <= 0.0 {
+        return 0.0;
+    }
+    let mean = sum / h as f64;
+    let var = e.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (h - 1) as f64;
+    0.5 * (h as f64 * var).sqrt() / sum
+}
+
 /// One candidate of the model choice, as reported.
 #[derive(Clone, Debug, serde::Serialize)]
 struct Candidate {
     transform: &'static str,
     lambda: f64,
     held_out: Option<f64>,
+    /// Standard error of `held_out` (from the spread of the held-out rows' residuals).
+    held_out_se: Option<f64>,
     iterations_mean: f64,
     nonzeros_mean: f64,
 }
@@ -494,6 +551,7 @@ pub fn reconstruct_transport(
     let mut held_out_unavailable = None;
     let mut tally = Tally::default();
 
+    let mut prune_energy = 0.0;
     let (transform, lambda) = if plan.exact {
         let transform = match config.transform {
             Some(t) => t,
@@ -538,7 +596,8 @@ pub fn reconstruct_transport(
         (transform, None)
     } else {
         control.set_progress(0.0);
-        let (transform, lambda) = choose_model(&plan, config, source, m, sample, &mem, &mut largest, &mut details, &mut held_out, &mut held_out_unavailable, control)?;
+        let (transform, lambda, prune) = choose_model(&plan, config, source, m, sample, &mem, &mut largest, &mut details, &mut held_out, &mut held_out_unavailable, control)?;
+        prune_energy = prune;
         (transform, Some(lambda))
     };
     if control.is_cancelled() {
@@ -586,7 +645,7 @@ pub fn reconstruct_transport(
             drop(frames);
             let s = solve_block(&shared, &bs, lambda.expect("iterative"), coarse.then_some(camera.width as usize), mem.chunk, &mut tally, control)?;
             for row in s.chunks_exact(k) {
-                builder.push_row(row, 0.0);
+                builder.push_row(row, prune_threshold(row, prune_energy));
             }
         }
         control.set_progress(progress0 + (1.0 - progress0) * (bi + 1) as f64 / block_list.len() as f64);
@@ -732,18 +791,20 @@ fn choose_model(
     held_out: &mut Option<holdout::HeldOut>,
     held_out_unavailable: &mut Option<String>,
     control: &Control,
-) -> Result<(TransformKind, f64), ReconError> {
+) -> Result<(TransformKind, f64, f64), ReconError> {
     let (pw, ph) = (plan.spec.width() as usize, plan.spec.height() as usize);
     let k = plan.k();
     let fraction = config.holdout.unwrap_or_else(|| holdout::default_fraction(plan.raw_rows()));
-    let split = match holdout::split(plan.raw_rows(), fraction) {
+    // Hadamard subsets are ordered (coarse patterns first): hold out the last measured pairs.
+    let ordered = matches!(plan.raw, Raw::Hadamard(_));
+    let split = match if ordered { holdout::tail(plan.raw_rows(), fraction) } else { holdout::split(plan.raw_rows(), fraction) } {
         Ok(s) => s,
         Err(why) => {
             let transform = config.transform.unwrap_or(TransformKind::Haar);
             let lambda = config.lambda.unwrap_or(1e-3);
             *held_out_unavailable = Some(why.clone());
             details.insert("selection".into(), json!({"rule": format!("defaults (no held-out rows: {why})")}));
-            return Ok((transform, lambda));
+            return Ok((transform, lambda, 0.0));
         }
     };
     let mut raws = Vec::new();
@@ -769,7 +830,9 @@ fn choose_model(
     let lambdas: Vec<f64> = config.lambda.map_or(LAMBDA_PATH.to_vec(), |l| vec![l]);
     let chunk = mem.chunk.min(rows.div_ceil(rayon::current_num_threads().max(1))).max(1);
     let mut candidates = Vec::new();
-    let mut best: Option<(f64, TransformKind, f64, Score)> = None;
+    // Every point scored: (candidate index, transform, fraction, held-out score, its standard
+    // error, mean nonzeros, score).
+    let mut scored: Vec<(TransformKind, f64, f64, f64, f64, Score)> = Vec::new();
     let steps = (transforms.len() * lambdas.len()) as f64;
     let mut step = 0usize;
     for &kind in &transforms {
@@ -786,7 +849,8 @@ fn choose_model(
         let lam_max = batch::lambda_max(&sh, &bs, chunk);
         let mut s = vec![0.0; rows * k];
         let mut t = vec![0.0; rows * k];
-        let mut pred = vec![0.0; rows * test.rows()];
+        let h = test.rows();
+        let mut pred = vec![0.0; rows * h];
         let mut worse = 0;
         let mut best_here = f64::INFINITY;
         for &frac in &lambdas {
@@ -795,24 +859,29 @@ fn choose_model(
             sh.inverse(&s, &mut t);
             test.apply_batch(&t, &mut pred, rows);
             let mut score = Score::new(rows);
+            // Squared residual of every held-out row, summed over the sample pixels: their
+            // spread gives the standard error of the score.
+            let mut per_row = vec![0.0; h];
             for (j, obs) in observed.iter().enumerate() {
-                score.add_channel(j, obs, &pred[j * test.rows()..(j + 1) * test.rows()]);
+                let p = &pred[j * h..(j + 1) * h];
+                score.add_channel(j, obs, p);
+                per_row.iter_mut().zip(obs.iter().zip(p)).for_each(|(e, (o, p))| *e += (o - p) * (o - p));
             }
             let rho = score.finish(split.fraction).relative_residual;
-            let nnz = s.iter().filter(|v| **v != 0.0).count();
+            let se = rho.map(|r| r * relative_standard_error(&per_row));
+            let nnz = s.iter().filter(|v| **v != 0.0).count() as f64 / rows as f64;
             candidates.push(Candidate {
                 transform: kind.name(),
                 lambda: frac,
                 held_out: rho,
+                held_out_se: se,
                 iterations_mean: it.iter().sum::<usize>() as f64 / rows as f64,
-                nonzeros_mean: nnz as f64 / rows as f64,
+                nonzeros_mean: nnz,
             });
             step += 1;
             control.set_progress(0.2 * step as f64 / steps);
             let value = rho.unwrap_or(f64::INFINITY);
-            if best.as_ref().is_none_or(|b| value < b.0) {
-                best = Some((value, kind, frac, score));
-            }
+            scored.push((kind, frac, value, se.unwrap_or(0.0), nnz, score));
             // Down the path: stop once the held-out error has risen twice in a row.
             if value < best_here {
                 best_here = value;
@@ -825,16 +894,81 @@ fn choose_model(
             }
         }
     }
-    let (_, transform, lambda, score) = best.expect("at least one candidate");
-    *held_out = Some(score.finish(split.fraction));
+    let identifiable = super::auto::identifiable_coefficients(plan.op().rows(), k);
+    let best = scored.iter().min_by(|a, b| a.2.total_cmp(&b.2)).expect("at least one candidate");
+    let (best_value, best_se) = (best.2, best.3);
+    // The sparsest model within one standard error of the best held-out score (ties: the
+    // larger weight, which comes first along each path).
+    let within = best_value + best_se;
+    let chosen = scored
+        .iter()
+        .filter(|c| c.2 <= within)
+        .min_by(|a, b| a.4.total_cmp(&b.4).then(b.1.total_cmp(&a.1)))
+        .expect("the best is within");
+    let (transform, lambda) = (chosen.0, chosen.1);
+    *held_out = Some(chosen.5.finish(split.fraction));
+
+    // How much of each row's energy its smallest coefficients may carry and still be dropped:
+    // the most that keeps the held-out score within one standard error of the unpruned one.
+    let (chosen_value, chosen_se) = (chosen.2, chosen.3);
+    let psi = transform.build(pw, ph);
+    let sh = Shared {
+        op: train.op(),
+        psi: psi.as_ref(),
+        identity: transform == TransformKind::Identity,
+        lipschitz,
+        free: free_coefficients(transform),
+        max_iter: config.max_iter,
+        tol: config.tol,
+    };
+    let mut s = vec![0.0; rows * k];
+    solve_path(&sh, &bs, &continuation(lambda), &mut s, chunk, control)?;
+    let h = test.rows();
+    let (mut pruned, mut t, mut pred) = (vec![0.0; rows * k], vec![0.0; rows * k], vec![0.0; rows * h]);
+    let mut prune = 0.0;
+    let mut tried = Vec::new();
+    for &eps in &PRUNE_ENERGY {
+        for (dst, src) in pruned.chunks_exact_mut(k).zip(s.chunks_exact(k)) {
+            let tau = prune_threshold(src, eps);
+            dst.iter_mut().zip(src).for_each(|(d, &v)| *d = if v.abs() > tau { v } else { 0.0 });
+        }
+        sh.inverse(&pruned, &mut t);
+        test.apply_batch(&t, &mut pred, rows);
+        let mut score = Score::new(rows);
+        for (j, obs) in observed.iter().enumerate() {
+            score.add_channel(j, obs, &pred[j * h..(j + 1) * h]);
+        }
+        let rho = score.finish(split.fraction).relative_residual.unwrap_or(f64::INFINITY);
+        let nnz = pruned.iter().filter(|v| **v != 0.0).count() as f64 / rows as f64;
+        tried.push(json!({"energy_dropped": eps, "held_out": finite(rho), "nonzeros_mean": nnz}));
+        if rho <= chosen_value + chosen_se {
+            prune = eps;
+            break;
+        }
+    }
+    details.insert(
+        "pruning".into(),
+        json!({
+            "rule": "each row drops its smallest coefficients carrying at most this share of its energy: the largest share tried whose held-out score on the sample pixels stays within one standard error of the unpruned model's",
+            "energy_dropped": prune,
+            "tried": tried,
+        }),
+    );
     details.insert(
         "selection".into(),
         json!({
-            "rule": "lowest held-out relative residual on the sample pixels",
+            "rule": "the fewest nonzeros among the candidates whose held-out relative residual on the sample pixels is within one standard error of the lowest (the one-standard-error rule)",
+            "identifiable_per_row_l1": if identifiable.is_finite() { json!(identifiable.round()) } else { Value::Null },
+            "held_out_rows": if ordered {
+                format!("the last {} of the {} measured split pairs (Hadamard rows are ordered: the unmeasured ones lie beyond them)", split.test.len(), plan.raw_rows())
+            } else {
+                format!("{} of {} rows, chosen by a hash of the row index", split.test.len(), plan.raw_rows())
+            },
             "sample_pixels": rows,
-            "held_out_rows": split.test.len(),
+            "best": {"transform": best.0.name(), "lambda": best.1, "held_out": best_value, "standard_error": best_se, "nonzeros_mean": best.4},
+            "chosen": {"transform": transform.name(), "lambda": lambda, "held_out": chosen.2, "nonzeros_mean": chosen.4},
             "candidates": candidates,
         }),
     );
-    Ok((transform, lambda))
+    Ok((transform, lambda, prune))
 }

@@ -179,6 +179,18 @@ fn relight_is_the_adjoint_of_primal_and_rows_are_relights_of_one_pixel() {
 }
 
 #[test]
+fn prune_threshold_drops_at_most_the_share_of_energy() {
+    let row = [3.0, -0.1, 0.0, 0.2, -4.0, 0.05];
+    assert_eq!(prune_threshold(&row, 0.0), 0.0);
+    // Energy 25.0625; 0.05^2 + 0.1^2 = 0.0125 <= 0.001 * 25.06, adding 0.2^2 is not.
+    assert_eq!(prune_threshold(&row, 1e-3), 0.1);
+    assert_eq!(prune_threshold(&row, 1e-5), 0.0);
+    assert_eq!(prune_threshold(&[0.0; 4], 0.5), 0.0);
+    // Everything but the largest: 3^2 + ... = 9.0525 of 25.0625.
+    assert_eq!(prune_threshold(&row, 0.5), 3.0);
+}
+
+#[test]
 fn encode_decode_round_trips_and_corrupt_bytes_are_refused() {
     let truth = synthetic_t(CAM, 32, 32);
     let t = TransportMatrix::from_dense((32, 32), (8, 8), TransformKind::Haar, &truth, 1e-4);
@@ -334,4 +346,158 @@ fn params_parse_refuse_unknown_keys_and_round_trip() {
         assert_eq!(e.field, field, "{params}: {e}");
     }
     assert_eq!(d.clone().with_memory_budget(1234).memory_budget_bytes, 1234);
+}
+
+/// Model-choice study (run by hand): every candidate's held-out score under two splits against
+/// its true error on the sample pixels.
+#[test]
+#[ignore]
+fn study_model_choice() {
+    use helmholtz_scenes::{Camera, Scene};
+    let (pw, ph) = (64u32, 64u32);
+    let scene = Scene::demo(pw, ph, 7);
+    let view = scene.view(&Camera::tilted(32, 32, 25.0));
+    let m = view.pixels();
+    let k = (pw * ph) as usize;
+    let which = std::env::var("STUDY").unwrap_or_default();
+    let rd = HadamardOrdering::RussianDoll;
+    let cases = [
+        ("h50", Family::Hadamard { ordering: rd }, k as u64),
+        ("h25", Family::Hadamard { ordering: rd }, k as u64 / 2),
+        ("b25", Family::Bernoulli { fill: 0.5 }, k as u64 / 4),
+        ("b10", Family::Bernoulli { fill: 0.5 }, k as u64 / 10),
+    ];
+    for (name, family, count) in cases {
+        if !which.is_empty() && !which.contains(name) {
+            continue;
+        }
+        let spec = PatternSpec::new(family, pw, ph, count, 3).unwrap();
+        let g = PatternGenerator::new(&spec);
+        let mut p = vec![0f32; k];
+        let mut f = Vec::new();
+        for i in 0..count {
+            g.fill_values(i, &mut p);
+            let p64: Vec<f64> = p.iter().map(|&v| v as f64).collect();
+            f.extend(view.render(&p64).into_iter().map(|v| v as f32));
+        }
+        let plan = Plan::new(&spec, count as usize).unwrap();
+        let pixels: Vec<usize> = sample_ranges(m, 64).into_iter().flatten().collect();
+        let raws: Vec<Vec<f64>> = pixels.iter().map(|&j| plan.raw_column(&f, m, j)).collect();
+        let truth: Vec<f64> = pixels.iter().flat_map(|&j| view.row(j)).collect();
+        let rows = pixels.len();
+        let raw_rows = plan.raw_rows();
+        let random = holdout::split(raw_rows, 0.1).unwrap();
+        let cut = raw_rows - raw_rows / 10;
+        let tail = holdout::Split { fraction: 0.1, train: (0..cut).collect(), test: (cut..raw_rows).collect() };
+        for (sname, split) in [("random", &random), ("tail", &tail)] {
+            let (train, test) = plan.holdout_ops(split).unwrap();
+            let n = train.op().rows();
+            let mut bs = Vec::new();
+            let mut observed = Vec::new();
+            let mut full_bs = Vec::new();
+            for raw in &raws {
+                let tr: Vec<f64> = split.train.iter().map(|&i| raw[i]).collect();
+                bs.extend(train.data(&tr));
+                observed.push(split.test.iter().map(|&i| raw[i]).collect::<Vec<f64>>());
+                full_bs.extend(plan.fit_data(raw));
+            }
+            let lipschitz = plan.lipschitz(train.op());
+            let full_l = plan.lipschitz(plan.op());
+            for kind in CANDIDATE_TRANSFORMS {
+                let psi = kind.build(pw as usize, ph as usize);
+                let sh = Shared { op: train.op(), psi: psi.as_ref(), identity: kind == TransformKind::Identity, lipschitz, free: free_coefficients(kind), max_iter: 300, tol: 1e-4 };
+                let shf = Shared { op: plan.op(), psi: psi.as_ref(), identity: kind == TransformKind::Identity, lipschitz: full_l, free: free_coefficients(kind), max_iter: 300, tol: 1e-4 };
+                let lam_max = batch::lambda_max(&sh, &bs, 8);
+                let lam_full = batch::lambda_max(&shf, &full_bs, 8);
+                let mut s = vec![0.0; rows * k];
+                let mut sf = vec![0.0; rows * k];
+                let mut t = vec![0.0; rows * k];
+                let mut pred = vec![0.0; rows * test.rows()];
+                for &frac in &LAMBDA_PATH {
+                    let lams: Vec<f64> = lam_max.iter().map(|l| l * frac).collect();
+                    batch::solve_rows(&sh, &bs, &lams, &mut s, 8, &Control::new()).unwrap();
+                    sh.inverse(&s, &mut t);
+                    test.apply_batch(&t, &mut pred, rows);
+                    let mut score = Score::new(rows);
+                    let mut per_row = Vec::new();
+                    for (j, obs) in observed.iter().enumerate() {
+                        let pr = &pred[j * test.rows()..(j + 1) * test.rows()];
+                        score.add_channel(j, obs, pr);
+                        per_row.push(obs.iter().zip(pr).map(|(a, b)| (a - b).powi(2)).sum::<f64>());
+                    }
+                    let rho = score.finish(0.1).relative_residual.unwrap_or(f64::NAN);
+                    let nnz = s.iter().filter(|v| **v != 0.0).count() as f64 / rows as f64;
+                    let lams_f: Vec<f64> = lam_full.iter().map(|l| l * frac).collect();
+                    batch::solve_rows(&shf, &full_bs, &lams_f, &mut sf, 8, &Control::new()).unwrap();
+                    let mut tf = vec![0.0; rows * k];
+                    shf.inverse(&sf, &mut tf);
+                    let nnz_f = sf.iter().filter(|v| **v != 0.0).count() as f64 / rows as f64;
+                    let err_train = crate::recon::metrics::relative_error(&t.iter().map(|&v| v as f32).collect::<Vec<_>>(), &truth.iter().map(|&v| v as f32).collect::<Vec<_>>());
+                    let err_full = crate::recon::metrics::relative_error(&tf.iter().map(|&v| v as f32).collect::<Vec<_>>(), &truth.iter().map(|&v| v as f32).collect::<Vec<_>>());
+                    println!("{name} {sname:<6} {:<8} f={frac:<6} held-out {rho:.5} nnz {nnz:7.1} true(train) {err_train:.4} | full: true {err_full:.4} nnz {nnz_f:7.1}", kind.name());
+                }
+            }
+        }
+    }
+}
+
+/// The data's choice against every fixed model it chooses from, judged by the truth the choice
+/// never sees: the chosen model's error (after the refit on all rows) and the best fixed
+/// model's, with its name.
+fn choice_against_fixed(family: Family, count: u64) -> (f64, f64, String, f64, f64) {
+    let truth = synthetic_t(CAM, 32, 32);
+    let spec = PatternSpec::new(family.clone(), 32, 32, count, 3).unwrap();
+    let f = frames(&spec, &truth, CAM.pixels(), 0.0);
+    let (t, report, _) = run(&spec, CAM, &f, &TransportConfig::default());
+    let chosen = relative_error(&dense(&t), &truth);
+    let nnz = t.nonzeros() as f64 / CAM.pixels() as f64;
+    let mut best = (f64::INFINITY, String::new());
+    for kind in CANDIDATE_TRANSFORMS {
+        for lambda in LAMBDA_PATH {
+            let config = TransportConfig { transform: Some(kind), lambda: Some(lambda), ..TransportConfig::default() };
+            let (tf, _, _) = run(&spec, CAM, &f, &config);
+            let e = relative_error(&dense(&tf), &truth);
+            if e < best.0 {
+                best = (e, format!("{} f={lambda}", kind.name()));
+            }
+        }
+    }
+    let rows = if family.name() == "hadamard" { count as usize / 2 } else { count as usize };
+    let identifiable = crate::recon::auto::identifiable_coefficients(rows, 1024);
+    println!(
+        "{} {count}: chosen {} f={} error {chosen:.4}, {nnz:.1} nonzeros/row (identifiable {identifiable:.0}); best fixed {} error {:.4}\n  selection best {} chosen {}\n  pruning {}",
+        family.name(),
+        report.details["transform"],
+        report.details["lambda"],
+        best.1,
+        best.0,
+        report.details["selection"]["best"],
+        report.details["selection"]["chosen"],
+        report.details["pruning"],
+    );
+    (chosen, best.0, best.1, nnz, identifiable)
+}
+
+/// On Bernoulli rows (held-out rows hashed out) and on a Hadamard subset of a complete level and
+/// a half (held-out pairs: the last measured ones), the chosen model's error is near the best
+/// fixed model's.
+#[test]
+fn the_chosen_model_is_near_the_best_fixed_one_by_ground_truth() {
+    for (family, count) in [(Family::Bernoulli { fill: 0.5 }, 256u64), (Family::Hadamard { ordering: HadamardOrdering::RussianDoll }, 768)] {
+        let name = format!("{} {count}", family.name());
+        let (chosen, best, best_name, nnz, identifiable) = choice_against_fixed(family, count);
+        assert!(chosen <= 1.25 * best, "{name}: chosen error {chosen} vs best fixed {best} ({best_name}); {nnz:.0} nonzeros per row ({identifiable:.0} identifiable)");
+    }
+}
+
+/// The open case of the model choice: half a Hadamard set of smooth rows. The held-out pairs
+/// (the last measured ones) are predicted best by the pixel basis (held-out 0.0014 against db4's
+/// 0.099), but db4 extrapolates the unmeasured pairs better (error 0.087 against 0.140): the
+/// measured rows do not tell which model extrapolates. Run by hand; it fails until the choice
+/// for ordered subsets uses more than held-out rows.
+#[test]
+#[ignore = "open: the model choice on Hadamard subsets of smooth rows (issue 4)"]
+fn the_chosen_model_on_half_a_hadamard_set_of_smooth_rows() {
+    let (chosen, best, best_name, _, _) = choice_against_fixed(Family::Hadamard { ordering: HadamardOrdering::RussianDoll }, 1024);
+    assert!(chosen <= 1.25 * best, "chosen error {chosen} vs best fixed {best} ({best_name})");
 }
