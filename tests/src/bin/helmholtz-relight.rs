@@ -215,17 +215,17 @@ async fn main() -> anyhow::Result<()> {
     ));
     md.push_str("| T: seconds | transform | lambda | stored MiB | dense f32 MiB | nonzeros/row | held-out |\n|---|---|---|---|---|---|---|\n");
     md.push_str(&format!(
-        "| {:.1} | {} | {} | {:.1} | {:.0} | {:.1} | {} |\n\n",
+        "| {:.1} | {} | {} | {:.1} | {:.0} | {:.1} | {:.4} |\n\n",
         rec.seconds,
         details["transform"].as_str().unwrap_or("-"),
         details["lambda"],
         details["stored_bytes"].as_f64().unwrap_or(0.0) / (1 << 20) as f64,
         details["dense_f32_bytes"].as_f64().unwrap_or(0.0) / (1 << 20) as f64,
         details["nonzeros_per_row"].as_f64().unwrap_or(0.0),
-        rec.report["held_out"]["relative_residual"],
+        rec.report["held_out"]["relative_residual"].as_f64().unwrap_or(f64::NAN),
     ));
     md.push_str(&format!(
-        "Queries: {} of each kind, one at a time; every disc light (a moving centre, radius 2-6 camera pixels) and every stored pattern index differs from the previous ones, so no answer comes from the response cache. \"Server\" is the compute time the server reports in `server-timing` (light parsed, `T^T c'` or `T p`, image encoded; the decoded T is in the server's cache after the first query); \"round trip\" adds HTTP on loopback.\n\n",
+        "Queries: {} of each kind, one at a time; every disc light (a moving centre, radius 2-6 camera pixels) and every stored pattern index differs from the previous ones, so no answer comes from the response cache. \"Server\" is the compute time the server reports in `server-timing` (light parsed, `T^T c'` or `T p` on the decoded T, which is in the server's cache after the first query); \"round trip\" adds the database lookup of the reconstruction, the image encoding and HTTP on loopback.\n\n",
         args.calls
     ));
     md.push_str("| query | answer bytes | server median ms | server p99 ms | round trip median ms | round trip p99 ms | cache hits |\n|---|---|---|---|---|---|---|\n");

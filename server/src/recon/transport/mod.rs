@@ -32,11 +32,9 @@
 //!   (fewest nonzeros) whose held-out score is within one standard error of the best one (the
 //!   error from the spread of the held-out rows' residuals): noise-free data otherwise pull the
 //!   weight to the smallest one tried, where hundreds of tiny coefficients buy a fraction of a
-//!   percent of held-out error. The chosen model's rows then drop their smallest coefficients
-//!   carrying the largest share of the row's energy ([`PRUNE_ENERGY`]) that leaves the held-out
-//!   score within one standard error. The chosen (transform, fraction, share) is applied to all
-//!   camera pixels with all rows; the rows keep only their nonzero coefficients, so the stored
-//!   size follows the scene's complexity.
+//!   percent of held-out error. The chosen (transform, fraction) is applied to all camera
+//!   pixels with all rows; the rows keep only their nonzero coefficients (the soft threshold
+//!   zeroes the rest), so the stored size follows the scene's complexity.
 //!   `t >= 0` is not imposed (the prox would become iterative); the reported held-out error is
 //!   that of the chosen model on the sample pixels.
 //!   The final fit of every row runs down a continuation path (the larger fractions of
@@ -441,36 +439,6 @@ fn parents(pixels: usize, w: usize) -> Vec<Vec<usize>> {
     out
 }
 
-/// Shares of a row's energy its smallest coefficients may carry and be dropped, tried largest
-/// first (the model choice keeps the largest that leaves the held-out score unchanged within
-/// its standard error).
-const PRUNE_ENERGY: [f64; 7] = [1e-2, 3e-3, 1e-3, 3e-4, 1e-4, 1e-5, 0.0];
-
-/// The magnitude at or below which a row's smallest coefficients carry at most `share` of its
-/// energy (`sum s_i^2`); 0 keeps every nonzero coefficient.
-fn prune_threshold(s: &[f64], share: f64) -> f64 {
-    if share <= 0.0 {
-        return 0.0;
-    }
-    let mut mags: Vec<f64> = s.iter().map(|v| v.abs()).filter(|&v| v > 0.0).collect();
-    mags.sort_by(|a, b| a.total_cmp(b));
-    let budget = share * mags.iter().map(|v| v * v).sum::<f64>();
-    let mut dropped = 0.0;
-    let mut tau = 0.0;
-    for &v in &mags {
-        dropped += v * v;
-        if dropped > budget {
-            break;
-        }
-        tau = v;
-    }
-    tau
-}
-
-fn finite(v: f64) -> Value {
-    if v.is_finite() { json!(v) } else { Value::Null }
-}
-
 /// Relative standard error of a held-out relative residual `sqrt(sum e / spread)` from its
 /// rows' squared residuals `e`: the sum's standard error `sqrt(H var(e))` over the sum, halved
 /// for the square root (delta method). 0 for fewer than two rows or a zero sum.
@@ -551,7 +519,6 @@ pub fn reconstruct_transport(
     let mut held_out_unavailable = None;
     let mut tally = Tally::default();
 
-    let mut prune_energy = 0.0;
     let (transform, lambda) = if plan.exact {
         let transform = match config.transform {
             Some(t) => t,
@@ -596,8 +563,7 @@ pub fn reconstruct_transport(
         (transform, None)
     } else {
         control.set_progress(0.0);
-        let (transform, lambda, prune) = choose_model(&plan, config, source, m, sample, &mem, &mut largest, &mut details, &mut held_out, &mut held_out_unavailable, control)?;
-        prune_energy = prune;
+        let (transform, lambda) = choose_model(&plan, config, source, m, sample, &mem, &mut largest, &mut details, &mut held_out, &mut held_out_unavailable, control)?;
         (transform, Some(lambda))
     };
     if control.is_cancelled() {
@@ -645,7 +611,7 @@ pub fn reconstruct_transport(
             drop(frames);
             let s = solve_block(&shared, &bs, lambda.expect("iterative"), coarse.then_some(camera.width as usize), mem.chunk, &mut tally, control)?;
             for row in s.chunks_exact(k) {
-                builder.push_row(row, prune_threshold(row, prune_energy));
+                builder.push_row(row, 0.0);
             }
         }
         control.set_progress(progress0 + (1.0 - progress0) * (bi + 1) as f64 / block_list.len() as f64);
@@ -791,7 +757,7 @@ fn choose_model(
     held_out: &mut Option<holdout::HeldOut>,
     held_out_unavailable: &mut Option<String>,
     control: &Control,
-) -> Result<(TransformKind, f64, f64), ReconError> {
+) -> Result<(TransformKind, f64), ReconError> {
     let (pw, ph) = (plan.spec.width() as usize, plan.spec.height() as usize);
     let k = plan.k();
     let fraction = config.holdout.unwrap_or_else(|| holdout::default_fraction(plan.raw_rows()));
@@ -804,7 +770,7 @@ fn choose_model(
             let lambda = config.lambda.unwrap_or(1e-3);
             *held_out_unavailable = Some(why.clone());
             details.insert("selection".into(), json!({"rule": format!("defaults (no held-out rows: {why})")}));
-            return Ok((transform, lambda, 0.0));
+            return Ok((transform, lambda));
         }
     };
     let mut raws = Vec::new();
@@ -908,52 +874,6 @@ fn choose_model(
     let (transform, lambda) = (chosen.0, chosen.1);
     *held_out = Some(chosen.5.finish(split.fraction));
 
-    // How much of each row's energy its smallest coefficients may carry and still be dropped:
-    // the most that keeps the held-out score within one standard error of the unpruned one.
-    let (chosen_value, chosen_se) = (chosen.2, chosen.3);
-    let psi = transform.build(pw, ph);
-    let sh = Shared {
-        op: train.op(),
-        psi: psi.as_ref(),
-        identity: transform == TransformKind::Identity,
-        lipschitz,
-        free: free_coefficients(transform),
-        max_iter: config.max_iter,
-        tol: config.tol,
-    };
-    let mut s = vec![0.0; rows * k];
-    solve_path(&sh, &bs, &continuation(lambda), &mut s, chunk, control)?;
-    let h = test.rows();
-    let (mut pruned, mut t, mut pred) = (vec![0.0; rows * k], vec![0.0; rows * k], vec![0.0; rows * h]);
-    let mut prune = 0.0;
-    let mut tried = Vec::new();
-    for &eps in &PRUNE_ENERGY {
-        for (dst, src) in pruned.chunks_exact_mut(k).zip(s.chunks_exact(k)) {
-            let tau = prune_threshold(src, eps);
-            dst.iter_mut().zip(src).for_each(|(d, &v)| *d = if v.abs() > tau { v } else { 0.0 });
-        }
-        sh.inverse(&pruned, &mut t);
-        test.apply_batch(&t, &mut pred, rows);
-        let mut score = Score::new(rows);
-        for (j, obs) in observed.iter().enumerate() {
-            score.add_channel(j, obs, &pred[j * h..(j + 1) * h]);
-        }
-        let rho = score.finish(split.fraction).relative_residual.unwrap_or(f64::INFINITY);
-        let nnz = pruned.iter().filter(|v| **v != 0.0).count() as f64 / rows as f64;
-        tried.push(json!({"energy_dropped": eps, "held_out": finite(rho), "nonzeros_mean": nnz}));
-        if rho <= chosen_value + chosen_se {
-            prune = eps;
-            break;
-        }
-    }
-    details.insert(
-        "pruning".into(),
-        json!({
-            "rule": "each row drops its smallest coefficients carrying at most this share of its energy: the largest share tried whose held-out score on the sample pixels stays within one standard error of the unpruned model's",
-            "energy_dropped": prune,
-            "tried": tried,
-        }),
-    );
     details.insert(
         "selection".into(),
         json!({
@@ -970,5 +890,5 @@ fn choose_model(
             "candidates": candidates,
         }),
     );
-    Ok((transform, lambda, prune))
+    Ok((transform, lambda))
 }

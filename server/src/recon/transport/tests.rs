@@ -179,18 +179,6 @@ fn relight_is_the_adjoint_of_primal_and_rows_are_relights_of_one_pixel() {
 }
 
 #[test]
-fn prune_threshold_drops_at_most_the_share_of_energy() {
-    let row = [3.0, -0.1, 0.0, 0.2, -4.0, 0.05];
-    assert_eq!(prune_threshold(&row, 0.0), 0.0);
-    // Energy 25.0625; 0.05^2 + 0.1^2 = 0.0125 <= 0.001 * 25.06, adding 0.2^2 is not.
-    assert_eq!(prune_threshold(&row, 1e-3), 0.1);
-    assert_eq!(prune_threshold(&row, 1e-5), 0.0);
-    assert_eq!(prune_threshold(&[0.0; 4], 0.5), 0.0);
-    // Everything but the largest: 3^2 + ... = 9.0525 of 25.0625.
-    assert_eq!(prune_threshold(&row, 0.5), 3.0);
-}
-
-#[test]
 fn encode_decode_round_trips_and_corrupt_bytes_are_refused() {
     let truth = synthetic_t(CAM, 32, 32);
     let t = TransportMatrix::from_dense((32, 32), (8, 8), TransformKind::Haar, &truth, 1e-4);
@@ -349,9 +337,10 @@ fn params_parse_refuse_unknown_keys_and_round_trip() {
 }
 
 /// Model-choice study (run by hand): every candidate's held-out score under two splits against
-/// its true error on the sample pixels.
+/// its true error on the sample pixels (the bench's scene; `STUDY=h50,b10` selects cases):
+/// `cargo test -p helmholtz-server --lib study_model_choice -- --ignored --nocapture`.
 #[test]
-#[ignore]
+#[ignore = "a study run by hand (minutes): prints, asserts nothing"]
 fn study_model_choice() {
     use helmholtz_scenes::{Camera, Scene};
     let (pw, ph) = (64u32, 64u32);
@@ -387,11 +376,9 @@ fn study_model_choice() {
         let rows = pixels.len();
         let raw_rows = plan.raw_rows();
         let random = holdout::split(raw_rows, 0.1).unwrap();
-        let cut = raw_rows - raw_rows / 10;
-        let tail = holdout::Split { fraction: 0.1, train: (0..cut).collect(), test: (cut..raw_rows).collect() };
+        let tail = holdout::tail(raw_rows, 0.1).unwrap();
         for (sname, split) in [("random", &random), ("tail", &tail)] {
             let (train, test) = plan.holdout_ops(split).unwrap();
-            let n = train.op().rows();
             let mut bs = Vec::new();
             let mut observed = Vec::new();
             let mut full_bs = Vec::new();
@@ -465,7 +452,7 @@ fn choice_against_fixed(family: Family, count: u64) -> (f64, f64, String, f64, f
     let rows = if family.name() == "hadamard" { count as usize / 2 } else { count as usize };
     let identifiable = crate::recon::auto::identifiable_coefficients(rows, 1024);
     println!(
-        "{} {count}: chosen {} f={} error {chosen:.4}, {nnz:.1} nonzeros/row (identifiable {identifiable:.0}); best fixed {} error {:.4}\n  selection best {} chosen {}\n  pruning {}",
+        "{} {count}: chosen {} f={} error {chosen:.4}, {nnz:.1} nonzeros/row (identifiable {identifiable:.0}); best fixed {} error {:.4}\n  selection best {} chosen {}",
         family.name(),
         report.details["transform"],
         report.details["lambda"],
@@ -473,7 +460,6 @@ fn choice_against_fixed(family: Family, count: u64) -> (f64, f64, String, f64, f
         best.0,
         report.details["selection"]["best"],
         report.details["selection"]["chosen"],
-        report.details["pruning"],
     );
     (chosen, best.0, best.1, nnz, identifiable)
 }
