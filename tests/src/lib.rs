@@ -25,6 +25,25 @@ pub fn binary(name: &str) -> PathBuf {
     path
 }
 
+/// The `helmholtz-server` binary for an on-demand benchmark: `explicit` (its `--server-bin`) or
+/// the one beside the running benchmark binary (same profile), with a clear error when missing.
+pub fn server_binary_beside(explicit: Option<&Path>) -> anyhow::Result<PathBuf> {
+    if let Some(p) = explicit {
+        return Ok(p.to_path_buf());
+    }
+    let exe = std::env::current_exe()?;
+    let dir = exe.parent().context("binary directory")?;
+    let path = dir.join(format!("helmholtz-server{}", std::env::consts::EXE_SUFFIX));
+    if !path.exists() {
+        bail!(
+            "{} is missing: build it with the same profile first (`cargo build -p helmholtz-server --bins`, \
+             with --release for a release run) or pass --server-bin",
+            path.display()
+        );
+    }
+    Ok(path)
+}
+
 /// The lab of the harness's default token.
 pub const E2E_LAB: &str = "e2e";
 

@@ -101,23 +101,6 @@ struct Totals {
     resumed_sessions: u64,
 }
 
-fn server_binary(args: &Args) -> anyhow::Result<PathBuf> {
-    if let Some(p) = &args.server_bin {
-        return Ok(p.clone());
-    }
-    let exe = std::env::current_exe()?;
-    let dir = exe.parent().context("binary directory")?;
-    let path = dir.join(format!("helmholtz-server{}", std::env::consts::EXE_SUFFIX));
-    if !path.exists() {
-        bail!(
-            "{} is missing: build it with the same profile first (`cargo build -p helmholtz-server --bins`, \
-             with --release for a release run) or pass --server-bin",
-            path.display()
-        );
-    }
-    Ok(path)
-}
-
 fn proc_status_kib(pid: u32, key: &str) -> Option<u64> {
     let text = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
     let line = text.lines().find(|l| l.starts_with(key))?;
@@ -156,7 +139,7 @@ async fn main() -> anyhow::Result<()> {
         unsafe { std::env::set_var("HELMHOLTZ_TOKEN", token) };
     }
     let machine = machine();
-    let bin = server_binary(&args)?;
+    let bin = helmholtz_tests::server_binary_beside(args.server_bin.as_deref())?;
     let dir = tempfile::tempdir()?;
     // The benchmark measures throughput, not the per-lab session cap (10,000 by default, which
     // 50 rigs pass within a minute here): lift it.

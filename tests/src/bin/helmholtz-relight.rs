@@ -13,7 +13,7 @@
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
-use anyhow::{Context, bail};
+use anyhow::Context;
 use clap::Parser;
 use helmholtz_client::{NewSession, PatternSpec, UploadOptions};
 use helmholtz_tests::ServerProcess;
@@ -46,23 +46,6 @@ struct Args {
     /// Also write the Markdown report to this file.
     #[arg(long)]
     out: Option<PathBuf>,
-}
-
-fn server_binary(args: &Args) -> anyhow::Result<PathBuf> {
-    if let Some(p) = &args.server_bin {
-        return Ok(p.clone());
-    }
-    let exe = std::env::current_exe()?;
-    let dir = exe.parent().context("binary directory")?;
-    let path = dir.join(format!("helmholtz-server{}", std::env::consts::EXE_SUFFIX));
-    if !path.exists() {
-        bail!(
-            "{} is missing: build it with the same profile first (`cargo build -p helmholtz-server --bins`, \
-             with --release for a release run) or pass --server-bin",
-            path.display()
-        );
-    }
-    Ok(path)
 }
 
 fn load_average() -> String {
@@ -107,7 +90,7 @@ async fn main() -> anyhow::Result<()> {
     let params: serde_json::Value = serde_json::from_str(&args.params).context("--params is not JSON")?;
     let (pw, cw) = (args.projector, args.camera);
     let load_start = load_average();
-    let bin = server_binary(&args)?;
+    let bin = helmholtz_tests::server_binary_beside(args.server_bin.as_deref())?;
     let dir = tempfile::tempdir()?;
     let max_frame = (cw * cw).max(65_536).to_string();
     // Queries go one at a time, faster than the per-token rate limit (100/s by default) on a
