@@ -104,7 +104,30 @@ pub(crate) fn solve_rows(sh: &Shared, bs: &[f64], lams: &[f64], s: &mut [f64], c
         .zip(bs.par_chunks(chunk * n.max(1)))
         .zip(lams.par_chunks(chunk))
         .zip(iterations.par_chunks_mut(chunk))
-        .map(|(((s, b), l), it)| fista_chunk(sh, b, l, s, it, control))
+        .map(|(((s, b), l), it)| fista_chunk(sh, b, l, s, it, false, control))
+        .collect();
+    results.into_iter().collect::<Result<Vec<()>, _>>()?;
+    Ok(iterations)
+}
+
+/// The debiasing refit of a lasso solution (the relaxed lasso, Meinshausen 2007): every row's
+/// least-squares fit on the support of its warm start `s` (the coefficients that are nonzero,
+/// plus the free ones), no penalty, the rest held at zero; `s` in, refitted out. The soft
+/// threshold shrinks every kept coefficient by `lambda`; at a weight large enough to keep only
+/// the coefficients the data support, the refit removes that bias. Returns each row's iterations.
+pub(crate) fn refit_rows(sh: &Shared, bs: &[f64], s: &mut [f64], chunk: usize, control: &Control) -> Result<Vec<usize>, ReconError> {
+    let (k, n) = (sh.k(), sh.n());
+    let rows = s.len() / k.max(1);
+    assert_eq!(bs.len(), rows * n);
+    let chunk = chunk.max(1);
+    let lams = vec![0.0; rows];
+    let mut iterations = vec![0usize; rows];
+    let results: Vec<Result<(), ReconError>> = s
+        .par_chunks_mut(chunk * k)
+        .zip(bs.par_chunks(chunk * n.max(1)))
+        .zip(lams.par_chunks(chunk))
+        .zip(iterations.par_chunks_mut(chunk))
+        .map(|(((s, b), l), it)| fista_chunk(sh, b, l, s, it, true, control))
         .collect();
     results.into_iter().collect::<Result<Vec<()>, _>>()?;
     Ok(iterations)
@@ -121,7 +144,9 @@ fn soft(v: f64, t: f64) -> f64 {
 }
 
 /// One chunk of rows (module docs). `out` holds the warm start and receives the solutions.
-fn fista_chunk(sh: &Shared, bs: &[f64], lams: &[f64], out: &mut [f64], iterations: &mut [usize], control: &Control) -> Result<(), ReconError> {
+/// With `refit`, the coefficients that are zero in the warm start stay zero ([`refit_rows`]).
+#[allow(clippy::too_many_arguments)]
+fn fista_chunk(sh: &Shared, bs: &[f64], lams: &[f64], out: &mut [f64], iterations: &mut [usize], refit: bool, control: &Control) -> Result<(), ReconError> {
     let (k, n) = (sh.k(), sh.n());
     let rows = lams.len();
     if rows == 0 {
@@ -131,6 +156,12 @@ fn fista_chunk(sh: &Shared, bs: &[f64], lams: &[f64], out: &mut [f64], iteration
     let mut ids: Vec<usize> = (0..rows).collect();
     let mut s = out.to_vec();
     let mut y = out.to_vec();
+    // The support each row keeps (refit only).
+    let mut keep: Vec<bool> = if refit {
+        out.chunks_exact(k).flat_map(|row| row.iter().enumerate().map(|(i, v)| i < sh.free || *v != 0.0)).collect()
+    } else {
+        Vec::new()
+    };
     let mut b = bs.to_vec();
     let mut lam: Vec<f64> = lams.to_vec();
     let mut momentum = vec![1.0f64; rows];
@@ -161,7 +192,13 @@ fn fista_chunk(sh: &Shared, bs: &[f64], lams: &[f64], out: &mut [f64], iteration
             let (mut restart_dot, mut diff2, mut new2) = (0.0, 0.0, 0.0);
             for i in 0..k {
                 let v = yr[i] - gr[i] * inv_l;
-                let new = if i < sh.free { v } else { soft(v, thresh) };
+                let new = if refit {
+                    if keep[a * k + i] { v } else { 0.0 }
+                } else if i < sh.free {
+                    v
+                } else {
+                    soft(v, thresh)
+                };
                 let d = new - sr[i];
                 restart_dot += (yr[i] - new) * d;
                 diff2 += d * d;
@@ -201,6 +238,9 @@ fn fista_chunk(sh: &Shared, bs: &[f64], lams: &[f64], out: &mut [f64], iteration
                 s.copy_within(last * k..(last + 1) * k, a * k);
                 y.copy_within(last * k..(last + 1) * k, a * k);
                 b.copy_within(last * n..(last + 1) * n, a * n);
+                if refit {
+                    keep.copy_within(last * k..(last + 1) * k, a * k);
+                }
                 ids[a] = ids[last];
                 lam[a] = lam[last];
                 momentum[a] = momentum[last];

@@ -32,7 +32,11 @@
 //!   (fewest nonzeros) whose held-out score is within one standard error of the best one (the
 //!   error from the spread of the held-out rows' residuals): noise-free data otherwise pull the
 //!   weight to the smallest one tried, where hundreds of tiny coefficients buy a fraction of a
-//!   percent of held-out error. The chosen (transform, fraction) is applied to all camera
+//!   percent of held-out error. Every lasso point is scored twice: as solved, and refitted by
+//!   least squares on its own support ([`batch::refit_rows`], the relaxed lasso): the soft
+//!   threshold shrinks every kept coefficient by the weight, so a larger weight (fewer
+//!   coefficients) with the refit often predicts as well as a small one without it.
+//!   The chosen (transform, fraction, refit) is applied to all camera
 //!   pixels with all rows; the rows keep only their nonzero coefficients (the soft threshold
 //!   zeroes the rest), so the stored size follows the scene's complexity.
 //!   `t >= 0` is not imposed (the prox would become iterative); the reported held-out error is
@@ -463,6 +467,8 @@ struct Candidate {
     held_out_se: Option<f64>,
     iterations_mean: f64,
     nonzeros_mean: f64,
+    /// Least-squares refit on the lasso's support ([`batch::refit_rows`]).
+    refit: bool,
 }
 
 /// Counters of the iterative solve, as reported.
@@ -472,6 +478,8 @@ struct Tally {
     iterations_max: usize,
     parent_iterations: u64,
     parent_rows: u64,
+    /// Of the least-squares refit on the support, when chosen.
+    refit_iterations: u64,
 }
 
 /// Reconstructs `T` from the first `rows` frames of a camera session (module docs).
@@ -519,7 +527,7 @@ pub fn reconstruct_transport(
     let mut held_out_unavailable = None;
     let mut tally = Tally::default();
 
-    let (transform, lambda) = if plan.exact {
+    let (transform, lambda, refit) = if plan.exact {
         let transform = match config.transform {
             Some(t) => t,
             None => {
@@ -560,11 +568,11 @@ pub fn reconstruct_transport(
              other row predicts a held-out one"
                 .to_string(),
         );
-        (transform, None)
+        (transform, None, false)
     } else {
         control.set_progress(0.0);
-        let (transform, lambda) = choose_model(&plan, config, source, m, sample, &mem, &mut largest, &mut details, &mut held_out, &mut held_out_unavailable, control)?;
-        (transform, Some(lambda))
+        let (transform, lambda, refit) = choose_model(&plan, config, source, m, sample, &mem, &mut largest, &mut details, &mut held_out, &mut held_out_unavailable, control)?;
+        (transform, Some(lambda), refit)
     };
     if control.is_cancelled() {
         return Err(ReconError::Cancelled);
@@ -609,7 +617,11 @@ pub fn reconstruct_transport(
                 bs.extend(plan.fit_data(&plan.raw_column(&frames, len, c)));
             }
             drop(frames);
-            let s = solve_block(&shared, &bs, lambda.expect("iterative"), coarse.then_some(camera.width as usize), mem.chunk, &mut tally, control)?;
+            let mut s = solve_block(&shared, &bs, lambda.expect("iterative"), coarse.then_some(camera.width as usize), mem.chunk, &mut tally, control)?;
+            if refit {
+                let it = batch::refit_rows(&shared, &bs, &mut s, mem.chunk, control)?;
+                tally.refit_iterations += it.iter().sum::<usize>() as u64;
+            }
             for row in s.chunks_exact(k) {
                 builder.push_row(row, 0.0);
             }
@@ -622,6 +634,7 @@ pub fn reconstruct_transport(
     let stored = matrix.stored_bytes();
     details.insert("transform".into(), json!(transform.name()));
     details.insert("lambda".into(), json!(lambda));
+    details.insert("refit".into(), json!(refit));
     details.insert("projector".into(), json!([spec.width(), spec.height()]));
     details.insert("camera".into(), json!([camera.width, camera.height]));
     details.insert(
@@ -643,6 +656,7 @@ pub fn reconstruct_transport(
     } else {
         details.insert("iterations_mean".into(), json!(tally.iterations as f64 / m as f64));
         details.insert("iterations_max".into(), json!(tally.iterations_max));
+        details.insert("refit_iterations_mean".into(), json!(tally.refit_iterations as f64 / m as f64));
         details.insert("lipschitz".into(), json!(lipschitz));
     }
     details.insert(
@@ -675,7 +689,7 @@ pub fn reconstruct_transport(
         method: "transport".into(),
         params: config.params_json(),
         rows_used: rows,
-        iterations: tally.iterations + tally.parent_iterations,
+        iterations: tally.iterations + tally.parent_iterations + tally.refit_iterations,
         details,
         held_out,
         held_out_unavailable,
@@ -757,7 +771,7 @@ fn choose_model(
     held_out: &mut Option<holdout::HeldOut>,
     held_out_unavailable: &mut Option<String>,
     control: &Control,
-) -> Result<(TransformKind, f64), ReconError> {
+) -> Result<(TransformKind, f64, bool), ReconError> {
     let (pw, ph) = (plan.spec.width() as usize, plan.spec.height() as usize);
     let k = plan.k();
     let fraction = config.holdout.unwrap_or_else(|| holdout::default_fraction(plan.raw_rows()));
@@ -770,7 +784,7 @@ fn choose_model(
             let lambda = config.lambda.unwrap_or(1e-3);
             *held_out_unavailable = Some(why.clone());
             details.insert("selection".into(), json!({"rule": format!("defaults (no held-out rows: {why})")}));
-            return Ok((transform, lambda));
+            return Ok((transform, lambda, false));
         }
     };
     let mut raws = Vec::new();
@@ -796,9 +810,9 @@ fn choose_model(
     let lambdas: Vec<f64> = config.lambda.map_or(LAMBDA_PATH.to_vec(), |l| vec![l]);
     let chunk = mem.chunk.min(rows.div_ceil(rayon::current_num_threads().max(1))).max(1);
     let mut candidates = Vec::new();
-    // Every point scored: (candidate index, transform, fraction, held-out score, its standard
-    // error, mean nonzeros, score).
-    let mut scored: Vec<(TransformKind, f64, f64, f64, f64, Score)> = Vec::new();
+    // Every point scored: (transform, fraction, refitted, held-out score, its standard error,
+    // mean nonzeros, score).
+    let mut scored: Vec<(TransformKind, f64, bool, f64, f64, f64, Score)> = Vec::new();
     let steps = (transforms.len() * lambdas.len()) as f64;
     let mut step = 0usize;
     for &kind in &transforms {
@@ -822,32 +836,41 @@ fn choose_model(
         for &frac in &lambdas {
             let lams: Vec<f64> = lam_max.iter().map(|l| l * frac).collect();
             let it = batch::solve_rows(&sh, &bs, &lams, &mut s, chunk, control)?;
-            sh.inverse(&s, &mut t);
-            test.apply_batch(&t, &mut pred, rows);
-            let mut score = Score::new(rows);
-            // Squared residual of every held-out row, summed over the sample pixels: their
-            // spread gives the standard error of the score.
-            let mut per_row = vec![0.0; h];
-            for (j, obs) in observed.iter().enumerate() {
-                let p = &pred[j * h..(j + 1) * h];
-                score.add_channel(j, obs, p);
-                per_row.iter_mut().zip(obs.iter().zip(p)).for_each(|(e, (o, p))| *e += (o - p) * (o - p));
-            }
-            let rho = score.finish(split.fraction).relative_residual;
-            let se = rho.map(|r| r * relative_standard_error(&per_row));
+            // The lasso point, then its least-squares refit on the same support (which
+            // continues nothing: the path goes on from the lasso point).
+            let mut refitted = s.clone();
+            let refit_it = batch::refit_rows(&sh, &bs, &mut refitted, chunk, control)?;
             let nnz = s.iter().filter(|v| **v != 0.0).count() as f64 / rows as f64;
-            candidates.push(Candidate {
-                transform: kind.name(),
-                lambda: frac,
-                held_out: rho,
-                held_out_se: se,
-                iterations_mean: it.iter().sum::<usize>() as f64 / rows as f64,
-                nonzeros_mean: nnz,
-            });
+            let mut value = f64::INFINITY;
+            for (refit, coefficients, iterations) in [(false, &s, &it), (true, &refitted, &refit_it)] {
+                sh.inverse(coefficients, &mut t);
+                test.apply_batch(&t, &mut pred, rows);
+                let mut score = Score::new(rows);
+                // Squared residual of every held-out row, summed over the sample pixels: their
+                // spread gives the standard error of the score.
+                let mut per_row = vec![0.0; h];
+                for (j, obs) in observed.iter().enumerate() {
+                    let p = &pred[j * h..(j + 1) * h];
+                    score.add_channel(j, obs, p);
+                    per_row.iter_mut().zip(obs.iter().zip(p)).for_each(|(e, (o, p))| *e += (o - p) * (o - p));
+                }
+                let rho = score.finish(split.fraction).relative_residual;
+                let se = rho.map(|r| r * relative_standard_error(&per_row));
+                candidates.push(Candidate {
+                    transform: kind.name(),
+                    lambda: frac,
+                    held_out: rho,
+                    held_out_se: se,
+                    iterations_mean: iterations.iter().sum::<usize>() as f64 / rows as f64,
+                    nonzeros_mean: nnz,
+                    refit,
+                });
+                let v = rho.unwrap_or(f64::INFINITY);
+                value = value.min(v);
+                scored.push((kind, frac, refit, v, se.unwrap_or(0.0), nnz, score));
+            }
             step += 1;
             control.set_progress(0.2 * step as f64 / steps);
-            let value = rho.unwrap_or(f64::INFINITY);
-            scored.push((kind, frac, value, se.unwrap_or(0.0), nnz, score));
             // Down the path: stop once the held-out error has risen twice in a row.
             if value < best_here {
                 best_here = value;
@@ -861,23 +884,24 @@ fn choose_model(
         }
     }
     let identifiable = super::auto::identifiable_coefficients(plan.op().rows(), k);
-    let best = scored.iter().min_by(|a, b| a.2.total_cmp(&b.2)).expect("at least one candidate");
-    let (best_value, best_se) = (best.2, best.3);
+    let best = scored.iter().min_by(|a, b| a.3.total_cmp(&b.3)).expect("at least one candidate");
+    let (best_value, best_se) = (best.3, best.4);
     // The sparsest model within one standard error of the best held-out score (ties: the
-    // larger weight, which comes first along each path).
+    // larger weight, which comes first along each path, then the lower score: a lasso point
+    // and its refit keep the same coefficients).
     let within = best_value + best_se;
     let chosen = scored
         .iter()
-        .filter(|c| c.2 <= within)
-        .min_by(|a, b| a.4.total_cmp(&b.4).then(b.1.total_cmp(&a.1)))
+        .filter(|c| c.3 <= within)
+        .min_by(|a, b| a.5.total_cmp(&b.5).then(b.1.total_cmp(&a.1)).then(a.3.total_cmp(&b.3)))
         .expect("the best is within");
-    let (transform, lambda) = (chosen.0, chosen.1);
-    *held_out = Some(chosen.5.finish(split.fraction));
+    let (transform, lambda, refit) = (chosen.0, chosen.1, chosen.2);
+    *held_out = Some(chosen.6.finish(split.fraction));
 
     details.insert(
         "selection".into(),
         json!({
-            "rule": "the fewest nonzeros among the candidates whose held-out relative residual on the sample pixels is within one standard error of the lowest (the one-standard-error rule)",
+            "rule": "the fewest nonzeros among the candidates (every lasso point and its least-squares refit on the same support) whose held-out relative residual on the sample pixels is within one standard error of the lowest (the one-standard-error rule)",
             "identifiable_per_row_l1": if identifiable.is_finite() { json!(identifiable.round()) } else { Value::Null },
             "held_out_rows": if ordered {
                 format!("the last {} of the {} measured split pairs (Hadamard rows are ordered: the unmeasured ones lie beyond them)", split.test.len(), plan.raw_rows())
@@ -885,10 +909,10 @@ fn choose_model(
                 format!("{} of {} rows, chosen by a hash of the row index", split.test.len(), plan.raw_rows())
             },
             "sample_pixels": rows,
-            "best": {"transform": best.0.name(), "lambda": best.1, "held_out": best_value, "standard_error": best_se, "nonzeros_mean": best.4},
-            "chosen": {"transform": transform.name(), "lambda": lambda, "held_out": chosen.2, "nonzeros_mean": chosen.4},
+            "best": {"transform": best.0.name(), "lambda": best.1, "refit": best.2, "held_out": best_value, "standard_error": best_se, "nonzeros_mean": best.5},
+            "chosen": {"transform": transform.name(), "lambda": lambda, "refit": refit, "held_out": chosen.3, "nonzeros_mean": chosen.5},
             "candidates": candidates,
         }),
     );
-    Ok((transform, lambda))
+    Ok((transform, lambda, refit))
 }
