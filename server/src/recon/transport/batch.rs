@@ -93,6 +93,21 @@ pub(crate) fn lambda_max(sh: &Shared, bs: &[f64], chunk: usize) -> Vec<f64> {
 /// Solves every row (`bs`: rows x n data, `lams`: rows weights, `s`: rows x k warm start in,
 /// solution out) in chunks of `chunk` rows over the threads. Returns each row's iterations.
 pub(crate) fn solve_rows(sh: &Shared, bs: &[f64], lams: &[f64], s: &mut [f64], chunk: usize, control: &Control) -> Result<Vec<usize>, ReconError> {
+    in_chunks(sh, bs, lams, s, chunk, false, control)
+}
+
+/// The debiasing refit of a lasso solution (the relaxed lasso, Meinshausen 2007): every row's
+/// least-squares fit on the support of its warm start `s` (the coefficients that are nonzero,
+/// plus the free ones), no penalty, the rest held at zero; `s` in, refitted out. The soft
+/// threshold shrinks every kept coefficient by `lambda`; at a weight large enough to keep only
+/// the coefficients the data support, the refit removes that bias. Returns each row's iterations.
+pub(crate) fn refit_rows(sh: &Shared, bs: &[f64], s: &mut [f64], chunk: usize, control: &Control) -> Result<Vec<usize>, ReconError> {
+    let lams = vec![0.0; s.len() / sh.k().max(1)];
+    in_chunks(sh, bs, &lams, s, chunk, true, control)
+}
+
+/// [`fista_chunk`] over chunks of `chunk` rows, in parallel.
+fn in_chunks(sh: &Shared, bs: &[f64], lams: &[f64], s: &mut [f64], chunk: usize, refit: bool, control: &Control) -> Result<Vec<usize>, ReconError> {
     let (k, n) = (sh.k(), sh.n());
     let rows = lams.len();
     assert_eq!(bs.len(), rows * n);
@@ -104,30 +119,7 @@ pub(crate) fn solve_rows(sh: &Shared, bs: &[f64], lams: &[f64], s: &mut [f64], c
         .zip(bs.par_chunks(chunk * n.max(1)))
         .zip(lams.par_chunks(chunk))
         .zip(iterations.par_chunks_mut(chunk))
-        .map(|(((s, b), l), it)| fista_chunk(sh, b, l, s, it, false, control))
-        .collect();
-    results.into_iter().collect::<Result<Vec<()>, _>>()?;
-    Ok(iterations)
-}
-
-/// The debiasing refit of a lasso solution (the relaxed lasso, Meinshausen 2007): every row's
-/// least-squares fit on the support of its warm start `s` (the coefficients that are nonzero,
-/// plus the free ones), no penalty, the rest held at zero; `s` in, refitted out. The soft
-/// threshold shrinks every kept coefficient by `lambda`; at a weight large enough to keep only
-/// the coefficients the data support, the refit removes that bias. Returns each row's iterations.
-pub(crate) fn refit_rows(sh: &Shared, bs: &[f64], s: &mut [f64], chunk: usize, control: &Control) -> Result<Vec<usize>, ReconError> {
-    let (k, n) = (sh.k(), sh.n());
-    let rows = s.len() / k.max(1);
-    assert_eq!(bs.len(), rows * n);
-    let chunk = chunk.max(1);
-    let lams = vec![0.0; rows];
-    let mut iterations = vec![0usize; rows];
-    let results: Vec<Result<(), ReconError>> = s
-        .par_chunks_mut(chunk * k)
-        .zip(bs.par_chunks(chunk * n.max(1)))
-        .zip(lams.par_chunks(chunk))
-        .zip(iterations.par_chunks_mut(chunk))
-        .map(|(((s, b), l), it)| fista_chunk(sh, b, l, s, it, true, control))
+        .map(|(((s, b), l), it)| fista_chunk(sh, b, l, s, it, refit, control))
         .collect();
     results.into_iter().collect::<Result<Vec<()>, _>>()?;
     Ok(iterations)
