@@ -12,7 +12,8 @@
 //!    cost a few points.
 //! 3. The resolution the rows support: when there are fewer rows than pixels, the winning model
 //!    is also fitted on 2x2- (then 4x4-, ...) binned images (`A U`, [`ops::Binned`]) at the
-//!    winning `f`; a coarser grid that predicts the held-out rows better than the finer one (by
+//!    winning `f`, started from the winner's block means (a cold start does not converge
+//!    within the path's iteration cap at small weights); a coarser grid that predicts the held-out rows better than the finer one (by
 //!    more than 1 %) means the rows do not support the finer resolution. The report says so,
 //!    and the image is the coarse fit replicated onto the requested grid.
 //!    Structured designs (Hadamard subsets) are not judged this way: their held-out rows lie in
@@ -64,8 +65,16 @@ const ELIMINATE_FROM: usize = 2;
 /// A coarser grid must beat the finer one's held-out score by this much to be preferred.
 const COARSER_MARGIN: f64 = 0.01;
 /// Per path point: iteration cap and stopping tolerance (warm starts make most points short).
+/// The tolerance decides what the held-out scores compare. At 1e-3, a warm-started point on an
+/// ill-posed problem stopped after its first few plain (momentum-free) steps, which are short
+/// where the objective is flat, still far from its minimum. Measured on the bench's sparse
+/// target (256x256, 1,000 Bernoulli rows): the TV points at f = 0.01 and 0.003 stopped after 7
+/// and 11 iterations, all scoring 0.232 held-out, the path ended there and the image reached
+/// 26.4 dB; at 3e-4 they score 0.175 and 0.159 and the image reaches 30.3 dB (solved to 1e-5
+/// with 400 iterations per point: 0.099 and 31.3 dB, in 99 s). On the 128x128 photo (10 %)
+/// 3e-4 costs about 40 % more path time than 1e-3 for +0.05 dB.
 const PATH_MAX_ITER: usize = 100;
-const PATH_TOL: f64 = 1e-3;
+const PATH_TOL: f64 = 3e-4;
 /// The smallest coarse grid side tried.
 const MIN_COARSE_SIDE: usize = 4;
 /// Above this held-out relative residual the rows explain under ~30 % of the held-out variance.
@@ -329,6 +338,7 @@ pub fn run(
         .min_by(|a, b| a.1.best_held_out.total_cmp(&b.1.best_held_out))
         .map(|(i, _)| i)
         .expect("at least one model");
+    let race_seconds = start.elapsed().as_secs_f64();
     let model = candidates[winner].model_kind.expect("set by race");
     let fraction = candidates[winner].best_fraction;
 
@@ -343,15 +353,21 @@ pub fn run(
             let raw_train = Binned::new(job.train, w, h, factor);
             let scorer = Scorer { test: &test, offset: job.offset.then(|| Offset::new(&raw_train, &job.b_train)) };
             let coarse = train.coarse_size();
-            // One point, at the winner's weight (relative weights carry over between grids).
+            // One point, at the winner's weight (relative weights carry over between grids),
+            // started from the winner's block means: a cold start at a small weight does not
+            // converge within the path's iteration cap and would judge the grid by a half-solved
+            // fit (measured: held-out 0.80 cold against 0.19 warm on the sparse 256x256 scene).
             let near = [fraction];
-            let opts = SolveOptions { lipschitz: None, ..base.clone() };
+            let mut warm = vec![0.0; coarse.0 * coarse.1];
+            train.block_means(&candidates[winner].best_t, &mut warm);
+            let opts = SolveOptions { lipschitz: None, warm_start: Some(warm), ..base.clone() };
             let progress = (lo + (hi - lo) / stages, lo + (hi - lo) * 2.0 / stages);
             let c = race(&[model], coarse, &train, &scorer, &b_train_fit, &job.b_test, &near, &opts, progress, control)?
                 .pop()
                 .expect("one candidate");
             let better = c.best_held_out < chosen.1 * (1.0 - COARSER_MARGIN);
-            resolution.push(json!({"grid": coarse, "held_out": finite(c.best_held_out), "fraction": c.best_fraction, "better": better}));
+            let iterations = c.path.first().map_or(0, |p| p.iterations);
+            resolution.push(json!({"grid": coarse, "held_out": finite(c.best_held_out), "fraction": c.best_fraction, "iterations": iterations, "better": better}));
             if !better {
                 break;
             }
@@ -360,6 +376,7 @@ pub fn run(
         }
     }
     let (factor, held_out, warm) = chosen;
+    let resolution_seconds = start.elapsed().as_secs_f64() - race_seconds;
     let binned_full = Binned::new(full_fit.as_ref(), w, h, factor);
     let binned_raw = Binned::new(job.full, w, h, factor);
     let binned_test = Binned::new(job.test, w, h, factor);
@@ -460,6 +477,7 @@ pub fn run(
         "candidates": candidates,
         "refit": solution.report,
         "seconds": start.elapsed().as_secs_f64(),
+        "stage_seconds": {"race": race_seconds, "resolution": resolution_seconds, "refit": solution.report.seconds},
     });
     Ok(Outcome { t, held_out_prediction, iterations, report })
 }
@@ -610,6 +628,14 @@ mod tests {
         println!("kept {} identifiable {} supported {supported}", a["kept"], a["identifiable_coefficients"]);
         let warnings = a["warnings"].as_array().unwrap();
         assert!(warnings.iter().any(|w| w.as_str().unwrap().contains("too few rows for 64x64")), "{warnings:?}");
+        // The held-out check itself must say so: 120 rows predict held-out rows better on a
+        // coarser grid. Each coarse fit starts from the fine winner's block means and converges
+        // before the path's iteration cap; cold, the 32x32 fit at the winner's small weight ran
+        // into the cap half-solved and lost to 64x64 (held-out 0.37).
+        assert!(supported < 64, "supported {supported}");
+        for c in a["resolution"]["checked"].as_array().unwrap() {
+            assert!(c["iterations"].as_u64().unwrap() < super::PATH_MAX_ITER as u64, "{c}");
+        }
     }
 
     #[test]
@@ -666,3 +692,4 @@ mod tests {
         assert!(err < 1e-5, "{err}");
     }
 }
+

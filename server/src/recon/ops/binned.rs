@@ -47,6 +47,17 @@ impl<'a> Binned<'a> {
             }
         }
     }
+
+    /// Block means: the coarse image closest (least squares) to `full`, the adjoint of
+    /// [`Self::upsample`] divided by each block's pixel count (edge blocks are smaller).
+    pub fn block_means(&self, full: &[f64], coarse: &mut [f64]) {
+        self.block_sums(full, coarse);
+        let mut counts = vec![0.0; coarse.len()];
+        self.block_sums(&vec![1.0; full.len()], &mut counts);
+        for (c, n) in coarse.iter_mut().zip(&counts) {
+            *c /= n;
+        }
+    }
 }
 
 impl LinearOperator for Binned<'_> {
@@ -89,5 +100,13 @@ mod tests {
         b.upsample(&[1.0, 2.0, 3.0, 4.0, 5.0, 6.0], &mut full);
         assert_eq!(&full[..7], &[1.0, 1.0, 1.0, 2.0, 2.0, 2.0, 3.0]);
         assert_eq!(&full[28..], &[4.0, 4.0, 4.0, 5.0, 5.0, 5.0, 6.0]);
+        // Block means undo the replication, clipped edge blocks included.
+        let mut back = vec![0.0; 6];
+        b.block_means(&full, &mut back);
+        assert_eq!(back, [1.0, 2.0, 3.0, 4.0, 5.0, 6.0]);
+        // The edge block (2, 0) holds 1 x 3 pixels: x = 6, y = 0..3.
+        full[6] = 7.0;
+        b.block_means(&full, &mut back);
+        assert!((back[2] - (3.0 + 3.0 + 7.0) / 3.0).abs() < 1e-12, "{back:?}");
     }
 }
