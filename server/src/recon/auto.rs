@@ -7,9 +7,10 @@
 //!    scored ([`holdout::relative_residual`]). A path stops once two consecutive points fail to
 //!    improve the best score by 0.2 % (the minimum is behind, or the curve is flat): the noise
 //!    level, not a hand-set lambda, decides where the path ends. The paths run side by side,
-//!    one point per round, and from the third round on a candidate trailing the leader by more
-//!    than 25 % in held-out score is dropped (reported as eliminated), so clearly wrong models
-//!    cost a few points.
+//!    one point per round, on threads of their own whose operator products are served together
+//!    ([`Gather`]). After the second round a candidate trailing the leader by more than 2x in
+//!    held-out score is dropped, and from the third round on one trailing by more than 25 %
+//!    (reported as eliminated), so clearly wrong models cost a few points.
 //! 3. The resolution the rows support: when there are fewer rows than pixels, the winning model
 //!    is also fitted on 2x2- (then 4x4-, ...) binned images (`A U`, [`ops::Binned`]) at the
 //!    winning `f`, started from the winner's block means (a cold start does not converge
@@ -42,7 +43,7 @@ use super::compressive::{Offset, Scorer, fit_model, fitting};
 use super::holdout;
 use super::linop::LinearOperator;
 use super::method::{Fit, Model, Noise};
-use super::ops::Binned;
+use super::ops::{Binned, Gather};
 use super::solve::{self, Grid, Lambda, PathRunner, Penalty, SolveOptions};
 use super::transforms::sparsifying_transform;
 use super::{Control, ReconError};
@@ -62,6 +63,13 @@ const ELIMINATE: f64 = 1.25;
 /// wins by far from the third on (the winner, 28.0 dB, against 25.0 dB when TV is dropped after
 /// the second round; measured).
 const ELIMINATE_FROM: usize = 2;
+/// After the second round a candidate trailing the leader by this factor is already dropped.
+/// In the bench's full grid (261 `auto` runs, docs/benchmarks.json) the eventual winner never
+/// trailed by more than 1.49x after two points, and no candidate that ended within 5 % of the
+/// winner trailed by more than 2x; on 256x256 Hadamard rows the DCT, 2.5x behind after two
+/// points, spent 10 s of a 12 s `auto` on its third point (its non-negative proximal map is
+/// iterative and slow there) before the 1.25x rule dropped it.
+const ELIMINATE_EARLY: f64 = 2.0;
 /// A coarser grid must beat the finer one's held-out score by this much to be preferred.
 const COARSER_MARGIN: f64 = 0.01;
 /// Per path point: iteration cap and stopping tolerance (warm starts make most points short).
@@ -132,8 +140,11 @@ pub struct Candidate {
     pub path: Vec<Point>,
     pub best_fraction: f64,
     pub best_held_out: f64,
-    /// Stopped early: its best held-out score trailed the leader's by more than [`ELIMINATE`].
+    /// Stopped early: its best held-out score trailed the leader's by more than [`ELIMINATE`]
+    /// (or [`ELIMINATE_EARLY`] after two points).
     pub eliminated: bool,
+    /// Wall seconds of its points (the candidates of a round run at the same time, so these
+    /// add up to more than the race took).
     pub seconds: f64,
     #[serde(skip)]
     best_t: Vec<f64>,
@@ -258,7 +269,8 @@ impl<'a> Running<'a> {
 /// Runs the candidates' paths side by side over `fractions` (round-robin, one point each per
 /// round); after every round from the third on ([`ELIMINATE_FROM`]: the first points, near
 /// `lambda_max`, say little about a model), a candidate whose best held-out score is more
-/// than [`ELIMINATE`] times the leader's stops (it is reported, marked `eliminated`).
+/// than [`ELIMINATE`] times the leader's stops (it is reported, marked `eliminated`), and
+/// after the second one a candidate more than [`ELIMINATE_EARLY`] times behind.
 #[allow(clippy::too_many_arguments)]
 fn race(
     models: &[Model],
@@ -279,21 +291,34 @@ fn race(
             Model::Tv => None,
         })
         .collect();
+    // The candidates of a round run on threads of their own, their operator products served
+    // together in batches ([`Gather`]; bit for bit the products they would get alone).
+    let gather = Gather::new(op_train);
     let mut running = models
         .iter()
         .zip(&psis)
-        .map(|(&m, psi)| Running::new(m, grid, psi.as_deref(), op_train, b_train, opts))
+        .map(|(&m, psi)| Running::new(m, grid, psi.as_deref(), &gather, b_train, opts))
         .collect::<Result<Vec<_>, _>>()?;
     let rounds = fractions.len() as f64;
     for (i, &f) in fractions.iter().enumerate() {
         let progress = (lo + (hi - lo) * i as f64 / rounds, lo + (hi - lo) * (i + 1) as f64 / rounds);
-        for r in running.iter_mut().filter(|r| r.active) {
-            r.step(f, scorer, b_test, progress, control)?;
+        let jobs: Vec<Box<dyn FnOnce() -> Result<(), ReconError> + Send + '_>> = running
+            .iter_mut()
+            .filter(|r| r.active)
+            .map(|r| Box::new(move || r.step(f, scorer, b_test, progress, control)) as Box<dyn FnOnce() -> _ + Send + '_>)
+            .collect();
+        for result in gather.run(jobs) {
+            result?;
         }
-        if i >= ELIMINATE_FROM {
+        let threshold = match i {
+            _ if i >= ELIMINATE_FROM => Some(ELIMINATE),
+            1 => Some(ELIMINATE_EARLY),
+            _ => None,
+        };
+        if let Some(threshold) = threshold {
             let leader = running.iter().map(|r| r.best.0).fold(f64::INFINITY, f64::min);
             for r in running.iter_mut().filter(|r| r.active) {
-                if r.best.0 > ELIMINATE * leader {
+                if r.best.0 > threshold * leader {
                     r.active = false;
                     r.eliminated = true;
                 }
@@ -675,6 +700,24 @@ mod tests {
         };
         let (pa, pz) = (metrics::psnr(&r.images[0].data, &truth), metrics::psnr(&zf.images[0].data, &truth));
         println!("hadamard 25 %: auto {pa:.2} dB ({}), zero-filled {pz:.2} dB", r.report.details["auto"][0]["model"]);
+        // After two points a candidate more than 2x behind the leader is dropped; here the l1
+        // models are (db4 0.71 and DCT 1.00 against TV 0.35), and only those.
+        let candidates = r.report.details["auto"][0]["candidates"].as_array().unwrap();
+        let best2 = |c: &serde_json::Value| {
+            c["path"].as_array().unwrap()[..2].iter().filter_map(|p| p["held_out"].as_f64()).fold(f64::INFINITY, f64::min)
+        };
+        let leader = candidates.iter().map(best2).fold(f64::INFINITY, f64::min);
+        let mut early = 0;
+        for c in candidates {
+            println!("  {} eliminated {} after two points {:.3} (leader {leader:.3})", c["model"], c["eliminated"], best2(c));
+            let dropped_early = c["path"].as_array().unwrap().len() == 2;
+            assert_eq!(dropped_early, best2(c) > super::ELIMINATE_EARLY * leader, "{c}");
+            if dropped_early {
+                assert_eq!(c["eliminated"], json!(true));
+                early += 1;
+            }
+        }
+        assert_eq!(early, 2);
         assert!(pa > pz + 1.0, "auto {pa:.2} dB vs zero-filled {pz:.2} dB");
     }
 
@@ -692,4 +735,5 @@ mod tests {
         assert!(err < 1e-5, "{err}");
     }
 }
+
 

@@ -262,7 +262,9 @@ impl BitMatrix {
         }
         let table_len = BLOCK_WORDS * 8 * 256 * L;
         let threads = rayon::current_num_threads().max(1);
-        let parts = if rows * self.words * L < PARALLEL_MIN_WORDS || threads == 1 {
+        // Not `* L`: the split over threads (and so the order of the partial sums) must not
+        // depend on the batch, so that a vector's product is the same alone or in a batch.
+        let parts = if rows * self.words < PARALLEL_MIN_WORDS || threads == 1 {
             1
         } else {
             threads.min(blocks)
