@@ -14,9 +14,10 @@
 //! 3. The resolution the rows support: when there are fewer rows than pixels, the winning model
 //!    is also fitted on 2x2- (then 4x4-, ...) binned images (`A U`, [`ops::Binned`]) at the
 //!    winning `f`, started from the winner's block means (a cold start does not converge
-//!    within the path's iteration cap at small weights); a coarser grid that predicts the held-out rows better than the finer one (by
-//!    more than 1 %) means the rows do not support the finer resolution. The report says so,
-//!    and the image is the coarse fit replicated onto the requested grid.
+//!    within the path's iteration cap at small weights); a coarser grid that predicts the
+//!    held-out rows better than the finer one (by more than 1 %) means the rows do not support
+//!    the finer resolution. The report says so, and the image is the coarse fit replicated
+//!    onto the requested grid.
 //!    Structured designs (Hadamard subsets) are not judged this way: their held-out rows lie in
 //!    the same low-sequency subspace as the fitted ones, so a coarse model always predicts them
 //!    as well, while the fine model's extrapolated edges (which only the ground truth can judge)
