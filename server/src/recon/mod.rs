@@ -97,9 +97,16 @@ impl Control {
     pub fn new() -> Self {
         Self::default()
     }
-    /// Fraction done in [0, 1].
+    /// Fraction done in [0, 1]. Progress never goes back: the largest fraction reported so far
+    /// is kept. Smaller ones do come, and are not news to a watcher: a solve's polish restarts
+    /// its iteration count, and `auto`'s candidates run at the same time, each reporting its own
+    /// place in the round. (For non-negative floats the bit patterns order as the values, so the
+    /// maximum is one atomic `fetch_max`.) NaN is ignored.
     pub fn set_progress(&self, fraction: f64) {
-        self.progress_bits.store(fraction.clamp(0.0, 1.0).to_bits(), Ordering::Relaxed);
+        if fraction.is_nan() {
+            return;
+        }
+        self.progress_bits.fetch_max(fraction.clamp(0.0, 1.0).to_bits(), Ordering::Relaxed);
     }
     pub fn progress(&self) -> f64 {
         f64::from_bits(self.progress_bits.load(Ordering::Relaxed))
@@ -203,5 +210,50 @@ pub fn reconstruct(
         MethodConfig::Cs { .. } | MethodConfig::Tv { .. } | MethodConfig::Lsq { .. } | MethodConfig::Auto { .. } => {
             compressive::run(problem, config, source, control)
         }
+    }
+}
+
+#[cfg(test)]
+mod control_tests {
+    use super::*;
+
+    #[test]
+    fn progress_never_goes_back() {
+        let c = Control::new();
+        assert_eq!(c.progress(), 0.0);
+        for (report, seen) in [(0.5, 0.5), (0.3, 0.5), (0.7, 0.7), (f64::NAN, 0.7), (-1.0, 0.7), (2.0, 1.0), (0.9, 1.0)] {
+            c.set_progress(report);
+            assert_eq!(c.progress(), seen, "after reporting {report}");
+        }
+    }
+
+    #[test]
+    fn a_watcher_sees_auto_progress_only_grow() {
+        // auto's candidates report from three threads at once, and every solve's polish starts
+        // its iteration count again: a watcher polling the job must still see progress grow.
+        let spec = PatternSpec::new(helmholtz_proto::Family::Bernoulli { fill: 0.5 }, 32, 32, 300, 7).unwrap();
+        let op = ops::measurement_operator(&spec, 300);
+        let t: Vec<f64> = (0..1024).map(|i| ((i % 32) as f64 / 31.0).powi(2)).collect();
+        let mut c = vec![0.0; 300];
+        op.apply(&t, &mut c);
+        let control = Control::new();
+        let config = MethodConfig::parse("auto", &serde_json::json!({})).unwrap();
+        let problem = Problem { spec: &spec, channels: 1, rows: 300 };
+        let done = AtomicBool::new(false);
+        let seen = std::thread::scope(|s| {
+            let watcher = s.spawn(|| {
+                let mut seen = Vec::new();
+                while !done.load(Ordering::Relaxed) {
+                    seen.push(control.progress());
+                    std::thread::yield_now();
+                }
+                seen
+            });
+            reconstruct(&problem, &config, &mut SliceSource::new(&c, 1, 100), &control).unwrap();
+            done.store(true, Ordering::Relaxed);
+            watcher.join().unwrap()
+        });
+        assert!(seen.windows(2).all(|w| w[0] <= w[1]), "progress went back");
+        assert_eq!(control.progress(), 1.0);
     }
 }
