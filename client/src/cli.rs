@@ -1589,14 +1589,30 @@ async fn upload_frames_cmd(
         frames.width
     );
     check_rows(&a.values, frames.rows as usize, &spec, a.partial)?;
-    let mut session = NewSession::camera(a.session_id.clone(), spec.clone(), frames.width, frames.height, frames.format)
-        .with_rig(a.rig.clone());
+    let mut session = NewSession::camera(
+        a.session_id.clone(),
+        spec.clone(),
+        frames.width,
+        frames.height,
+        frames.format,
+    )
+    .with_rig(a.rig.clone());
     session.metadata = parse_metadata(&a.metadata)?;
     session.validate()?;
     let opts = a.transfer.options(progress)?;
     let rows = |start: u64, end: u64| frames.read(start, end);
-    let (report, spooled_before) =
-        spool_and_upload_rows(server, spools, &session, a.finish, frames.rows, &rows, a.batch_rows, None, &opts).await?;
+    let (report, spooled_before) = spool_and_upload_rows(
+        server,
+        spools,
+        &session,
+        a.finish,
+        frames.rows,
+        &rows,
+        a.batch_rows,
+        None,
+        &opts,
+    )
+    .await?;
     let mut text = format!(
         "session {} ({}; camera {}x{} {:?} frames)\n",
         a.session_id,
@@ -1614,7 +1630,10 @@ async fn upload_frames_cmd(
             report.committed_rows,
             report.expected_rows
         );
-        text.push_str(&format!("session finished with {} frames\n", report.committed_rows));
+        text.push_str(&format!(
+            "session finished with {} frames\n",
+            report.committed_rows
+        ));
     }
     let out = json!({
         "session_id": a.session_id,

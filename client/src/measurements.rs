@@ -422,15 +422,29 @@ impl NpyFrames {
     pub fn read(&self, start: u64, end: u64) -> anyhow::Result<crate::upload::SampleBuf> {
         use std::io::{Read, Seek, SeekFrom};
         let mut file = std::fs::File::open(&self.path)?;
-        file.seek(SeekFrom::Start(self.data_offset + start * self.row_bytes() as u64))?;
+        file.seek(SeekFrom::Start(
+            self.data_offset + start * self.row_bytes() as u64,
+        ))?;
         let mut bytes = vec![0u8; (end - start) as usize * self.row_bytes()];
-        file.read_exact(&mut bytes)
-            .map_err(|e| anyhow::anyhow!("{}: reading frames {start}..{end}: {e}", self.path.display()))?;
+        file.read_exact(&mut bytes).map_err(|e| {
+            anyhow::anyhow!(
+                "{}: reading frames {start}..{end}: {e}",
+                self.path.display()
+            )
+        })?;
         Ok(match self.format {
-            crate::upload::SampleFormat::U16 => {
-                crate::upload::SampleBuf::U16(bytes.chunks_exact(2).map(|b| u16::from_le_bytes([b[0], b[1]])).collect())
-            }
-            _ => crate::upload::SampleBuf::F32(bytes.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect()),
+            crate::upload::SampleFormat::U16 => crate::upload::SampleBuf::U16(
+                bytes
+                    .chunks_exact(2)
+                    .map(|b| u16::from_le_bytes([b[0], b[1]]))
+                    .collect(),
+            ),
+            _ => crate::upload::SampleBuf::F32(
+                bytes
+                    .chunks_exact(4)
+                    .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+                    .collect(),
+            ),
         })
     }
 }
@@ -439,10 +453,16 @@ impl NpyFrames {
 /// else (CSV, 1-D or 2-D NPY: bucket rows). A 3-D array of another dtype is an error.
 pub fn npy_frames(path: &Path) -> anyhow::Result<Option<NpyFrames>> {
     use std::io::Read;
-    if path.extension().and_then(|e| e.to_str()).map(|e| e.eq_ignore_ascii_case("npy")) != Some(true) {
+    if path
+        .extension()
+        .and_then(|e| e.to_str())
+        .map(|e| e.eq_ignore_ascii_case("npy"))
+        != Some(true)
+    {
         return Ok(None);
     }
-    let mut file = std::fs::File::open(path).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+    let mut file =
+        std::fs::File::open(path).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
     let mut head = vec![0u8; 12];
     let n = file.read(&mut head)?;
     if n < 10 || &head[..6] != b"\x93NUMPY" {
@@ -450,30 +470,69 @@ pub fn npy_frames(path: &Path) -> anyhow::Result<Option<NpyFrames>> {
     }
     let (len, start) = match head[6] {
         1 => (u16::from_le_bytes([head[8], head[9]]) as usize, 10usize),
-        _ => (u32::from_le_bytes([head[8], head[9], head[10], head[11]]) as usize, 12usize),
+        _ => (
+            u32::from_le_bytes([head[8], head[9], head[10], head[11]]) as usize,
+            12usize,
+        ),
     };
     let mut header = vec![0u8; start + len];
     let mut file = std::fs::File::open(path)?;
     file.read_exact(&mut header)?;
     let text = String::from_utf8_lossy(&header[start..]).to_string();
-    let shape_text = text.split("'shape':").nth(1).and_then(|s| s.split('(').nth(1)).and_then(|s| s.split(')').next()).unwrap_or("");
-    let shape: Vec<u64> = shape_text.split(',').map(str::trim).filter(|s| !s.is_empty()).filter_map(|s| s.parse().ok()).collect();
+    let shape_text = text
+        .split("'shape':")
+        .nth(1)
+        .and_then(|s| s.split('(').nth(1))
+        .and_then(|s| s.split(')').next())
+        .unwrap_or("");
+    let shape: Vec<u64> = shape_text
+        .split(',')
+        .map(str::trim)
+        .filter(|s| !s.is_empty())
+        .filter_map(|s| s.parse().ok())
+        .collect();
     if shape.len() != 3 {
         return Ok(None);
     }
-    let descr = text.split("'descr':").nth(1).and_then(|s| s.split('\'').nth(1)).unwrap_or("");
+    let descr = text
+        .split("'descr':")
+        .nth(1)
+        .and_then(|s| s.split('\'').nth(1))
+        .unwrap_or("");
     let format = match descr {
         "<u2" => crate::upload::SampleFormat::U16,
         "<f4" => crate::upload::SampleFormat::F32,
-        other => anyhow::bail!("{}: camera frames must be uint16 or float32 (little-endian), got dtype {other:?}", path.display()),
+        other => anyhow::bail!(
+            "{}: camera frames must be uint16 or float32 (little-endian), got dtype {other:?}",
+            path.display()
+        ),
     };
-    anyhow::ensure!(!text.contains("'fortran_order': True"), "{}: save the frames in C order", path.display());
+    anyhow::ensure!(
+        !text.contains("'fortran_order': True"),
+        "{}: save the frames in C order",
+        path.display()
+    );
     let (rows, height, width) = (shape[0], shape[1], shape[2]);
-    anyhow::ensure!(height > 0 && width > 0 && height <= u32::MAX as u64 && width <= u32::MAX as u64, "{}: frames of shape ({height}, {width})", path.display());
-    let frames = NpyFrames { path: path.to_path_buf(), rows, height: height as u32, width: width as u32, format, data_offset: (start + len) as u64 };
+    anyhow::ensure!(
+        height > 0 && width > 0 && height <= u32::MAX as u64 && width <= u32::MAX as u64,
+        "{}: frames of shape ({height}, {width})",
+        path.display()
+    );
+    let frames = NpyFrames {
+        path: path.to_path_buf(),
+        rows,
+        height: height as u32,
+        width: width as u32,
+        format,
+        data_offset: (start + len) as u64,
+    };
     let size = std::fs::metadata(path)?.len();
     let want = frames.data_offset + rows * frames.row_bytes() as u64;
-    anyhow::ensure!(size >= want, "{}: {size} bytes, but shape ({rows}, {height}, {width}) needs {want}", path.display());
+    anyhow::ensure!(
+        size >= want,
+        "{}: {size} bytes, but shape ({rows}, {height}, {width}) needs {want}",
+        path.display()
+    );
     Ok(Some(frames))
 }
 
@@ -680,7 +739,8 @@ mod tests {
     }
 
     fn npy3(descr: &str, shape: &str, payload: &[u8]) -> Vec<u8> {
-        let mut header = format!("{{'descr': '{descr}', 'fortran_order': False, 'shape': {shape}, }}");
+        let mut header =
+            format!("{{'descr': '{descr}', 'fortran_order': False, 'shape': {shape}, }}");
         let total = 10 + header.len() + 1;
         header.push_str(&" ".repeat(total.next_multiple_of(64) - total));
         header.push('\n');
@@ -699,7 +759,10 @@ mod tests {
         let bytes: Vec<u8> = values.iter().flat_map(|v| v.to_le_bytes()).collect();
         std::fs::write(&path, npy3("<u2", "(3, 2, 4)", &bytes)).unwrap();
         let f = npy_frames(&path).unwrap().expect("3-D is frames");
-        assert_eq!((f.rows, f.height, f.width, f.format), (3, 2, 4, crate::upload::SampleFormat::U16));
+        assert_eq!(
+            (f.rows, f.height, f.width, f.format),
+            (3, 2, 4, crate::upload::SampleFormat::U16)
+        );
         match f.read(1, 3).unwrap() {
             crate::upload::SampleBuf::U16(v) => assert_eq!(v, values[8..].to_vec()),
             other => panic!("{other:?}"),
@@ -708,7 +771,12 @@ mod tests {
         std::fs::write(&path, npy3("<f8", "(3, 2)", &[0u8; 48])).unwrap();
         assert!(npy_frames(&path).unwrap().is_none());
         std::fs::write(&path, npy3("<f8", "(3, 2, 4)", &[0u8; 192])).unwrap();
-        assert!(npy_frames(&path).unwrap_err().to_string().contains("uint16 or float32"));
+        assert!(
+            npy_frames(&path)
+                .unwrap_err()
+                .to_string()
+                .contains("uint16 or float32")
+        );
         std::fs::write(&path, npy3("<f4", "(3, 2, 4)", &[0u8; 50])).unwrap();
         assert!(npy_frames(&path).unwrap_err().to_string().contains("needs"));
     }

@@ -29,7 +29,9 @@ pub struct ApiError {
 }
 
 fn request_id_suffix(id: &Option<String>) -> String {
-    id.as_deref().map(|id| format!(" [request id {id}]")).unwrap_or_default()
+    id.as_deref()
+        .map(|id| format!(" [request id {id}]"))
+        .unwrap_or_default()
 }
 
 fn detail_suffix(detail: &Option<String>) -> String {
@@ -172,7 +174,11 @@ async fn check(
     if status.is_success() {
         return Ok(response);
     }
-    let request_id = response.headers().get("x-request-id").and_then(|v| v.to_str().ok()).map(str::to_string);
+    let request_id = response
+        .headers()
+        .get("x-request-id")
+        .and_then(|v| v.to_str().ok())
+        .map(str::to_string);
     let body = response.text().await.unwrap_or_default();
     let problem: serde_json::Value = serde_json::from_str(&body).unwrap_or_default();
     let text = |k: &str| problem.get(k).and_then(|v| v.as_str()).map(str::to_string);
@@ -473,7 +479,10 @@ impl Body {
 }
 
 fn finite(value: f64, what: &str) -> anyhow::Result<f64> {
-    anyhow::ensure!(value.is_finite(), "{what} must be a finite number, got {value}");
+    anyhow::ensure!(
+        value.is_finite(),
+        "{what} must be a finite number, got {value}"
+    );
     Ok(value)
 }
 
@@ -540,7 +549,10 @@ pub fn pattern_body(pattern: &PatternInput) -> anyhow::Result<Body> {
 
 /// `/v1/reconstructions/{id}/{action}?format=...` (relight, primal).
 pub fn image_action_path(id: i64, action: &str, format: ImageFormat) -> String {
-    format!("/v1/reconstructions/{id}/{action}?format={}", format.extension())
+    format!(
+        "/v1/reconstructions/{id}/{action}?format={}",
+        format.extension()
+    )
 }
 
 /// `/v1/reconstructions/{id}/normals.{png,npy}`.
@@ -549,7 +561,10 @@ pub fn normals_path(id: i64, format: ImageFormat) -> anyhow::Result<String> {
         format != ImageFormat::Tiff,
         "normal maps come as png or npy, not tiff"
     );
-    Ok(format!("/v1/reconstructions/{id}/normals.{}", format.extension()))
+    Ok(format!(
+        "/v1/reconstructions/{id}/normals.{}",
+        format.extension()
+    ))
 }
 
 /// What [`relight`], [`primal`] and [`normals`] wrote.
@@ -624,7 +639,13 @@ pub async fn relight(
     out: &Path,
 ) -> anyhow::Result<ImageReport> {
     let body = light_body(light)?;
-    image_request(server, &image_action_path(id, "relight", format), Some(body), out).await
+    image_request(
+        server,
+        &image_action_path(id, "relight", format),
+        Some(body),
+        out,
+    )
+    .await
 }
 
 /// `POST /v1/reconstructions/{id}/primal`: the camera image the reconstructed transport
@@ -637,7 +658,13 @@ pub async fn primal(
     out: &Path,
 ) -> anyhow::Result<ImageReport> {
     let body = pattern_body(pattern)?;
-    image_request(server, &image_action_path(id, "primal", format), Some(body), out).await
+    image_request(
+        server,
+        &image_action_path(id, "primal", format),
+        Some(body),
+        out,
+    )
+    .await
 }
 
 /// `GET /v1/reconstructions/{id}/normals.{png,npy}`, saved to `out`.
@@ -756,7 +783,14 @@ mod tests {
             serde_json::json!({"light": {"preset": "full"}})
         );
         assert_eq!(
-            json(light_body(&Light::Disc { x: 12.0, y: 7.5, radius: 4.0 }).unwrap()),
+            json(
+                light_body(&Light::Disc {
+                    x: 12.0,
+                    y: 7.5,
+                    radius: 4.0
+                })
+                .unwrap()
+            ),
             serde_json::json!({"light": {"preset": "disc", "x": 12.0, "y": 7.5, "radius": 4.0}})
         );
         assert_eq!(
@@ -775,8 +809,16 @@ mod tests {
         );
         // Bad lights are refused before anything is sent.
         for bad in [
-            Light::Disc { x: 1.0, y: 1.0, radius: 0.0 },
-            Light::Disc { x: f64::NAN, y: 1.0, radius: 2.0 },
+            Light::Disc {
+                x: 1.0,
+                y: 1.0,
+                radius: 0.0,
+            },
+            Light::Disc {
+                x: f64::NAN,
+                y: 1.0,
+                radius: 2.0,
+            },
             Light::Stripe { x0: 5.0, x1: 5.0 },
             Light::Weights(vec![]),
             Light::Weights(vec![("n".into(), 1.0), ("n".into(), 2.0)]),
@@ -790,16 +832,28 @@ mod tests {
         let png = dir.path().join("light.PNG");
         std::fs::write(&png, b"\x89PNG fake").unwrap();
         let b = light_body(&Light::Image(png)).unwrap();
-        assert_eq!((b.content_type.as_str(), b.bytes.as_slice()), ("image/png", &b"\x89PNG fake"[..]));
+        assert_eq!(
+            (b.content_type.as_str(), b.bytes.as_slice()),
+            ("image/png", &b"\x89PNG fake"[..])
+        );
         let npy = dir.path().join("p.npy");
         std::fs::write(&npy, b"\x93NUMPY").unwrap();
         let b = pattern_body(&PatternInput::Image(npy)).unwrap();
         assert_eq!(b.content_type, "application/x-npy");
         assert!(pattern_body(&PatternInput::Image(dir.path().join("missing.png"))).is_err());
         // Paths.
-        assert_eq!(image_action_path(5, "relight", ImageFormat::Tiff), "/v1/reconstructions/5/relight?format=tiff");
-        assert_eq!(image_action_path(5, "primal", ImageFormat::Png), "/v1/reconstructions/5/primal?format=png");
-        assert_eq!(normals_path(8, ImageFormat::Npy).unwrap(), "/v1/reconstructions/8/normals.npy");
+        assert_eq!(
+            image_action_path(5, "relight", ImageFormat::Tiff),
+            "/v1/reconstructions/5/relight?format=tiff"
+        );
+        assert_eq!(
+            image_action_path(5, "primal", ImageFormat::Png),
+            "/v1/reconstructions/5/primal?format=png"
+        );
+        assert_eq!(
+            normals_path(8, ImageFormat::Npy).unwrap(),
+            "/v1/reconstructions/8/normals.npy"
+        );
         assert!(normals_path(8, ImageFormat::Tiff).is_err());
     }
 

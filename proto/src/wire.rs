@@ -18,23 +18,37 @@ pub enum WireError {
     #[error("crc32c mismatch: chunk says {expected:#010x}, payload has {actual:#010x}")]
     Checksum { expected: u32, actual: u32 },
     #[error("value at row {row}, channel {channel} is not finite ({value})")]
-    NotFinite { row: usize, channel: usize, value: f64 },
+    NotFinite {
+        row: usize,
+        channel: usize,
+        value: f64,
+    },
 }
 
 /// Checks the checksum and shape, then decodes. Every value must be finite.
 pub fn decode_values(bytes: &[u8], channels: usize, crc: u32) -> Result<Vec<f64>, WireError> {
     let actual = crc32c::crc32c(bytes);
     if actual != crc {
-        return Err(WireError::Checksum { expected: crc, actual });
+        return Err(WireError::Checksum {
+            expected: crc,
+            actual,
+        });
     }
     if channels == 0 || !bytes.len().is_multiple_of(8 * channels) {
-        return Err(WireError::Ragged { len: bytes.len(), channels });
+        return Err(WireError::Ragged {
+            len: bytes.len(),
+            channels,
+        });
     }
     let mut out = Vec::with_capacity(bytes.len() / 8);
     for (idx, raw) in bytes.chunks_exact(8).enumerate() {
         let value = f64::from_le_bytes(raw.try_into().expect("8 bytes"));
         if !value.is_finite() {
-            return Err(WireError::NotFinite { row: idx / channels, channel: idx % channels, value });
+            return Err(WireError::NotFinite {
+                row: idx / channels,
+                channel: idx % channels,
+                value,
+            });
         }
         out.push(value);
     }
@@ -50,12 +64,22 @@ mod tests {
         let values = [1.0, -2.5, 3.25, 1e300];
         let (bytes, crc) = encode_values(&values);
         assert_eq!(decode_values(&bytes, 2, crc).unwrap(), values);
-        assert!(matches!(decode_values(&bytes, 2, crc ^ 1), Err(WireError::Checksum { .. })));
-        assert!(matches!(decode_values(&bytes, 3, crc), Err(WireError::Ragged { .. })));
+        assert!(matches!(
+            decode_values(&bytes, 2, crc ^ 1),
+            Err(WireError::Checksum { .. })
+        ));
+        assert!(matches!(
+            decode_values(&bytes, 3, crc),
+            Err(WireError::Ragged { .. })
+        ));
         let (bytes, crc) = encode_values(&[1.0, f64::NAN]);
         assert!(matches!(
             decode_values(&bytes, 1, crc),
-            Err(WireError::NotFinite { row: 1, channel: 0, .. })
+            Err(WireError::NotFinite {
+                row: 1,
+                channel: 0,
+                ..
+            })
         ));
         let (bytes, crc) = encode_values(&[f64::INFINITY]);
         assert!(decode_values(&bytes, 1, crc).is_err());

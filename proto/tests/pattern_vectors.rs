@@ -20,15 +20,21 @@ fn vectors() -> Value {
 }
 
 fn array<'a>(v: &'a Value, key: &str) -> &'a Vec<Value> {
-    v[key].as_array().unwrap_or_else(|| panic!("`{key}` is not an array"))
+    v[key]
+        .as_array()
+        .unwrap_or_else(|| panic!("`{key}` is not an array"))
 }
 
 fn u64_of(v: &Value, key: &str) -> u64 {
-    v[key].as_u64().unwrap_or_else(|| panic!("`{key}` is not a u64: {}", v[key]))
+    v[key]
+        .as_u64()
+        .unwrap_or_else(|| panic!("`{key}` is not a u64: {}", v[key]))
 }
 
 fn str_of<'a>(v: &'a Value, key: &str) -> &'a str {
-    v[key].as_str().unwrap_or_else(|| panic!("`{key}` is not a string: {}", v[key]))
+    v[key]
+        .as_str()
+        .unwrap_or_else(|| panic!("`{key}` is not a string: {}", v[key]))
 }
 
 fn hex(bytes: &[u8]) -> String {
@@ -71,13 +77,20 @@ fn sha256(data: &[u8]) -> String {
         for t in 16..64 {
             let s0 = w[t - 15].rotate_right(7) ^ w[t - 15].rotate_right(18) ^ (w[t - 15] >> 3);
             let s1 = w[t - 2].rotate_right(17) ^ w[t - 2].rotate_right(19) ^ (w[t - 2] >> 10);
-            w[t] = w[t - 16].wrapping_add(s0).wrapping_add(w[t - 7]).wrapping_add(s1);
+            w[t] = w[t - 16]
+                .wrapping_add(s0)
+                .wrapping_add(w[t - 7])
+                .wrapping_add(s1);
         }
         let [mut a, mut b, mut c, mut d, mut e, mut f, mut g, mut hh] = h;
         for t in 0..64 {
             let s1 = e.rotate_right(6) ^ e.rotate_right(11) ^ e.rotate_right(25);
             let ch = (e & f) ^ (!e & g);
-            let t1 = hh.wrapping_add(s1).wrapping_add(ch).wrapping_add(K256[t]).wrapping_add(w[t]);
+            let t1 = hh
+                .wrapping_add(s1)
+                .wrapping_add(ch)
+                .wrapping_add(K256[t])
+                .wrapping_add(w[t]);
             let s0 = a.rotate_right(2) ^ a.rotate_right(13) ^ a.rotate_right(22);
             let maj = (a & b) ^ (a & c) ^ (b & c);
             let t2 = s0.wrapping_add(maj);
@@ -92,10 +105,19 @@ fn sha256(data: &[u8]) -> String {
 
 #[test]
 fn sha256_is_fips_180_4() {
-    assert_eq!(sha256(b"abc"), "ba7816bf8f01cfea414140de5dae2223b00361a396177a9cb410ff61f20015ad");
-    assert_eq!(sha256(b""), "e3b0c44298fc1c149afbf4c8996fb92427ae41e4649b934ca495991b7852b855");
+    assert_eq!(
+        sha256(b"abc"),
+        "ba7816bf8f01cfea414140de5dae2223b00361a396177a9cb410ff61f20015ad"
+    );
+    assert_eq!(
+        sha256(b""),
+        "e3b0c44298fc1c149afbf4c8996fb92427ae41e4649b934ca495991b7852b855"
+    );
     let long = b"abcdbcdecdefdefgefghfghighijhijkijkljklmklmnlmnomnopnopq";
-    assert_eq!(sha256(long), "248d6a61d20638b8e5c026930c3e6039a33ce45964ff2167f6ecedd419db06c1");
+    assert_eq!(
+        sha256(long),
+        "248d6a61d20638b8e5c026930c3e6039a33ce45964ff2167f6ecedd419db06c1"
+    );
 }
 
 // --- the pieces ---------------------------------------------------------------------------------
@@ -108,7 +130,11 @@ fn random_words() {
     for c in cases {
         let (seed, counter) = (u64_of(c, "seed"), u64_of(c, "counter"));
         let expect = u64::from_str_radix(str_of(c, "word"), 16).unwrap();
-        assert_eq!(stream_word(seed, counter), expect, "random_word({seed}, {counter})");
+        assert_eq!(
+            stream_word(seed, counter),
+            expect,
+            "random_word({seed}, {counter})"
+        );
     }
 }
 
@@ -120,15 +146,28 @@ fn fill_quanta() {
     for c in cases {
         let bits = u64::from_str_radix(str_of(c, "fill_f64"), 16).unwrap();
         let fill = f64::from_bits(bits);
-        assert_eq!(c["fill"].as_f64(), Some(fill), "serde_json parses {} exactly", c["fill"]);
+        assert_eq!(
+            c["fill"].as_f64(),
+            Some(fill),
+            "serde_json parses {} exactly",
+            c["fill"]
+        );
         let q = fill_quantum(fill);
         assert_eq!(q as u64, u64_of(c, "quantum"), "fill {fill:e}");
         let tz = q.trailing_zeros();
-        assert_eq!((FILL_BITS - tz) as u64, u64_of(c, "digits"), "fill {fill:e}");
+        assert_eq!(
+            (FILL_BITS - tz) as u64,
+            u64_of(c, "digits"),
+            "fill {fill:e}"
+        );
         assert_eq!((q >> tz) as u64, u64_of(c, "odd"), "fill {fill:e}");
         let spec = PatternSpec::new(Family::Bernoulli { fill }, 8, 8, 8, 0).unwrap();
         let canonical = q as f64 / (1u64 << FILL_BITS) as f64;
-        assert_eq!(spec.family(), &Family::Bernoulli { fill: canonical }, "fill {fill:e}");
+        assert_eq!(
+            spec.family(),
+            &Family::Bernoulli { fill: canonical },
+            "fill {fill:e}"
+        );
         // serde_json (without its `float_roundtrip` feature) may read the 16-17 digit canonical
         // fill one ulp off; re-quantising absorbs that, so compare quanta, not the f64.
         let listed = c["canonical_fill"].as_f64().unwrap();
@@ -144,9 +183,14 @@ fn hadamard_ordering_tables() {
         let (w, h) = (u64_of(c, "width") as u32, u64_of(c, "height") as u32);
         let ordering: HadamardOrdering = serde_json::from_value(c["ordering"].clone()).unwrap();
         let plan = HadamardPlan::new(w, h, ordering);
-        let table: Vec<u64> = array(c, "natural").iter().map(|n| n.as_u64().unwrap()).collect();
+        let table: Vec<u64> = array(c, "natural")
+            .iter()
+            .map(|n| n.as_u64().unwrap())
+            .collect();
         assert_eq!(table.len() as u32, w * h);
-        let ours: Vec<u64> = (0..table.len() as u64).map(|r| plan.natural_index(r)).collect();
+        let ours: Vec<u64> = (0..table.len() as u64)
+            .map(|r| plan.natural_index(r))
+            .collect();
         assert_eq!(ours, table, "{w}x{h} {ordering:?}");
     }
     for ordering in HadamardOrdering::ALL {
@@ -161,7 +205,10 @@ fn hadamard_ordering_tables() {
 fn wire_encoding() {
     let v = vectors();
     for c in array(&v, "wire") {
-        let values: Vec<f64> = array(c, "values").iter().map(|x| x.as_f64().unwrap()).collect();
+        let values: Vec<f64> = array(c, "values")
+            .iter()
+            .map(|x| x.as_f64().unwrap())
+            .collect();
         let channels = u64_of(c, "channels") as usize;
         let (bytes, crc) = encode_values(&values);
         assert_eq!(hex(&bytes), str_of(c, "bytes_hex"), "{values:?}");
@@ -175,12 +222,16 @@ fn wire_encoding() {
 /// Pattern `i` as packed bits, checking on the way that `fill_values` shows the same pixels.
 fn bits_of(g: &PatternGenerator, i: u64, name: &str) -> Vec<u64> {
     let mut words = vec![0u64; g.words_per_pattern()];
-    g.fill_bits(i, &mut words).unwrap_or_else(|e| panic!("{name}: pattern {i}: {e}"));
+    g.fill_bits(i, &mut words)
+        .unwrap_or_else(|e| panic!("{name}: pattern {i}: {e}"));
     let mut values = vec![f32::NAN; g.spec().pixels()];
     g.fill_values(i, &mut values);
     for (p, &v) in values.iter().enumerate() {
         let bit = (words[p / 64] >> (p % 64)) & 1;
-        assert_eq!(v, bit as f32, "{name}: pattern {i} pixel {p}: fill_values vs fill_bits");
+        assert_eq!(
+            v, bit as f32,
+            "{name}: pattern {i} pixel {p}: fill_values vs fill_bits"
+        );
     }
     words
 }
@@ -188,7 +239,10 @@ fn bits_of(g: &PatternGenerator, i: u64, name: &str) -> Vec<u64> {
 /// Speckle pattern `i` as 24-bit levels, checking that every value is exactly L / 2^24.
 fn levels_of(g: &PatternGenerator, i: u64, name: &str) -> Vec<u32> {
     let mut words = vec![0u64; g.words_per_pattern()];
-    assert!(g.fill_bits(i, &mut words).is_err(), "{name}: speckle must refuse fill_bits");
+    assert!(
+        g.fill_bits(i, &mut words).is_err(),
+        "{name}: speckle must refuse fill_bits"
+    );
     let mut values = vec![f32::NAN; g.spec().pixels()];
     g.fill_values(i, &mut values);
     values
@@ -211,7 +265,10 @@ fn check_vector(vec: &Value) -> &str {
         .unwrap_or_else(|e| panic!("{name}: input refused: {e}"));
     let canonical: PatternSpec = serde_json::from_value(vec["spec"].clone())
         .unwrap_or_else(|e| panic!("{name}: canonical spec refused: {e}"));
-    assert_eq!(spec, canonical, "{name}: input does not canonicalise to spec");
+    assert_eq!(
+        spec, canonical,
+        "{name}: input does not canonicalise to spec"
+    );
     // The canonical JSON, field by field; `fill` through its quantum (see `fill_quanta`).
     let mut ours = serde_json::to_value(&spec).unwrap();
     let mut theirs = vec["spec"].clone();
@@ -219,14 +276,30 @@ fn check_vector(vec: &Value) -> &str {
     assert_eq!(ours, theirs, "{name}: canonical JSON");
     if let Family::Bernoulli { .. } = spec.family() {
         let q = u64_of(vec, "fill_quantum");
-        assert_eq!(our_fill.as_f64(), Some(q as f64 / 65536.0), "{name}: canonical fill");
-        assert_eq!(fill_quantum(their_fill.as_f64().unwrap()) as u64, q, "{name}");
+        assert_eq!(
+            our_fill.as_f64(),
+            Some(q as f64 / 65536.0),
+            "{name}: canonical fill"
+        );
+        assert_eq!(
+            fill_quantum(their_fill.as_f64().unwrap()) as u64,
+            q,
+            "{name}"
+        );
     }
     assert_eq!(spec.pixels() as u64, u64_of(vec, "pixels"), "{name}");
     let g = PatternGenerator::new(&spec);
-    assert_eq!(g.words_per_pattern() as u64, u64_of(vec, "words_per_pattern"), "{name}");
+    assert_eq!(
+        g.words_per_pattern() as u64,
+        u64_of(vec, "words_per_pattern"),
+        "{name}"
+    );
     if let Family::Bernoulli { fill } = spec.family() {
-        assert_eq!(fill_quantum(*fill) as u64, u64_of(vec, "fill_quantum"), "{name}");
+        assert_eq!(
+            fill_quantum(*fill) as u64,
+            u64_of(vec, "fill_quantum"),
+            "{name}"
+        );
     }
 
     let patterns = array(vec, "patterns");
@@ -235,8 +308,10 @@ fn check_vector(vec: &Value) -> &str {
         let i = u64_of(pat, "index");
         match spec.family() {
             Family::Speckle { .. } => {
-                let expect: Vec<u32> =
-                    array(pat, "levels").iter().map(|l| l.as_u64().unwrap() as u32).collect();
+                let expect: Vec<u32> = array(pat, "levels")
+                    .iter()
+                    .map(|l| l.as_u64().unwrap() as u32)
+                    .collect();
                 assert_eq!(levels_of(&g, i, name), expect, "{name}: pattern {i} levels");
             }
             family => {
@@ -253,7 +328,11 @@ fn check_vector(vec: &Value) -> &str {
                     Family::Hadamard { .. } => {
                         let f = g.split_frame(i).unwrap();
                         assert_eq!(f.row, u64_of(pat, "row"), "{name}: frame {i} row");
-                        assert_eq!(f.natural, u64_of(pat, "natural"), "{name}: frame {i} natural");
+                        assert_eq!(
+                            f.natural,
+                            u64_of(pat, "natural"),
+                            "{name}: frame {i} natural"
+                        );
                         assert_eq!(
                             Some(f.positive),
                             pat["positive"].as_bool(),
@@ -276,7 +355,11 @@ fn check_vector(vec: &Value) -> &str {
                 bytes.extend(levels_of(&g, i, name).iter().flat_map(|l| l.to_le_bytes()));
             }
         }
-        assert_eq!(sha256(&bytes), str_of(run, "sha256"), "{name}: run {start}..+{count}");
+        assert_eq!(
+            sha256(&bytes),
+            str_of(run, "sha256"),
+            "{name}: run {start}..+{count}"
+        );
     }
     name
 }
@@ -297,7 +380,10 @@ fn vectors_cover_the_contract() {
         .iter()
         .map(|vec| {
             let spec = serde_json::from_value(vec["spec"].clone()).unwrap();
-            let idx = array(vec, "patterns").iter().map(|p| u64_of(p, "index")).collect();
+            let idx = array(vec, "patterns")
+                .iter()
+                .map(|p| u64_of(p, "index"))
+                .collect();
             (spec, idx)
         })
         .collect();
@@ -322,14 +408,22 @@ fn vectors_cover_the_contract() {
     assert!(any(&|s, i| matches!(s.family(), Family::Bernoulli { .. })
         && s.pixels() % 64 != 0
         && i.iter().any(|&i| i >= 1_000_000)));
-    assert!(any(&|s, _| matches!(s.family(), Family::Bernoulli { .. }) && s.seed() == u64::MAX));
-    assert!(any(&|s, _| matches!(*s.family(), Family::Raster { block } if block > 1
-        && (s.width() % block != 0 && s.height() % block != 0))));
+    assert!(any(
+        &|s, _| matches!(s.family(), Family::Bernoulli { .. }) && s.seed() == u64::MAX
+    ));
+    assert!(any(
+        &|s, _| matches!(*s.family(), Family::Raster { block } if block > 1
+        && (s.width() % block != 0 && s.height() % block != 0))
+    ));
     assert!(any(
         &|s, i| matches!(s.family(), Family::Raster { .. }) && i.iter().any(|&i| g_blocks(s) <= i)
     ));
-    assert!(any(&|s, i| s.family() == &Family::Speckle { grain: 3 } && i.contains(&1_000_000)));
-    assert!(any(&|s, _| matches!(s.family(), Family::Speckle { .. }) && s.seed() == u64::MAX));
+    assert!(any(
+        &|s, i| s.family() == &Family::Speckle { grain: 3 } && i.contains(&1_000_000)
+    ));
+    assert!(any(
+        &|s, _| matches!(s.family(), Family::Speckle { .. }) && s.seed() == u64::MAX
+    ));
 }
 
 fn g_blocks(s: &PatternSpec) -> u64 {

@@ -57,13 +57,19 @@ impl Scene {
         let discs: Vec<(f64, f64, f64, [f64; 3])> = (0..6)
             .map(|i| {
                 let r = |j: u64| unit(seed, i * 8 + j);
-                (r(0) * w as f64, r(1) * h as f64, (0.04 + 0.06 * r(2)) * s, [0.2 + 0.7 * r(3), 0.2 + 0.7 * r(4), 0.2 + 0.7 * r(5)])
+                (
+                    r(0) * w as f64,
+                    r(1) * h as f64,
+                    (0.04 + 0.06 * r(2)) * s,
+                    [0.2 + 0.7 * r(3), 0.2 + 0.7 * r(4), 0.2 + 0.7 * r(5)],
+                )
             })
             .collect();
         for row in 0..h {
             for col in 0..w {
                 let (x, y) = (col as f64 + 0.5, row as f64 + 0.5);
-                let checker = ((x / cell).floor() as i64 + (y / cell).floor() as i64).rem_euclid(2) as f64;
+                let checker =
+                    ((x / cell).floor() as i64 + (y / cell).floor() as i64).rem_euclid(2) as f64;
                 let mut a = [0.35 + 0.25 * checker; 3];
                 for &(cx, cy, r, c) in &discs {
                     if (x - cx).powi(2) + (y - cy).powi(2) < r * r {
@@ -76,7 +82,13 @@ impl Scene {
         // Hemisphere.
         let (cx, cy, radius) = (0.33 * w as f64, 0.42 * h as f64, 0.22 * s);
         // Box: flat top at box_h.
-        let (bx0, bx1, by0, by1, box_h) = (0.62 * w as f64, 0.86 * w as f64, 0.58 * h as f64, 0.84 * h as f64, 0.18 * s);
+        let (bx0, bx1, by0, by1, box_h) = (
+            0.62 * w as f64,
+            0.86 * w as f64,
+            0.58 * h as f64,
+            0.84 * h as f64,
+            0.18 * s,
+        );
         for row in 0..h {
             for col in 0..w {
                 let (x, y) = (col as f64 + 0.5, row as f64 + 0.5);
@@ -93,7 +105,15 @@ impl Scene {
                 }
             }
         }
-        Scene { width: w, height: h, depth, normal, albedo_rgb, indirect: 0.3, blur_radius: (w.min(h) / 24).max(1) }
+        Scene {
+            width: w,
+            height: h,
+            depth,
+            normal,
+            albedo_rgb,
+            indirect: 0.3,
+            blur_radius: (w.min(h) / 24).max(1),
+        }
     }
 
     pub fn width(&self) -> usize {
@@ -116,7 +136,10 @@ impl Scene {
     }
     /// Grey albedo (Rec. 709 luma of the colour albedo).
     pub fn albedo(&self) -> Vec<f64> {
-        self.albedo_rgb.iter().map(|a| a.iter().zip(LUMA).map(|(c, l)| c * l).sum()).collect()
+        self.albedo_rgb
+            .iter()
+            .map(|a| a.iter().zip(LUMA).map(|(c, l)| c * l).sum())
+            .collect()
     }
     /// Albedo of colour `channel` (0 red, 1 green, 2 blue).
     pub fn albedo_channel(&self, channel: usize) -> Vec<f64> {
@@ -134,13 +157,22 @@ impl Scene {
                 if horizontal < 1e-12 {
                     return 1.0;
                 }
-                let (x0, y0, z0) = ((i % self.width) as f64 + 0.5, (i / self.width) as f64 + 0.5, self.depth[i]);
+                let (x0, y0, z0) = (
+                    (i % self.width) as f64 + 0.5,
+                    (i / self.width) as f64 + 0.5,
+                    self.depth[i],
+                );
                 // March in half-pixel steps across the grid until above every surface.
                 let step = 0.5 / horizontal;
                 let mut s = step;
                 loop {
                     let (x, y, z) = (x0 + s * d[0], y0 + s * d[1], z0 + s * d[2]);
-                    if z > top || x < 0.0 || y < 0.0 || x >= self.width as f64 || y >= self.height as f64 {
+                    if z > top
+                        || x < 0.0
+                        || y < 0.0
+                        || x >= self.width as f64
+                        || y >= self.height as f64
+                    {
                         return 1.0;
                     }
                     if self.depth_at(x, y) > z + 0.75 {
@@ -153,7 +185,10 @@ impl Scene {
     }
 
     fn depth_at(&self, x: f64, y: f64) -> f64 {
-        let (c, r) = ((x.floor() as usize).min(self.width - 1), (y.floor() as usize).min(self.height - 1));
+        let (c, r) = (
+            (x.floor() as usize).min(self.width - 1),
+            (y.floor() as usize).min(self.height - 1),
+        );
         self.depth[r * self.width + c]
     }
 
@@ -162,7 +197,11 @@ impl Scene {
     pub fn exitance(&self, d: [f64; 3]) -> Vec<f64> {
         let d = unit_vector(d);
         let vis = self.visibility(d);
-        self.normal.iter().zip(vis).map(|(n, v)| v * (n[0] * d[0] + n[1] * d[1] + n[2] * d[2]).max(0.0)).collect()
+        self.normal
+            .iter()
+            .zip(vis)
+            .map(|(n, v)| v * (n[0] * d[0] + n[1] * d[1] + n[2] * d[2]).max(0.0))
+            .collect()
     }
 
     /// The dual image of a distant bucket detector toward `d` (grey albedo): `t_d` above.
@@ -229,7 +268,11 @@ impl Camera {
     /// A camera `tilt_degrees` from the projector's axis, leaning toward +x.
     pub fn tilted(width: u32, height: u32, tilt_degrees: f64) -> Camera {
         let t = tilt_degrees * PI / 180.0;
-        Camera { width, height, direction: [t.sin(), 0.0, t.cos()] }
+        Camera {
+            width,
+            height,
+            direction: [t.sin(), 0.0, t.cos()],
+        }
     }
 }
 
@@ -250,7 +293,11 @@ impl<'a> CameraView<'a> {
         let v = unit_vector(camera.direction);
         // Image-plane basis: e1 = x projected off v, e2 = v x e1.
         let e1 = unit_vector([1.0 - v[0] * v[0], -v[0] * v[1], -v[0] * v[2]]);
-        let e2 = [v[1] * e1[2] - v[2] * e1[1], v[2] * e1[0] - v[0] * e1[2], v[0] * e1[1] - v[1] * e1[0]];
+        let e2 = [
+            v[1] * e1[2] - v[2] * e1[1],
+            v[2] * e1[0] - v[0] * e1[2],
+            v[0] * e1[1] - v[1] * e1[0],
+        ];
         let (w, h) = (scene.width as f64, scene.height as f64);
         let top = scene.depth.iter().cloned().fold(0.0, f64::max);
         // Frame: the projection of the scene's bounding box, so every point lands inside.
@@ -271,7 +318,11 @@ impl<'a> CameraView<'a> {
         let (su, sv) = ((u1 - u0) / cw as f64, (v1 - v0) / ch as f64);
         let splat = (0..scene.pixels())
             .map(|i| {
-                let p = [(i % scene.width) as f64 + 0.5, (i / scene.width) as f64 + 0.5, scene.depth[i]];
+                let p = [
+                    (i % scene.width) as f64 + 0.5,
+                    (i / scene.width) as f64 + 0.5,
+                    scene.depth[i],
+                ];
                 // Camera pixel centres at (c + 1/2); bilinear weights, clamped into the frame.
                 let cu = ((dot(p, e1) - u0) / su - 0.5).clamp(0.0, (cw - 1) as f64);
                 let cv = ((dot(p, e2) - v0) / sv - 0.5).clamp(0.0, (ch - 1) as f64);
@@ -286,7 +337,14 @@ impl<'a> CameraView<'a> {
                 ]
             })
             .collect();
-        CameraView { scene, albedo, width: cw, height: ch, exitance: scene.exitance(v), splat }
+        CameraView {
+            scene,
+            albedo,
+            width: cw,
+            height: ch,
+            exitance: scene.exitance(v),
+            splat,
+        }
     }
 
     /// `m = W_c H_c`.
@@ -302,7 +360,11 @@ impl<'a> CameraView<'a> {
 
     /// The frame `T p` for a projector pattern `p` (k values).
     pub fn render(&self, pattern: &[f64]) -> Vec<f64> {
-        assert_eq!(pattern.len(), self.scene.pixels(), "pattern has the projector's pixel count");
+        assert_eq!(
+            pattern.len(),
+            self.scene.pixels(),
+            "pattern has the projector's pixel count"
+        );
         let lit = self.scene.reflect_adjoint(&self.albedo, pattern);
         let mut frame = vec![0.0; self.pixels()];
         for ((s, l), e) in self.splat.iter().zip(lit).zip(&self.exitance) {
@@ -318,12 +380,21 @@ impl<'a> CameraView<'a> {
 
     /// The relit dual image `T^T c` for a virtual light `c` at the camera (m values).
     pub fn relight(&self, light: &[f64]) -> Vec<f64> {
-        assert_eq!(light.len(), self.pixels(), "light has the camera's pixel count");
+        assert_eq!(
+            light.len(),
+            self.pixels(),
+            "light has the camera's pixel count"
+        );
         let gathered: Vec<f64> = self
             .splat
             .iter()
             .zip(&self.exitance)
-            .map(|(s, e)| e * s.iter().map(|&(j, wgt)| wgt * light[j as usize]).sum::<f64>())
+            .map(|(s, e)| {
+                e * s
+                    .iter()
+                    .map(|&(j, wgt)| wgt * light[j as usize])
+                    .sum::<f64>()
+            })
             .collect();
         self.scene.reflect_adjoint(&self.albedo, &gathered)
     }
@@ -349,7 +420,13 @@ fn box_pass(a: &[f64], w: usize, h: usize, r: usize, along_rows: bool) -> Vec<f6
     let mut out = vec![0.0; a.len()];
     let norm = 1.0 / (2 * r + 1) as f64;
     let (lines, len) = if along_rows { (h, w) } else { (w, h) };
-    let idx = |line: usize, pos: usize| if along_rows { line * w + pos } else { pos * w + line };
+    let idx = |line: usize, pos: usize| {
+        if along_rows {
+            line * w + pos
+        } else {
+            pos * w + line
+        }
+    };
     for line in 0..lines {
         // Running sum over [pos - r, pos + r], zero outside.
         let mut sum: f64 = (0..=r.min(len - 1)).map(|p| a[idx(line, p)]).sum();
@@ -373,7 +450,10 @@ fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
 /// `d / |d|`.
 pub fn unit_vector(d: [f64; 3]) -> [f64; 3] {
     let n = dot(d, d).sqrt();
-    assert!(n > 0.0 && n.is_finite(), "direction must be a nonzero finite vector");
+    assert!(
+        n > 0.0 && n.is_finite(),
+        "direction must be a nonzero finite vector"
+    );
     [d[0] / n, d[1] / n, d[2] / n]
 }
 
@@ -412,7 +492,11 @@ mod tests {
         let t = view.dense();
         let k = scene.pixels();
         let j = 37;
-        let direct: f64 = t[j * k..(j + 1) * k].iter().zip(&p).map(|(a, b)| *a as f64 * b).sum();
+        let direct: f64 = t[j * k..(j + 1) * k]
+            .iter()
+            .zip(&p)
+            .map(|(a, b)| *a as f64 * b)
+            .sum();
         assert!((direct - view.render(&p)[j]).abs() < 1e-5 * direct.abs().max(1e-3));
     }
 
@@ -423,7 +507,11 @@ mod tests {
         let view = scene.view(&camera);
         let summed = view.relight(&vec![1.0; view.pixels()]);
         let bucket = scene.detector_transport(camera.direction);
-        let err = summed.iter().zip(&bucket).map(|(a, b)| (a - b).abs()).fold(0.0, f64::max);
+        let err = summed
+            .iter()
+            .zip(&bucket)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0, f64::max);
         assert!(err < 1e-12, "max difference {err}");
         assert!(bucket.iter().any(|&v| v > 0.1));
     }
@@ -438,8 +526,15 @@ mod tests {
         // front of it; ground on the +x side (behind the box as seen from -x) is shadowed.
         let vis = scene.visibility(direction(180.0, 20.0));
         let (row, col) = ((0.7 * 64.0) as usize, (0.9 * 64.0) as usize);
-        assert_eq!(vis[row * 64 + col], 0.0, "ground behind the box is in its shadow");
-        assert_eq!(scene.visibility([0.0, 0.0, 1.0]).iter().sum::<f64>(), 64.0 * 64.0);
+        assert_eq!(
+            vis[row * 64 + col],
+            0.0,
+            "ground behind the box is in its shadow"
+        );
+        assert_eq!(
+            scene.visibility([0.0, 0.0, 1.0]).iter().sum::<f64>(),
+            64.0 * 64.0
+        );
         // Some ground near the hemisphere and box is shadowed, most is lit.
         let lit = vis.iter().sum::<f64>() / vis.len() as f64;
         assert!(lit > 0.6 && lit < 0.98, "lit fraction {lit}");

@@ -20,16 +20,28 @@ fn main() {
     let method = arg(5, "tv");
     let params: serde_json::Value = serde_json::from_str(&arg(6, "null")).expect("params JSON");
     let repeat: usize = arg(7, "1").parse().expect("repeat");
-    let case = Case { scene: scene.clone(), size: (n, n), ratio, family, noise: Noise::None, method: method.clone() };
+    let case = Case {
+        scene: scene.clone(),
+        size: (n, n),
+        ratio,
+        family,
+        noise: Noise::None,
+        method: method.clone(),
+    };
     let spec = case.spec();
     let truth = Scene::builtin(&scene, n, n).expect("scene").transport(1.0);
     let sim = simulate::simulate(&spec, &[&truth], &Noise::None.model(), None);
     let config = MethodConfig::parse(&method, &params).expect("method");
-    let problem = Problem { spec: &spec, channels: 1, rows: spec.count() };
+    let problem = Problem {
+        spec: &spec,
+        channels: 1,
+        rows: spec.count(),
+    };
     for _ in 0..repeat {
         let mut source = SliceSource::new(&sim.values, 1, 4096);
         let started = Instant::now();
-        let r = recon::reconstruct(&problem, &config, &mut source, &Control::new()).expect("reconstruct");
+        let r = recon::reconstruct(&problem, &config, &mut source, &Control::new())
+            .expect("reconstruct");
         let s = started.elapsed().as_secs_f64();
         let img = &r.images[0].data;
         println!(

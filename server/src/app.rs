@@ -11,7 +11,9 @@ use axum::Router;
 use helmholtz_proto::v1::acquisition_server::AcquisitionServer;
 use tonic::server::NamedService;
 use tower::ServiceExt;
-use tower_http::request_id::{MakeRequestUuid, PropagateRequestIdLayer, RequestId, SetRequestIdLayer};
+use tower_http::request_id::{
+    MakeRequestUuid, PropagateRequestIdLayer, RequestId, SetRequestIdLayer,
+};
 use tower_http::trace::TraceLayer;
 
 use crate::api::grpc::AcquisitionService;
@@ -46,7 +48,9 @@ impl Default for Config {
         Config {
             listen: "127.0.0.1:8080".parse().expect("address"),
             data_dir: PathBuf::from("helmholtz-data"),
-            workers: std::thread::available_parallelism().map(|n| n.get()).unwrap_or(2),
+            workers: std::thread::available_parallelism()
+                .map(|n| n.get())
+                .unwrap_or(2),
             lease: Duration::from_secs(30),
             limits: Limits::default(),
             worker_memory: crate::recon::transport::DEFAULT_MEMORY_BUDGET,
@@ -63,14 +67,23 @@ pub struct Application {
     router: Router,
     workers: WorkerPool,
     store: Store,
-    metrics: Option<(tokio::net::TcpListener, SocketAddr, metrics_exporter_prometheus::PrometheusHandle)>,
+    metrics: Option<(
+        tokio::net::TcpListener,
+        SocketAddr,
+        metrics_exporter_prometheus::PrometheusHandle,
+    )>,
 }
 
 impl Application {
     pub async fn build(config: Config) -> anyhow::Result<Application> {
         let listener = tokio::net::TcpListener::bind(config.listen)
             .await
-            .with_context(|| format!("cannot listen on {} (try --listen 127.0.0.1:0 for any free port)", config.listen))?;
+            .with_context(|| {
+                format!(
+                    "cannot listen on {} (try --listen 127.0.0.1:0 for any free port)",
+                    config.listen
+                )
+            })?;
         let addr = listener.local_addr()?;
         let metrics = match config.metrics_listen {
             None => None,
@@ -94,9 +107,12 @@ impl Application {
                 ..PoolConfig::default()
             },
         );
-        let state = AppState::new(store.clone(), workers.notifier(), config.limits.clone()).with_transport_cache(config.transport_cache);
+        let state = AppState::new(store.clone(), workers.notifier(), config.limits.clone())
+            .with_transport_cache(config.transport_cache);
         let (health_reporter, health_service) = tonic_health::server::health_reporter();
-        health_reporter.set_serving::<AcquisitionServer<AcquisitionService>>().await;
+        health_reporter
+            .set_serving::<AcquisitionServer<AcquisitionService>>()
+            .await;
         let acquisition = AcquisitionService::new(state.clone()).into_server();
         let router = rest::router(state)
             .route_service(&format!("/{}/{{*rpc}}", <AcquisitionServer<AcquisitionService> as NamedService>::NAME), grpc_route(acquisition))
@@ -115,7 +131,14 @@ impl Application {
                 tracing::info_span!("request", request_id = %id, method = %request.method(), path = %request.uri().path())
             }))
             .layer(SetRequestIdLayer::x_request_id(MakeRequestUuid));
-        Ok(Application { listener, addr, router, workers, store, metrics })
+        Ok(Application {
+            listener,
+            addr,
+            router,
+            workers,
+            store,
+            metrics,
+        })
     }
 
     pub fn local_addr(&self) -> SocketAddr {
@@ -129,7 +152,9 @@ impl Application {
 
     /// `http://host:port/metrics` when metrics are served.
     pub fn metrics_url(&self) -> Option<String> {
-        self.metrics.as_ref().map(|(_, a, _)| format!("http://{a}/metrics"))
+        self.metrics
+            .as_ref()
+            .map(|(_, a, _)| format!("http://{a}/metrics"))
     }
 
     pub fn store(&self) -> &Store {
@@ -140,16 +165,33 @@ impl Application {
     /// in flight finish (an upload stream commits every chunk it has received; the client
     /// resumes the rest elsewhere or later), stops the workers (running jobs stop at their next
     /// check and give their lease back without spending an attempt), and closes the database.
-    pub async fn run_until(self, shutdown: impl Future<Output = ()> + Send + 'static) -> anyhow::Result<()> {
-        let Application { listener, router, workers, store, metrics, .. } = self;
+    pub async fn run_until(
+        self,
+        shutdown: impl Future<Output = ()> + Send + 'static,
+    ) -> anyhow::Result<()> {
+        let Application {
+            listener,
+            router,
+            workers,
+            store,
+            metrics,
+            ..
+        } = self;
         let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
         let metrics_task = metrics.map(|(l, _, handle)| {
             let mut rx = stop_rx.clone();
-            tokio::spawn(crate::telemetry::serve(l, handle, store.clone(), async move {
-                let _ = rx.wait_for(|s| *s).await;
-            }))
+            tokio::spawn(crate::telemetry::serve(
+                l,
+                handle,
+                store.clone(),
+                async move {
+                    let _ = rx.wait_for(|s| *s).await;
+                },
+            ))
         });
-        axum::serve(listener, router).with_graceful_shutdown(shutdown).await?;
+        axum::serve(listener, router)
+            .with_graceful_shutdown(shutdown)
+            .await?;
         tracing::info!("no longer serving; stopping the workers");
         let _ = stop_tx.send(true);
         tokio::task::spawn_blocking(move || workers.shutdown()).await?;
@@ -179,7 +221,11 @@ fn grpc_route<S>(
 + Sync
 + 'static
 where
-    S: tower::Service<http::Request<tonic::body::Body>, Error = std::convert::Infallible> + Clone + Send + Sync + 'static,
+    S: tower::Service<http::Request<tonic::body::Body>, Error = std::convert::Infallible>
+        + Clone
+        + Send
+        + Sync
+        + 'static,
     S::Future: Send + 'static,
 {
     svc.map_request(|req: axum::extract::Request| req.map(tonic::body::Body::new))

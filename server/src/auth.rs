@@ -47,7 +47,9 @@ impl Role {
             "rig" => Ok(Role::Rig),
             "reader" => Ok(Role::Reader),
             "admin" => Ok(Role::Admin),
-            other => Err(format!("unknown role {other:?}; roles are rig, reader and admin")),
+            other => Err(format!(
+                "unknown role {other:?}; roles are rig, reader and admin"
+            )),
         }
     }
 }
@@ -76,7 +78,10 @@ impl Roles {
     }
 
     pub fn list(self) -> Vec<Role> {
-        Role::ALL.into_iter().filter(|r| self.contains(*r)).collect()
+        Role::ALL
+            .into_iter()
+            .filter(|r| self.contains(*r))
+            .collect()
     }
 
     /// Parses `rig,reader` (the stored form; also what the CLI and REST accept).
@@ -129,18 +134,33 @@ pub enum CredentialError {
 /// The token in an `Authorization` header value: `Bearer <token>`, or HTTP Basic with the token
 /// as password (or as user name when the password is empty).
 pub fn token_from_authorization(value: Option<&[u8]>) -> Result<String, CredentialError> {
-    let Some(value) = value else { return Err(CredentialError::Missing) };
-    let value = std::str::from_utf8(value).map_err(|_| CredentialError::Malformed("not ASCII"))?.trim();
-    let (scheme, rest) = value.split_once(' ').ok_or(CredentialError::Malformed("expected \"Bearer <token>\""))?;
+    let Some(value) = value else {
+        return Err(CredentialError::Missing);
+    };
+    let value = std::str::from_utf8(value)
+        .map_err(|_| CredentialError::Malformed("not ASCII"))?
+        .trim();
+    let (scheme, rest) = value
+        .split_once(' ')
+        .ok_or(CredentialError::Malformed("expected \"Bearer <token>\""))?;
     let token = if scheme.eq_ignore_ascii_case("bearer") {
         rest.trim().to_string()
     } else if scheme.eq_ignore_ascii_case("basic") {
-        let decoded = STANDARD.decode(rest.trim()).map_err(|_| CredentialError::Malformed("Basic credentials are not base64"))?;
-        let decoded = String::from_utf8(decoded).map_err(|_| CredentialError::Malformed("Basic credentials are not UTF-8"))?;
+        let decoded = STANDARD
+            .decode(rest.trim())
+            .map_err(|_| CredentialError::Malformed("Basic credentials are not base64"))?;
+        let decoded = String::from_utf8(decoded)
+            .map_err(|_| CredentialError::Malformed("Basic credentials are not UTF-8"))?;
         let (user, password) = decoded.split_once(':').unwrap_or((decoded.as_str(), ""));
-        if password.is_empty() { user.to_string() } else { password.to_string() }
+        if password.is_empty() {
+            user.to_string()
+        } else {
+            password.to_string()
+        }
     } else {
-        return Err(CredentialError::Malformed("expected the Bearer or Basic scheme"));
+        return Err(CredentialError::Malformed(
+            "expected the Bearer or Basic scheme",
+        ));
     };
     if !token.starts_with(TOKEN_PREFIX) || token.len() > 256 {
         return Err(CredentialError::Malformed("not a Helmholtz token (hz_...)"));
@@ -151,10 +171,18 @@ pub fn token_from_authorization(value: Option<&[u8]>) -> Result<String, Credenti
 /// Lab names: 1-64 characters of A-Z a-z 0-9 . _ -
 pub fn valid_lab(lab: &str) -> Result<(), String> {
     if lab.is_empty() || lab.len() > 64 {
-        return Err(format!("a lab name must be 1-64 characters, got {}", lab.len()));
+        return Err(format!(
+            "a lab name must be 1-64 characters, got {}",
+            lab.len()
+        ));
     }
-    if let Some(c) = lab.chars().find(|c| !(c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | '-'))) {
-        return Err(format!("a lab name may hold only A-Z a-z 0-9 . _ - (found {c:?})"));
+    if let Some(c) = lab
+        .chars()
+        .find(|c| !(c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | '-')))
+    {
+        return Err(format!(
+            "a lab name may hold only A-Z a-z 0-9 . _ - (found {c:?})"
+        ));
     }
     Ok(())
 }
@@ -176,13 +204,28 @@ mod tests {
     #[test]
     fn authorization_headers() {
         let t = generate_token();
-        assert_eq!(token_from_authorization(Some(format!("Bearer {t}").as_bytes())), Ok(t.clone()));
-        assert_eq!(token_from_authorization(Some(format!("bearer  {t} ").as_bytes())), Ok(t.clone()));
+        assert_eq!(
+            token_from_authorization(Some(format!("Bearer {t}").as_bytes())),
+            Ok(t.clone())
+        );
+        assert_eq!(
+            token_from_authorization(Some(format!("bearer  {t} ").as_bytes())),
+            Ok(t.clone())
+        );
         let basic = STANDARD.encode(format!("x:{t}"));
-        assert_eq!(token_from_authorization(Some(format!("Basic {basic}").as_bytes())), Ok(t.clone()));
+        assert_eq!(
+            token_from_authorization(Some(format!("Basic {basic}").as_bytes())),
+            Ok(t.clone())
+        );
         let basic_user = STANDARD.encode(format!("{t}:"));
-        assert_eq!(token_from_authorization(Some(format!("Basic {basic_user}").as_bytes())), Ok(t.clone()));
-        assert_eq!(token_from_authorization(None), Err(CredentialError::Missing));
+        assert_eq!(
+            token_from_authorization(Some(format!("Basic {basic_user}").as_bytes())),
+            Ok(t.clone())
+        );
+        assert_eq!(
+            token_from_authorization(None),
+            Err(CredentialError::Missing)
+        );
         assert!(token_from_authorization(Some(b"Bearer abc")).is_err());
         assert!(token_from_authorization(Some(b"Token hz_abc")).is_err());
         assert!(token_from_authorization(Some(b"Basic !!!")).is_err());

@@ -11,7 +11,11 @@ use crate::auth::Roles;
 use crate::limits::Limits;
 
 #[derive(Parser, Debug)]
-#[command(name = "helmholtz-server", version, about = "Helmholtz: dual photography and ghost imaging reconstruction service.\n\nServes the gRPC acquisition API (helmholtz.v1.Acquisition) and the REST API on one address, stores sessions in SQLite and reconstructs on a pool of CPU workers.\n\nEvery call but the health checks needs a lab's token (Authorization: Bearer hz_...); create the first with `helmholtz-server token create --lab LAB --role admin` (or rig, reader).")]
+#[command(
+    name = "helmholtz-server",
+    version,
+    about = "Helmholtz: dual photography and ghost imaging reconstruction service.\n\nServes the gRPC acquisition API (helmholtz.v1.Acquisition) and the REST API on one address, stores sessions in SQLite and reconstructs on a pool of CPU workers.\n\nEvery call but the health checks needs a lab's token (Authorization: Bearer hz_...); create the first with `helmholtz-server token create --lab LAB --role admin` (or rig, reader)."
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -159,7 +163,12 @@ enum Command {
         #[command(subcommand)]
         command: TokenCommand,
         /// Directory of the SQLite database.
-        #[arg(long, env = "HELMHOLTZ_DATA_DIR", default_value = "helmholtz-data", global = true)]
+        #[arg(
+            long,
+            env = "HELMHOLTZ_DATA_DIR",
+            default_value = "helmholtz-data",
+            global = true
+        )]
         data_dir: PathBuf,
     },
 }
@@ -186,11 +195,17 @@ impl ServeArgs {
 pub fn main() {
     let cli = Cli::parse();
     init_tracing(&cli.log_format);
-    let runtime = tokio::runtime::Builder::new_multi_thread().enable_all().build().expect("tokio runtime");
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .expect("tokio runtime");
     let result = runtime.block_on(async move {
         match cli.command {
             Command::Serve(args) => serve(args.config()).await,
-            Command::Demo { serve, exit_after_demo } => crate::demo::run(serve.config(), exit_after_demo).await,
+            Command::Demo {
+                serve,
+                exit_after_demo,
+            } => crate::demo::run(serve.config(), exit_after_demo).await,
             Command::Token { command, data_dir } => token(command, &data_dir).await,
         }
     });
@@ -203,8 +218,14 @@ pub fn main() {
 fn init_tracing(format: &str) {
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info,sqlx=warn,tower_http=info"));
-    let builder = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr);
-    if format == "json" { builder.json().init() } else { builder.init() }
+    let builder = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr);
+    if format == "json" {
+        builder.json().init()
+    } else {
+        builder.init()
+    }
 }
 
 /// Resolves on Ctrl-C or SIGTERM.
@@ -214,7 +235,8 @@ pub async fn shutdown_signal() {
     };
     #[cfg(unix)]
     let term = async {
-        if let Ok(mut s) = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+        if let Ok(mut s) = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
+        {
             s.recv().await;
         }
     };
@@ -231,9 +253,15 @@ async fn token(command: TokenCommand, data_dir: &std::path::Path) -> anyhow::Res
         .with_context(|| format!("opening the database in {}", data_dir.display()))?;
     let result = async {
         match command {
-            TokenCommand::Create { lab, roles, note, json } => {
+            TokenCommand::Create {
+                lab,
+                roles,
+                note,
+                json,
+            } => {
                 crate::auth::valid_lab(&lab).map_err(|e| anyhow::anyhow!("--lab: {e}"))?;
-                let roles = Roles::parse(&roles.join(",")).map_err(|e| anyhow::anyhow!("--role: {e}"))?;
+                let roles =
+                    Roles::parse(&roles.join(",")).map_err(|e| anyhow::anyhow!("--role: {e}"))?;
                 if note.len() > 256 || note.chars().any(char::is_control) {
                     anyhow::bail!("--note: at most 256 characters without control characters");
                 }
@@ -244,7 +272,10 @@ async fn token(command: TokenCommand, data_dir: &std::path::Path) -> anyhow::Res
                     println!("{v}");
                 } else {
                     println!("{secret}");
-                    eprintln!("token {} for lab {:?} with roles {}: shown once, store it now", info.id, info.lab, info.roles);
+                    eprintln!(
+                        "token {} for lab {:?} with roles {}: shown once, store it now",
+                        info.id, info.lab, info.roles
+                    );
                 }
             }
             TokenCommand::List { lab } => {
@@ -254,13 +285,20 @@ async fn token(command: TokenCommand, data_dir: &std::path::Path) -> anyhow::Res
                         t.id,
                         t.lab,
                         t.roles,
-                        if t.revoked_unix_ms.is_some() { "revoked" } else { "valid" },
+                        if t.revoked_unix_ms.is_some() {
+                            "revoked"
+                        } else {
+                            "valid"
+                        },
                         t.note
                     );
                 }
             }
             TokenCommand::Revoke { id } => {
-                let t = store.revoke_token(id, None).await?.ok_or_else(|| anyhow::anyhow!("no token with id {id}"))?;
+                let t = store
+                    .revoke_token(id, None)
+                    .await?
+                    .ok_or_else(|| anyhow::anyhow!("no token with id {id}"))?;
                 println!("token {} of lab {:?} revoked", t.id, t.lab);
             }
         }
@@ -280,7 +318,10 @@ async fn serve(config: Config) -> anyhow::Result<()> {
 /// The first line on stdout says where the service is (tests and scripts read it).
 pub fn announce(app: &Application, config: &Config) {
     use std::io::Write;
-    let metrics = app.metrics_url().map(|u| format!(", metrics on {u}")).unwrap_or_default();
+    let metrics = app
+        .metrics_url()
+        .map(|u| format!(", metrics on {u}"))
+        .unwrap_or_default();
     println!(
         "helmholtz-server listening on {} (gRPC + REST){metrics}, data in {}, {} workers",
         app.base_url(),

@@ -28,7 +28,12 @@ fn rigs() -> Vec<DemoRig> {
             session_id: "demo-usaf-hadamard",
             scene: "usaf",
             spec: r#"{"family":"hadamard","width":64,"height":64,"count":8192,"seed":0,"ordering":"sequency"}"#,
-            noise: NoiseModel { snr_db: Some(50.0), dark: 0.05, seed: 1, ..NoiseModel::default() },
+            noise: NoiseModel {
+                snr_db: Some(50.0),
+                dark: 0.05,
+                seed: 1,
+                ..NoiseModel::default()
+            },
             method: "direct",
             what: "USAF-1951 target, complete Hadamard split set (8,192 DMD frames), 50 dB read noise and a dark offset, exact inverse by fast Walsh-Hadamard transform",
         },
@@ -36,7 +41,12 @@ fn rigs() -> Vec<DemoRig> {
             session_id: "demo-double-slit-dgi",
             scene: "double-slit",
             spec: r#"{"family":"bernoulli","width":64,"height":64,"count":20000,"seed":42,"fill":0.5}"#,
-            noise: NoiseModel { photons: Some(1e5), drift: 0.05, seed: 2, ..NoiseModel::default() },
+            noise: NoiseModel {
+                photons: Some(1e5),
+                drift: 0.05,
+                seed: 2,
+                ..NoiseModel::default()
+            },
             method: "dgi",
             what: "double slit, 20,000 random binary patterns, shot noise (1e5 photons per pattern) and 5 % source drift, differential ghost imaging",
         },
@@ -51,9 +61,17 @@ pub async fn run(config: Config, exit_after_demo: bool) -> anyhow::Result<()> {
     announce(&app, &config);
     let base = app.base_url();
     // Fresh tokens each run (the secrets are not stored, so earlier ones cannot be shown again).
-    let (_, rig_token) = app.store().create_token(DEMO_LAB, Roles::of(&[Role::Rig]), "demo rig").await?;
-    let (_, reader_token) = app.store().create_token(DEMO_LAB, Roles::of(&[Role::Reader]), "demo reader").await?;
-    println!("\nTokens for lab {DEMO_LAB:?} (shown once; `helmholtz-server token list` lists them, `token revoke ID` revokes):");
+    let (_, rig_token) = app
+        .store()
+        .create_token(DEMO_LAB, Roles::of(&[Role::Rig]), "demo rig")
+        .await?;
+    let (_, reader_token) = app
+        .store()
+        .create_token(DEMO_LAB, Roles::of(&[Role::Reader]), "demo reader")
+        .await?;
+    println!(
+        "\nTokens for lab {DEMO_LAB:?} (shown once; `helmholtz-server token list` lists them, `token revoke ID` revokes):"
+    );
     println!("   rig    (create sessions, upload):           {rig_token}");
     println!("   reader (sessions, reconstructions, images): {reader_token}");
     println!("   e.g.  curl -H 'Authorization: Bearer {reader_token}' {base}/v1/sessions");
@@ -97,17 +115,35 @@ async fn run_rigs(base: &str, rig: &str, reader: &str) -> anyhow::Result<()> {
             .with_metadata("scene", rig.scene)
             .with_ground_truth(spec.width(), spec.height(), transport);
         helmholtz_client::create_session(rig_url, &session).await?;
-        let upload = helmholtz_client::upload(rig_url, rig.session_id, 1, &sim.values, &UploadOptions::default()).await?;
+        let upload = helmholtz_client::upload(
+            rig_url,
+            rig.session_id,
+            1,
+            &sim.values,
+            &UploadOptions::default(),
+        )
+        .await?;
         helmholtz_client::finish_session(rig_url, rig.session_id).await?;
         println!(
             "   uploaded {} rows ({} already stored) in {:.2} s",
-            upload.rows,
-            upload.rows_skipped,
-            upload.seconds
+            upload.rows, upload.rows_skipped, upload.seconds
         );
-        let rec = helmholtz_client::request_reconstruction(reader, rig.session_id, rig.method, &serde_json::json!({})).await?;
-        let rec = helmholtz_client::wait_reconstruction(reader, rec.id, Duration::from_secs(600)).await?;
-        anyhow::ensure!(rec.is_done(), "reconstruction {} ended {}: {:?}", rec.id, rec.state, rec.error);
+        let rec = helmholtz_client::request_reconstruction(
+            reader,
+            rig.session_id,
+            rig.method,
+            &serde_json::json!({}),
+        )
+        .await?;
+        let rec =
+            helmholtz_client::wait_reconstruction(reader, rec.id, Duration::from_secs(600)).await?;
+        anyhow::ensure!(
+            rec.is_done(),
+            "reconstruction {} ended {}: {:?}",
+            rec.id,
+            rec.state,
+            rec.error
+        );
         let q = &rec.report["quality"][0];
         println!(
             "   {} reconstruction {} in {:.3} s: PSNR {} dB, SSIM {} (after scale/offset fit: {} dB)",
@@ -120,7 +156,10 @@ async fn run_rigs(base: &str, rig: &str, reader: &str) -> anyhow::Result<()> {
         );
         println!("   session:    {base}/v1/sessions/{}", rig.session_id);
         println!("   report:     {base}/v1/reconstructions/{}", rec.id);
-        println!("   dual image: {base}/v1/reconstructions/{}/dual.png  (also .tiff, .npy)", rec.id);
+        println!(
+            "   dual image: {base}/v1/reconstructions/{}/dual.png  (also .tiff, .npy)",
+            rec.id
+        );
     }
     camera_rig(base, rig_url, reader).await
 }
@@ -130,7 +169,9 @@ async fn run_rigs(base: &str, rig: &str, reader: &str) -> anyhow::Result<()> {
 /// 32x24 camera tilted 25 degrees; the worker reconstructs T, and T relights the scene.
 async fn camera_rig(base: &str, rig: &str, reader: &str) -> anyhow::Result<()> {
     const ID: &str = "demo-lambert-camera";
-    println!("\n== {ID}: Lambertian scene, 32x24 camera, complete Hadamard set (2,048 frames), transport matrix T");
+    println!(
+        "\n== {ID}: Lambertian scene, 32x24 camera, complete Hadamard set (2,048 frames), transport matrix T"
+    );
     let spec: PatternSpec =
         serde_json::from_str(r#"{"family":"hadamard","width":32,"height":32,"count":2048,"seed":0,"ordering":"sequency"}"#)
             .expect("demo spec is valid");
@@ -153,17 +194,41 @@ async fn camera_rig(base: &str, rig: &str, reader: &str) -> anyhow::Result<()> {
         }
     })
     .await?;
-    let session = NewSession::camera(ID, spec.clone(), 32, 24, helmholtz_client::upload::SampleFormat::F32)
-        .with_rig("demo-camera-rig")
-        .with_ground_truth(spec.width(), spec.height(), truth);
+    let session = NewSession::camera(
+        ID,
+        spec.clone(),
+        32,
+        24,
+        helmholtz_client::upload::SampleFormat::F32,
+    )
+    .with_rig("demo-camera-rig")
+    .with_ground_truth(spec.width(), spec.height(), truth);
     helmholtz_client::create_session(rig, &session).await?;
-    let upload =
-        helmholtz_client::upload_samples(rig, ID, 32 * 24, helmholtz_client::upload::Samples::F32(&frames), &UploadOptions::default()).await?;
+    let upload = helmholtz_client::upload_samples(
+        rig,
+        ID,
+        32 * 24,
+        helmholtz_client::upload::Samples::F32(&frames),
+        &UploadOptions::default(),
+    )
+    .await?;
     helmholtz_client::finish_session(rig, ID).await?;
-    println!("   uploaded {} frames ({} already stored) in {:.2} s", upload.rows, upload.rows_skipped, upload.seconds);
-    let rec = helmholtz_client::request_reconstruction(reader, ID, "transport", &serde_json::json!({})).await?;
-    let rec = helmholtz_client::wait_reconstruction(reader, rec.id, Duration::from_secs(600)).await?;
-    anyhow::ensure!(rec.is_done(), "reconstruction {} ended {}: {:?}", rec.id, rec.state, rec.error);
+    println!(
+        "   uploaded {} frames ({} already stored) in {:.2} s",
+        upload.rows, upload.rows_skipped, upload.seconds
+    );
+    let rec =
+        helmholtz_client::request_reconstruction(reader, ID, "transport", &serde_json::json!({}))
+            .await?;
+    let rec =
+        helmholtz_client::wait_reconstruction(reader, rec.id, Duration::from_secs(600)).await?;
+    anyhow::ensure!(
+        rec.is_done(),
+        "reconstruction {} ended {}: {:?}",
+        rec.id,
+        rec.state,
+        rec.error
+    );
     println!(
         "   transport reconstruction {} in {:.3} s: relative error of T {}, stored {} bytes",
         rec.id,
@@ -176,7 +241,10 @@ async fn camera_rig(base: &str, rig: &str, reader: &str) -> anyhow::Result<()> {
         "   relight:    curl -H 'Authorization: Bearer ...' -d '{{\"light\": {{\"preset\": \"disc\", \"x\": 16, \"y\": 12, \"radius\": 5}}}}' {base}/v1/reconstructions/{}/relight -o relit.png",
         rec.id
     );
-    println!("   or:         helmholtz relight --reconstruction {} --disc 16,12,5 --out relit.png", rec.id);
+    println!(
+        "   or:         helmholtz relight --reconstruction {} --disc 16,12,5 --out relit.png",
+        rec.id
+    );
     Ok(())
 }
 

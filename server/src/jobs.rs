@@ -4,8 +4,8 @@
 
 use std::collections::HashMap;
 use std::panic::AssertUnwindSafe;
-use std::sync::{Arc, Mutex};
 use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
@@ -14,8 +14,10 @@ use tokio::runtime::Handle;
 use tokio::sync::Notify;
 
 use crate::recon::transport::{self, CameraGrid, FrameSource, TransportConfig};
-use crate::recon::{self, BucketBlock, BucketSource, Control, MethodConfig, Problem, ReconError, SourceError};
-use crate::store::{CameraLayout, ClaimedJob, SessionRow, StoredImage, Store};
+use crate::recon::{
+    self, BucketBlock, BucketSource, Control, MethodConfig, Problem, ReconError, SourceError,
+};
+use crate::store::{CameraLayout, ClaimedJob, SessionRow, Store, StoredImage};
 
 /// How the pool runs.
 #[derive(Clone, Debug)]
@@ -99,11 +101,19 @@ impl WorkerPool {
                     .expect("spawn worker thread")
             })
             .collect();
-        WorkerPool { threads, stop, wake, running }
+        WorkerPool {
+            threads,
+            stop,
+            wake,
+            running,
+        }
     }
 
     pub fn notifier(&self) -> JobNotifier {
-        JobNotifier { wake: self.wake.clone(), running: self.running.clone() }
+        JobNotifier {
+            wake: self.wake.clone(),
+            running: self.running.clone(),
+        }
     }
 
     /// Stops taking work; running jobs are cancelled and their leases given back (not counted as
@@ -134,7 +144,11 @@ impl Worker {
     fn run(self) {
         let lease_ms = self.config.lease.as_millis() as i64;
         while !self.stop.load(Ordering::SeqCst) {
-            match self.runtime.block_on(self.store.claim_job(&self.id, lease_ms, self.config.max_running_per_lab)) {
+            match self.runtime.block_on(self.store.claim_job(
+                &self.id,
+                lease_ms,
+                self.config.max_running_per_lab,
+            )) {
                 Ok(Some(job)) => self.run_job(job),
                 Ok(None) => self.idle(),
                 Err(e) => {
@@ -162,7 +176,10 @@ impl Worker {
         let _enter = span.enter();
         tracing::info!(session = %job.reconstruction.session_id, rows = job.reconstruction.rows_used, "job started");
         let control = Arc::new(Control::new());
-        self.running.lock().expect("running lock").insert(id, control.clone());
+        self.running
+            .lock()
+            .expect("running lock")
+            .insert(id, control.clone());
         if self.stop.load(Ordering::SeqCst) {
             control.cancel();
         }
@@ -177,14 +194,18 @@ impl Worker {
                     .cloned()
                     .or_else(|| panic.downcast_ref::<&str>().map(|s| s.to_string()))
                     .unwrap_or_else(|| "unknown panic".into());
-                Err(JobError::Internal(format!("reconstruction panicked: {msg}")))
+                Err(JobError::Internal(format!(
+                    "reconstruction panicked: {msg}"
+                )))
             });
         let seconds = started.elapsed().as_secs_f64();
         heartbeat.abort();
         self.running.lock().expect("running lock").remove(&id);
         let outcome_label = match &outcome {
             Ok(_) => "done",
-            Err(JobError::Recon(ReconError::Cancelled)) if self.stop.load(Ordering::SeqCst) => "released",
+            Err(JobError::Recon(ReconError::Cancelled)) if self.stop.load(Ordering::SeqCst) => {
+                "released"
+            }
             Err(JobError::Recon(ReconError::Cancelled)) => "cancelled",
             Err(_) => "failed",
         };
@@ -192,33 +213,57 @@ impl Worker {
             .record(seconds);
         let store = &self.store;
         let result = match outcome {
-            Ok(Computed { images, transport, mut report }) => {
+            Ok(Computed {
+                images,
+                transport,
+                mut report,
+            }) => {
                 if crate::alloc::installed() {
                     // Process-wide: includes other jobs' live memory if several run at once.
-                    report["peak_memory_bytes"] = json!(crate::alloc::peak_bytes().saturating_sub(heap_base));
+                    report["peak_memory_bytes"] =
+                        json!(crate::alloc::peak_bytes().saturating_sub(heap_base));
                 }
                 report["seconds"] = json!(seconds);
                 let report = report.to_string();
-                self.runtime.block_on(store.complete_reconstruction(id, attempt, &images, transport.as_deref(), &report, seconds))
+                self.runtime.block_on(store.complete_reconstruction(
+                    id,
+                    attempt,
+                    &images,
+                    transport.as_deref(),
+                    &report,
+                    seconds,
+                ))
             }
             Err(JobError::Recon(ReconError::Cancelled)) if self.stop.load(Ordering::SeqCst) => {
                 self.runtime.block_on(store.release_job(id, attempt))
             }
             Err(JobError::Recon(ReconError::Cancelled)) => Ok(false),
-            Err(JobError::Recon(ReconError::Source(e))) | Err(JobError::Source(e)) => {
-                self.runtime.block_on(store.fail_job(id, attempt, &e.to_string(), true))
-            }
-            Err(e) => self.runtime.block_on(store.fail_job(id, attempt, &e.to_string(), false)),
+            Err(JobError::Recon(ReconError::Source(e))) | Err(JobError::Source(e)) => self
+                .runtime
+                .block_on(store.fail_job(id, attempt, &e.to_string(), true)),
+            Err(e) => self
+                .runtime
+                .block_on(store.fail_job(id, attempt, &e.to_string(), false)),
         };
         match result {
             Ok(true) => tracing::info!(seconds, "job ended"),
-            Ok(false) if outcome_label == "cancelled" => tracing::info!(seconds, "job stopped: cancelled"),
-            Ok(false) => tracing::warn!(seconds, "job ended without its lease (cancelled or taken over)"),
+            Ok(false) if outcome_label == "cancelled" => {
+                tracing::info!(seconds, "job stopped: cancelled")
+            }
+            Ok(false) => tracing::warn!(
+                seconds,
+                "job ended without its lease (cancelled or taken over)"
+            ),
             Err(e) => tracing::error!(error = %e, "recording the job's end failed"),
         }
     }
 
-    fn spawn_heartbeat(&self, id: i64, attempt: i64, control: Arc<Control>) -> tokio::task::JoinHandle<()> {
+    fn spawn_heartbeat(
+        &self,
+        id: i64,
+        attempt: i64,
+        control: Arc<Control>,
+    ) -> tokio::task::JoinHandle<()> {
         let store = self.store.clone();
         let lease = self.config.lease;
         let stop = self.stop.clone();
@@ -228,7 +273,10 @@ impl Worker {
                 if stop.load(Ordering::SeqCst) {
                     control.cancel();
                 }
-                match store.heartbeat(id, attempt, lease.as_millis() as i64, control.progress()).await {
+                match store
+                    .heartbeat(id, attempt, lease.as_millis() as i64, control.progress())
+                    .await
+                {
                     Ok(true) => {}
                     Ok(false) => {
                         tracing::warn!(id, attempt, "lease lost or job cancelled; stopping");
@@ -244,13 +292,22 @@ impl Worker {
 
     fn compute(&self, job: &ClaimedJob, control: &Control) -> Result<Computed, JobError> {
         let r = &job.reconstruction;
-        let session = self.runtime.block_on(self.store.session(&r.session_id)).map_err(|e| JobError::Source(SourceError(e.to_string())))?;
+        let session = self
+            .runtime
+            .block_on(self.store.session(&r.session_id))
+            .map_err(|e| JobError::Source(SourceError(e.to_string())))?;
         if let Some(camera) = session.camera {
             return self.compute_transport(job, &session, camera, control);
         }
-        let params: Value = serde_json::from_str(&r.params_json).map_err(|e| JobError::Internal(e.to_string()))?;
-        let config = MethodConfig::parse(&r.method, &params).map_err(|e| JobError::Internal(e.to_string()))?;
-        let problem = Problem { spec: &session.spec, channels: session.channels.len(), rows: r.rows_used };
+        let params: Value =
+            serde_json::from_str(&r.params_json).map_err(|e| JobError::Internal(e.to_string()))?;
+        let config = MethodConfig::parse(&r.method, &params)
+            .map_err(|e| JobError::Internal(e.to_string()))?;
+        let problem = Problem {
+            spec: &session.spec,
+            channels: session.channels.len(),
+            rows: r.rows_used,
+        };
         let mut source = StoreSource {
             store: &self.store,
             runtime: &self.runtime,
@@ -260,10 +317,15 @@ impl Worker {
             limit: r.rows_used,
             pending: Vec::new(),
         };
-        let result = recon::reconstruct(&problem, &config, &mut source, control).map_err(JobError::Recon)?;
-        let mut report = serde_json::to_value(&result.report).map_err(|e| JobError::Internal(e.to_string()))?;
+        let result =
+            recon::reconstruct(&problem, &config, &mut source, control).map_err(JobError::Recon)?;
+        let mut report =
+            serde_json::to_value(&result.report).map_err(|e| JobError::Internal(e.to_string()))?;
         if session.has_ground_truth {
-            let truth = self.runtime.block_on(self.store.ground_truth(&r.session_id)).map_err(|e| JobError::Source(SourceError(e.to_string())))?;
+            let truth = self
+                .runtime
+                .block_on(self.store.ground_truth(&r.session_id))
+                .map_err(|e| JobError::Source(SourceError(e.to_string())))?;
             if let Some((w, h, truth)) = truth {
                 report["quality"] = quality(&result.images, &session.channels, w, h, &truth);
             }
@@ -281,44 +343,98 @@ impl Worker {
                 data: img.data,
             })
             .collect();
-        Ok(Computed { images, transport: None, report })
+        Ok(Computed {
+            images,
+            transport: None,
+            report,
+        })
     }
 
     /// A camera session: the transport matrix T (stored encoded), its dual image under the whole
     /// camera as the light (`T^T 1`, channel "camera"), and the ambient image (channel
     /// "ambient": what the camera sees that no projector pixel explains, e.g. dark level and
     /// room light, `mean frame - T mean pattern`).
-    fn compute_transport(&self, job: &ClaimedJob, session: &SessionRow, camera: CameraLayout, control: &Control) -> Result<Computed, JobError> {
+    fn compute_transport(
+        &self,
+        job: &ClaimedJob,
+        session: &SessionRow,
+        camera: CameraLayout,
+        control: &Control,
+    ) -> Result<Computed, JobError> {
         let r = &job.reconstruction;
         let heap_base = crate::alloc::live_bytes();
-        let params: Value = serde_json::from_str(&r.params_json).map_err(|e| JobError::Internal(e.to_string()))?;
-        let config = TransportConfig::parse(&params).map_err(|e| JobError::Internal(e.to_string()))?.with_memory_budget(self.config.memory_budget);
-        let grid = CameraGrid { width: camera.width, height: camera.height };
-        let mut source = StoreFrames::new(&self.store, &self.runtime, &r.session_id, r.rows_used, camera);
-        let (t, result_report) = transport::reconstruct_transport(&session.spec, grid, r.rows_used, &config, &mut source, control).map_err(JobError::Recon)?;
-        let ambient = source.ambient(&session.spec, &t, control).map_err(JobError::Recon)?;
+        let params: Value =
+            serde_json::from_str(&r.params_json).map_err(|e| JobError::Internal(e.to_string()))?;
+        let config = TransportConfig::parse(&params)
+            .map_err(|e| JobError::Internal(e.to_string()))?
+            .with_memory_budget(self.config.memory_budget);
+        let grid = CameraGrid {
+            width: camera.width,
+            height: camera.height,
+        };
+        let mut source = StoreFrames::new(
+            &self.store,
+            &self.runtime,
+            &r.session_id,
+            r.rows_used,
+            camera,
+        );
+        let (t, result_report) = transport::reconstruct_transport(
+            &session.spec,
+            grid,
+            r.rows_used,
+            &config,
+            &mut source,
+            control,
+        )
+        .map_err(JobError::Recon)?;
+        let ambient = source
+            .ambient(&session.spec, &t, control)
+            .map_err(JobError::Recon)?;
         let m = camera.pixels();
         let summed = t.relight(&vec![1.0; m]);
         // The reconstruction's own peak, before the ground truth (m x k) is loaded to score it.
-        let working_peak = crate::alloc::installed().then(|| crate::alloc::peak_bytes().saturating_sub(heap_base));
-        let mut report = serde_json::to_value(&result_report).map_err(|e| JobError::Internal(e.to_string()))?;
+        let working_peak =
+            crate::alloc::installed().then(|| crate::alloc::peak_bytes().saturating_sub(heap_base));
+        let mut report =
+            serde_json::to_value(&result_report).map_err(|e| JobError::Internal(e.to_string()))?;
         if let Some(peak) = working_peak {
             report["details"]["reconstruction_peak_bytes"] = json!(peak);
         }
-        report["details"]["ambient_mean"] = json!(ambient.iter().map(|&v| v as f64).sum::<f64>() / m as f64);
+        report["details"]["ambient_mean"] =
+            json!(ambient.iter().map(|&v| v as f64).sum::<f64>() / m as f64);
         report["details"]["frame_passes"] = json!(source.passes);
         if session.has_ground_truth {
-            let truth = self.runtime.block_on(self.store.ground_truth(&r.session_id)).map_err(|e| JobError::Source(SourceError(e.to_string())))?;
+            let truth = self
+                .runtime
+                .block_on(self.store.ground_truth(&r.session_id))
+                .map_err(|e| JobError::Source(SourceError(e.to_string())))?;
             if let Some((w, h, truth)) = truth {
                 report["quality"] = transport_quality(&t, &summed, w, h, &truth);
             }
         }
         let (pw, ph) = t.projector();
         let images = vec![
-            StoredImage { channel_index: 0, channel_name: "camera".into(), width: pw, height: ph, data: summed },
-            StoredImage { channel_index: 1, channel_name: "ambient".into(), width: camera.width, height: camera.height, data: ambient },
+            StoredImage {
+                channel_index: 0,
+                channel_name: "camera".into(),
+                width: pw,
+                height: ph,
+                data: summed,
+            },
+            StoredImage {
+                channel_index: 1,
+                channel_name: "ambient".into(),
+                width: camera.width,
+                height: camera.height,
+                data: ambient,
+            },
         ];
-        Ok(Computed { images, transport: Some(t.encode()), report })
+        Ok(Computed {
+            images,
+            transport: Some(t.encode()),
+            report,
+        })
     }
 }
 
@@ -332,7 +448,13 @@ struct Computed {
 
 /// T against the simulator's (m x k): relative Frobenius error, the worst row's relative error,
 /// and the dual image under the full camera (`T^T 1`) against the truth's column sums.
-fn transport_quality(t: &transport::TransportMatrix, summed: &[f32], w: u32, h: u32, truth: &[f32]) -> Value {
+fn transport_quality(
+    t: &transport::TransportMatrix,
+    summed: &[f32],
+    w: u32,
+    h: u32,
+    truth: &[f32],
+) -> Value {
     let k = w as usize * h as usize;
     let m = truth.len() / k.max(1);
     if k == 0 || truth.len() != m * k || t.camera().0 as usize * t.camera().1 as usize != m {
@@ -380,25 +502,53 @@ struct StoreFrames<'a> {
 const CHUNKS_PER_PAGE: u32 = 1;
 
 impl<'a> StoreFrames<'a> {
-    fn new(store: &'a Store, runtime: &'a Handle, session_id: &'a str, rows: u64, camera: CameraLayout) -> Self {
-        StoreFrames { store, runtime, session_id, rows, camera, passes: 0 }
+    fn new(
+        store: &'a Store,
+        runtime: &'a Handle,
+        session_id: &'a str,
+        rows: u64,
+        camera: CameraLayout,
+    ) -> Self {
+        StoreFrames {
+            store,
+            runtime,
+            session_id,
+            rows,
+            camera,
+            passes: 0,
+        }
     }
 
     /// Calls `visit(row, frame bytes)` for rows 0..rows in order.
-    fn each_frame(&mut self, mut visit: impl FnMut(u64, &[u8]) -> Result<(), ReconError>) -> Result<(), ReconError> {
+    fn each_frame(
+        &mut self,
+        mut visit: impl FnMut(u64, &[u8]) -> Result<(), ReconError>,
+    ) -> Result<(), ReconError> {
         self.passes += 1;
         let row_bytes = self.camera.pixels() * self.camera.format.bytes();
         let mut next = 0u64;
         while next < self.rows {
             let page = self
                 .runtime
-                .block_on(self.store.read_raw_chunks(self.session_id, next, CHUNKS_PER_PAGE, self.camera.format.bytes()))
+                .block_on(self.store.read_raw_chunks(
+                    self.session_id,
+                    next,
+                    CHUNKS_PER_PAGE,
+                    self.camera.format.bytes(),
+                ))
                 .map_err(|e| ReconError::Source(SourceError(e.to_string())))?;
             if page.is_empty() {
-                return Err(ReconError::Source(SourceError(format!("frames end at row {next} before {}", self.rows))));
+                return Err(ReconError::Source(SourceError(format!(
+                    "frames end at row {next} before {}",
+                    self.rows
+                ))));
             }
             for (start, count, data) in page {
-                for (i, frame) in data.chunks_exact(row_bytes).enumerate().take(count as usize) {
+                for (i, frame) in data
+                    .chunks_exact(row_bytes)
+                    .enumerate()
+                    .take(count as usize)
+                {
                     let row = start + i as u64;
                     if row >= self.rows {
                         return Ok(());
@@ -412,7 +562,12 @@ impl<'a> StoreFrames<'a> {
     }
 
     /// `mean frame - T mean pattern` over the rows used.
-    fn ambient(&mut self, spec: &helmholtz_proto::PatternSpec, t: &transport::TransportMatrix, control: &Control) -> Result<Vec<f32>, ReconError> {
+    fn ambient(
+        &mut self,
+        spec: &helmholtz_proto::PatternSpec,
+        t: &transport::TransportMatrix,
+        control: &Control,
+    ) -> Result<Vec<f32>, ReconError> {
         let m = self.camera.pixels();
         let format = self.camera.format;
         let mut sum = vec![0f64; m];
@@ -420,7 +575,9 @@ impl<'a> StoreFrames<'a> {
         self.each_frame(|_, frame| {
             decoded.clear();
             format.decode_f32(frame, &mut decoded);
-            sum.iter_mut().zip(&decoded).for_each(|(s, v)| *s += *v as f64);
+            sum.iter_mut()
+                .zip(&decoded)
+                .for_each(|(s, v)| *s += *v as f64);
             Ok(())
         })?;
         if control.is_cancelled() {
@@ -432,12 +589,19 @@ impl<'a> StoreFrames<'a> {
         let mut pattern = vec![0f32; k];
         for i in 0..self.rows {
             generator.fill_values(i, &mut pattern);
-            mean_pattern.iter_mut().zip(&pattern).for_each(|(a, p)| *a += *p as f64);
+            mean_pattern
+                .iter_mut()
+                .zip(&pattern)
+                .for_each(|(a, p)| *a += *p as f64);
         }
         let n = self.rows as f64;
         let mean_pattern: Vec<f32> = mean_pattern.iter().map(|v| (v / n) as f32).collect();
         let explained = t.primal(&mean_pattern);
-        Ok(sum.iter().zip(explained).map(|(s, e)| (s / n) as f32 - e).collect())
+        Ok(sum
+            .iter()
+            .zip(explained)
+            .map(|(s, e)| (s / n) as f32 - e)
+            .collect())
     }
 }
 
@@ -445,7 +609,9 @@ impl FrameSource for StoreFrames<'_> {
     fn read_pixels(&mut self, pixels: std::ops::Range<usize>) -> Result<Vec<f32>, SourceError> {
         let m = self.camera.pixels();
         if pixels.end > m || pixels.start > pixels.end {
-            return Err(SourceError(format!("camera pixels {pixels:?} outside 0..{m}")));
+            return Err(SourceError(format!(
+                "camera pixels {pixels:?} outside 0..{m}"
+            )));
         }
         let format = self.camera.format;
         let sb = format.bytes();
@@ -466,7 +632,13 @@ impl FrameSource for StoreFrames<'_> {
 /// Quality against the simulator's ground truth, per channel: raw PSNR/SSIM, and PSNR after the
 /// least-squares affine fit (correlation methods estimate t only up to scale and offset).
 /// `truth` holds one image shared by every channel, or one per channel.
-fn quality(images: &[recon::DualImage], channels: &[String], w: u32, h: u32, truth: &[f32]) -> Value {
+fn quality(
+    images: &[recon::DualImage],
+    channels: &[String],
+    w: u32,
+    h: u32,
+    truth: &[f32],
+) -> Value {
     let k = w as usize * h as usize;
     let per_channel: Vec<Value> = images
         .iter()
@@ -492,7 +664,13 @@ fn quality(images: &[recon::DualImage], channels: &[String], w: u32, h: u32, tru
 }
 
 fn finite_or_null(v: f64) -> Value {
-    if v.is_finite() { json!(v) } else if v == f64::INFINITY { json!("inf") } else { Value::Null }
+    if v.is_finite() {
+        json!(v)
+    } else if v == f64::INFINITY {
+        json!("inf")
+    } else {
+        Value::Null
+    }
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -528,7 +706,10 @@ impl BucketSource for StoreSource<'_> {
                 .block_on(self.store.read_chunks(self.session_id, self.next_row, 64))
                 .map_err(|e| SourceError(e.to_string()))?;
             if page.is_empty() {
-                return Err(SourceError(format!("rows end at {} before {}", self.next_row, self.limit)));
+                return Err(SourceError(format!(
+                    "rows end at {} before {}",
+                    self.next_row, self.limit
+                )));
             }
             page.reverse();
             self.pending = page;
@@ -538,6 +719,9 @@ impl BucketSource for StoreSource<'_> {
         let end = (start + rows).min(self.limit);
         values.truncate(((end - start) as usize) * self.channels);
         self.next_row = start + rows;
-        Ok(Some(BucketBlock { first_row: start, values }))
+        Ok(Some(BucketBlock {
+            first_row: start,
+            values,
+        }))
     }
 }

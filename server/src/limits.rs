@@ -91,7 +91,11 @@ mod tests {
             r.check(1, 1.0, 3.0).unwrap();
         }
         let wait = r.check(1, 1.0, 3.0).unwrap_err();
-        assert!(wait > Duration::from_millis(900) && wait <= Duration::from_secs(1), "{wait:?}");
-        r.check(2, 1.0, 3.0).expect("another token has its own bucket");
+        assert!(
+            wait > Duration::from_millis(900) && wait <= Duration::from_secs(1),
+            "{wait:?}"
+        );
+        r.check(2, 1.0, 3.0)
+            .expect("another token has its own bucket");
     }
 }

@@ -24,8 +24,12 @@ use crate::store::Store;
 
 static HANDLE: OnceLock<PrometheusHandle> = OnceLock::new();
 
-const LATENCY_BUCKETS: &[f64] = &[0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0];
-const JOB_BUCKETS: &[f64] = &[0.01, 0.05, 0.1, 0.5, 1.0, 2.0, 5.0, 10.0, 30.0, 60.0, 120.0, 300.0, 600.0, 1800.0];
+const LATENCY_BUCKETS: &[f64] = &[
+    0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0,
+];
+const JOB_BUCKETS: &[f64] = &[
+    0.01, 0.05, 0.1, 0.5, 1.0, 2.0, 5.0, 10.0, 30.0, 60.0, 120.0, 300.0, 600.0, 1800.0,
+];
 
 /// Installs the process-wide Prometheus recorder (once; later calls reuse it).
 pub fn recorder() -> anyhow::Result<PrometheusHandle> {
@@ -33,23 +37,56 @@ pub fn recorder() -> anyhow::Result<PrometheusHandle> {
         return Ok(h.clone());
     }
     let handle = PrometheusBuilder::new()
-        .set_buckets_for_metric(metrics_exporter_prometheus::Matcher::Suffix("request_duration_seconds".into()), LATENCY_BUCKETS)?
-        .set_buckets_for_metric(metrics_exporter_prometheus::Matcher::Full("helmholtz_job_duration_seconds".into()), JOB_BUCKETS)?
+        .set_buckets_for_metric(
+            metrics_exporter_prometheus::Matcher::Suffix("request_duration_seconds".into()),
+            LATENCY_BUCKETS,
+        )?
+        .set_buckets_for_metric(
+            metrics_exporter_prometheus::Matcher::Full("helmholtz_job_duration_seconds".into()),
+            JOB_BUCKETS,
+        )?
         .install_recorder()?;
     describe();
     Ok(HANDLE.get_or_init(|| handle).clone())
 }
 
 fn describe() {
-    metrics::describe_counter!("helmholtz_upload_rows_total", "Bucket rows committed by uploads");
-    metrics::describe_counter!("helmholtz_upload_bytes_total", "Bytes of bucket values (f64) committed by uploads");
-    metrics::describe_counter!("helmholtz_upload_resumed_total", "Upload streams that continued a session already holding rows");
-    metrics::describe_counter!("helmholtz_checksum_failures_total", "Upload chunks refused for a CRC-32C mismatch");
-    metrics::describe_counter!("helmholtz_rate_limited_total", "Requests refused by the per-token rate limit");
-    metrics::describe_gauge!("helmholtz_queue_depth", "Reconstruction jobs queued or running");
-    metrics::describe_histogram!("helmholtz_job_duration_seconds", "Reconstruction job run time by method and outcome");
-    metrics::describe_histogram!("helmholtz_http_request_duration_seconds", "REST latency by matched route");
-    metrics::describe_histogram!("helmholtz_grpc_request_duration_seconds", "gRPC latency (to the response head) by method");
+    metrics::describe_counter!(
+        "helmholtz_upload_rows_total",
+        "Bucket rows committed by uploads"
+    );
+    metrics::describe_counter!(
+        "helmholtz_upload_bytes_total",
+        "Bytes of bucket values (f64) committed by uploads"
+    );
+    metrics::describe_counter!(
+        "helmholtz_upload_resumed_total",
+        "Upload streams that continued a session already holding rows"
+    );
+    metrics::describe_counter!(
+        "helmholtz_checksum_failures_total",
+        "Upload chunks refused for a CRC-32C mismatch"
+    );
+    metrics::describe_counter!(
+        "helmholtz_rate_limited_total",
+        "Requests refused by the per-token rate limit"
+    );
+    metrics::describe_gauge!(
+        "helmholtz_queue_depth",
+        "Reconstruction jobs queued or running"
+    );
+    metrics::describe_histogram!(
+        "helmholtz_job_duration_seconds",
+        "Reconstruction job run time by method and outcome"
+    );
+    metrics::describe_histogram!(
+        "helmholtz_http_request_duration_seconds",
+        "REST latency by matched route"
+    );
+    metrics::describe_histogram!(
+        "helmholtz_grpc_request_duration_seconds",
+        "gRPC latency (to the response head) by method"
+    );
 }
 
 /// Serves `GET /metrics` on `listener` until `shutdown`.
@@ -62,7 +99,9 @@ pub async fn serve(
     let app = axum::Router::new()
         .route("/metrics", axum::routing::get(render))
         .with_state((handle, store));
-    axum::serve(listener, app).with_graceful_shutdown(shutdown).await
+    axum::serve(listener, app)
+        .with_graceful_shutdown(shutdown)
+        .await
 }
 
 async fn render(State((handle, store)): State<(PrometheusHandle, Store)>) -> Response {
@@ -71,7 +110,11 @@ async fn render(State((handle, store)): State<(PrometheusHandle, Store)>) -> Res
         metrics::gauge!("helmholtz_queue_depth", "state" => "running").set(running as f64);
     }
     handle.run_upkeep();
-    ([(http::header::CONTENT_TYPE, "text/plain; version=0.0.4")], handle.render()).into_response()
+    (
+        [(http::header::CONTENT_TYPE, "text/plain; version=0.0.4")],
+        handle.render(),
+    )
+        .into_response()
 }
 
 /// The gRPC methods this server knows (labels stay bounded whatever paths clients send).
@@ -90,7 +133,10 @@ const RPCS: &[&str] = &[
 pub async fn record_latency(request: Request, next: Next) -> Response {
     let started = Instant::now();
     let path = request.uri().path().to_string();
-    let route = request.extensions().get::<MatchedPath>().map(|m| m.as_str().to_string());
+    let route = request
+        .extensions()
+        .get::<MatchedPath>()
+        .map(|m| m.as_str().to_string());
     let method = request.method().clone();
     let is_grpc = request
         .headers()
@@ -100,7 +146,11 @@ pub async fn record_latency(request: Request, next: Next) -> Response {
     let response = next.run(request).await;
     let seconds = started.elapsed().as_secs_f64();
     if is_grpc {
-        let rpc = RPCS.iter().find(|r| **r == path).copied().unwrap_or("unknown");
+        let rpc = RPCS
+            .iter()
+            .find(|r| **r == path)
+            .copied()
+            .unwrap_or("unknown");
         // Errors come as trailers-only responses (grpc-status in the head); a head without it
         // is a call that succeeded (or failed later in its stream, which these RPCs do not).
         let code = response
@@ -126,5 +176,7 @@ pub async fn record_latency(request: Request, next: Next) -> Response {
 /// Binds the metrics listener (before anything else starts, so a bad address fails early).
 pub async fn bind(addr: SocketAddr) -> anyhow::Result<tokio::net::TcpListener> {
     use anyhow::Context;
-    tokio::net::TcpListener::bind(addr).await.with_context(|| format!("cannot listen for metrics on {addr} (--metrics-listen)"))
+    tokio::net::TcpListener::bind(addr)
+        .await
+        .with_context(|| format!("cannot listen for metrics on {addr} (--metrics-listen)"))
 }

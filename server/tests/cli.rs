@@ -5,7 +5,10 @@ use std::process::Command;
 
 #[test]
 fn help_names_every_command() {
-    let out = Command::new(env!("CARGO_BIN_EXE_helmholtz-server")).arg("--help").output().unwrap();
+    let out = Command::new(env!("CARGO_BIN_EXE_helmholtz-server"))
+        .arg("--help")
+        .output()
+        .unwrap();
     assert!(out.status.success());
     let text = String::from_utf8(out.stdout).unwrap();
     for command in ["serve", "demo", "token"] {

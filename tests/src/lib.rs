@@ -15,7 +15,10 @@ use helmholtz_client::auth::Grpc;
 /// last workspace build left.
 pub fn binary(name: &str) -> PathBuf {
     let exe = std::env::current_exe().expect("test executable path");
-    let dir = exe.parent().and_then(Path::parent).expect("target/<profile>/deps/..");
+    let dir = exe
+        .parent()
+        .and_then(Path::parent)
+        .expect("target/<profile>/deps/..");
     let path = dir.join(format!("{name}{}", std::env::consts::EXE_SUFFIX));
     assert!(
         path.exists(),
@@ -54,18 +57,37 @@ pub fn create_token(data_dir: &Path, lab: &str, roles: &str) -> anyhow::Result<S
 }
 
 /// [`create_token`] by the server binary at `server_bin`.
-pub fn create_token_with(server_bin: &Path, data_dir: &Path, lab: &str, roles: &str) -> anyhow::Result<String> {
+pub fn create_token_with(
+    server_bin: &Path,
+    data_dir: &Path,
+    lab: &str,
+    roles: &str,
+) -> anyhow::Result<String> {
     let out = Command::new(server_bin)
-        .args(["token", "create", "--lab", lab, "--role", roles, "--data-dir"])
+        .args([
+            "token",
+            "create",
+            "--lab",
+            lab,
+            "--role",
+            roles,
+            "--data-dir",
+        ])
         .arg(data_dir)
         .env("RUST_LOG", "warn")
         .output()
         .context("running helmholtz-server token create")?;
     if !out.status.success() {
-        bail!("token create failed: {}", String::from_utf8_lossy(&out.stderr));
+        bail!(
+            "token create failed: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
     }
     let token = String::from_utf8(out.stdout)?.trim().to_string();
-    anyhow::ensure!(token.starts_with("hz_"), "unexpected token output {token:?}");
+    anyhow::ensure!(
+        token.starts_with("hz_"),
+        "unexpected token output {token:?}"
+    );
     Ok(token)
 }
 
@@ -97,7 +119,12 @@ impl ServerProcess {
 
     /// [`ServerProcess::start`] with the server binary at `server_bin` (which also creates the
     /// harness's token).
-    pub fn start_binary(server_bin: &Path, data_dir: &Path, port: u16, extra: &[&str]) -> anyhow::Result<ServerProcess> {
+    pub fn start_binary(
+        server_bin: &Path,
+        data_dir: &Path,
+        port: u16,
+        extra: &[&str],
+    ) -> anyhow::Result<ServerProcess> {
         std::fs::create_dir_all(data_dir)?;
         let token_file = data_dir.join(".e2e-token");
         let token = match std::fs::read_to_string(&token_file) {
@@ -132,11 +159,20 @@ impl ServerProcess {
                 }
             }
         });
-        let line = rx.recv_timeout(Duration::from_secs(60)).context("server printed no address")?;
+        let line = rx
+            .recv_timeout(Duration::from_secs(60))
+            .context("server printed no address")?;
         let mut urls = line.split_whitespace().filter(|w| w.starts_with("http://"));
-        let address = urls.next().with_context(|| format!("no address in {line:?}"))?.to_string();
+        let address = urls
+            .next()
+            .with_context(|| format!("no address in {line:?}"))?
+            .to_string();
         let metrics_url = urls.next().map(|u| u.trim_end_matches(',').to_string());
-        let port = address.rsplit(':').next().and_then(|p| p.parse().ok()).context("port")?;
+        let port = address
+            .rsplit(':')
+            .next()
+            .and_then(|p| p.parse().ok())
+            .context("port")?;
         let base_url = helmholtz_client::auth::with_token(&address, &token);
         Ok(ServerProcess {
             child,
@@ -171,7 +207,9 @@ impl ServerProcess {
 
     /// Sends SIGTERM and returns at once (the server shuts down gracefully meanwhile).
     pub fn signal_term(&self) -> anyhow::Result<()> {
-        let status = Command::new("kill").args(["-TERM", &self.child.id().to_string()]).status()?;
+        let status = Command::new("kill")
+            .args(["-TERM", &self.child.id().to_string()])
+            .status()?;
         anyhow::ensure!(status.success(), "kill -TERM failed");
         Ok(())
     }
@@ -231,7 +269,8 @@ impl FaultyProxy {
     pub async fn start(target: String) -> anyhow::Result<FaultyProxy> {
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
         let addr = listener.local_addr()?;
-        let connections = std::sync::Arc::new(std::sync::Mutex::new(Vec::<tokio::task::AbortHandle>::new()));
+        let connections =
+            std::sync::Arc::new(std::sync::Mutex::new(Vec::<tokio::task::AbortHandle>::new()));
         let registry = connections.clone();
         let accept = tokio::spawn(async move {
             while let Ok((mut inbound, _)) = listener.accept().await {
@@ -246,7 +285,11 @@ impl FaultyProxy {
                 live.push(task.abort_handle());
             }
         });
-        Ok(FaultyProxy { addr, connections, accept })
+        Ok(FaultyProxy {
+            addr,
+            connections,
+            accept,
+        })
     }
 
     pub fn url(&self) -> String {
@@ -291,9 +334,15 @@ impl SplitMix64 {
 
 /// The seed of a fault test: `HELMHOLTZ_FAULT_SEED` if set (to replay a run), else the clock.
 pub fn fault_seed() -> u64 {
-    std::env::var("HELMHOLTZ_FAULT_SEED").ok().and_then(|s| s.parse().ok()).unwrap_or_else(|| {
-        std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_nanos() as u64).unwrap_or(1)
-    })
+    std::env::var("HELMHOLTZ_FAULT_SEED")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or_else(|| {
+            std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map(|d| d.as_nanos() as u64)
+                .unwrap_or(1)
+        })
 }
 
 /// Parses a little-endian float NPY (`<f4` or `<f8`) into (shape, values as f64).
@@ -303,14 +352,26 @@ pub fn parse_npy(bytes: &[u8]) -> anyhow::Result<(Vec<usize>, Vec<f64>)> {
     }
     let hlen = u16::from_le_bytes([bytes[8], bytes[9]]) as usize;
     let header = std::str::from_utf8(&bytes[10..10 + hlen])?;
-    let shape_text = header.split("'shape': (").nth(1).and_then(|s| s.split(')').next()).context("shape")?;
-    let shape: Vec<usize> =
-        shape_text.split(',').map(str::trim).filter(|s| !s.is_empty()).map(|s| s.parse()).collect::<Result<_, _>>()?;
+    let shape_text = header
+        .split("'shape': (")
+        .nth(1)
+        .and_then(|s| s.split(')').next())
+        .context("shape")?;
+    let shape: Vec<usize> = shape_text
+        .split(',')
+        .map(str::trim)
+        .filter(|s| !s.is_empty())
+        .map(|s| s.parse())
+        .collect::<Result<_, _>>()?;
     let data = &bytes[10 + hlen..];
     let values = if header.contains("'<f4'") {
-        data.chunks_exact(4).map(|b| f32::from_le_bytes(b.try_into().unwrap()) as f64).collect()
+        data.chunks_exact(4)
+            .map(|b| f32::from_le_bytes(b.try_into().unwrap()) as f64)
+            .collect()
     } else if header.contains("'<f8'") {
-        data.chunks_exact(8).map(|b| f64::from_le_bytes(b.try_into().unwrap())).collect()
+        data.chunks_exact(8)
+            .map(|b| f64::from_le_bytes(b.try_into().unwrap()))
+            .collect()
     } else {
         bail!("unsupported dtype in {header}");
     };

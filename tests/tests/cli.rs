@@ -21,7 +21,12 @@ fn helmholtz(server: &ServerProcess, args: &[&str]) -> serde_json::Value {
         String::from_utf8_lossy(&out.stdout),
         String::from_utf8_lossy(&out.stderr)
     );
-    serde_json::from_slice(&out.stdout).unwrap_or_else(|e| panic!("{args:?}: not JSON ({e}): {}", String::from_utf8_lossy(&out.stdout)))
+    serde_json::from_slice(&out.stdout).unwrap_or_else(|e| {
+        panic!(
+            "{args:?}: not JSON ({e}): {}",
+            String::from_utf8_lossy(&out.stdout)
+        )
+    })
 }
 
 #[test]
@@ -32,9 +37,28 @@ fn simulate_reconstruct_fetch_and_status_from_the_command_line() {
     let sim = helmholtz(
         &server,
         &[
-            "simulate", "--scene", "double-slit", "--family", "bernoulli", "--width", "32", "--height", "32",
-            "--count", "20000", "--seed", "3", "--snr-db", "30", "--session-id", "cli-slit",
-            "--reconstruct", "dgi", "--wait", "--out", png.to_str().unwrap(),
+            "simulate",
+            "--scene",
+            "double-slit",
+            "--family",
+            "bernoulli",
+            "--width",
+            "32",
+            "--height",
+            "32",
+            "--count",
+            "20000",
+            "--seed",
+            "3",
+            "--snr-db",
+            "30",
+            "--session-id",
+            "cli-slit",
+            "--reconstruct",
+            "dgi",
+            "--wait",
+            "--out",
+            png.to_str().unwrap(),
         ],
     );
     assert!(png.exists(), "simulate --out wrote no file: {sim}");
@@ -43,28 +67,68 @@ fn simulate_reconstruct_fetch_and_status_from_the_command_line() {
     assert_eq!((info.info().width, info.info().height), (32, 32));
 
     let npy = dir.path().join("dual.npy");
-    helmholtz(&server, &["fetch", "--session", "cli-slit", "--format", "npy", "--out", npy.to_str().unwrap()]);
+    helmholtz(
+        &server,
+        &[
+            "fetch",
+            "--session",
+            "cli-slit",
+            "--format",
+            "npy",
+            "--out",
+            npy.to_str().unwrap(),
+        ],
+    );
     let (shape, image) = parse_npy(&std::fs::read(&npy).unwrap()).unwrap();
     assert_eq!(shape, vec![32, 32]);
-    let truth: Vec<f64> = Scene::builtin("double-slit", 32, 32).unwrap().transport(1.0).iter().map(|&v| v as f64).collect();
+    let truth: Vec<f64> = Scene::builtin("double-slit", 32, 32)
+        .unwrap()
+        .transport(1.0)
+        .iter()
+        .map(|&v| v as f64)
+        .collect();
     let r = correlation(&image, &truth);
-    assert!(r > 0.9, "DGI from the CLI correlates {r:.3} with the double slit");
+    assert!(
+        r > 0.9,
+        "DGI from the CLI correlates {r:.3} with the double slit"
+    );
 
     let status = helmholtz(&server, &["status", "cli-slit"]);
     let text = status.to_string();
-    assert!(text.contains("20000") && text.contains("finished"), "status lacks rows or state: {status}");
+    assert!(
+        text.contains("20000") && text.contains("finished"),
+        "status lacks rows or state: {status}"
+    );
 
     let frames = dir.path().join("frames");
     let spec = r#"{"family":"hadamard","width":8,"height":8,"count":128,"ordering":"sequency"}"#;
-    helmholtz(&server, &["patterns", "--spec-json", spec, "--first", "0", "--count", "4", "--out", frames.to_str().unwrap()]);
-    let mut written: Vec<_> = std::fs::read_dir(&frames).unwrap().map(|e| e.unwrap().file_name()).collect();
+    helmholtz(
+        &server,
+        &[
+            "patterns",
+            "--spec-json",
+            spec,
+            "--first",
+            "0",
+            "--count",
+            "4",
+            "--out",
+            frames.to_str().unwrap(),
+        ],
+    );
+    let mut written: Vec<_> = std::fs::read_dir(&frames)
+        .unwrap()
+        .map(|e| e.unwrap().file_name())
+        .collect();
     written.sort();
     assert_eq!(written.len(), 4, "{written:?}");
     // Frame 0 is P+ of the all-ones row: all white. Frame 1 is its P-: all black (a dark frame).
     let read = |i: usize| {
-        let mut r = png::Decoder::new(std::io::BufReader::new(std::fs::File::open(frames.join(&written[i])).unwrap()))
-            .read_info()
-            .unwrap();
+        let mut r = png::Decoder::new(std::io::BufReader::new(
+            std::fs::File::open(frames.join(&written[i])).unwrap(),
+        ))
+        .read_info()
+        .unwrap();
         let mut buf = vec![0; r.output_buffer_size().unwrap()];
         r.next_frame(&mut buf).unwrap();
         buf
@@ -83,7 +147,10 @@ fn command_line_errors_are_clear_and_exit_non_zero() {
         .unwrap();
     assert!(!out.status.success());
     let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(stderr.contains("no-such-session") && stderr.contains("not found"), "{stderr}");
+    assert!(
+        stderr.contains("no-such-session") && stderr.contains("not found"),
+        "{stderr}"
+    );
 }
 
 /// `helmholtz acquire` with rows arriving on stdin: a bad line stops it with the rows before it
@@ -98,14 +165,36 @@ fn acquire_spools_rows_from_stdin_and_a_rerun_continues_after_a_bad_line() {
     let spec = r#"{"family":"bernoulli","width":8,"height":8,"count":300,"seed":1}"#;
     let acquire = |input: String| {
         let mut child = Command::new(binary("helmholtz"))
-            .args(["--server", &server.base_url, "--spool", spool.to_str().unwrap(), "--json", "acquire"])
-            .args(["--session-id", "rig-stdin", "--spec-json", spec, "--channels", "a,b", "--finish", "--batch-rows", "64"])
+            .args([
+                "--server",
+                &server.base_url,
+                "--spool",
+                spool.to_str().unwrap(),
+                "--json",
+                "acquire",
+            ])
+            .args([
+                "--session-id",
+                "rig-stdin",
+                "--spec-json",
+                spec,
+                "--channels",
+                "a,b",
+                "--finish",
+                "--batch-rows",
+                "64",
+            ])
             .stdin(std::process::Stdio::piped())
             .stdout(std::process::Stdio::piped())
             .stderr(std::process::Stdio::piped())
             .spawn()
             .unwrap();
-        child.stdin.take().unwrap().write_all(input.as_bytes()).unwrap();
+        child
+            .stdin
+            .take()
+            .unwrap()
+            .write_all(input.as_bytes())
+            .unwrap();
         child.wait_with_output().unwrap()
     };
     let line = |i: usize| format!("{i}.5, {}\n", i * 2);
@@ -114,17 +203,28 @@ fn acquire_spools_rows_from_stdin_and_a_rerun_continues_after_a_bad_line() {
     let out = acquire(first);
     assert!(!out.status.success());
     let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(stderr.contains("line 203, column 2") && stderr.contains("200 rows spooled"), "{stderr}");
+    assert!(
+        stderr.contains("line 203, column 2") && stderr.contains("200 rows spooled"),
+        "{stderr}"
+    );
 
     let out = acquire((200..300).map(line).collect());
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     let json: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(json["spooled_before"], 200);
     assert_eq!(json["finished"], true);
     let url = server.url("/v1/sessions/rig-stdin/measurements.npy");
-    let bytes = tokio::runtime::Runtime::new().unwrap().block_on(async { reqwest::get(url).await.unwrap().bytes().await.unwrap() });
+    let bytes = tokio::runtime::Runtime::new()
+        .unwrap()
+        .block_on(async { reqwest::get(url).await.unwrap().bytes().await.unwrap() });
     let (shape, values) = parse_npy(&bytes).unwrap();
     assert_eq!(shape, vec![300, 2]);
-    let expected: Vec<f64> = (0..300).flat_map(|i| [i as f64 + 0.5, (i * 2) as f64]).collect();
+    let expected: Vec<f64> = (0..300)
+        .flat_map(|i| [i as f64 + 0.5, (i * 2) as f64])
+        .collect();
     assert_eq!(values, expected);
 }

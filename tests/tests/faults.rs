@@ -77,7 +77,12 @@ async fn twenty_spooled_uploads_survive_the_server_killed_at_random_moments() {
         let batch = rng.range(50, 400) as usize;
         let pause = Duration::from_millis(rng.range(1, 15));
         sent.push((id.clone(), channels, values.clone()));
-        let (base, options, done, kills_seen) = (base.clone(), options.clone(), done.clone(), kills_seen.clone());
+        let (base, options, done, kills_seen) = (
+            base.clone(),
+            options.clone(),
+            done.clone(),
+            kills_seen.clone(),
+        );
         rigs.push(tokio::spawn(async move {
             let drainer = tokio::spawn({
                 let (spool, base, options) = (spool.clone(), base.clone(), options.clone());

@@ -59,7 +59,10 @@ impl TryFrom<&v1::PatternSpec> for PatternSpec {
 }
 
 fn params_mismatch(family: &str) -> SpecError {
-    SpecError { field: "params", message: format!("parameters of another family given for {family}") }
+    SpecError {
+        field: "params",
+        message: format!("parameters of another family given for {family}"),
+    }
 }
 
 fn ordering_from_proto(value: i32) -> Result<HadamardOrdering, SpecError> {
@@ -83,9 +86,10 @@ impl From<&PatternSpec> for v1::PatternSpec {
     fn from(s: &PatternSpec) -> Self {
         use v1::pattern_spec::Params;
         let (family, params) = match *s.family() {
-            Family::Raster { block } => {
-                (v1::PatternFamily::Raster, Params::Raster(v1::RasterParams { block }))
-            }
+            Family::Raster { block } => (
+                v1::PatternFamily::Raster,
+                Params::Raster(v1::RasterParams { block }),
+            ),
             Family::Bernoulli { fill } => (
                 v1::PatternFamily::Bernoulli,
                 Params::Bernoulli(v1::BernoulliParams { fill: Some(fill) }),
@@ -104,9 +108,10 @@ impl From<&PatternSpec> for v1::PatternSpec {
                     Params::Hadamard(v1::HadamardParams { ordering: o as i32 }),
                 )
             }
-            Family::Speckle { grain } => {
-                (v1::PatternFamily::Speckle, Params::Speckle(v1::SpeckleParams { grain }))
-            }
+            Family::Speckle { grain } => (
+                v1::PatternFamily::Speckle,
+                Params::Speckle(v1::SpeckleParams { grain }),
+            ),
         };
         v1::PatternSpec {
             family: family as i32,

@@ -47,7 +47,11 @@ impl HadamardOrdering {
 /// Reverses the lowest `bits` bits of `x`.
 #[inline]
 pub fn bit_reverse(x: u64, bits: u32) -> u64 {
-    if bits == 0 { 0 } else { x.reverse_bits() >> (64 - bits) }
+    if bits == 0 {
+        0
+    } else {
+        x.reverse_bits() >> (64 - bits)
+    }
 }
 
 /// Natural (Sylvester) index of the Walsh function with `sequency` sign changes, length 2^bits.
@@ -79,12 +83,14 @@ impl HadamardPlan {
             HadamardOrdering::Natural | HadamardOrdering::Sequency => None,
             _ => {
                 let (w, h) = (width as u64, height as u64);
-                let mut pairs: Vec<(u64, u64)> =
-                    (0..h).flat_map(|su| (0..w).map(move |sv| (su, sv))).collect();
+                let mut pairs: Vec<(u64, u64)> = (0..h)
+                    .flat_map(|su| (0..w).map(move |sv| (su, sv)))
+                    .collect();
                 match ordering {
                     HadamardOrdering::Zigzag => pairs.sort_by_key(|&(su, sv)| (su + sv, su)),
-                    HadamardOrdering::RussianDoll => pairs
-                        .sort_by_key(|&(su, sv)| (bit_len(su).max(bit_len(sv)), su + sv, su)),
+                    HadamardOrdering::RussianDoll => {
+                        pairs.sort_by_key(|&(su, sv)| (bit_len(su).max(bit_len(sv)), su + sv, su))
+                    }
                     HadamardOrdering::CakeCutting => {
                         pairs.sort_by_key(|&(su, sv)| ((su + 1) * (sv + 1), su))
                     }
@@ -102,7 +108,12 @@ impl HadamardPlan {
                 )
             }
         };
-        HadamardPlan { width_bits, height_bits, ordering, table }
+        HadamardPlan {
+            width_bits,
+            height_bits,
+            ordering,
+            table,
+        }
     }
 
     /// Natural index `u * W + v` of row `row` (0 <= row < k) in this plan's ordering.
@@ -123,7 +134,15 @@ mod tests {
     use super::*;
 
     fn walsh_1d(n: u64, len: u64) -> Vec<i32> {
-        (0..len).map(|x| if (n & x).count_ones().is_multiple_of(2) { 1 } else { -1 }).collect()
+        (0..len)
+            .map(|x| {
+                if (n & x).count_ones().is_multiple_of(2) {
+                    1
+                } else {
+                    -1
+                }
+            })
+            .collect()
     }
 
     fn sign_changes(v: &[i32]) -> usize {
@@ -136,7 +155,11 @@ mod tests {
             let len = 1u64 << bits;
             for s in 0..len {
                 let n = natural_of_sequency(s, bits);
-                assert_eq!(sign_changes(&walsh_1d(n, len)), s as usize, "bits {bits} s {s}");
+                assert_eq!(
+                    sign_changes(&walsh_1d(n, len)),
+                    s as usize,
+                    "bits {bits} s {s}"
+                );
             }
         }
     }

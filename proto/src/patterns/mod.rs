@@ -11,7 +11,9 @@ mod spec;
 
 pub use convert::ProtoSpecError;
 pub use hadamard::{HadamardOrdering, HadamardPlan};
-pub use spec::{FILL_BITS, Family, MAX_COUNT, MAX_PIXELS, MAX_SIDE, PatternSpec, SpecError, fill_quantum};
+pub use spec::{
+    FILL_BITS, Family, MAX_COUNT, MAX_PIXELS, MAX_SIDE, PatternSpec, SpecError, fill_quantum,
+};
 
 use rng::stream_word;
 
@@ -36,11 +38,23 @@ pub struct PatternGenerator {
 
 #[derive(Clone, Debug)]
 enum Kind {
-    Raster { block: u32, blocks_x: u64, blocks: u64 },
+    Raster {
+        block: u32,
+        blocks_x: u64,
+        blocks: u64,
+    },
     /// Binary digits q_1..q_d of the quantised fill (q = 0.q_1 q_2 ... q_d, q_d = 1).
-    Bernoulli { digits: Vec<bool> },
-    Hadamard { plan: HadamardPlan },
-    Speckle { grain: u32, cells_x: u64, cells: u64 },
+    Bernoulli {
+        digits: Vec<bool>,
+    },
+    Hadamard {
+        plan: HadamardPlan,
+    },
+    Speckle {
+        grain: u32,
+        cells_x: u64,
+        cells: u64,
+    },
 }
 
 /// The family has grey levels; it cannot be packed as bits.
@@ -53,7 +67,11 @@ impl PatternGenerator {
         let kind = match *spec.family() {
             Family::Raster { block } => {
                 let (_, bx, by) = spec.raster_grid().expect("raster");
-                Kind::Raster { block, blocks_x: bx as u64, blocks: bx as u64 * by as u64 }
+                Kind::Raster {
+                    block,
+                    blocks_x: bx as u64,
+                    blocks: bx as u64 * by as u64,
+                }
             }
             Family::Bernoulli { fill } => {
                 let q = fill_quantum(fill);
@@ -62,16 +80,23 @@ impl PatternGenerator {
                 let digits = (1..=d).map(|j| (odd >> (d - j)) & 1 == 1).collect();
                 Kind::Bernoulli { digits }
             }
-            Family::Hadamard { ordering } => {
-                Kind::Hadamard { plan: HadamardPlan::new(spec.width(), spec.height(), ordering) }
-            }
+            Family::Hadamard { ordering } => Kind::Hadamard {
+                plan: HadamardPlan::new(spec.width(), spec.height(), ordering),
+            },
             Family::Speckle { grain } => {
                 let cx = spec.width().div_ceil(grain) as u64;
                 let cy = spec.height().div_ceil(grain) as u64;
-                Kind::Speckle { grain, cells_x: cx, cells: cx * cy }
+                Kind::Speckle {
+                    grain,
+                    cells_x: cx,
+                    cells: cx * cy,
+                }
             }
         };
-        PatternGenerator { spec: spec.clone(), kind }
+        PatternGenerator {
+            spec: spec.clone(),
+            kind,
+        }
     }
 
     pub fn spec(&self) -> &PatternSpec {
@@ -88,7 +113,11 @@ impl PatternGenerator {
         match &self.kind {
             Kind::Hadamard { plan } => {
                 let row = frame / 2;
-                Some(SplitFrame { row, natural: plan.natural_index(row), positive: frame.is_multiple_of(2) })
+                Some(SplitFrame {
+                    row,
+                    natural: plan.natural_index(row),
+                    positive: frame.is_multiple_of(2),
+                })
             }
             _ => None,
         }
@@ -107,7 +136,11 @@ impl PatternGenerator {
         let k = self.spec.pixels();
         assert_eq!(out.len(), k, "output must hold width * height values");
         match &self.kind {
-            Kind::Speckle { grain, cells_x, cells } => {
+            Kind::Speckle {
+                grain,
+                cells_x,
+                cells,
+            } => {
                 let w = self.spec.width() as usize;
                 let g = *grain as usize;
                 let base = i.wrapping_mul(*cells);
@@ -151,7 +184,11 @@ impl PatternGenerator {
                     *word = r;
                 }
             }
-            Kind::Raster { block, blocks_x, blocks } => {
+            Kind::Raster {
+                block,
+                blocks_x,
+                blocks,
+            } => {
                 out.fill(0);
                 let b = i % blocks;
                 let (bx, by) = (b % blocks_x, b / blocks_x);

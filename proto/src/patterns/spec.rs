@@ -67,7 +67,10 @@ pub struct SpecError {
 }
 
 fn err(field: &'static str, message: impl Into<String>) -> SpecError {
-    SpecError { field, message: message.into() }
+    SpecError {
+        field,
+        message: message.into(),
+    }
 }
 
 /// A pattern declaration that has been validated and canonicalised (defaults filled in, Bernoulli
@@ -106,7 +109,13 @@ impl TryFrom<RawSpec> for PatternSpec {
 
 impl From<PatternSpec> for RawSpec {
     fn from(s: PatternSpec) -> Self {
-        RawSpec { family: s.family, width: s.width, height: s.height, count: s.count, seed: s.seed }
+        RawSpec {
+            family: s.family,
+            width: s.width,
+            height: s.height,
+            count: s.count,
+            seed: s.seed,
+        }
     }
 }
 
@@ -122,7 +131,10 @@ impl PatternSpec {
             return Err(err("width", format!("must be 1..={MAX_SIDE}, got {width}")));
         }
         if height == 0 || height > MAX_SIDE {
-            return Err(err("height", format!("must be 1..={MAX_SIDE}, got {height}")));
+            return Err(err(
+                "height",
+                format!("must be 1..={MAX_SIDE}, got {height}"),
+            ));
         }
         let pixels = width as u64 * height as u64;
         if pixels > MAX_PIXELS {
@@ -132,14 +144,20 @@ impl PatternSpec {
             ));
         }
         if count == 0 || count > MAX_COUNT {
-            return Err(err("count", format!("must be 1..={MAX_COUNT}, got {count}")));
+            return Err(err(
+                "count",
+                format!("must be 1..={MAX_COUNT}, got {count}"),
+            ));
         }
         let family = match family {
             Family::Raster { block } => {
                 if block == 0 || block > width.max(height) {
                     return Err(err(
                         "block",
-                        format!("must be 1..={} (the larger side), got {block}", width.max(height)),
+                        format!(
+                            "must be 1..={} (the larger side), got {block}",
+                            width.max(height)
+                        ),
                     ));
                 }
                 Family::Raster { block }
@@ -149,11 +167,16 @@ impl PatternSpec {
                     return Err(err("fill", format!("must be in (0, 1), got {fill}")));
                 }
                 let q = fill_quantum(fill);
-                Family::Bernoulli { fill: q as f64 / (1u64 << FILL_BITS) as f64 }
+                Family::Bernoulli {
+                    fill: q as f64 / (1u64 << FILL_BITS) as f64,
+                }
             }
             Family::Hadamard { ordering } => {
                 if !width.is_power_of_two() {
-                    return Err(err("width", format!("hadamard needs a power of two, got {width}")));
+                    return Err(err(
+                        "width",
+                        format!("hadamard needs a power of two, got {width}"),
+                    ));
                 }
                 if !height.is_power_of_two() {
                     return Err(err(
@@ -176,13 +199,22 @@ impl PatternSpec {
                 if grain == 0 || grain > width.max(height) {
                     return Err(err(
                         "grain",
-                        format!("must be 1..={} (the larger side), got {grain}", width.max(height)),
+                        format!(
+                            "must be 1..={} (the larger side), got {grain}",
+                            width.max(height)
+                        ),
                     ));
                 }
                 Family::Speckle { grain }
             }
         };
-        Ok(PatternSpec { family, width, height, count, seed })
+        Ok(PatternSpec {
+            family,
+            width,
+            height,
+            count,
+            seed,
+        })
     }
 
     pub fn family(&self) -> &Family {
@@ -208,15 +240,23 @@ impl PatternSpec {
 
     /// The same patterns with another count (e.g. a prefix of the session's rows).
     pub fn with_count(&self, count: u64) -> Result<Self, SpecError> {
-        PatternSpec::new(self.family.clone(), self.width, self.height, count, self.seed)
+        PatternSpec::new(
+            self.family.clone(),
+            self.width,
+            self.height,
+            count,
+            self.seed,
+        )
     }
 
     /// Raster: blocks per row and per column.
     pub fn raster_grid(&self) -> Option<(u32, u32, u32)> {
         match self.family {
-            Family::Raster { block } => {
-                Some((block, self.width.div_ceil(block), self.height.div_ceil(block)))
-            }
+            Family::Raster { block } => Some((
+                block,
+                self.width.div_ceil(block),
+                self.height.div_ceil(block),
+            )),
             _ => None,
         }
     }
@@ -249,21 +289,53 @@ mod tests {
             r#"{"family":"hadamard","width":8,"height":8,"count":128,"ordering":"russian_doll"}"#,
         )
         .unwrap();
-        assert_eq!(h.family(), &Family::Hadamard { ordering: HadamardOrdering::RussianDoll });
+        assert_eq!(
+            h.family(),
+            &Family::Hadamard {
+                ordering: HadamardOrdering::RussianDoll
+            }
+        );
     }
 
     #[test]
     fn absurd_specs_name_their_field() {
         let cases = [
-            (r#"{"family":"raster","width":0,"height":8,"count":8}"#, "width"),
-            (r#"{"family":"raster","width":8,"height":8,"count":1000000000}"#, "count"),
-            (r#"{"family":"raster","width":8,"height":8,"count":0}"#, "count"),
-            (r#"{"family":"bernoulli","width":8,"height":8,"count":8,"fill":1.5}"#, "fill"),
-            (r#"{"family":"hadamard","width":12,"height":8,"count":8}"#, "width"),
-            (r#"{"family":"hadamard","width":8,"height":8,"count":7}"#, "count"),
-            (r#"{"family":"hadamard","width":8,"height":8,"count":130}"#, "count"),
-            (r#"{"family":"speckle","width":8,"height":8,"count":8,"grain":0}"#, "grain"),
-            (r#"{"family":"raster","width":4096,"height":4096,"count":8}"#, "width"),
+            (
+                r#"{"family":"raster","width":0,"height":8,"count":8}"#,
+                "width",
+            ),
+            (
+                r#"{"family":"raster","width":8,"height":8,"count":1000000000}"#,
+                "count",
+            ),
+            (
+                r#"{"family":"raster","width":8,"height":8,"count":0}"#,
+                "count",
+            ),
+            (
+                r#"{"family":"bernoulli","width":8,"height":8,"count":8,"fill":1.5}"#,
+                "fill",
+            ),
+            (
+                r#"{"family":"hadamard","width":12,"height":8,"count":8}"#,
+                "width",
+            ),
+            (
+                r#"{"family":"hadamard","width":8,"height":8,"count":7}"#,
+                "count",
+            ),
+            (
+                r#"{"family":"hadamard","width":8,"height":8,"count":130}"#,
+                "count",
+            ),
+            (
+                r#"{"family":"speckle","width":8,"height":8,"count":8,"grain":0}"#,
+                "grain",
+            ),
+            (
+                r#"{"family":"raster","width":4096,"height":4096,"count":8}"#,
+                "width",
+            ),
         ];
         for (json, field) in cases {
             let raw: RawSpec = serde_json::from_str(json).unwrap();
@@ -277,6 +349,11 @@ mod tests {
         let a = PatternSpec::new(Family::Bernoulli { fill: 0.3 }, 4, 4, 4, 0).unwrap();
         let b = PatternSpec::new(Family::Bernoulli { fill: 0.300001 }, 4, 4, 4, 0).unwrap();
         assert_eq!(a, b);
-        assert_eq!(a.family(), &Family::Bernoulli { fill: 19661.0 / 65536.0 });
+        assert_eq!(
+            a.family(),
+            &Family::Bernoulli {
+                fill: 19661.0 / 65536.0
+            }
+        );
     }
 }

@@ -67,11 +67,29 @@ fn bernoulli_fill_is_within_a_binomial_bound() {
         let n = (k * indices.len()) as u64;
         assert_binomial(on, n, q, 5.0, &format!("fill {fill}: pixels on"));
         for t in 0..64 {
-            assert_binomial(by_bit[t], by_bit_n[t], q, 5.0, &format!("fill {fill}: bit {t}"));
+            assert_binomial(
+                by_bit[t],
+                by_bit_n[t],
+                q,
+                5.0,
+                &format!("fill {fill}: bit {t}"),
+            );
         }
         let pairs = (k / 2) as u64 * indices.len() as u64;
-        assert_binomial(pairs_same_pattern, pairs, q * q, 5.0, &format!("fill {fill}: neighbours"));
-        assert_binomial(pairs_next_pattern, n, q * q, 5.0, &format!("fill {fill}: next pattern"));
+        assert_binomial(
+            pairs_same_pattern,
+            pairs,
+            q * q,
+            5.0,
+            &format!("fill {fill}: neighbours"),
+        );
+        assert_binomial(
+            pairs_next_pattern,
+            n,
+            q * q,
+            5.0,
+            &format!("fill {fill}: next pattern"),
+        );
     }
 }
 
@@ -99,7 +117,11 @@ fn bernoulli_half_is_the_raw_hash_bits() {
         )));
         for i in [0u64, 4] {
             let (a, b) = (stream_word(5, 2 * i), stream_word(5, 2 * i + 1));
-            assert_eq!(bits(&g, i), vec![if op == 0 { a & b } else { a | b }], "fill {fill}");
+            assert_eq!(
+                bits(&g, i),
+                vec![if op == 0 { a & b } else { a | b }],
+                "fill {fill}"
+            );
         }
     }
 }
@@ -108,7 +130,9 @@ fn bernoulli_half_is_the_raw_hash_bits() {
 fn bernoulli_threshold_form_equals_the_recurrence() {
     // The definition in PATTERNS.md (V >= 2^d - odd, V's top bit from word base + 0) against the
     // generator's bit-sliced recurrence, for fills with d = 1..16.
-    for q in [1u32, 3, 2, 6, 19661, 32768, 16384, 49152, 62259, 65535, 40960, 12345] {
+    for q in [
+        1u32, 3, 2, 6, 19661, 32768, 16384, 49152, 62259, 65535, 40960, 12345,
+    ] {
         let fill = q as f64 / 65536.0;
         let s = PatternSpec::new(Family::Bernoulli { fill }, 10, 10, 50, 77).unwrap();
         let g = PatternGenerator::new(&s);
@@ -119,9 +143,14 @@ fn bernoulli_threshold_form_equals_the_recurrence() {
             for p in 0..100usize {
                 let (word, t) = (p as u64 / 64, p % 64);
                 let base = (i * nw + word) * d as u64;
-                let v = (0..d as u64)
-                    .fold(0u64, |v, j| (v << 1) | ((stream_word(77, base + j) >> t) & 1));
-                assert_eq!(bit(&w, p), v >= (1 << d) - odd, "Q {q} pattern {i} pixel {p}");
+                let v = (0..d as u64).fold(0u64, |v, j| {
+                    (v << 1) | ((stream_word(77, base + j) >> t) & 1)
+                });
+                assert_eq!(
+                    bit(&w, p),
+                    v >= (1 << d) - odd,
+                    "Q {q} pattern {i} pixel {p}"
+                );
             }
         }
     }
@@ -142,7 +171,10 @@ fn fill_bits_and_fill_values_agree() {
         let s = spec(json);
         let g = PatternGenerator::new(&s);
         let k = s.pixels();
-        for i in [0u64, 1, 2, 5, 29, 127, 1_000_000].into_iter().filter(|&i| i < s.count()) {
+        for i in [0u64, 1, 2, 5, 29, 127, 1_000_000]
+            .into_iter()
+            .filter(|&i| i < s.count())
+        {
             let w = bits(&g, i);
             let v = values(&g, i);
             for (p, &x) in v.iter().enumerate() {
@@ -153,8 +185,9 @@ fn fill_bits_and_fill_values_agree() {
             }
         }
     }
-    let speckle =
-        PatternGenerator::new(&spec(r#"{"family":"speckle","width":5,"height":4,"count":3}"#));
+    let speckle = PatternGenerator::new(&spec(
+        r#"{"family":"speckle","width":5,"height":4,"count":3}"#,
+    ));
     assert_eq!(speckle.fill_bits(0, &mut [0u64]), Err(NotBinary));
 }
 
@@ -174,8 +207,10 @@ fn raster_scan_lights_each_pixel_exactly_once() {
         for i in 0..blocks {
             assert_eq!(g.raster_block(i), Some(i));
             let v = values(&g, i);
-            let on: Vec<(usize, usize)> =
-                (0..s.pixels()).filter(|&p| v[p] == 1.0).map(|p| (p % 10, p / 10)).collect();
+            let on: Vec<(usize, usize)> = (0..s.pixels())
+                .filter(|&p| v[p] == 1.0)
+                .map(|p| (p % 10, p / 10))
+                .collect();
             // One block: a rectangle, clipped to the image, at (i % bw, i / bw).
             let (bx, by) = ((i % bw as u64) as usize, (i / bw as u64) as usize);
             let b = b as usize;
@@ -212,26 +247,48 @@ fn hadamard_split_pairs_are_orthogonal_for_every_ordering() {
     for (width, height) in [(1u32, 1u32), (8, 8), (16, 4), (2, 32), (32, 32), (4, 64)] {
         let k = (width * height) as usize;
         let mask: Vec<u64> = (0..k.div_ceil(64))
-            .map(|w| if (w + 1) * 64 <= k { u64::MAX } else { (1u64 << (k % 64)) - 1 })
+            .map(|w| {
+                if (w + 1) * 64 <= k {
+                    u64::MAX
+                } else {
+                    (1u64 << (k % 64)) - 1
+                }
+            })
             .collect();
         for ordering in HadamardOrdering::ALL {
-            let s = PatternSpec::new(Family::Hadamard { ordering }, width, height, 2 * k as u64, 0)
-                .unwrap();
+            let s = PatternSpec::new(
+                Family::Hadamard { ordering },
+                width,
+                height,
+                2 * k as u64,
+                0,
+            )
+            .unwrap();
             let g = PatternGenerator::new(&s);
             let mut rows: Vec<Vec<u64>> = Vec::with_capacity(k);
             for r in 0..k as u64 {
                 let (plus, minus) = (bits(&g, 2 * r), bits(&g, 2 * r + 1));
                 // P+ + P- = 1 everywhere, without overlap.
                 for w in 0..mask.len() {
-                    assert_eq!(plus[w] & minus[w], 0, "{ordering:?} {width}x{height} row {r}");
+                    assert_eq!(
+                        plus[w] & minus[w],
+                        0,
+                        "{ordering:?} {width}x{height} row {r}"
+                    );
                     assert_eq!(
                         plus[w] | minus[w],
                         mask[w],
                         "{ordering:?} {width}x{height} row {r}"
                     );
                 }
-                assert_eq!(g.split_frame(2 * r).map(|f| (f.row, f.positive)), Some((r, true)));
-                assert_eq!(g.split_frame(2 * r + 1).map(|f| (f.row, f.positive)), Some((r, false)));
+                assert_eq!(
+                    g.split_frame(2 * r).map(|f| (f.row, f.positive)),
+                    Some((r, true))
+                );
+                assert_eq!(
+                    g.split_frame(2 * r + 1).map(|f| (f.row, f.positive)),
+                    Some((r, false))
+                );
                 rows.push(plus);
             }
             // The first frame of every ordering is all on (row 0 is the constant function).
@@ -239,8 +296,9 @@ fn hadamard_split_pairs_are_orthogonal_for_every_ordering() {
             // h_a . h_b = k - 2 * (pixels where they differ): k on the diagonal, 0 elsewhere.
             for a in 0..k {
                 for b in a..k {
-                    let differ: u32 =
-                        (0..mask.len()).map(|w| (rows[a][w] ^ rows[b][w]).count_ones()).sum();
+                    let differ: u32 = (0..mask.len())
+                        .map(|w| (rows[a][w] ^ rows[b][w]).count_ones())
+                        .sum();
                     let dot = k as i64 - 2 * differ as i64;
                     assert_eq!(
                         dot,
@@ -262,8 +320,14 @@ fn hadamard_orderings_follow_their_keys() {
         let (w, h) = (width as usize, height as usize);
         let k = w * h;
         for ordering in HadamardOrdering::ALL {
-            let s = PatternSpec::new(Family::Hadamard { ordering }, width, height, 2 * k as u64, 0)
-                .unwrap();
+            let s = PatternSpec::new(
+                Family::Hadamard { ordering },
+                width,
+                height,
+                2 * k as u64,
+                0,
+            )
+            .unwrap();
             let g = PatternGenerator::new(&s);
             let mut keys = Vec::new();
             for r in 0..k as u64 {
@@ -271,7 +335,11 @@ fn hadamard_orderings_follow_their_keys() {
                 let su = changes(&plus, (0..h).map(|y| y * w));
                 let sv = changes(&plus, 0..w);
                 for y in 0..h {
-                    assert_eq!(changes(&plus, (0..w).map(|x| y * w + x)), sv, "not separable");
+                    assert_eq!(
+                        changes(&plus, (0..w).map(|x| y * w + x)),
+                        sv,
+                        "not separable"
+                    );
                 }
                 let key = match ordering {
                     HadamardOrdering::Natural => (g.split_frame(2 * r).unwrap().natural, 0, 0),
@@ -348,8 +416,17 @@ fn speckle_levels_are_24_bit_uniform_on_unit_interval() {
         }
         let mean = sum / n as f64;
         let sd = (1.0 / 12.0 / n as f64).sqrt();
-        assert!((mean - 0.5).abs() < 5.0 * sd, "grain {grain}: mean {mean} (sd {sd})");
-        assert_binomial(low, n, 0.25, 5.0, &format!("grain {grain}: levels below 1/4"));
+        assert!(
+            (mean - 0.5).abs() < 5.0 * sd,
+            "grain {grain}: mean {mean} (sd {sd})"
+        );
+        assert_binomial(
+            low,
+            n,
+            0.25,
+            5.0,
+            &format!("grain {grain}: levels below 1/4"),
+        );
     }
 }
 
@@ -394,8 +471,10 @@ fn pattern_i_does_not_depend_on_what_was_generated_before() {
         let s = spec(json);
         let idx = indices_for(&s);
         // Each pattern from a fresh generator...
-        let alone: Vec<Vec<f32>> =
-            idx.iter().map(|&i| values(&PatternGenerator::new(&s), i)).collect();
+        let alone: Vec<Vec<f32>> = idx
+            .iter()
+            .map(|&i| values(&PatternGenerator::new(&s), i))
+            .collect();
         // ...equals the same pattern from one generator used forwards, backwards and twice.
         let g = PatternGenerator::new(&s);
         for order in [idx.clone(), idx.iter().rev().copied().collect()] {

@@ -37,17 +37,27 @@ pub enum ApiError {
     PermissionDenied(String),
     /// A cap or the request rate; `retry_after` seconds when waiting helps.
     #[error("{limit}: {message}")]
-    ResourceExhausted { limit: &'static str, message: String, retry_after: Option<u64> },
+    ResourceExhausted {
+        limit: &'static str,
+        message: String,
+        retry_after: Option<u64>,
+    },
     /// A request body over the size limit.
     #[error("{limit}: {message}")]
-    TooLarge { limit: &'static str, message: String },
+    TooLarge {
+        limit: &'static str,
+        message: String,
+    },
     #[error("internal error")]
     Internal(String),
 }
 
 impl ApiError {
     pub fn invalid(field: impl Into<String>, message: impl Into<String>) -> Self {
-        ApiError::InvalidArgument { field: field.into(), message: message.into() }
+        ApiError::InvalidArgument {
+            field: field.into(),
+            message: message.into(),
+        }
     }
 
     fn slug(&self) -> (&'static str, &'static str) {
@@ -55,7 +65,9 @@ impl ApiError {
             ApiError::InvalidArgument { .. } => ("invalid-argument", "Invalid argument"),
             ApiError::NotFound(_) => ("not-found", "Not found"),
             ApiError::AlreadyExists(_) => ("already-exists", "Conflicts with an existing resource"),
-            ApiError::FailedPrecondition(_) => ("failed-precondition", "Not possible in the current state"),
+            ApiError::FailedPrecondition(_) => {
+                ("failed-precondition", "Not possible in the current state")
+            }
             ApiError::OutOfRange(_) => ("out-of-range", "Out of range"),
             ApiError::DataLoss(_) => ("data-loss", "Checksum mismatch"),
             ApiError::Aborted(_) => ("aborted", "Concurrent writer"),
@@ -94,11 +106,21 @@ impl ApiError {
 impl From<StoreError> for ApiError {
     fn from(e: StoreError) -> Self {
         match e {
-            StoreError::SessionNotFound(_) | StoreError::ReconstructionNotFound(_) => ApiError::NotFound(e.to_string()),
-            StoreError::SessionConflict(..) | StoreError::SessionIdTaken(_) => ApiError::AlreadyExists(e.to_string()),
-            StoreError::Gap { .. } | StoreError::PastEnd { .. } => ApiError::OutOfRange(e.to_string()),
-            StoreError::Finished(_) | StoreError::Incomplete { .. } => ApiError::FailedPrecondition(e.to_string()),
-            StoreError::Corrupt(_) | StoreError::Db(_) | StoreError::Migrate(_) => ApiError::Internal(e.to_string()),
+            StoreError::SessionNotFound(_) | StoreError::ReconstructionNotFound(_) => {
+                ApiError::NotFound(e.to_string())
+            }
+            StoreError::SessionConflict(..) | StoreError::SessionIdTaken(_) => {
+                ApiError::AlreadyExists(e.to_string())
+            }
+            StoreError::Gap { .. } | StoreError::PastEnd { .. } => {
+                ApiError::OutOfRange(e.to_string())
+            }
+            StoreError::Finished(_) | StoreError::Incomplete { .. } => {
+                ApiError::FailedPrecondition(e.to_string())
+            }
+            StoreError::Corrupt(_) | StoreError::Db(_) | StoreError::Migrate(_) => {
+                ApiError::Internal(e.to_string())
+            }
         }
     }
 }
@@ -117,17 +139,28 @@ impl IntoResponse for ApiError {
         if let ApiError::InvalidArgument { field, .. } = &self {
             body["field"] = json!(field);
         }
-        if let ApiError::ResourceExhausted { limit, .. } | ApiError::TooLarge { limit, .. } = &self {
+        if let ApiError::ResourceExhausted { limit, .. } | ApiError::TooLarge { limit, .. } = &self
+        {
             body["limit"] = json!(limit);
         }
         let mut response = (status, body.to_string()).into_response();
         let headers = response.headers_mut();
-        headers.insert(header::CONTENT_TYPE, HeaderValue::from_static("application/problem+json"));
-        if let ApiError::ResourceExhausted { retry_after: Some(s), .. } = &self {
+        headers.insert(
+            header::CONTENT_TYPE,
+            HeaderValue::from_static("application/problem+json"),
+        );
+        if let ApiError::ResourceExhausted {
+            retry_after: Some(s),
+            ..
+        } = &self
+        {
             headers.insert(header::RETRY_AFTER, HeaderValue::from(*s));
         }
         if let ApiError::Unauthenticated(_) = &self {
-            headers.insert(header::WWW_AUTHENTICATE, HeaderValue::from_static("Bearer realm=\"helmholtz\""));
+            headers.insert(
+                header::WWW_AUTHENTICATE,
+                HeaderValue::from_static("Bearer realm=\"helmholtz\""),
+            );
         }
         response
     }

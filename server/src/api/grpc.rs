@@ -22,13 +22,18 @@ impl AcquisitionService {
     /// a 2048 x 2048 grid is 16 MiB, upload chunks are typically 256 KiB).
     pub fn into_server(self) -> v1::acquisition_server::AcquisitionServer<Self> {
         let max = self.state.limits.max_message_bytes;
-        v1::acquisition_server::AcquisitionServer::new(self).max_decoding_message_size(max).max_encoding_message_size(max)
+        v1::acquisition_server::AcquisitionServer::new(self)
+            .max_decoding_message_size(max)
+            .max_encoding_message_size(max)
     }
 
     /// The caller of a gRPC request, holding one of `roles` (or UNAUTHENTICATED /
     /// PERMISSION_DENIED / RESOURCE_EXHAUSTED).
     async fn caller<T>(&self, request: &Request<T>, roles: &[Role]) -> Result<Principal, ApiError> {
-        let authorization = request.metadata().get("authorization").map(|v| v.as_bytes());
+        let authorization = request
+            .metadata()
+            .get("authorization")
+            .map(|v| v.as_bytes());
         let caller = self.state.authenticate(authorization).await?;
         caller.require_any(roles)?;
         Ok(caller)
@@ -42,7 +47,15 @@ pub fn session_message(s: &SessionRow) -> v1::Session {
         patterns: Some((&s.spec).into()),
         detector: Some(v1::DetectorLayout {
             channels: s.channels.clone(),
-            directions: s.directions.iter().map(|d| v1::Direction { x: d[0], y: d[1], z: d[2] }).collect(),
+            directions: s
+                .directions
+                .iter()
+                .map(|d| v1::Direction {
+                    x: d[0],
+                    y: d[1],
+                    z: d[2],
+                })
+                .collect(),
             camera: s.camera.map(|c| v1::CameraLayout {
                 width: c.width,
                 height: c.height,
@@ -53,7 +66,11 @@ pub fn session_message(s: &SessionRow) -> v1::Session {
                 } as i32,
             }),
         }),
-        metadata: s.metadata.iter().map(|(k, v)| (k.clone(), v.clone())).collect(),
+        metadata: s
+            .metadata
+            .iter()
+            .map(|(k, v)| (k.clone(), v.clone()))
+            .collect(),
         committed_rows: s.committed_rows,
         expected_rows: s.expected_rows,
         state: match s.state {
@@ -83,25 +100,45 @@ fn reconstruction_message(r: &ReconstructionRow) -> v1::Reconstruction {
 fn wire_error(e: WireError) -> ApiError {
     match e {
         WireError::Checksum { .. } => ApiError::DataLoss(e.to_string()),
-        WireError::Ragged { .. } | WireError::NotFinite { .. } => ApiError::invalid("values_f64le", e.to_string()),
+        WireError::Ragged { .. } | WireError::NotFinite { .. } => {
+            ApiError::invalid("values_f64le", e.to_string())
+        }
     }
 }
 
 /// The chunk's payload in the session's sample format, checked (exactly that payload set, whole
 /// rows, checksum, finite floats, size cap): the bytes to store as they are.
-fn checked_payload<'c>(chunk: &'c v1::MeasurementChunk, session: &SessionRow, max_chunk: usize) -> Result<&'c [u8], ApiError> {
+fn checked_payload<'c>(
+    chunk: &'c v1::MeasurementChunk,
+    session: &SessionRow,
+    max_chunk: usize,
+) -> Result<&'c [u8], ApiError> {
     let format = session.sample_format();
     let payloads = [
         ("values_f64le", SampleFormat::F64, &chunk.values_f64le),
         ("values_f32le", SampleFormat::F32, &chunk.values_f32le),
         ("values_u16le", SampleFormat::U16, &chunk.values_u16le),
     ];
-    let (field, _, bytes) = payloads.iter().find(|(_, f, _)| *f == format).expect("every format has a field");
-    if let Some((other, _, _)) = payloads.iter().find(|(_, f, b)| *f != format && !b.is_empty()) {
-        let kind = if session.camera.is_some() { "camera" } else { "bucket" };
+    let (field, _, bytes) = payloads
+        .iter()
+        .find(|(_, f, _)| *f == format)
+        .expect("every format has a field");
+    if let Some((other, _, _)) = payloads
+        .iter()
+        .find(|(_, f, b)| *f != format && !b.is_empty())
+    {
+        let kind = if session.camera.is_some() {
+            "camera"
+        } else {
+            "bucket"
+        };
         return Err(ApiError::invalid(
             *other,
-            format!("session {:?} is a {kind} session of {} samples: send them in {field} only", session.id, format.name()),
+            format!(
+                "session {:?} is a {kind} session of {} samples: send them in {field} only",
+                session.id,
+                format.name()
+            ),
         ));
     }
     if bytes.is_empty() {
@@ -128,7 +165,10 @@ fn checked_payload<'c>(chunk: &'c v1::MeasurementChunk, session: &SessionRow, ma
     let actual = crc32c::crc32c(bytes);
     if actual != chunk.crc32c {
         metrics::counter!("helmholtz_checksum_failures_total").increment(1);
-        return Err(ApiError::DataLoss(format!("crc32c mismatch: chunk says {:#010x}, payload has {actual:#010x}", chunk.crc32c)));
+        return Err(ApiError::DataLoss(format!(
+            "crc32c mismatch: chunk says {:#010x}, payload has {actual:#010x}",
+            chunk.crc32c
+        )));
     }
     let row_bytes = session.row_bytes();
     if !bytes.len().is_multiple_of(row_bytes) {
@@ -144,10 +184,19 @@ fn checked_payload<'c>(chunk: &'c v1::MeasurementChunk, session: &SessionRow, ma
         ));
     }
     if format == SampleFormat::F32
-        && let Some(i) = bytes.chunks_exact(4).position(|b| !f32::from_le_bytes(b.try_into().expect("4")).is_finite())
+        && let Some(i) = bytes
+            .chunks_exact(4)
+            .position(|b| !f32::from_le_bytes(b.try_into().expect("4")).is_finite())
     {
         let per_row = session.row_values();
-        return Err(ApiError::invalid(*field, format!("value at row {}, pixel {} is not finite", i / per_row, i % per_row)));
+        return Err(ApiError::invalid(
+            *field,
+            format!(
+                "value at row {}, pixel {} is not finite",
+                i / per_row,
+                i % per_row
+            ),
+        ));
     }
     Ok(bytes)
 }
@@ -160,9 +209,19 @@ impl Acquisition for AcquisitionService {
     ) -> Result<Response<v1::CreateSessionResponse>, Status> {
         let caller = self.caller(&request, &[Role::Rig]).await?;
         let new = validate::new_session(request.get_ref(), &caller.lab, &self.state.limits)?;
-        let existing = self.state.store.get_session(&new.id).await.map_err(ApiError::from)?;
+        let existing = self
+            .state
+            .store
+            .get_session(&new.id)
+            .await
+            .map_err(ApiError::from)?;
         if existing.is_none() {
-            let held = self.state.store.count_sessions(&caller.lab).await.map_err(ApiError::from)?;
+            let held = self
+                .state
+                .store
+                .count_sessions(&caller.lab)
+                .await
+                .map_err(ApiError::from)?;
             if held >= self.state.limits.max_sessions_per_lab {
                 return Err(ApiError::ResourceExhausted {
                     limit: "max_sessions_per_lab",
@@ -175,11 +234,19 @@ impl Acquisition for AcquisitionService {
                 .into());
             }
         }
-        let (session, created) = self.state.store.create_session(&new).await.map_err(ApiError::from)?;
+        let (session, created) = self
+            .state
+            .store
+            .create_session(&new)
+            .await
+            .map_err(ApiError::from)?;
         if created {
             tracing::info!(session = %session.id, lab = %session.lab, rig = %session.rig, spec = %session.spec.to_json(), "session created");
         }
-        Ok(Response::new(v1::CreateSessionResponse { session: Some(session_message(&session)), created }))
+        Ok(Response::new(v1::CreateSessionResponse {
+            session: Some(session_message(&session)),
+            created,
+        }))
     }
 
     async fn upload_measurements(
@@ -205,14 +272,25 @@ impl Acquisition for AcquisitionService {
             }
             let (row, _) = session.as_ref().expect("set above");
             if chunk.session_id != row.id {
-                return Err(ApiError::invalid("session_id", "every chunk of a stream must name the same session").into());
+                return Err(ApiError::invalid(
+                    "session_id",
+                    "every chunk of a stream must name the same session",
+                )
+                .into());
             }
             let channels = row.row_values();
             if chunk.channels as usize != channels {
-                let what = if row.camera.is_some() { "pixels per frame" } else { "channels" };
+                let what = if row.camera.is_some() {
+                    "pixels per frame"
+                } else {
+                    "channels"
+                };
                 return Err(ApiError::invalid(
                     "channels",
-                    format!("session {:?} has {channels} {what}, chunk says {}", row.id, chunk.channels),
+                    format!(
+                        "session {:?} has {channels} {what}, chunk says {}",
+                        row.id, chunk.channels
+                    ),
                 )
                 .into());
             }
@@ -226,16 +304,24 @@ impl Acquisition for AcquisitionService {
             written += outcome.written;
             skipped += outcome.skipped;
             metrics::counter!("helmholtz_upload_rows_total").increment(outcome.written);
-            metrics::counter!("helmholtz_upload_bytes_total").increment(outcome.written * row.row_bytes() as u64);
+            metrics::counter!("helmholtz_upload_bytes_total")
+                .increment(outcome.written * row.row_bytes() as u64);
             committed = outcome.committed_rows;
         }
         if let Some((row, _)) = &session {
             tracing::debug!(session = %row.id, written, skipped, committed, "upload stream ended");
         }
-        Ok(Response::new(v1::UploadResponse { committed_rows: committed, rows_written: written, rows_skipped: skipped }))
+        Ok(Response::new(v1::UploadResponse {
+            committed_rows: committed,
+            rows_written: written,
+            rows_skipped: skipped,
+        }))
     }
 
-    async fn get_upload_status(&self, request: Request<v1::SessionRef>) -> Result<Response<v1::UploadStatus>, Status> {
+    async fn get_upload_status(
+        &self,
+        request: Request<v1::SessionRef>,
+    ) -> Result<Response<v1::UploadStatus>, Status> {
         let caller = self.caller(&request, &[Role::Rig, Role::Reader]).await?;
         let id = &request.get_ref().session_id;
         validate::session_id(id, "session_id")?;
@@ -249,12 +335,20 @@ impl Acquisition for AcquisitionService {
         }))
     }
 
-    async fn finish_session(&self, request: Request<v1::SessionRef>) -> Result<Response<v1::Session>, Status> {
+    async fn finish_session(
+        &self,
+        request: Request<v1::SessionRef>,
+    ) -> Result<Response<v1::Session>, Status> {
         let caller = self.caller(&request, &[Role::Rig]).await?;
         let id = &request.get_ref().session_id;
         validate::session_id(id, "session_id")?;
         self.state.own_session(&caller, id).await?;
-        let s = self.state.store.finish_session(id).await.map_err(ApiError::from)?;
+        let s = self
+            .state
+            .store
+            .finish_session(id)
+            .await
+            .map_err(ApiError::from)?;
         Ok(Response::new(session_message(&s)))
     }
 
@@ -271,7 +365,10 @@ impl Acquisition for AcquisitionService {
             serde_json::from_str(&req.params_json)
                 .map_err(|e| ApiError::invalid("params_json", format!("not JSON: {e}")))?
         };
-        let row = self.state.request_reconstruction(&caller, &req.session_id, &req.method, &params).await?;
+        let row = self
+            .state
+            .request_reconstruction(&caller, &req.session_id, &req.method, &params)
+            .await?;
         Ok(Response::new(reconstruction_message(&row)))
     }
 
@@ -280,7 +377,10 @@ impl Acquisition for AcquisitionService {
         request: Request<v1::ReconstructionRef>,
     ) -> Result<Response<v1::Reconstruction>, Status> {
         let caller = self.caller(&request, &[Role::Reader]).await?;
-        let row = self.state.own_reconstruction(&caller, request.get_ref().reconstruction_id).await?;
+        let row = self
+            .state
+            .own_reconstruction(&caller, request.get_ref().reconstruction_id)
+            .await?;
         Ok(Response::new(reconstruction_message(&row)))
     }
 
@@ -289,7 +389,10 @@ impl Acquisition for AcquisitionService {
         request: Request<v1::ReconstructionRef>,
     ) -> Result<Response<v1::Reconstruction>, Status> {
         let caller = self.caller(&request, &[Role::Reader]).await?;
-        let row = self.state.cancel_reconstruction(&caller, request.get_ref().reconstruction_id).await?;
+        let row = self
+            .state
+            .cancel_reconstruction(&caller, request.get_ref().reconstruction_id)
+            .await?;
         Ok(Response::new(reconstruction_message(&row)))
     }
 }

@@ -33,7 +33,13 @@ pub fn png_8bit(width: u32, height: u32, data: &[f32], scale: Scale) -> Vec<u8> 
     let span = if hi > lo { hi - lo } else { 1.0 };
     let pixels: Vec<u8> = data
         .iter()
-        .map(|&v| if v.is_finite() { (((v - lo) / span).clamp(0.0, 1.0) * 255.0).round() as u8 } else { 0 })
+        .map(|&v| {
+            if v.is_finite() {
+                (((v - lo) / span).clamp(0.0, 1.0) * 255.0).round() as u8
+            } else {
+                0
+            }
+        })
         .collect();
     let mut out = Vec::new();
     {
@@ -41,7 +47,9 @@ pub fn png_8bit(width: u32, height: u32, data: &[f32], scale: Scale) -> Vec<u8> 
         encoder.set_color(png::ColorType::Grayscale);
         encoder.set_depth(png::BitDepth::Eight);
         let mut writer = encoder.write_header().expect("png header to memory");
-        writer.write_image_data(&pixels).expect("png data to memory");
+        writer
+            .write_image_data(&pixels)
+            .expect("png data to memory");
     }
     out
 }
@@ -78,9 +86,21 @@ pub fn npy_f64(rows: u64, channels: usize, data: &[f64]) -> Vec<u8> {
 /// 8-bit RGB PNG of an interleaved RGB image with values in [0, 1] (clamped; non-finite -> 0).
 /// Panics if `rgb` does not hold `3 * width * height` values.
 pub fn rgb_png(width: u32, height: u32, rgb: &[f32]) -> Vec<u8> {
-    assert_eq!(rgb.len(), 3 * width as usize * height as usize, "rgb holds 3 values per pixel");
-    let bytes: Vec<u8> =
-        rgb.iter().map(|&v| if v.is_finite() { (v.clamp(0.0, 1.0) * 255.0).round() as u8 } else { 0 }).collect();
+    assert_eq!(
+        rgb.len(),
+        3 * width as usize * height as usize,
+        "rgb holds 3 values per pixel"
+    );
+    let bytes: Vec<u8> = rgb
+        .iter()
+        .map(|&v| {
+            if v.is_finite() {
+                (v.clamp(0.0, 1.0) * 255.0).round() as u8
+            } else {
+                0
+            }
+        })
+        .collect();
     png_rgb8(width, height, &bytes)
 }
 
@@ -119,8 +139,16 @@ fn png_rgb8(width: u32, height: u32, bytes: &[u8]) -> Vec<u8> {
 /// pixel-interleaved `data` (e.g. [`NormalMap::normals_interleaved`] or an RGB composite).
 /// Panics if `data` does not hold `width * height * channels` values.
 pub fn npy_f32_hwc(width: u32, height: u32, channels: usize, data: &[f32]) -> Vec<u8> {
-    assert_eq!(data.len(), width as usize * height as usize * channels, "data holds (h, w, c) values");
-    let mut out = npy_header("<f4", &format!("({height}, {width}, {channels})"), data.len() * 4);
+    assert_eq!(
+        data.len(),
+        width as usize * height as usize * channels,
+        "data holds (h, w, c) values"
+    );
+    let mut out = npy_header(
+        "<f4",
+        &format!("({height}, {width}, {channels})"),
+        data.len() * 4,
+    );
     for v in data {
         out.extend_from_slice(&v.to_le_bytes());
     }
@@ -176,9 +204,14 @@ mod tests {
         let hlen = u16::from_le_bytes([bytes[8], bytes[9]]) as usize;
         assert_eq!((10 + hlen) % 64, 0);
         let header = std::str::from_utf8(&bytes[10..10 + hlen]).unwrap();
-        assert!(header.contains("'shape': (1, 3)") && header.ends_with('\n'), "{header}");
-        let values: Vec<f32> =
-            bytes[10 + hlen..].chunks_exact(4).map(|b| f32::from_le_bytes(b.try_into().unwrap())).collect();
+        assert!(
+            header.contains("'shape': (1, 3)") && header.ends_with('\n'),
+            "{header}"
+        );
+        let values: Vec<f32> = bytes[10 + hlen..]
+            .chunks_exact(4)
+            .map(|b| f32::from_le_bytes(b.try_into().unwrap()))
+            .collect();
         assert_eq!(values, data);
     }
 
@@ -199,17 +232,44 @@ mod tests {
         let mut reader = decoder.read_info().unwrap();
         let mut buf = vec![0; reader.output_buffer_size().unwrap()];
         let info = reader.next_frame(&mut buf).unwrap();
-        assert_eq!((info.color_type, info.bit_depth), (png::ColorType::Rgb, png::BitDepth::Eight));
+        assert_eq!(
+            (info.color_type, info.bit_depth),
+            (png::ColorType::Rgb, png::BitDepth::Eight)
+        );
         buf.truncate(info.buffer_size());
         (info.width, info.height, buf)
     }
 
     #[test]
     fn rgb_png_round_trips() {
-        let rgb = [0.0, 0.5, 1.0, 2.0, -1.0, f32::NAN, 0.25, 0.75, 1.0 / 255.0, 1.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.1, 0.2, 0.3];
+        let rgb = [
+            0.0,
+            0.5,
+            1.0,
+            2.0,
+            -1.0,
+            f32::NAN,
+            0.25,
+            0.75,
+            1.0 / 255.0,
+            1.0,
+            1.0,
+            1.0,
+            0.0,
+            0.0,
+            0.0,
+            0.1,
+            0.2,
+            0.3,
+        ];
         let (w, h, buf) = decode_rgb(rgb_png(3, 2, &rgb));
         assert_eq!((w, h), (3, 2));
-        assert_eq!(buf, vec![0, 128, 255, 255, 0, 0, 64, 191, 1, 255, 255, 255, 0, 0, 0, 26, 51, 77]);
+        assert_eq!(
+            buf,
+            vec![
+                0, 128, 255, 255, 0, 0, 64, 191, 1, 255, 255, 255, 0, 0, 0, 26, 51, 77
+            ]
+        );
     }
 
     #[test]
@@ -225,7 +285,10 @@ mod tests {
         };
         let (w, h, buf) = decode_rgb(normal_map_png(&map));
         assert_eq!((w, h), (2, 2));
-        assert_eq!(buf, vec![128, 128, 255, 218, 128, 218, 128, 37, 218, 0, 0, 0]);
+        assert_eq!(
+            buf,
+            vec![128, 128, 255, 218, 128, 218, 128, 37, 218, 0, 0, 0]
+        );
     }
 
     #[test]
@@ -236,10 +299,15 @@ mod tests {
         let hlen = u16::from_le_bytes([bytes[8], bytes[9]]) as usize;
         assert_eq!((10 + hlen) % 64, 0);
         let header = std::str::from_utf8(&bytes[10..10 + hlen]).unwrap();
-        assert!(header.starts_with("{'descr': '<f4', 'fortran_order': False, 'shape': (2, 3, 4), }"), "{header}");
+        assert!(
+            header.starts_with("{'descr': '<f4', 'fortran_order': False, 'shape': (2, 3, 4), }"),
+            "{header}"
+        );
         assert!(header.ends_with('\n'));
-        let values: Vec<f32> =
-            bytes[10 + hlen..].chunks_exact(4).map(|b| f32::from_le_bytes(b.try_into().unwrap())).collect();
+        let values: Vec<f32> = bytes[10 + hlen..]
+            .chunks_exact(4)
+            .map(|b| f32::from_le_bytes(b.try_into().unwrap()))
+            .collect();
         assert_eq!(values, data);
     }
 }

@@ -44,7 +44,10 @@ pub struct WriterGuard {
 
 impl Drop for WriterGuard {
     fn drop(&mut self) {
-        self.writers.lock().expect("writers lock").remove(&self.session_id);
+        self.writers
+            .lock()
+            .expect("writers lock")
+            .remove(&self.session_id);
     }
 }
 
@@ -110,7 +113,11 @@ impl AppState {
             .authenticate(&token)
             .await?
             .ok_or_else(|| ApiError::Unauthenticated("unknown or revoked token".into()))?;
-        if let Err(wait) = self.rate.check(principal.token_id, self.limits.rate_per_second, self.limits.rate_burst) {
+        if let Err(wait) = self.rate.check(
+            principal.token_id,
+            self.limits.rate_per_second,
+            self.limits.rate_burst,
+        ) {
             metrics::counter!("helmholtz_rate_limited_total").increment(1);
             return Err(ApiError::ResourceExhausted {
                 limit: "rate_per_second",
@@ -136,7 +143,11 @@ impl AppState {
     }
 
     /// The caller's reconstruction `id`; another lab's is NOT_FOUND like a missing one.
-    pub async fn own_reconstruction(&self, caller: &Principal, id: i64) -> Result<ReconstructionRow, ApiError> {
+    pub async fn own_reconstruction(
+        &self,
+        caller: &Principal,
+        id: i64,
+    ) -> Result<ReconstructionRow, ApiError> {
         match self.store.get_reconstruction(id).await? {
             Some(r) if r.lab == caller.lab => Ok(r),
             _ => Err(StoreError::ReconstructionNotFound(id).into()),
@@ -151,7 +162,10 @@ impl AppState {
                 "another upload to session {session_id:?} is in progress; retry after it ends"
             )));
         }
-        Ok(WriterGuard { writers: self.writers.clone(), session_id: session_id.to_string() })
+        Ok(WriterGuard {
+            writers: self.writers.clone(),
+            session_id: session_id.to_string(),
+        })
     }
 
     /// Validates and queues a reconstruction of the session's rows committed so far.
@@ -163,7 +177,8 @@ impl AppState {
         params: &Value,
     ) -> Result<ReconstructionRow, ApiError> {
         let (name, params_json) = if method == "transport" {
-            let config = TransportConfig::parse(params).map_err(|e| ApiError::invalid(e.field.clone(), e.message.clone()))?;
+            let config = TransportConfig::parse(params)
+                .map_err(|e| ApiError::invalid(e.field.clone(), e.message.clone()))?;
             let session = self.own_session(caller, session_id).await?;
             if session.camera.is_none() {
                 return Err(ApiError::FailedPrecondition(format!(
@@ -171,7 +186,9 @@ impl AppState {
                 )));
             }
             if session.committed_rows == 0 {
-                return Err(ApiError::FailedPrecondition(format!("session {session_id:?} has no frames yet")));
+                return Err(ApiError::FailedPrecondition(format!(
+                    "session {session_id:?} has no frames yet"
+                )));
             }
             ("transport", config.params_json())
         } else {
@@ -183,8 +200,14 @@ impl AppState {
                     "session {session_id:?} is a camera session: reconstruct its transport matrix with method \"transport\""
                 )));
             }
-            let problem = Problem { spec: &session.spec, channels: session.channels.len(), rows: session.committed_rows };
-            config.check(&problem).map_err(|e| ApiError::FailedPrecondition(e.to_string()))?;
+            let problem = Problem {
+                spec: &session.spec,
+                channels: session.channels.len(),
+                rows: session.committed_rows,
+            };
+            config
+                .check(&problem)
+                .map_err(|e| ApiError::FailedPrecondition(e.to_string()))?;
             (config.name(), config.params_json())
         };
         let session = self.own_session(caller, session_id).await?;
@@ -216,7 +239,11 @@ impl AppState {
 
     /// Cancels a queued or running reconstruction of the caller's lab; a running worker stops
     /// at its next cancellation check.
-    pub async fn cancel_reconstruction(&self, caller: &Principal, id: i64) -> Result<ReconstructionRow, ApiError> {
+    pub async fn cancel_reconstruction(
+        &self,
+        caller: &Principal,
+        id: i64,
+    ) -> Result<ReconstructionRow, ApiError> {
         let r = self.own_reconstruction(caller, id).await?;
         if !self.store.cancel_job(id).await? {
             let now = self.store.reconstruction(id).await?;

@@ -38,7 +38,10 @@ pub struct TransportCache {
 
 impl TransportCache {
     pub fn new(budget: usize) -> Self {
-        TransportCache { budget, entries: Mutex::new(Vec::new()) }
+        TransportCache {
+            budget,
+            entries: Mutex::new(Vec::new()),
+        }
     }
 
     /// The decoded T of a finished camera reconstruction (decoded off the async threads).
@@ -52,16 +55,20 @@ impl TransportCache {
                 return Ok(t);
             }
         }
-        let bytes = state
-            .store
-            .transport(id)
-            .await?
-            .ok_or_else(|| ApiError::Internal(format!("reconstruction {id} is done but has no stored transport matrix")))?;
+        let bytes = state.store.transport(id).await?.ok_or_else(|| {
+            ApiError::Internal(format!(
+                "reconstruction {id} is done but has no stored transport matrix"
+            ))
+        })?;
         let size = bytes.len();
         let t = tokio::task::spawn_blocking(move || TransportMatrix::decode(&bytes))
             .await
             .map_err(|e| ApiError::Internal(e.to_string()))?
-            .map_err(|e| ApiError::Internal(format!("stored transport matrix of reconstruction {id}: {e}")))?;
+            .map_err(|e| {
+                ApiError::Internal(format!(
+                    "stored transport matrix of reconstruction {id}: {e}"
+                ))
+            })?;
         let t = Arc::new(t);
         let mut entries = self.entries.lock().expect("transport cache");
         if !entries.iter().any(|(i, _, _)| *i == id) {
@@ -90,11 +97,19 @@ pub struct CachedResponse {
 
 impl ResponseCache {
     pub fn new(budget: usize) -> Self {
-        ResponseCache { budget, inner: Mutex::new((HashMap::new(), VecDeque::new(), 0)) }
+        ResponseCache {
+            budget,
+            inner: Mutex::new((HashMap::new(), VecDeque::new(), 0)),
+        }
     }
 
     fn get(&self, etag: &str) -> Option<CachedResponse> {
-        self.inner.lock().expect("response cache").0.get(etag).cloned()
+        self.inner
+            .lock()
+            .expect("response cache")
+            .0
+            .get(etag)
+            .cloned()
     }
 
     fn put(&self, etag: String, response: CachedResponse) {
@@ -129,18 +144,29 @@ enum Format {
 impl Format {
     fn parse(query: &HashMap<String, String>, allowed: &[&str]) -> Result<Format, ApiError> {
         if let Some(key) = query.keys().find(|k| !allowed.contains(&k.as_str())) {
-            return Err(ApiError::invalid(key.clone(), format!("unknown query parameter; expected {}", allowed.join(", "))));
+            return Err(ApiError::invalid(
+                key.clone(),
+                format!("unknown query parameter; expected {}", allowed.join(", ")),
+            ));
         }
         let scale = match query.get("scale").map(String::as_str) {
             None | Some("percentile") => Scale::Percentile,
             Some("minmax") => Scale::MinMax,
-            Some(other) => return Err(ApiError::invalid("scale", format!("must be percentile or minmax, got {other:?}"))),
+            Some(other) => {
+                return Err(ApiError::invalid(
+                    "scale",
+                    format!("must be percentile or minmax, got {other:?}"),
+                ));
+            }
         };
         match query.get("format").map(String::as_str) {
             None | Some("png") => Ok(Format::Png(scale)),
             Some("tiff") => Ok(Format::Tiff),
             Some("npy") => Ok(Format::Npy),
-            Some(other) => Err(ApiError::invalid("format", format!("must be png, tiff or npy, got {other:?}"))),
+            Some(other) => Err(ApiError::invalid(
+                "format",
+                format!("must be png, tiff or npy, got {other:?}"),
+            )),
         }
     }
 
@@ -157,7 +183,10 @@ impl Format {
         match self {
             Format::Png(scale) => (images::png_8bit(width, height, data, scale), "image/png"),
             Format::Tiff => (images::tiff_f32(width, height, data), "image/tiff"),
-            Format::Npy => (images::npy_f32(width, height, data), "application/octet-stream"),
+            Format::Npy => (
+                images::npy_f32(width, height, data),
+                "application/octet-stream",
+            ),
         }
     }
 }
@@ -165,31 +194,56 @@ impl Format {
 /// A request body: a JSON object or an image (PNG, NPY).
 enum Input {
     Json(Map<String, Value>),
-    Image { width: usize, height: usize, values: Vec<f32> },
+    Image {
+        width: usize,
+        height: usize,
+        values: Vec<f32>,
+    },
 }
 
 fn parse_input(headers: &HeaderMap, body: &[u8], what: &str) -> Result<Input, ApiError> {
-    let content_type = headers.get(header::CONTENT_TYPE).and_then(|v| v.to_str().ok()).unwrap_or("application/json");
-    let mime = content_type.split(';').next().unwrap_or("").trim().to_ascii_lowercase();
+    let content_type = headers
+        .get(header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .unwrap_or("application/json");
+    let mime = content_type
+        .split(';')
+        .next()
+        .unwrap_or("")
+        .trim()
+        .to_ascii_lowercase();
     match mime.as_str() {
         "application/json" | "" => {
-            let value: Value = serde_json::from_slice(body).map_err(|e| ApiError::invalid("body", format!("not JSON: {e}")))?;
+            let value: Value = serde_json::from_slice(body)
+                .map_err(|e| ApiError::invalid("body", format!("not JSON: {e}")))?;
             match value {
                 Value::Object(map) => Ok(Input::Json(map)),
                 _ => Err(ApiError::invalid("body", "must be a JSON object")),
             }
         }
         "image/png" => {
-            let (width, height, values) = decode_png(body).map_err(|e| ApiError::invalid(what, format!("not a readable PNG: {e}")))?;
-            Ok(Input::Image { width, height, values })
+            let (width, height, values) = decode_png(body)
+                .map_err(|e| ApiError::invalid(what, format!("not a readable PNG: {e}")))?;
+            Ok(Input::Image {
+                width,
+                height,
+                values,
+            })
         }
         "application/x-npy" | "application/octet-stream" => {
-            let (width, height, values) = decode_npy(body).map_err(|e| ApiError::invalid(what, e))?;
-            Ok(Input::Image { width, height, values })
+            let (width, height, values) =
+                decode_npy(body).map_err(|e| ApiError::invalid(what, e))?;
+            Ok(Input::Image {
+                width,
+                height,
+                values,
+            })
         }
         other => Err(ApiError::invalid(
             "content-type",
-            format!("{other:?} is not accepted; send application/json, image/png or application/x-npy"),
+            format!(
+                "{other:?} is not accepted; send application/json, image/png or application/x-npy"
+            ),
         )),
     }
 }
@@ -212,7 +266,11 @@ fn decode_png(bytes: &[u8]) -> Result<(usize, usize, Vec<f32>), String> {
     let sixteen = info.bit_depth == png::BitDepth::Sixteen;
     let max = if sixteen { 65535.0 } else { 255.0 };
     let sample = |i: usize| -> f32 {
-        if sixteen { u16::from_be_bytes([buf[2 * i], buf[2 * i + 1]]) as f32 / max } else { buf[i] as f32 / max }
+        if sixteen {
+            u16::from_be_bytes([buf[2 * i], buf[2 * i + 1]]) as f32 / max
+        } else {
+            buf[i] as f32 / max
+        }
     };
     let values = (0..w * h)
         .map(|p| {
@@ -235,30 +293,53 @@ fn decode_npy(bytes: &[u8]) -> Result<(usize, usize, Vec<f32>), String> {
     }
     let (header_len, start) = match bytes[6] {
         1 => (u16::from_le_bytes([bytes[8], bytes[9]]) as usize, 10),
-        2 | 3 if bytes.len() >= 12 => (u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize, 12),
+        2 | 3 if bytes.len() >= 12 => (
+            u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize,
+            12,
+        ),
         v => return Err(format!("NPY version {v} is not supported")),
     };
-    let header = bytes.get(start..start + header_len).ok_or("NPY header runs past the body")?;
+    let header = bytes
+        .get(start..start + header_len)
+        .ok_or("NPY header runs past the body")?;
     let header = std::str::from_utf8(header).map_err(|_| "NPY header is not text")?;
     let field = |name: &str| -> Option<&str> {
         let at = header.find(&format!("'{name}'"))?;
-        Some(header[at + name.len() + 2..].trim_start().trim_start_matches(':').trim_start())
+        Some(
+            header[at + name.len() + 2..]
+                .trim_start()
+                .trim_start_matches(':')
+                .trim_start(),
+        )
     };
-    let descr = field("descr").and_then(|s| s.strip_prefix('\'')).and_then(|s| s.split('\'').next()).ok_or("NPY header has no descr")?;
+    let descr = field("descr")
+        .and_then(|s| s.strip_prefix('\''))
+        .and_then(|s| s.split('\'').next())
+        .ok_or("NPY header has no descr")?;
     if field("fortran_order").is_some_and(|s| s.starts_with("True")) {
         return Err("Fortran-ordered NPY arrays are not supported; save in C order".into());
     }
-    let shape_text = field("shape").and_then(|s| s.strip_prefix('(')).and_then(|s| s.split(')').next()).ok_or("NPY header has no shape")?;
+    let shape_text = field("shape")
+        .and_then(|s| s.strip_prefix('('))
+        .and_then(|s| s.split(')').next())
+        .ok_or("NPY header has no shape")?;
     let shape: Vec<usize> = shape_text
         .split(',')
         .map(str::trim)
         .filter(|s| !s.is_empty())
-        .map(|s| s.parse::<usize>().map_err(|_| format!("bad NPY shape ({shape_text})")))
+        .map(|s| {
+            s.parse::<usize>()
+                .map_err(|_| format!("bad NPY shape ({shape_text})"))
+        })
         .collect::<Result<_, _>>()?;
     let (height, width) = match shape.as_slice() {
         [n] => (1, *n),
         [h, w] => (*h, *w),
-        _ => return Err(format!("the array must be 1-D or 2-D, got shape ({shape_text})")),
+        _ => {
+            return Err(format!(
+                "the array must be 1-D or 2-D, got shape ({shape_text})"
+            ));
+        }
     };
     let data = &bytes[start + header_len..];
     let n = width * height;
@@ -267,16 +348,32 @@ fn decode_npy(bytes: &[u8]) -> Result<(usize, usize, Vec<f32>), String> {
         "<f8" => 8,
         "|u1" | "<u1" => 1,
         "<u2" => 2,
-        other => return Err(format!("dtype {other:?} is not supported; use float32, float64, uint8 or uint16")),
+        other => {
+            return Err(format!(
+                "dtype {other:?} is not supported; use float32, float64, uint8 or uint16"
+            ));
+        }
     };
     if data.len() != n * size {
-        return Err(format!("the array holds {} bytes, not {n} values of {size} bytes", data.len()));
+        return Err(format!(
+            "the array holds {} bytes, not {n} values of {size} bytes",
+            data.len()
+        ));
     }
     let values: Vec<f32> = match size {
-        4 => data.chunks_exact(4).map(|b| f32::from_le_bytes(b.try_into().expect("4"))).collect(),
-        8 => data.chunks_exact(8).map(|b| f64::from_le_bytes(b.try_into().expect("8")) as f32).collect(),
+        4 => data
+            .chunks_exact(4)
+            .map(|b| f32::from_le_bytes(b.try_into().expect("4")))
+            .collect(),
+        8 => data
+            .chunks_exact(8)
+            .map(|b| f64::from_le_bytes(b.try_into().expect("8")) as f32)
+            .collect(),
         1 => data.iter().map(|&b| b as f32).collect(),
-        _ => data.chunks_exact(2).map(|b| u16::from_le_bytes(b.try_into().expect("2")) as f32).collect(),
+        _ => data
+            .chunks_exact(2)
+            .map(|b| u16::from_le_bytes(b.try_into().expect("2")) as f32)
+            .collect(),
     };
     if let Some(i) = values.iter().position(|v| !v.is_finite()) {
         return Err(format!("value {i} is not finite"));
@@ -302,7 +399,8 @@ fn not_modified(headers: &HeaderMap, etag: &str) -> Option<Response> {
         .is_some_and(|v| v.split(',').any(|t| t.trim() == etag || t.trim() == "*"));
     hit.then(|| {
         let mut r = StatusCode::NOT_MODIFIED.into_response();
-        r.headers_mut().insert(header::ETAG, HeaderValue::from_str(etag).expect("ascii"));
+        r.headers_mut()
+            .insert(header::ETAG, HeaderValue::from_str(etag).expect("ascii"));
         r
     })
 }
@@ -312,7 +410,10 @@ fn respond(etag: &str, cached: CachedResponse, computed_ms: Option<f64>) -> Resp
     let h = response.headers_mut();
     h.insert(header::CONTENT_TYPE, HeaderValue::from_static(cached.mime));
     h.insert(header::ETAG, HeaderValue::from_str(etag).expect("ascii"));
-    h.insert(header::CACHE_CONTROL, HeaderValue::from_static("private, max-age=31536000, immutable"));
+    h.insert(
+        header::CACHE_CONTROL,
+        HeaderValue::from_static("private, max-age=31536000, immutable"),
+    );
     for (name, value) in &cached.headers {
         if let Ok(v) = HeaderValue::from_str(value) {
             h.insert(*name, v);
@@ -322,12 +423,19 @@ fn respond(etag: &str, cached: CachedResponse, computed_ms: Option<f64>) -> Resp
         Some(ms) => format!("compute;dur={ms:.3}"),
         None => "cache;desc=\"hit\"".to_string(),
     };
-    h.insert("server-timing", HeaderValue::from_str(&timing).expect("ascii"));
+    h.insert(
+        "server-timing",
+        HeaderValue::from_str(&timing).expect("ascii"),
+    );
     response
 }
 
 /// The caller's finished reconstruction and its session.
-async fn finished(state: &AppState, caller: &Principal, id: i64) -> Result<(ReconstructionRow, SessionRow), ApiError> {
+async fn finished(
+    state: &AppState,
+    caller: &Principal,
+    id: i64,
+) -> Result<(ReconstructionRow, SessionRow), ApiError> {
     let r = state.own_reconstruction(caller, id).await?;
     if r.state != "done" {
         return Err(ApiError::FailedPrecondition(format!(
@@ -341,8 +449,13 @@ async fn finished(state: &AppState, caller: &Principal, id: i64) -> Result<(Reco
 
 fn number(map: &Map<String, Value>, key: &str, field: &str) -> Result<f64, ApiError> {
     match map.get(key) {
-        Some(Value::Number(n)) if n.as_f64().is_some_and(f64::is_finite) => Ok(n.as_f64().expect("checked")),
-        Some(other) => Err(ApiError::invalid(format!("{field}.{key}"), format!("must be a finite number, got {other}"))),
+        Some(Value::Number(n)) if n.as_f64().is_some_and(f64::is_finite) => {
+            Ok(n.as_f64().expect("checked"))
+        }
+        Some(other) => Err(ApiError::invalid(
+            format!("{field}.{key}"),
+            format!("must be a finite number, got {other}"),
+        )),
         None => Err(ApiError::invalid(format!("{field}.{key}"), "is required")),
     }
 }
@@ -350,7 +463,11 @@ fn number(map: &Map<String, Value>, key: &str, field: &str) -> Result<f64, ApiEr
 fn only_keys(map: &Map<String, Value>, allowed: &[&str], field: &str) -> Result<(), ApiError> {
     match map.keys().find(|k| !allowed.contains(&k.as_str())) {
         Some(k) => Err(ApiError::invalid(
-            if field.is_empty() { k.clone() } else { format!("{field}.{k}") },
+            if field.is_empty() {
+                k.clone()
+            } else {
+                format!("{field}.{k}")
+            },
             format!("unknown field; expected {}", allowed.join(", ")),
         )),
         None => Ok(()),
@@ -361,11 +478,17 @@ fn only_keys(map: &Map<String, Value>, allowed: &[&str], field: &str) -> Result<
 fn camera_light(input: Input, cw: usize, ch: usize) -> Result<Vec<f32>, ApiError> {
     let m = cw * ch;
     let light = match input {
-        Input::Image { width, height, values } => {
+        Input::Image {
+            width,
+            height,
+            values,
+        } => {
             if values.len() != m || (height != 1 && (width, height) != (cw, ch)) {
                 return Err(ApiError::invalid(
                     "body",
-                    format!("the light image is {width}x{height} but the camera is {cw}x{ch} (or send {m} values as a 1-D array)"),
+                    format!(
+                        "the light image is {width}x{height} but the camera is {cw}x{ch} (or send {m} values as a 1-D array)"
+                    ),
                 ));
             }
             values
@@ -373,7 +496,10 @@ fn camera_light(input: Input, cw: usize, ch: usize) -> Result<Vec<f32>, ApiError
         Input::Json(body) => {
             only_keys(&body, &["light"], "")?;
             let Some(Value::Object(light)) = body.get("light") else {
-                return Err(ApiError::invalid("light", "is required: an object such as {\"preset\": \"full\"}"));
+                return Err(ApiError::invalid(
+                    "light",
+                    "is required: an object such as {\"preset\": \"full\"}",
+                ));
             };
             if light.contains_key("weights") {
                 return Err(ApiError::invalid(
@@ -384,7 +510,12 @@ fn camera_light(input: Input, cw: usize, ch: usize) -> Result<Vec<f32>, ApiError
             let preset = match light.get("preset") {
                 Some(Value::String(p)) => p.as_str(),
                 Some(_) => return Err(ApiError::invalid("light.preset", "must be a string")),
-                None => return Err(ApiError::invalid("light.preset", "is required: full, disc or stripe")),
+                None => {
+                    return Err(ApiError::invalid(
+                        "light.preset",
+                        "is required: full, disc or stripe",
+                    ));
+                }
             };
             match preset {
                 "full" => {
@@ -393,18 +524,34 @@ fn camera_light(input: Input, cw: usize, ch: usize) -> Result<Vec<f32>, ApiError
                 }
                 "disc" => {
                     only_keys(light, &["preset", "x", "y", "radius"], "light")?;
-                    let (x, y, r) = (number(light, "x", "light")?, number(light, "y", "light")?, number(light, "radius", "light")?);
+                    let (x, y, r) = (
+                        number(light, "x", "light")?,
+                        number(light, "y", "light")?,
+                        number(light, "radius", "light")?,
+                    );
                     if r <= 0.0 {
-                        return Err(ApiError::invalid("light.radius", format!("must be positive, got {r}")));
+                        return Err(ApiError::invalid(
+                            "light.radius",
+                            format!("must be positive, got {r}"),
+                        ));
                     }
                     let out: Vec<f32> = (0..m)
                         .map(|j| {
                             let (px, py) = ((j % cw) as f64 + 0.5, (j / cw) as f64 + 0.5);
-                            if (px - x).powi(2) + (py - y).powi(2) <= r * r { 1.0 } else { 0.0 }
+                            if (px - x).powi(2) + (py - y).powi(2) <= r * r {
+                                1.0
+                            } else {
+                                0.0
+                            }
                         })
                         .collect();
                     if out.iter().all(|&v| v == 0.0) {
-                        return Err(ApiError::invalid("light", format!("the disc at ({x}, {y}) of radius {r} covers no pixel of the {cw}x{ch} camera")));
+                        return Err(ApiError::invalid(
+                            "light",
+                            format!(
+                                "the disc at ({x}, {y}) of radius {r} covers no pixel of the {cw}x{ch} camera"
+                            ),
+                        ));
                     }
                     out
                 }
@@ -412,7 +559,10 @@ fn camera_light(input: Input, cw: usize, ch: usize) -> Result<Vec<f32>, ApiError
                     only_keys(light, &["preset", "x0", "x1"], "light")?;
                     let (x0, x1) = (number(light, "x0", "light")?, number(light, "x1", "light")?);
                     if x1 <= x0 {
-                        return Err(ApiError::invalid("light.x1", format!("must exceed x0 ({x0}), got {x1}")));
+                        return Err(ApiError::invalid(
+                            "light.x1",
+                            format!("must exceed x0 ({x0}), got {x1}"),
+                        ));
                     }
                     let out: Vec<f32> = (0..m)
                         .map(|j| {
@@ -421,11 +571,19 @@ fn camera_light(input: Input, cw: usize, ch: usize) -> Result<Vec<f32>, ApiError
                         })
                         .collect();
                     if out.iter().all(|&v| v == 0.0) {
-                        return Err(ApiError::invalid("light", format!("columns {x0} <= x < {x1} miss the {cw}-column camera")));
+                        return Err(ApiError::invalid(
+                            "light",
+                            format!("columns {x0} <= x < {x1} miss the {cw}-column camera"),
+                        ));
                     }
                     out
                 }
-                other => return Err(ApiError::invalid("light.preset", format!("must be full, disc or stripe, got {other:?}"))),
+                other => {
+                    return Err(ApiError::invalid(
+                        "light.preset",
+                        format!("must be full, disc or stripe, got {other:?}"),
+                    ));
+                }
             }
         }
     };
@@ -433,16 +591,26 @@ fn camera_light(input: Input, cw: usize, ch: usize) -> Result<Vec<f32>, ApiError
 }
 
 /// The relit dual image of a bucket session: the channels' dual images weighted.
-fn bucket_relight(input: Input, images: &[StoredImage], channels: &[String]) -> Result<StoredImage, ApiError> {
+fn bucket_relight(
+    input: Input,
+    images: &[StoredImage],
+    channels: &[String],
+) -> Result<StoredImage, ApiError> {
     let Input::Json(body) = input else {
         return Err(ApiError::invalid(
             "body",
-            format!("a bucket session is relit by per-channel weights, e.g. {{\"light\": {{\"weights\": {{\"{}\": 1.0}}}}}}", channels[0]),
+            format!(
+                "a bucket session is relit by per-channel weights, e.g. {{\"light\": {{\"weights\": {{\"{}\": 1.0}}}}}}",
+                channels[0]
+            ),
         ));
     };
     only_keys(&body, &["light"], "")?;
     let Some(Value::Object(light)) = body.get("light") else {
-        return Err(ApiError::invalid("light", "is required: {\"weights\": {CHANNEL: WEIGHT, ...}} or {\"preset\": \"full\"}"));
+        return Err(ApiError::invalid(
+            "light",
+            "is required: {\"weights\": {CHANNEL: WEIGHT, ...}} or {\"preset\": \"full\"}",
+        ));
     };
     let weights: Vec<f64> = match (light.get("weights"), light.get("preset")) {
         (Some(Value::Object(w)), None) => {
@@ -450,7 +618,10 @@ fn bucket_relight(input: Input, images: &[StoredImage], channels: &[String]) -> 
             let mut out = vec![0.0; channels.len()];
             for name in w.keys() {
                 let i = channels.iter().position(|c| c == name).ok_or_else(|| {
-                    ApiError::invalid(format!("light.weights.{name}"), format!("no such channel; this session has {}", channels.join(", ")))
+                    ApiError::invalid(
+                        format!("light.weights.{name}"),
+                        format!("no such channel; this session has {}", channels.join(", ")),
+                    )
                 })?;
                 out[i] = number(w, name, "light.weights")?;
             }
@@ -463,20 +634,35 @@ fn bucket_relight(input: Input, images: &[StoredImage], channels: &[String]) -> 
         (None, Some(p)) => {
             return Err(ApiError::invalid(
                 "light.preset",
-                format!("a bucket session has no camera: the only preset is \"full\" (all channels), got {p}"),
+                format!(
+                    "a bucket session has no camera: the only preset is \"full\" (all channels), got {p}"
+                ),
             ));
         }
         _ => return Err(ApiError::invalid("light", "give either weights or preset")),
     };
-    let first = images.first().ok_or_else(|| ApiError::Internal("finished reconstruction without images".into()))?;
+    let first = images
+        .first()
+        .ok_or_else(|| ApiError::Internal("finished reconstruction without images".into()))?;
     let mut data = vec![0f32; first.data.len()];
     for image in images {
-        let w = weights.get(image.channel_index as usize).copied().unwrap_or(0.0) as f32;
+        let w = weights
+            .get(image.channel_index as usize)
+            .copied()
+            .unwrap_or(0.0) as f32;
         if w != 0.0 {
-            data.iter_mut().zip(&image.data).for_each(|(d, v)| *d += w * v);
+            data.iter_mut()
+                .zip(&image.data)
+                .for_each(|(d, v)| *d += w * v);
         }
     }
-    Ok(StoredImage { channel_index: 0, channel_name: "relit".into(), width: first.width, height: first.height, data })
+    Ok(StoredImage {
+        channel_index: 0,
+        channel_name: "relit".into(),
+        width: first.width,
+        height: first.height,
+        data,
+    })
 }
 
 pub async fn relight(
@@ -489,8 +675,17 @@ pub async fn relight(
 ) -> Result<Response, ApiError> {
     let format = Format::parse(query, &["format", "scale"])?;
     let (_, session) = finished(state, caller, id).await?;
-    let content_type = headers.get(header::CONTENT_TYPE).map(|v| v.as_bytes()).unwrap_or(b"");
-    let etag = strong_etag(&[b"relight-v1", &id.to_le_bytes(), format.tag().as_bytes(), content_type, &body]);
+    let content_type = headers
+        .get(header::CONTENT_TYPE)
+        .map(|v| v.as_bytes())
+        .unwrap_or(b"");
+    let etag = strong_etag(&[
+        b"relight-v1",
+        &id.to_le_bytes(),
+        format.tag().as_bytes(),
+        content_type,
+        &body,
+    ]);
     if let Some(r) = not_modified(headers, &etag) {
         return Ok(r);
     }
@@ -504,7 +699,9 @@ pub async fn relight(
             let light = camera_light(input, camera.width as usize, camera.height as usize)?;
             let t = state.transports.get(state, id).await?;
             let (pw, ph) = t.projector();
-            let data = tokio::task::spawn_blocking(move || t.relight(&light)).await.map_err(|e| ApiError::Internal(e.to_string()))?;
+            let data = tokio::task::spawn_blocking(move || t.relight(&light))
+                .await
+                .map_err(|e| ApiError::Internal(e.to_string()))?;
             (pw, ph, data)
         }
         None => {
@@ -516,7 +713,11 @@ pub async fn relight(
     let ms = started.elapsed().as_secs_f64() * 1e3;
     metrics::histogram!("helmholtz_relight_seconds", "kind" => "relight").record(ms / 1e3);
     let (bytes, mime) = format.encode(width, height, &data);
-    let cached = CachedResponse { bytes: Bytes::from(bytes), mime, headers: Vec::new() };
+    let cached = CachedResponse {
+        bytes: Bytes::from(bytes),
+        mime,
+        headers: Vec::new(),
+    };
     state.responses.put(etag.clone(), cached.clone());
     Ok(respond(&etag, cached, Some(ms)))
 }
@@ -533,7 +734,12 @@ pub async fn primal(
     let with_ambient = match query.get("ambient").map(String::as_str) {
         None | Some("include") => true,
         Some("exclude") => false,
-        Some(other) => return Err(ApiError::invalid("ambient", format!("must be include or exclude, got {other:?}"))),
+        Some(other) => {
+            return Err(ApiError::invalid(
+                "ambient",
+                format!("must be include or exclude, got {other:?}"),
+            ));
+        }
     };
     let (_, session) = finished(state, caller, id).await?;
     let Some(camera) = session.camera else {
@@ -542,22 +748,41 @@ pub async fn primal(
             session.id
         )));
     };
-    let content_type = headers.get(header::CONTENT_TYPE).map(|v| v.as_bytes()).unwrap_or(b"");
-    let etag = strong_etag(&[b"primal-v1", &id.to_le_bytes(), format.tag().as_bytes(), &[with_ambient as u8], content_type, &body]);
+    let content_type = headers
+        .get(header::CONTENT_TYPE)
+        .map(|v| v.as_bytes())
+        .unwrap_or(b"");
+    let etag = strong_etag(&[
+        b"primal-v1",
+        &id.to_le_bytes(),
+        format.tag().as_bytes(),
+        &[with_ambient as u8],
+        content_type,
+        &body,
+    ]);
     if let Some(r) = not_modified(headers, &etag) {
         return Ok(r);
     }
     if let Some(hit) = state.responses.get(&etag) {
         return Ok(respond(&etag, hit, None));
     }
-    let (pw, ph) = (session.spec.width() as usize, session.spec.height() as usize);
+    let (pw, ph) = (
+        session.spec.width() as usize,
+        session.spec.height() as usize,
+    );
     let k = pw * ph;
     let (pattern, measured_row) = match parse_input(headers, &body, "body")? {
-        Input::Image { width, height, values } => {
+        Input::Image {
+            width,
+            height,
+            values,
+        } => {
             if values.len() != k || (height != 1 && (width, height) != (pw, ph)) {
                 return Err(ApiError::invalid(
                     "body",
-                    format!("the pattern is {width}x{height} but the projector is {pw}x{ph} (or send {k} values as a 1-D array)"),
+                    format!(
+                        "the pattern is {width}x{height} but the projector is {pw}x{ph} (or send {k} values as a 1-D array)"
+                    ),
                 ));
             }
             (values, None)
@@ -566,13 +791,27 @@ pub async fn primal(
             only_keys(&map, &["pattern_index"], "")?;
             let i = match map.get("pattern_index") {
                 Some(Value::Number(n)) if n.as_u64().is_some() => n.as_u64().expect("checked"),
-                Some(other) => return Err(ApiError::invalid("pattern_index", format!("must be a non-negative integer, got {other}"))),
-                None => return Err(ApiError::invalid("pattern_index", "is required (or send the pattern as a PNG or NPY body)")),
+                Some(other) => {
+                    return Err(ApiError::invalid(
+                        "pattern_index",
+                        format!("must be a non-negative integer, got {other}"),
+                    ));
+                }
+                None => {
+                    return Err(ApiError::invalid(
+                        "pattern_index",
+                        "is required (or send the pattern as a PNG or NPY body)",
+                    ));
+                }
             };
             if i >= session.spec.count() {
                 return Err(ApiError::invalid(
                     "pattern_index",
-                    format!("the session declares {} patterns (0..{}), got {i}", session.spec.count(), session.spec.count()),
+                    format!(
+                        "the session declares {} patterns (0..{}), got {i}",
+                        session.spec.count(),
+                        session.spec.count()
+                    ),
                 ));
             }
             let mut pattern = vec![0f32; k];
@@ -582,11 +821,19 @@ pub async fn primal(
     };
     let started = Instant::now();
     let t = state.transports.get(state, id).await?;
-    let mut predicted = tokio::task::spawn_blocking(move || t.primal(&pattern)).await.map_err(|e| ApiError::Internal(e.to_string()))?;
+    let mut predicted = tokio::task::spawn_blocking(move || t.primal(&pattern))
+        .await
+        .map_err(|e| ApiError::Internal(e.to_string()))?;
     if with_ambient {
         let images = state.store.dual_images(id).await?;
-        if let Some(ambient) = images.iter().find(|i| i.channel_name == "ambient" && i.data.len() == predicted.len()) {
-            predicted.iter_mut().zip(&ambient.data).for_each(|(p, a)| *p += a);
+        if let Some(ambient) = images
+            .iter()
+            .find(|i| i.channel_name == "ambient" && i.data.len() == predicted.len())
+        {
+            predicted
+                .iter_mut()
+                .zip(&ambient.data)
+                .for_each(|(p, a)| *p += a);
         }
     }
     let ms = started.elapsed().as_secs_f64() * 1e3;
@@ -595,7 +842,11 @@ pub async fn primal(
     if let Some(i) = measured_row {
         // Only rows the reconstruction used are "measured" for it; later rows are still real
         // frames, so compare against them too when they are stored.
-        if let Some(bytes) = state.store.read_row(&session.id, i, session.row_bytes()).await? {
+        if let Some(bytes) = state
+            .store
+            .read_row(&session.id, i, session.row_bytes())
+            .await?
+        {
             let mut measured = Vec::with_capacity(predicted.len());
             session.sample_format().decode_f32(&bytes, &mut measured);
             let (mut e2, mut n2, mut peak) = (0f64, 0f64, 0f64);
@@ -605,13 +856,23 @@ pub async fn primal(
                 peak = peak.max(*m as f64);
             }
             let mse = e2 / measured.len().max(1) as f64;
-            extra.push(("x-helmholtz-relative-error", format!("{:.6e}", (e2 / n2).sqrt())));
-            extra.push(("x-helmholtz-psnr-db", format!("{:.3}", 10.0 * (peak * peak / mse).log10())));
+            extra.push((
+                "x-helmholtz-relative-error",
+                format!("{:.6e}", (e2 / n2).sqrt()),
+            ));
+            extra.push((
+                "x-helmholtz-psnr-db",
+                format!("{:.3}", 10.0 * (peak * peak / mse).log10()),
+            ));
             extra.push(("x-helmholtz-measured-row", i.to_string()));
         }
     }
     let (bytes, mime) = format.encode(camera.width, camera.height, &predicted);
-    let cached = CachedResponse { bytes: Bytes::from(bytes), mime, headers: extra };
+    let cached = CachedResponse {
+        bytes: Bytes::from(bytes),
+        mime,
+        headers: extra,
+    };
     state.responses.put(etag.clone(), cached.clone());
     Ok(respond(&etag, cached, Some(ms)))
 }
@@ -620,8 +881,15 @@ pub async fn primal(
 /// `normals.png|normals.npy|albedo.png|albedo.npy|residual.npy|photometric.json` (photometric stereo from three or
 /// more channels at the session's declared detector directions; query `gains`,
 /// `shadow_threshold`, `dark_threshold`) and `composite.png` (channels named r, g, b).
-pub const DERIVED_FILES: [&str; 7] =
-    ["normals.png", "normals.npy", "albedo.png", "albedo.npy", "residual.npy", "photometric.json", "composite.png"];
+pub const DERIVED_FILES: [&str; 7] = [
+    "normals.png",
+    "normals.npy",
+    "albedo.png",
+    "albedo.npy",
+    "residual.npy",
+    "photometric.json",
+    "composite.png",
+];
 
 pub async fn derived(
     state: &AppState,
@@ -638,11 +906,19 @@ pub async fn derived(
             session.id
         )));
     }
-    let allowed: &[&str] = if file == "composite.png" { &[] } else { &["gains", "shadow_threshold", "dark_threshold"] };
+    let allowed: &[&str] = if file == "composite.png" {
+        &[]
+    } else {
+        &["gains", "shadow_threshold", "dark_threshold"]
+    };
     if let Some(key) = query.keys().find(|k| !allowed.contains(&k.as_str())) {
         return Err(ApiError::invalid(
             key.clone(),
-            if allowed.is_empty() { "unknown query parameter; this file takes none".to_string() } else { format!("unknown query parameter; expected {}", allowed.join(", ")) },
+            if allowed.is_empty() {
+                "unknown query parameter; this file takes none".to_string()
+            } else {
+                format!("unknown query parameter; expected {}", allowed.join(", "))
+            },
         ));
     }
     let mut keyed: Vec<(&String, &String)> = query.iter().collect();
@@ -665,13 +941,24 @@ pub async fn derived(
                 session.channels.join(", ")
             )));
         };
-        let pick = |c: usize| images.iter().find(|i| i.channel_index as usize == c).map(|i| &i.data[..]);
+        let pick = |c: usize| {
+            images
+                .iter()
+                .find(|i| i.channel_index as usize == c)
+                .map(|i| &i.data[..])
+        };
         let (Some(r), Some(g), Some(b)) = (pick(r), pick(g), pick(b)) else {
-            return Err(ApiError::Internal("a colour channel's dual image is missing".into()));
+            return Err(ApiError::Internal(
+                "a colour channel's dual image is missing".into(),
+            ));
         };
         let first = &images[0];
         let rgb = crate::recon::colour::composite(r, g, b);
-        (images::rgb_png(first.width, first.height, &rgb), "image/png", Vec::new())
+        (
+            images::rgb_png(first.width, first.height, &rgb),
+            "image/png",
+            Vec::new(),
+        )
     } else {
         if session.directions.is_empty() {
             return Err(ApiError::FailedPrecondition(format!(
@@ -687,8 +974,9 @@ pub async fn derived(
             };
             params.insert(k.clone(), value);
         }
-        let options = crate::recon::photometric::PhotometricOptions::from_params(&Value::Object(params))
-            .map_err(|e| ApiError::invalid(e.field(), e.to_string()))?;
+        let options =
+            crate::recon::photometric::PhotometricOptions::from_params(&Value::Object(params))
+                .map_err(|e| ApiError::invalid(e.field(), e.to_string()))?;
         let mut ordered: Vec<&StoredImage> = images.iter().collect();
         ordered.sort_by_key(|i| i.channel_index);
         let (w, h) = (ordered[0].width, ordered[0].height);
@@ -703,25 +991,57 @@ pub async fn derived(
         .map_err(|e| {
             // Query options are the request's fault; images and directions are the session's.
             let field = e.field();
-            if field.starts_with("directions") || field.starts_with("images") || field == "width" || field == "height" {
+            if field.starts_with("directions")
+                || field.starts_with("images")
+                || field == "width"
+                || field == "height"
+            {
                 ApiError::FailedPrecondition(format!("session {:?}: {field}: {e}", session.id))
             } else {
                 ApiError::invalid(field, e.to_string())
             }
         })?;
         let extra = Vec::new();
-        let finite = |v: &[f32]| v.iter().map(|x| if x.is_finite() { *x } else { 0.0 }).collect::<Vec<f32>>();
+        let finite = |v: &[f32]| {
+            v.iter()
+                .map(|x| if x.is_finite() { *x } else { 0.0 })
+                .collect::<Vec<f32>>()
+        };
         match file {
             "normals.png" => (images::normal_map_png(&map), "image/png", extra),
-            "normals.npy" => (images::npy_f32_hwc(w, h, 3, &map.normals_interleaved()), "application/octet-stream", extra),
-            "albedo.png" => (images::png_8bit(w, h, &finite(&map.albedo), Scale::Percentile), "image/png", extra),
-            "albedo.npy" => (images::npy_f32(w, h, &map.albedo), "application/octet-stream", extra),
-            "photometric.json" => (serde_json::to_vec_pretty(&report).unwrap_or_default(), "application/json", extra),
-            _ => (images::npy_f32(w, h, &map.residual), "application/octet-stream", extra),
+            "normals.npy" => (
+                images::npy_f32_hwc(w, h, 3, &map.normals_interleaved()),
+                "application/octet-stream",
+                extra,
+            ),
+            "albedo.png" => (
+                images::png_8bit(w, h, &finite(&map.albedo), Scale::Percentile),
+                "image/png",
+                extra,
+            ),
+            "albedo.npy" => (
+                images::npy_f32(w, h, &map.albedo),
+                "application/octet-stream",
+                extra,
+            ),
+            "photometric.json" => (
+                serde_json::to_vec_pretty(&report).unwrap_or_default(),
+                "application/json",
+                extra,
+            ),
+            _ => (
+                images::npy_f32(w, h, &map.residual),
+                "application/octet-stream",
+                extra,
+            ),
         }
     };
     let ms = started.elapsed().as_secs_f64() * 1e3;
-    let cached = CachedResponse { bytes: Bytes::from(bytes), mime, headers: extra };
+    let cached = CachedResponse {
+        bytes: Bytes::from(bytes),
+        mime,
+        headers: extra,
+    };
     state.responses.put(etag.clone(), cached.clone());
     Ok(respond(&etag, cached, Some(ms)))
 }
@@ -745,13 +1065,40 @@ mod tests {
 
     #[test]
     fn presets_light_the_pixels_they_name() {
-        let disc = camera_light(Input::Json(serde_json::from_str(r#"{"light": {"preset": "disc", "x": 2, "y": 2, "radius": 1}}"#).unwrap()), 4, 4).unwrap();
+        let disc = camera_light(
+            Input::Json(
+                serde_json::from_str(
+                    r#"{"light": {"preset": "disc", "x": 2, "y": 2, "radius": 1}}"#,
+                )
+                .unwrap(),
+            ),
+            4,
+            4,
+        )
+        .unwrap();
         // Pixel centres within 1 of (2, 2): (1.5,1.5), (2.5,1.5), (1.5,2.5), (2.5,2.5).
         assert_eq!(disc.iter().sum::<f32>(), 4.0);
         assert_eq!(disc[5] + disc[6] + disc[9] + disc[10], 4.0);
-        let stripe = camera_light(Input::Json(serde_json::from_str(r#"{"light": {"preset": "stripe", "x0": 1, "x1": 3}}"#).unwrap()), 4, 2).unwrap();
+        let stripe = camera_light(
+            Input::Json(
+                serde_json::from_str(r#"{"light": {"preset": "stripe", "x0": 1, "x1": 3}}"#)
+                    .unwrap(),
+            ),
+            4,
+            2,
+        )
+        .unwrap();
         assert_eq!(stripe, vec![0.0, 1.0, 1.0, 0.0, 0.0, 1.0, 1.0, 0.0]);
-        let err = camera_light(Input::Json(serde_json::from_str(r#"{"light": {"preset": "disc", "x": 2, "y": 2}}"#).unwrap()), 4, 4);
-        assert!(matches!(err, Err(ApiError::InvalidArgument { ref field, .. }) if field == "light.radius"), "{err:?}");
+        let err = camera_light(
+            Input::Json(
+                serde_json::from_str(r#"{"light": {"preset": "disc", "x": 2, "y": 2}}"#).unwrap(),
+            ),
+            4,
+            4,
+        );
+        assert!(
+            matches!(err, Err(ApiError::InvalidArgument { ref field, .. }) if field == "light.radius"),
+            "{err:?}"
+        );
     }
 }

@@ -4,8 +4,8 @@ use std::collections::HashMap;
 
 use axum::Router;
 use axum::body::{Body, Bytes};
-use axum::extract::{FromRequestParts, State};
 use axum::extract::rejection::{PathRejection, QueryRejection};
+use axum::extract::{FromRequestParts, State};
 use axum::http::request::Parts;
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
@@ -24,11 +24,20 @@ pub fn router(state: AppState) -> Router {
         .route("/healthz", get(healthz))
         .route("/v1/sessions", get(list_sessions))
         .route("/v1/sessions/{id}", get(get_session))
-        .route("/v1/sessions/{id}/reconstructions", get(list_reconstructions).post(post_reconstruction))
+        .route(
+            "/v1/sessions/{id}/reconstructions",
+            get(list_reconstructions).post(post_reconstruction),
+        )
         // measurements.npy, dual.png, dual.tiff, dual.npy
         .route("/v1/sessions/{id}/{file}", get(session_file))
-        .route("/v1/reconstructions/{id}", get(get_reconstruction).delete(cancel_reconstruction))
-        .route("/v1/reconstructions/{id}/cancel", post(cancel_reconstruction))
+        .route(
+            "/v1/reconstructions/{id}",
+            get(get_reconstruction).delete(cancel_reconstruction),
+        )
+        .route(
+            "/v1/reconstructions/{id}/cancel",
+            post(cancel_reconstruction),
+        )
         .route("/v1/reconstructions/{id}/relight", post(relight))
         .route("/v1/reconstructions/{id}/primal", post(primal))
         .route("/v1/reconstructions/{id}/{file}", get(reconstruction_file))
@@ -47,7 +56,10 @@ async fn method_not_allowed() -> Response {
     let body = json!({"type": "/problems/method-not-allowed", "title": "Method not allowed", "status": 405,
         "detail": "this route does not take that HTTP method"});
     let mut r = (StatusCode::METHOD_NOT_ALLOWED, body.to_string()).into_response();
-    r.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static("application/problem+json"));
+    r.headers_mut().insert(
+        header::CONTENT_TYPE,
+        HeaderValue::from_static("application/problem+json"),
+    );
     r
 }
 
@@ -59,7 +71,10 @@ impl FromRequestParts<AppState> for Caller {
     type Rejection = ApiError;
 
     async fn from_request_parts(parts: &mut Parts, state: &AppState) -> Result<Self, ApiError> {
-        let authorization = parts.headers.get(header::AUTHORIZATION).map(|v| v.as_bytes());
+        let authorization = parts
+            .headers
+            .get(header::AUTHORIZATION)
+            .map(|v| v.as_bytes());
         state.authenticate(authorization).await.map(Caller)
     }
 }
@@ -89,10 +104,12 @@ impl From<QueryRejection> for ApiError {
 /// A request body of at most `max_body_bytes` (413 problem+json naming the limit).
 async fn read_body(state: &AppState, body: Body) -> Result<Bytes, ApiError> {
     let max = state.limits.max_body_bytes;
-    axum::body::to_bytes(body, max).await.map_err(|_| ApiError::TooLarge {
-        limit: "max_body_bytes",
-        message: format!("request bodies may hold at most {max} bytes"),
-    })
+    axum::body::to_bytes(body, max)
+        .await
+        .map_err(|_| ApiError::TooLarge {
+            limit: "max_body_bytes",
+            message: format!("request bodies may hold at most {max} bytes"),
+        })
 }
 
 async fn index(Caller(_caller): Caller) -> axum::Json<Value> {
@@ -124,7 +141,11 @@ async fn healthz(State(state): State<AppState>) -> Response {
     if state.store.ping().await {
         axum::Json(json!({"status": "serving"})).into_response()
     } else {
-        (StatusCode::SERVICE_UNAVAILABLE, axum::Json(json!({"status": "not serving"}))).into_response()
+        (
+            StatusCode::SERVICE_UNAVAILABLE,
+            axum::Json(json!({"status": "not serving"})),
+        )
+            .into_response()
     }
 }
 
@@ -183,7 +204,12 @@ fn session_path(id: &str) -> Result<(), ApiError> {
 }
 
 fn recon_path(id: &str) -> Result<i64, ApiError> {
-    id.parse::<i64>().map_err(|_| ApiError::invalid("id", format!("a reconstruction id is an integer, got {id:?}")))
+    id.parse::<i64>().map_err(|_| {
+        ApiError::invalid(
+            "id",
+            format!("a reconstruction id is an integer, got {id:?}"),
+        )
+    })
 }
 
 async fn list_sessions(
@@ -198,7 +224,12 @@ async fn list_sessions(
             .parse::<u32>()
             .ok()
             .filter(|n| (1..=1000).contains(n))
-            .ok_or_else(|| ApiError::invalid("limit", format!("must be an integer in 1..=1000, got {v:?}")))?,
+            .ok_or_else(|| {
+                ApiError::invalid(
+                    "limit",
+                    format!("must be an integer in 1..=1000, got {v:?}"),
+                )
+            })?,
     };
     let sessions = state.store.list_sessions(&caller.lab, limit).await?;
     let mut out = Vec::with_capacity(sessions.len());
@@ -229,7 +260,9 @@ async fn list_reconstructions(
     session_path(&id)?;
     state.own_session(&caller, &id).await?;
     let rows = state.store.session_reconstructions(&id).await?;
-    Ok(axum::Json(json!({ "reconstructions": rows.iter().map(reconstruction_json).collect::<Vec<_>>() })))
+    Ok(axum::Json(
+        json!({ "reconstructions": rows.iter().map(reconstruction_json).collect::<Vec<_>>() }),
+    ))
 }
 
 async fn post_reconstruction(
@@ -241,13 +274,23 @@ async fn post_reconstruction(
     caller.require(Role::Reader)?;
     session_path(&id)?;
     let body = read_body(&state, body).await?;
-    let body: Value = serde_json::from_slice(&body)
-        .map_err(|e| ApiError::invalid("body", format!("must be a JSON object like {{\"method\": \"dgi\", \"params\": {{}}}}: {e}")))?;
+    let body: Value = serde_json::from_slice(&body).map_err(|e| {
+        ApiError::invalid(
+            "body",
+            format!("must be a JSON object like {{\"method\": \"dgi\", \"params\": {{}}}}: {e}"),
+        )
+    })?;
     let Value::Object(body) = body else {
         return Err(ApiError::invalid("body", "must be a JSON object"));
     };
-    if let Some(key) = body.keys().find(|k| !matches!(k.as_str(), "method" | "params")) {
-        return Err(ApiError::invalid(key.clone(), "unknown field; expected \"method\" and \"params\""));
+    if let Some(key) = body
+        .keys()
+        .find(|k| !matches!(k.as_str(), "method" | "params"))
+    {
+        return Err(ApiError::invalid(
+            key.clone(),
+            "unknown field; expected \"method\" and \"params\"",
+        ));
     }
     let method = match body.get("method") {
         Some(Value::String(m)) => m.clone(),
@@ -255,17 +298,27 @@ async fn post_reconstruction(
         None => return Err(ApiError::invalid("method", "is required")),
     };
     let params = body.get("params").cloned().unwrap_or(Value::Null);
-    let row = state.request_reconstruction(&caller, &id, &method, &params).await?;
+    let row = state
+        .request_reconstruction(&caller, &id, &method, &params)
+        .await?;
     let location = format!("/v1/reconstructions/{}", row.id);
-    let mut response = (StatusCode::ACCEPTED, axum::Json(reconstruction_json(&row))).into_response();
-    response.headers_mut().insert(header::LOCATION, HeaderValue::from_str(&location).expect("ascii"));
+    let mut response =
+        (StatusCode::ACCEPTED, axum::Json(reconstruction_json(&row))).into_response();
+    response.headers_mut().insert(
+        header::LOCATION,
+        HeaderValue::from_str(&location).expect("ascii"),
+    );
     Ok(response)
 }
 
 /// The committed rows exactly as stored, streamed page by page (a camera session can be
 /// gigabytes): bucket sessions float64 of shape (rows, channels); camera sessions their frames,
 /// uint16 or float32 of shape (rows, height, width).
-async fn measurements_npy(state: &AppState, caller: &Principal, id: &str) -> Result<Response, ApiError> {
+async fn measurements_npy(
+    state: &AppState,
+    caller: &Principal,
+    id: &str,
+) -> Result<Response, ApiError> {
     let session = state.own_session(caller, id).await?;
     let rows = session.committed_rows;
     let format = session.sample_format();
@@ -303,10 +356,16 @@ async fn measurements_npy(state: &AppState, caller: &Principal, id: &str) -> Res
             }
         }
     });
-    let body = futures::stream::once(async move { Ok::<_, std::io::Error>(Bytes::from(header)) }).chain(pages);
+    let body = futures::stream::once(async move { Ok::<_, std::io::Error>(Bytes::from(header)) })
+        .chain(pages);
     let mut response = Body::from_stream(body).into_response();
-    response.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static("application/octet-stream"));
-    response.headers_mut().insert(header::CONTENT_LENGTH, HeaderValue::from(length));
+    response.headers_mut().insert(
+        header::CONTENT_TYPE,
+        HeaderValue::from_static("application/octet-stream"),
+    );
+    response
+        .headers_mut()
+        .insert(header::CONTENT_LENGTH, HeaderValue::from(length));
     Ok(response)
 }
 
@@ -347,7 +406,9 @@ async fn get_reconstruction(
 ) -> Result<axum::Json<Value>, ApiError> {
     caller.require(Role::Reader)?;
     let id = recon_path(&id)?;
-    Ok(axum::Json(reconstruction_json(&state.own_reconstruction(&caller, id).await?)))
+    Ok(axum::Json(reconstruction_json(
+        &state.own_reconstruction(&caller, id).await?,
+    )))
 }
 
 /// `POST /v1/reconstructions/{id}/cancel` or `DELETE /v1/reconstructions/{id}`: 200 with the
@@ -359,7 +420,9 @@ async fn cancel_reconstruction(
 ) -> Result<axum::Json<Value>, ApiError> {
     caller.require(Role::Reader)?;
     let id = recon_path(&id)?;
-    Ok(axum::Json(reconstruction_json(&state.cancel_reconstruction(&caller, id).await?)))
+    Ok(axum::Json(reconstruction_json(
+        &state.cancel_reconstruction(&caller, id).await?,
+    )))
 }
 
 fn token_json(t: &TokenInfo) -> Value {
@@ -367,45 +430,80 @@ fn token_json(t: &TokenInfo) -> Value {
 }
 
 /// `GET /v1/tokens`: the admin's lab's tokens (never their secrets).
-async fn list_tokens(Caller(caller): Caller, State(state): State<AppState>) -> Result<axum::Json<Value>, ApiError> {
+async fn list_tokens(
+    Caller(caller): Caller,
+    State(state): State<AppState>,
+) -> Result<axum::Json<Value>, ApiError> {
     caller.require(Role::Admin)?;
     let tokens = state.store.list_tokens(Some(&caller.lab)).await?;
-    Ok(axum::Json(json!({ "tokens": tokens.iter().map(token_json).collect::<Vec<_>>() })))
+    Ok(axum::Json(
+        json!({ "tokens": tokens.iter().map(token_json).collect::<Vec<_>>() }),
+    ))
 }
 
 /// `POST /v1/tokens {"roles": ["rig"], "note": "..."}`: a new token of the admin's lab; 201 with
 /// the secret, shown this once.
-async fn create_token(Caller(caller): Caller, State(state): State<AppState>, body: Body) -> Result<Response, ApiError> {
+async fn create_token(
+    Caller(caller): Caller,
+    State(state): State<AppState>,
+    body: Body,
+) -> Result<Response, ApiError> {
     caller.require(Role::Admin)?;
     let body = read_body(&state, body).await?;
-    let body: Value = serde_json::from_slice(&body)
-        .map_err(|e| ApiError::invalid("body", format!("must be a JSON object like {{\"roles\": [\"rig\"]}}: {e}")))?;
+    let body: Value = serde_json::from_slice(&body).map_err(|e| {
+        ApiError::invalid(
+            "body",
+            format!("must be a JSON object like {{\"roles\": [\"rig\"]}}: {e}"),
+        )
+    })?;
     let Value::Object(body) = body else {
         return Err(ApiError::invalid("body", "must be a JSON object"));
     };
-    if let Some(key) = body.keys().find(|k| !matches!(k.as_str(), "roles" | "note")) {
-        return Err(ApiError::invalid(key.clone(), "unknown field; expected \"roles\" and \"note\""));
+    if let Some(key) = body
+        .keys()
+        .find(|k| !matches!(k.as_str(), "roles" | "note"))
+    {
+        return Err(ApiError::invalid(
+            key.clone(),
+            "unknown field; expected \"roles\" and \"note\"",
+        ));
     }
     let roles = match body.get("roles") {
         Some(Value::Array(items)) => {
             let mut names = Vec::new();
             for (i, item) in items.iter().enumerate() {
-                let name = item.as_str().ok_or_else(|| ApiError::invalid(format!("roles[{i}]"), "must be a string"))?;
-                let role = Role::parse(name).map_err(|e| ApiError::invalid(format!("roles[{i}]"), e))?;
+                let name = item
+                    .as_str()
+                    .ok_or_else(|| ApiError::invalid(format!("roles[{i}]"), "must be a string"))?;
+                let role =
+                    Role::parse(name).map_err(|e| ApiError::invalid(format!("roles[{i}]"), e))?;
                 names.push(role);
             }
             if names.is_empty() {
-                return Err(ApiError::invalid("roles", "name at least one of rig, reader, admin"));
+                return Err(ApiError::invalid(
+                    "roles",
+                    "name at least one of rig, reader, admin",
+                ));
             }
             Roles::of(&names)
         }
-        Some(_) => return Err(ApiError::invalid("roles", "must be an array like [\"rig\", \"reader\"]")),
+        Some(_) => {
+            return Err(ApiError::invalid(
+                "roles",
+                "must be an array like [\"rig\", \"reader\"]",
+            ));
+        }
         None => return Err(ApiError::invalid("roles", "is required")),
     };
     let note = match body.get("note") {
         None => "",
         Some(Value::String(s)) if s.len() <= 256 && !s.chars().any(char::is_control) => s.as_str(),
-        Some(_) => return Err(ApiError::invalid("note", "must be a string of at most 256 characters without control characters")),
+        Some(_) => {
+            return Err(ApiError::invalid(
+                "note",
+                "must be a string of at most 256 characters without control characters",
+            ));
+        }
     };
     let (info, secret) = state.store.create_token(&caller.lab, roles, note).await?;
     tracing::info!(token = info.id, lab = %info.lab, roles = %info.roles, by = caller.token_id, "token created");
@@ -421,7 +519,9 @@ async fn revoke_token(
     Path(id): Path<String>,
 ) -> Result<axum::Json<Value>, ApiError> {
     caller.require(Role::Admin)?;
-    let id = id.parse::<i64>().map_err(|_| ApiError::invalid("id", format!("a token id is an integer, got {id:?}")))?;
+    let id = id
+        .parse::<i64>()
+        .map_err(|_| ApiError::invalid("id", format!("a token id is an integer, got {id:?}")))?;
     let info = state
         .store
         .revoke_token(id, Some(&caller.lab))
@@ -482,7 +582,9 @@ async fn session_file(
     let format = dual_format(&file)?;
     state.own_session(&caller, &id).await?;
     let Some(latest) = state.store.latest_done(&id).await? else {
-        return Err(ApiError::NotFound(format!("session {id:?} has no finished reconstruction yet")));
+        return Err(ApiError::NotFound(format!(
+            "session {id:?} has no finished reconstruction yet"
+        )));
     };
     let r = state.store.reconstruction(latest).await?;
     serve_dual(&state, r, &query, &headers, format).await
@@ -496,19 +598,33 @@ async fn serve_dual(
     format: Format,
 ) -> Result<Response, ApiError> {
     let id = r.id;
-    if let Some(key) = query.keys().find(|k| !matches!(k.as_str(), "channel" | "scale")) {
-        return Err(ApiError::invalid(key.clone(), "unknown query parameter; expected channel or scale"));
+    if let Some(key) = query
+        .keys()
+        .find(|k| !matches!(k.as_str(), "channel" | "scale"))
+    {
+        return Err(ApiError::invalid(
+            key.clone(),
+            "unknown query parameter; expected channel or scale",
+        ));
     }
     let scale = match query.get("scale").map(String::as_str) {
         None | Some("percentile") => Scale::Percentile,
         Some("minmax") => Scale::MinMax,
-        Some(other) => return Err(ApiError::invalid("scale", format!("must be percentile or minmax, got {other:?}"))),
+        Some(other) => {
+            return Err(ApiError::invalid(
+                "scale",
+                format!("must be percentile or minmax, got {other:?}"),
+            ));
+        }
     };
     if r.state != "done" {
         return Err(ApiError::FailedPrecondition(format!(
             "reconstruction {id} is {}{}; its dual image exists once it is done",
             r.state,
-            r.last_error.as_deref().map(|e| format!(" ({e})")).unwrap_or_default()
+            r.last_error
+                .as_deref()
+                .map(|e| format!(" ({e})"))
+                .unwrap_or_default()
         )));
     }
     let images = state.store.dual_images(id).await?;
@@ -525,11 +641,14 @@ async fn serve_dual(
     };
     // Results are immutable: the id, channel and encoding name the bytes.
     let etag = format!("\"r{id}-c{}-{ext}{scale_tag}\"", image.channel_index);
-    if headers.get(header::IF_NONE_MATCH).and_then(|v| v.to_str().ok()).is_some_and(|v| {
-        v.split(',').any(|t| t.trim() == etag || t.trim() == "*")
-    }) {
+    if headers
+        .get(header::IF_NONE_MATCH)
+        .and_then(|v| v.to_str().ok())
+        .is_some_and(|v| v.split(',').any(|t| t.trim() == etag || t.trim() == "*"))
+    {
         let mut r = StatusCode::NOT_MODIFIED.into_response();
-        r.headers_mut().insert(header::ETAG, HeaderValue::from_str(&etag).expect("ascii"));
+        r.headers_mut()
+            .insert(header::ETAG, HeaderValue::from_str(&etag).expect("ascii"));
         return Ok(r);
     }
     let bytes = match format {
@@ -537,25 +656,42 @@ async fn serve_dual(
         Format::Tiff => images::tiff_f32(image.width, image.height, &image.data),
         Format::Npy => images::npy_f32(image.width, image.height, &image.data),
     };
-    let disposition = format!("inline; filename=\"dual-{id}-{}.{ext}\"", image.channel_name);
+    let disposition = format!(
+        "inline; filename=\"dual-{id}-{}.{ext}\"",
+        image.channel_name
+    );
     let mut response = bytes.into_response();
     let h = response.headers_mut();
     h.insert(header::CONTENT_TYPE, HeaderValue::from_static(mime));
     h.insert(header::ETAG, HeaderValue::from_str(&etag).expect("ascii"));
-    h.insert(header::CACHE_CONTROL, HeaderValue::from_static("public, max-age=31536000, immutable"));
-    h.insert(header::CONTENT_DISPOSITION, HeaderValue::from_str(&disposition).expect("validated names"));
+    h.insert(
+        header::CACHE_CONTROL,
+        HeaderValue::from_static("public, max-age=31536000, immutable"),
+    );
+    h.insert(
+        header::CONTENT_DISPOSITION,
+        HeaderValue::from_str(&disposition).expect("validated names"),
+    );
     Ok(response)
 }
 
-fn pick_channel<'a>(images: &'a [StoredImage], channel: Option<&String>) -> Result<&'a StoredImage, ApiError> {
+fn pick_channel<'a>(
+    images: &'a [StoredImage],
+    channel: Option<&String>,
+) -> Result<&'a StoredImage, ApiError> {
     match channel {
-        None => images.first().ok_or_else(|| ApiError::Internal("finished reconstruction without images".into())),
+        None => images
+            .first()
+            .ok_or_else(|| ApiError::Internal("finished reconstruction without images".into())),
         Some(name) => images
             .iter()
             .find(|i| &i.channel_name == name || i.channel_index.to_string() == *name)
             .ok_or_else(|| {
                 let names: Vec<&str> = images.iter().map(|i| i.channel_name.as_str()).collect();
-                ApiError::invalid("channel", format!("no channel {name:?}; this session has {}", names.join(", ")))
+                ApiError::invalid(
+                    "channel",
+                    format!("no channel {name:?}; this session has {}", names.join(", ")),
+                )
             }),
     }
 }

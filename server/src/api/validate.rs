@@ -15,35 +15,61 @@ pub const MAX_METADATA_VALUE: usize = 4096;
 
 pub fn session_id(id: &str, field: &str) -> Result<(), ApiError> {
     if id.is_empty() || id.len() > MAX_ID_LEN {
-        return Err(ApiError::invalid(field, format!("must be 1-{MAX_ID_LEN} characters, got {}", id.len())));
+        return Err(ApiError::invalid(
+            field,
+            format!("must be 1-{MAX_ID_LEN} characters, got {}", id.len()),
+        ));
     }
-    if let Some(c) = id.chars().find(|c| !(c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | '-'))) {
-        return Err(ApiError::invalid(field, format!("may hold only A-Z a-z 0-9 . _ - (found {c:?})")));
+    if let Some(c) = id
+        .chars()
+        .find(|c| !(c.is_ascii_alphanumeric() || matches!(c, '.' | '_' | '-')))
+    {
+        return Err(ApiError::invalid(
+            field,
+            format!("may hold only A-Z a-z 0-9 . _ - (found {c:?})"),
+        ));
     }
     Ok(())
 }
 
 fn name(value: &str, field: &str, max: usize) -> Result<(), ApiError> {
     if value.is_empty() || value.len() > max {
-        return Err(ApiError::invalid(field, format!("must be 1-{max} characters")));
+        return Err(ApiError::invalid(
+            field,
+            format!("must be 1-{max} characters"),
+        ));
     }
     if value.chars().any(|c| c.is_control()) {
-        return Err(ApiError::invalid(field, "must not contain control characters"));
+        return Err(ApiError::invalid(
+            field,
+            "must not contain control characters",
+        ));
     }
     Ok(())
 }
 
 /// Validates a session declaration for `lab` against the server's `limits`.
-pub fn new_session(req: &v1::CreateSessionRequest, lab: &str, limits: &Limits) -> Result<NewSession, ApiError> {
+pub fn new_session(
+    req: &v1::CreateSessionRequest,
+    lab: &str,
+    limits: &Limits,
+) -> Result<NewSession, ApiError> {
     session_id(&req.session_id, "session_id")?;
     name(&req.rig, "rig", MAX_ID_LEN)?;
-    let spec_msg = req.patterns.as_ref().ok_or_else(|| ApiError::invalid("patterns", "is required"))?;
+    let spec_msg = req
+        .patterns
+        .as_ref()
+        .ok_or_else(|| ApiError::invalid("patterns", "is required"))?;
     let spec = PatternSpec::try_from(spec_msg)
         .map_err(|e| ApiError::invalid(format!("patterns.{}", e.field), e.message))?;
     if spec.count() > limits.max_patterns {
         return Err(ApiError::invalid(
             "patterns.count",
-            format!("{} patterns exceed this server's limit of {} per session (max_patterns)", spec.count(), limits.max_patterns),
+            format!(
+                "{} patterns exceed this server's limit of {} per session (max_patterns)",
+                spec.count(),
+                limits.max_patterns
+            ),
         ));
     }
     if spec.pixels() as u64 > limits.max_pixels {
@@ -61,12 +87,18 @@ pub fn new_session(req: &v1::CreateSessionRequest, lab: &str, limits: &Limits) -
     let detector = req.detector.clone().unwrap_or_default();
     let (channels, directions, camera) = detector_layout(&detector, limits)?;
     if req.metadata.len() > MAX_METADATA_ENTRIES {
-        return Err(ApiError::invalid("metadata", format!("at most {MAX_METADATA_ENTRIES} entries")));
+        return Err(ApiError::invalid(
+            "metadata",
+            format!("at most {MAX_METADATA_ENTRIES} entries"),
+        ));
     }
     for (k, v) in &req.metadata {
         name(k, "metadata", MAX_ID_LEN)?;
         if v.len() > MAX_METADATA_VALUE {
-            return Err(ApiError::invalid(format!("metadata.{k}"), format!("at most {MAX_METADATA_VALUE} bytes")));
+            return Err(ApiError::invalid(
+                format!("metadata.{k}"),
+                format!("at most {MAX_METADATA_VALUE} bytes"),
+            ));
         }
     }
     let ground_truth = match &req.ground_truth {
@@ -93,7 +125,10 @@ pub fn new_session(req: &v1::CreateSessionRequest, lab: &str, limits: &Limits) -
             if !allowed.contains(&gt.transport.len()) {
                 let what = match &camera {
                     Some(c) => format!("camera pixels x pattern pixels = {} x {k}", c.pixels()),
-                    None if channels.len() > 1 => format!("width * height = {k}, or channels * width * height = {}", channels.len() * k),
+                    None if channels.len() > 1 => format!(
+                        "width * height = {k}, or channels * width * height = {}",
+                        channels.len() * k
+                    ),
                     None => format!("width * height = {k}"),
                 };
                 return Err(ApiError::invalid(
@@ -112,7 +147,10 @@ pub fn new_session(req: &v1::CreateSessionRequest, lab: &str, limits: &Limits) -
                 ));
             }
             if let Some(i) = gt.transport.iter().position(|v| !v.is_finite()) {
-                return Err(ApiError::invalid("ground_truth.transport", format!("value {i} is not finite")));
+                return Err(ApiError::invalid(
+                    "ground_truth.transport",
+                    format!("value {i} is not finite"),
+                ));
             }
             Some((gt.width, gt.height, gt.transport.clone()))
         }
@@ -125,7 +163,11 @@ pub fn new_session(req: &v1::CreateSessionRequest, lab: &str, limits: &Limits) -
         channels,
         directions,
         camera,
-        metadata: req.metadata.iter().map(|(k, v)| (k.clone(), v.clone())).collect::<BTreeMap<_, _>>(),
+        metadata: req
+            .metadata
+            .iter()
+            .map(|(k, v)| (k.clone(), v.clone()))
+            .collect::<BTreeMap<_, _>>(),
         ground_truth,
     })
 }
@@ -142,7 +184,13 @@ fn detector_layout(d: &v1::DetectorLayout, limits: &Limits) -> Result<Detector, 
             ));
         }
         if cam.width == 0 || cam.height == 0 {
-            return Err(ApiError::invalid("detector.camera.width", format!("camera must be at least 1x1, got {}x{}", cam.width, cam.height)));
+            return Err(ApiError::invalid(
+                "detector.camera.width",
+                format!(
+                    "camera must be at least 1x1, got {}x{}",
+                    cam.width, cam.height
+                ),
+            ));
         }
         let pixels = cam.width as u64 * cam.height as u64;
         if pixels > limits.max_frame_pixels {
@@ -160,30 +208,51 @@ fn detector_layout(d: &v1::DetectorLayout, limits: &Limits) -> Result<Detector, 
             _ => {
                 return Err(ApiError::invalid(
                     "detector.camera.format",
-                    format!("must be SAMPLE_FORMAT_F32 or SAMPLE_FORMAT_U16, got {}", cam.format),
+                    format!(
+                        "must be SAMPLE_FORMAT_F32 or SAMPLE_FORMAT_U16, got {}",
+                        cam.format
+                    ),
                 ));
             }
         };
-        return Ok((Vec::new(), Vec::new(), Some(CameraLayout { width: cam.width, height: cam.height, format })));
+        return Ok((
+            Vec::new(),
+            Vec::new(),
+            Some(CameraLayout {
+                width: cam.width,
+                height: cam.height,
+                format,
+            }),
+        ));
     }
     let channels = d.channels.clone();
     if channels.is_empty() || channels.len() > MAX_CHANNELS {
         return Err(ApiError::invalid(
             "detector.channels",
-            format!("must name 1-{MAX_CHANNELS} channels (or set detector.camera), got {}", channels.len()),
+            format!(
+                "must name 1-{MAX_CHANNELS} channels (or set detector.camera), got {}",
+                channels.len()
+            ),
         ));
     }
     let mut seen = HashSet::new();
     for (i, c) in channels.iter().enumerate() {
         session_id(c, &format!("detector.channels[{i}]"))?;
         if !seen.insert(c) {
-            return Err(ApiError::invalid(format!("detector.channels[{i}]"), format!("duplicate channel {c:?}")));
+            return Err(ApiError::invalid(
+                format!("detector.channels[{i}]"),
+                format!("duplicate channel {c:?}"),
+            ));
         }
     }
     if !d.directions.is_empty() && d.directions.len() != channels.len() {
         return Err(ApiError::invalid(
             "detector.directions",
-            format!("give one direction per channel ({}) or none, got {}", channels.len(), d.directions.len()),
+            format!(
+                "give one direction per channel ({}) or none, got {}",
+                channels.len(),
+                d.directions.len()
+            ),
         ));
     }
     let mut directions = Vec::with_capacity(d.directions.len());
@@ -192,13 +261,19 @@ fn detector_layout(d: &v1::DetectorLayout, limits: &Limits) -> Result<Detector, 
         if !n.is_finite() || (n - 1.0).abs() > 1e-3 {
             return Err(ApiError::invalid(
                 format!("detector.directions[{i}]"),
-                format!("must be a unit vector, got ({}, {}, {}) of length {n}", v.x, v.y, v.z),
+                format!(
+                    "must be a unit vector, got ({}, {}, {}) of length {n}",
+                    v.x, v.y, v.z
+                ),
             ));
         }
         if v.z <= 0.0 {
             return Err(ApiError::invalid(
                 format!("detector.directions[{i}]"),
-                format!("must point toward the projector's side of the scene (z > 0), got z = {}", v.z),
+                format!(
+                    "must point toward the projector's side of the scene (z > 0), got z = {}",
+                    v.z
+                ),
             ));
         }
         directions.push([v.x / n, v.y / n, v.z / n]);

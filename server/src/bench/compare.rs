@@ -54,7 +54,14 @@ pub struct CompareProblem {
 }
 
 fn case(scene: &str, size: u32, family: &str, ratio: f64) -> Case {
-    Case { scene: scene.into(), size: (size, size), ratio, family: family.into(), noise: Noise::None, method: String::new() }
+    Case {
+        scene: scene.into(),
+        size: (size, size),
+        ratio,
+        family: family.into(),
+        noise: Noise::None,
+        method: String::new(),
+    }
 }
 
 /// The issue's target problems (noise-free; Hadamard ratios count split pairs, Russian-doll order).
@@ -102,7 +109,11 @@ pub fn acquire(case: &Case) -> anyhow::Result<Acquisition> {
     let spec = case.spec();
     let truth = Scene::builtin(&case.scene, case.size.0, case.size.1)?.transport(1.0);
     let values = simulate::simulate(&spec, &[&truth], &case.noise.model(), None).values;
-    Ok(Acquisition { spec, truth, values })
+    Ok(Acquisition {
+        spec,
+        truth,
+        values,
+    })
 }
 
 /// The convention of the exported Hadamard operator (also written into the manifest).
@@ -119,9 +130,16 @@ pub fn export(problem: &CompareProblem, acq: &Acquisition, dir: &Path) -> anyhow
     let spec = &acq.spec;
     let (w, h) = (spec.width() as usize, spec.height() as usize);
     let k = w * h;
-    ensure!(acq.truth.len() == k, "truth has {} pixels, the spec {k}", acq.truth.len());
+    ensure!(
+        acq.truth.len() == k,
+        "truth has {} pixels, the spec {k}",
+        acq.truth.len()
+    );
     let npy = |name: &str| dir.join(name);
-    write_npy(npy("truth.npy"), &Array2::from_shape_vec((h, w), acq.truth.clone())?)?;
+    write_npy(
+        npy("truth.npy"),
+        &Array2::from_shape_vec((h, w), acq.truth.clone())?,
+    )?;
     let operator = match spec.family() {
         Family::Hadamard { .. } => {
             let frames = spec.count() - spec.count() % 2;
@@ -130,7 +148,10 @@ pub fn export(problem: &CompareProblem, acq: &Acquisition, dir: &Path) -> anyhow
             let natural: Vec<i64> = op.natural_indices().iter().map(|&n| n as i64).collect();
             write_npy(npy("natural.npy"), &Array1::from(natural))?;
             write_npy(npy("b.npy"), &Array1::from(pairs.data))?;
-            write_npy(npy("frames.npy"), &Array1::from(acq.values[..frames as usize].to_vec()))?;
+            write_npy(
+                npy("frames.npy"),
+                &Array1::from(acq.values[..frames as usize].to_vec()),
+            )?;
             json!({
                 "kind": "hadamard_subset",
                 "natural": "natural.npy",
@@ -158,7 +179,10 @@ pub fn export(problem: &CompareProblem, acq: &Acquisition, dir: &Path) -> anyhow
                 "convention": "A[i, p] = pattern i at pixel p = y * W + x (0 or 1, float32); b = A t (the buckets, float64)",
             })
         }
-        other => bail!("the comparison exports Bernoulli and Hadamard problems, not {}", other.name()),
+        other => bail!(
+            "the comparison exports Bernoulli and Hadamard problems, not {}",
+            other.name()
+        ),
     };
     let manifest = json!({
         "name": problem.name,
@@ -175,7 +199,10 @@ pub fn export(problem: &CompareProblem, acq: &Acquisition, dir: &Path) -> anyhow
         "ours": problem.ours,
         "reference": problem.reference,
     });
-    std::fs::write(dir.join("problem.json"), serde_json::to_string_pretty(&manifest)?)?;
+    std::fs::write(
+        dir.join("problem.json"),
+        serde_json::to_string_pretty(&manifest)?,
+    )?;
     Ok(manifest)
 }
 
@@ -235,7 +262,10 @@ pub struct Options {
 
 /// The repository root (bench/compare/run.py lives there).
 pub fn repo_root() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR")).parent().expect("server/ has a parent").to_path_buf()
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .expect("server/ has a parent")
+        .to_path_buf()
 }
 
 pub fn run(opts: &Options) -> anyhow::Result<()> {
@@ -245,16 +275,33 @@ pub fn run(opts: &Options) -> anyhow::Result<()> {
     std::fs::create_dir_all(&results_dir)?;
     let mut results = Vec::new();
     let mut truths = BTreeMap::new();
-    let selected: Vec<CompareProblem> =
-        problems().into_iter().filter(|p| opts.problems.as_ref().is_none_or(|names| names.iter().any(|n| n == p.name))).collect();
-    ensure!(!selected.is_empty(), "--problems names none of: {}", problems().iter().map(|p| p.name).collect::<Vec<_>>().join(", "));
+    let selected: Vec<CompareProblem> = problems()
+        .into_iter()
+        .filter(|p| {
+            opts.problems
+                .as_ref()
+                .is_none_or(|names| names.iter().any(|n| n == p.name))
+        })
+        .collect();
+    ensure!(
+        !selected.is_empty(),
+        "--problems names none of: {}",
+        problems()
+            .iter()
+            .map(|p| p.name)
+            .collect::<Vec<_>>()
+            .join(", ")
+    );
     for p in selected.iter().cloned() {
         eprintln!("compare: {} (simulating, exporting)", p.name);
         let acq = acquire(&p.case)?;
         export(&p, &acq, &problems_dir.join(p.name))?;
         let mut rows = Vec::new();
         for &method in p.ours {
-            let case = Case { method: method.into(), ..p.case.clone() };
+            let case = Case {
+                method: method.into(),
+                ..p.case.clone()
+            };
             let mut times = Vec::new();
             let mut last = None;
             for _ in 0..opts.repeat.max(1) {
@@ -270,7 +317,10 @@ pub fn run(opts: &Options) -> anyhow::Result<()> {
             let file = format!("{}/helmholtz-{method}.npy", p.name);
             std::fs::create_dir_all(results_dir.join(p.name))?;
             let (w, h) = (p.case.size.0 as usize, p.case.size.1 as usize);
-            write_npy(results_dir.join(&file), &Array2::from_shape_vec((h, w), image)?)?;
+            write_npy(
+                results_dir.join(&file),
+                &Array2::from_shape_vec((h, w), image)?,
+            )?;
             let row = Row {
                 tool: "helmholtz".into(),
                 method: method.into(),
@@ -289,11 +339,20 @@ pub fn run(opts: &Options) -> anyhow::Result<()> {
                 image: file,
                 note: ours_note(&m.report),
             };
-            eprintln!("compare: {} helmholtz {method}: {:.2} dB, SSIM {:.3}, {:.3} s", p.name, row.psnr_db, row.ssim, row.seconds);
+            eprintln!(
+                "compare: {} helmholtz {method}: {:.2} dB, SSIM {:.3}, {:.3} s",
+                p.name, row.psnr_db, row.ssim, row.seconds
+            );
             rows.push(row);
         }
         truths.insert(p.name.to_string(), (acq.truth, p.case.size));
-        results.push(ProblemResult { name: p.name.into(), title: p.title.into(), reference: p.reference.into(), rows, same_problem: Vec::new() });
+        results.push(ProblemResult {
+            name: p.name.into(),
+            title: p.title.into(),
+            reference: p.reference.into(),
+            rows,
+            same_problem: Vec::new(),
+        });
     }
     let mut tools = Value::Null;
     if !opts.only_ours {
@@ -308,15 +367,29 @@ pub fn run(opts: &Options) -> anyhow::Result<()> {
             .arg("--repeat")
             .arg(opts.repeat.to_string())
             .arg("--only")
-            .arg(selected.iter().map(|p| p.name).collect::<Vec<_>>().join(","))
+            .arg(
+                selected
+                    .iter()
+                    .map(|p| p.name)
+                    .collect::<Vec<_>>()
+                    .join(","),
+            )
             .status()
             .with_context(|| format!("starting {}", opts.python))?;
         ensure!(status.success(), "{} failed: {status}", script.display());
-        let theirs: Value = serde_json::from_str(&std::fs::read_to_string(results_dir.join("results.json"))?)?;
+        let theirs: Value =
+            serde_json::from_str(&std::fs::read_to_string(results_dir.join("results.json"))?)?;
         tools = theirs["environment"].clone();
         score_competitors(&theirs, &results_dir, &truths, &mut results)?;
     }
-    write_report(&opts.out, opts.repeat, opts.problems.as_deref(), &load_at_start, &tools, &results)
+    write_report(
+        &opts.out,
+        opts.repeat,
+        opts.problems.as_deref(),
+        &load_at_start,
+        &tools,
+        &results,
+    )
 }
 
 fn median(times: &[f64]) -> f64 {
@@ -326,12 +399,17 @@ fn median(times: &[f64]) -> f64 {
 }
 
 fn ours_note(report: &Value) -> String {
-    let Some(a) = report["details"]["auto"].get(0) else { return String::new() };
+    let Some(a) = report["details"]["auto"].get(0) else {
+        return String::new();
+    };
     let res = &a["resolution"]["supported"];
     format!(
         "chose {} (weight {}) at {}x{}, from held-out rows",
         a["model"].as_str().unwrap_or("?"),
-        a["lambda_fraction"].as_f64().map(|f| format!("{f:.0e} of lambda_max")).unwrap_or_default(),
+        a["lambda_fraction"]
+            .as_f64()
+            .map(|f| format!("{f:.0e} of lambda_max"))
+            .unwrap_or_default(),
         res[0],
         res[1]
     )
@@ -341,16 +419,31 @@ fn ours_note(report: &Value) -> String {
 pub fn read_image(path: &Path, w: usize, h: usize) -> anyhow::Result<Vec<f32>> {
     let data: Vec<f32> = match read_npy::<_, Array2<f32>>(path) {
         Ok(a) => {
-            ensure!(a.dim() == (h, w), "{}: shape {:?}, expected ({h}, {w})", path.display(), a.dim());
+            ensure!(
+                a.dim() == (h, w),
+                "{}: shape {:?}, expected ({h}, {w})",
+                path.display(),
+                a.dim()
+            );
             a.iter().copied().collect()
         }
         Err(_) => {
-            let a: Array2<f64> = read_npy(path).with_context(|| format!("reading {}", path.display()))?;
-            ensure!(a.dim() == (h, w), "{}: shape {:?}, expected ({h}, {w})", path.display(), a.dim());
+            let a: Array2<f64> =
+                read_npy(path).with_context(|| format!("reading {}", path.display()))?;
+            ensure!(
+                a.dim() == (h, w),
+                "{}: shape {:?}, expected ({h}, {w})",
+                path.display(),
+                a.dim()
+            );
             a.iter().map(|&v| v as f32).collect()
         }
     };
-    ensure!(data.iter().all(|v| v.is_finite()), "{}: not finite", path.display());
+    ensure!(
+        data.iter().all(|v| v.is_finite()),
+        "{}: not finite",
+        path.display()
+    );
     Ok(data)
 }
 
@@ -374,7 +467,9 @@ fn score_competitors(
     truths: &BTreeMap<String, (Vec<f32>, (u32, u32))>,
     results: &mut [ProblemResult],
 ) -> anyhow::Result<()> {
-    let runs = theirs["runs"].as_array().context("results.json has no runs")?;
+    let runs = theirs["runs"]
+        .as_array()
+        .context("results.json has no runs")?;
     type Key = (String, String, String);
     // (problem, tool, method) -> scored runs
     let mut groups: BTreeMap<Key, Vec<(f64, f64, &Value)>> = BTreeMap::new();
@@ -388,20 +483,40 @@ fn score_competitors(
             continue;
         }
         let problem = r["problem"].as_str().context("run without problem")?;
-        let (truth, (w, h)) = truths.get(problem).with_context(|| format!("unknown problem {problem}"))?;
-        let image = read_image(&results_dir.join(r["image"].as_str().context("run without image")?), *w as usize, *h as usize)?;
+        let (truth, (w, h)) = truths
+            .get(problem)
+            .with_context(|| format!("unknown problem {problem}"))?;
+        let image = read_image(
+            &results_dir.join(r["image"].as_str().context("run without image")?),
+            *w as usize,
+            *h as usize,
+        )?;
         let psnr = metrics::psnr(&image, truth);
         let ssim = metrics::ssim(&image, truth, *w as usize, *h as usize);
-        let key = (problem.to_string(), r["tool"].as_str().unwrap_or("?").to_string(), r["method"].as_str().unwrap_or("?").to_string());
+        let key = (
+            problem.to_string(),
+            r["tool"].as_str().unwrap_or("?").to_string(),
+            r["method"].as_str().unwrap_or("?").to_string(),
+        );
         if r["role"] == "convergence_check" {
-            checks.insert(key, (psnr, r["iterations"].as_u64().unwrap_or(0), r["objective"].clone()));
+            checks.insert(
+                key,
+                (
+                    psnr,
+                    r["iterations"].as_u64().unwrap_or(0),
+                    r["objective"].clone(),
+                ),
+            );
         } else {
             groups.entry(key).or_default().push((psnr, ssim, r));
         }
     }
     for (key, mut scored) in groups {
         let check = checks.get(&key).cloned();
-        let sweep_seconds: f64 = scored.iter().map(|(_, _, r)| r["sweep_seconds"].as_f64().unwrap_or(0.0)).sum();
+        let sweep_seconds: f64 = scored
+            .iter()
+            .map(|(_, _, r)| r["sweep_seconds"].as_f64().unwrap_or(0.0))
+            .sum();
         let sweep: Vec<Value> = scored
             .iter()
             .map(|(p, s, r)| json!({ "params": r["params"], "psnr_db": p, "ssim": s, "seconds": r["seconds"], "iterations": r["iterations"], "objective": r["objective"] }))
@@ -410,11 +525,26 @@ fn score_competitors(
         scored.sort_by(|a, b| b.0.total_cmp(&a.0));
         let (psnr, ssim, best) = scored[0];
         let (problem, tool, method) = key;
-        let mut notes: Vec<String> = best["note"].as_str().filter(|s| !s.is_empty()).map(str::to_string).into_iter().collect();
+        let mut notes: Vec<String> = best["note"]
+            .as_str()
+            .filter(|s| !s.is_empty())
+            .map(str::to_string)
+            .into_iter()
+            .collect();
         if let Some((p3, it3, obj3)) = &check {
-            let mut text = format!("convergence: the same weight with {it3} iterations gives {p3:.2} dB ({:+.2} dB)", p3 - psnr);
-            if let (Some(o3), Some(o)) = (obj3["objective"].as_f64(), best["objective"]["objective"].as_f64()) {
-                let _ = write!(text, " and objective {o3:.4e} ({:+.2} %)", 100.0 * (o3 - o) / o);
+            let mut text = format!(
+                "convergence: the same weight with {it3} iterations gives {p3:.2} dB ({:+.2} dB)",
+                p3 - psnr
+            );
+            if let (Some(o3), Some(o)) = (
+                obj3["objective"].as_f64(),
+                best["objective"]["objective"].as_f64(),
+            ) {
+                let _ = write!(
+                    text,
+                    " and objective {o3:.4e} ({:+.2} %)",
+                    100.0 * (o3 - o) / o
+                );
             }
             notes.push(text);
         }
@@ -425,14 +555,19 @@ fn score_competitors(
             notes.push("the Python side re-timed another point: its MSE ranking disagreed".into());
         }
         let note = notes.join("; ");
-        let all_seconds: Vec<f64> = best["all_seconds"].as_array().map(|a| a.iter().filter_map(Value::as_f64).collect()).unwrap_or_default();
+        let all_seconds: Vec<f64> = best["all_seconds"]
+            .as_array()
+            .map(|a| a.iter().filter_map(Value::as_f64).collect())
+            .unwrap_or_default();
         let row = Row {
             tool,
             method,
             params: best["params"].clone(),
             iterations: best["iterations"].as_u64(),
             convergence: best["convergence"].as_str().unwrap_or_default().into(),
-            convergence_check: check.map(|(p3, it3, obj3)| json!({ "iterations": it3, "psnr_db": p3, "objective": obj3 })),
+            convergence_check: check.map(
+                |(p3, it3, obj3)| json!({ "iterations": it3, "psnr_db": p3, "objective": obj3 }),
+            ),
             objective: best.get("objective").cloned(),
             psnr_db: psnr,
             ssim,
@@ -444,19 +579,36 @@ fn score_competitors(
             image: best["image"].as_str().unwrap_or_default().into(),
             note,
         };
-        let p = results.iter_mut().find(|p| p.name == problem).expect("checked above");
+        let p = results
+            .iter_mut()
+            .find(|p| p.name == problem)
+            .expect("checked above");
         p.rows.push(row);
     }
     for r in same {
         let problem = r["problem"].as_str().context("check without problem")?;
-        let (truth, (w, h)) = truths.get(problem).with_context(|| format!("unknown problem {problem}"))?;
+        let (truth, (w, h)) = truths
+            .get(problem)
+            .with_context(|| format!("unknown problem {problem}"))?;
         let mut sides = serde_json::Map::new();
         for side in ["naive", "fair"] {
             let s = &r[side];
-            let image = read_image(&results_dir.join(s["image"].as_str().context("check without image")?), *w as usize, *h as usize)?;
-            let key = (problem.to_string(), s["tool"].as_str().unwrap_or("?").to_string(), s["method"].as_str().unwrap_or("?").to_string());
+            let image = read_image(
+                &results_dir.join(s["image"].as_str().context("check without image")?),
+                *w as usize,
+                *h as usize,
+            )?;
+            let key = (
+                problem.to_string(),
+                s["tool"].as_str().unwrap_or("?").to_string(),
+                s["method"].as_str().unwrap_or("?").to_string(),
+            );
             // Twice the iterations exist for the best weight only.
-            let check = if s["at_its_best"].as_bool().unwrap_or(false) { checks.get(&key).cloned() } else { None };
+            let check = if s["at_its_best"].as_bool().unwrap_or(false) {
+                checks.get(&key).cloned()
+            } else {
+                None
+            };
             sides.insert(
                 side.into(),
                 json!({
@@ -470,7 +622,10 @@ fn score_competitors(
             "regulariser": r["regulariser"], "weight": r["weight"], "fraction": r["fraction"], "at": r["at"],
             "truth_objective": r["truth_objective"], "naive": sides["naive"], "fair": sides["fair"],
         });
-        let p = results.iter_mut().find(|p| p.name == problem).expect("checked above");
+        let p = results
+            .iter_mut()
+            .find(|p| p.name == problem)
+            .expect("checked above");
         p.same_problem.push(entry);
     }
     Ok(())
@@ -498,7 +653,9 @@ fn fmt_params(v: &Value) -> String {
 
 /// `/proc/loadavg` (1, 5 and 15 minute load averages), if readable: whether the machine was shared.
 fn load_average() -> String {
-    std::fs::read_to_string("/proc/loadavg").map(|s| s.split_whitespace().take(3).collect::<Vec<_>>().join(" ")).unwrap_or_else(|_| "?".into())
+    std::fs::read_to_string("/proc/loadavg")
+        .map(|s| s.split_whitespace().take(3).collect::<Vec<_>>().join(" "))
+        .unwrap_or_else(|_| "?".into())
 }
 
 fn write_report(
@@ -510,10 +667,18 @@ fn write_report(
     results: &[ProblemResult],
 ) -> anyhow::Result<()> {
     std::fs::create_dir_all(dir)?;
-    let repeat_arg = if repeat > 1 { format!(" --repeat {repeat}") } else { String::new() };
-    let problems_arg = problems.map(|p| format!(" --problems {}", p.join(","))).unwrap_or_default();
-    let command =
-        format!("cargo run --release -p helmholtz-server --bin helmholtz-bench -- --preset compare{repeat_arg}{problems_arg} --out {}", dir.display());
+    let repeat_arg = if repeat > 1 {
+        format!(" --repeat {repeat}")
+    } else {
+        String::new()
+    };
+    let problems_arg = problems
+        .map(|p| format!(" --problems {}", p.join(",")))
+        .unwrap_or_default();
+    let command = format!(
+        "cargo run --release -p helmholtz-server --bin helmholtz-bench -- --preset compare{repeat_arg}{problems_arg} --out {}",
+        dir.display()
+    );
     let machine = json!({
         "cores": std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1),
         "rayon_threads": rayon::current_num_threads(),
@@ -522,18 +687,38 @@ fn write_report(
         "load_average_at_end": load_average(),
     });
     let raw = json!({ "command": command, "machine": machine, "python": environment, "problems": results });
-    std::fs::write(dir.join("comparison.json"), serde_json::to_string_pretty(&raw)?)?;
+    std::fs::write(
+        dir.join("comparison.json"),
+        serde_json::to_string_pretty(&raw)?,
+    )?;
 
     let mut md = String::new();
-    let _ = writeln!(md, "# Side by side: Helmholtz against the tools users would otherwise use\n");
-    let _ = writeln!(md, "Produced by `{command}` ({} cores, {} build; load average (1, 5, 15 min) {} at the start and {} at the end of the run; the Python side: {}). Raw figures, every sweep point included: [`comparison.json`](comparison.json).\n",
-        machine["cores"], machine["profile"].as_str().unwrap_or("?"), load_at_start, machine["load_average_at_end"].as_str().unwrap_or("?"), env_line(environment));
+    let _ = writeln!(
+        md,
+        "# Side by side: Helmholtz against the tools users would otherwise use\n"
+    );
+    let _ = writeln!(
+        md,
+        "Produced by `{command}` ({} cores, {} build; load average (1, 5, 15 min) {} at the start and {} at the end of the run; the Python side: {}). Raw figures, every sweep point included: [`comparison.json`](comparison.json).\n",
+        machine["cores"],
+        machine["profile"].as_str().unwrap_or("?"),
+        load_at_start,
+        machine["load_average_at_end"].as_str().unwrap_or("?"),
+        env_line(environment)
+    );
     let _ = write!(md, "{}", METHOD_TEXT);
     let _ = writeln!(md, "{}", bernoulli_summary(results));
     for p in results {
         let _ = writeln!(md, "## {}\n", p.title);
-        let _ = writeln!(md, "Issue's reference figures for the other tools: {}.\n", p.reference);
-        let _ = writeln!(md, "| tool | method | parameters | iterations | PSNR dB | SSIM | seconds | notes |");
+        let _ = writeln!(
+            md,
+            "Issue's reference figures for the other tools: {}.\n",
+            p.reference
+        );
+        let _ = writeln!(
+            md,
+            "| tool | method | parameters | iterations | PSNR dB | SSIM | seconds | notes |"
+        );
         let _ = writeln!(md, "|---|---|---|---|---|---|---|---|");
         let mut rows: Vec<&Row> = p.rows.iter().filter(|r| r.tool == "helmholtz").collect();
         let mut others: Vec<&Row> = p.rows.iter().filter(|r| r.tool != "helmholtz").collect();
@@ -545,7 +730,9 @@ fn write_report(
                 notes.push(r.note.clone());
             }
             if let (Some(n), Some(s)) = (r.sweep_points, r.sweep_seconds) {
-                notes.push(format!("best of {n} weights by ground truth (whole sweep {s:.2} s)"));
+                notes.push(format!(
+                    "best of {n} weights by ground truth (whole sweep {s:.2} s)"
+                ));
             }
             if !r.convergence.is_empty() && r.tool != "helmholtz" {
                 notes.push(r.convergence.clone());
@@ -556,7 +743,9 @@ fn write_report(
                 r.tool,
                 r.method,
                 fmt_params(&r.params),
-                r.iterations.map(|i| i.to_string()).unwrap_or_else(|| "-".into()),
+                r.iterations
+                    .map(|i| i.to_string())
+                    .unwrap_or_else(|| "-".into()),
                 r.psnr_db,
                 r.ssim,
                 fmt_seconds(r.seconds),
@@ -577,12 +766,34 @@ fn write_report(
 /// reaches, next to the issue's reference figures.
 fn bernoulli_summary(results: &[ProblemResult]) -> String {
     let mut parts = Vec::new();
-    for p in results.iter().filter(|p| p.rows.iter().any(|r| r.method.ends_with("set-up"))) {
-        let mut rows: Vec<&Row> = p.rows.iter().filter(|r| r.method.ends_with("set-up")).collect();
+    for p in results
+        .iter()
+        .filter(|p| p.rows.iter().any(|r| r.method.ends_with("set-up")))
+    {
+        let mut rows: Vec<&Row> = p
+            .rows
+            .iter()
+            .filter(|r| r.method.ends_with("set-up"))
+            .collect();
         rows.sort_by(|a, b| a.method.cmp(&b.method));
-        let figures: Vec<String> =
-            rows.iter().map(|r| format!("{} {} {:.2} dB in {} s", r.tool, r.method, r.psnr_db, fmt_seconds(r.seconds))).collect();
-        parts.push(format!("{}: {} (the issue's reference figures: {})", p.name, figures.join(", "), p.reference));
+        let figures: Vec<String> = rows
+            .iter()
+            .map(|r| {
+                format!(
+                    "{} {} {:.2} dB in {} s",
+                    r.tool,
+                    r.method,
+                    r.psnr_db,
+                    fmt_seconds(r.seconds)
+                )
+            })
+            .collect();
+        parts.push(format!(
+            "{}: {} (the issue's reference figures: {})",
+            p.name,
+            figures.join(", "),
+            p.reference
+        ));
     }
     if parts.is_empty() {
         return String::new();
@@ -604,12 +815,20 @@ fn same_problem_table(md: &mut String, entries: &[Value]) {
          (R = TV or the l1 norm of the db4 coefficients); the lower value is the better minimiser. Twice the iterations are shown where \
          they were run (each set-up's best weight), and the truth's objective for scale (noise-free data: the minimum lies below it).\n"
     );
-    let _ = writeln!(md, "| R | weight (fraction) | best of | set-up | iterations | objective | \\|At-b\\|/\\|b\\| | PSNR dB |");
+    let _ = writeln!(
+        md,
+        "| R | weight (fraction) | best of | set-up | iterations | objective | \\|At-b\\|/\\|b\\| | PSNR dB |"
+    );
     let _ = writeln!(md, "|---|---|---|---|---|---|---|---|");
-    let num = |v: &Value, f: &dyn Fn(f64) -> String| v.as_f64().map(f).unwrap_or_else(|| "-".into());
+    let num =
+        |v: &Value, f: &dyn Fn(f64) -> String| v.as_f64().map(f).unwrap_or_else(|| "-".into());
     for e in entries {
         let reg = e["regulariser"].as_str().unwrap_or("?");
-        let weight = format!("{} ({})", num(&e["weight"], &|w| format!("{w:.3e}")), num(&e["fraction"], &|f| format!("{f:.1e}")));
+        let weight = format!(
+            "{} ({})",
+            num(&e["weight"], &|w| format!("{w:.3e}")),
+            num(&e["fraction"], &|f| format!("{f:.1e}"))
+        );
         let at = match e["at"].as_str() {
             Some("naive_best") => "naive",
             Some("fair_best") => "fair",
@@ -619,7 +838,9 @@ fn same_problem_table(md: &mut String, entries: &[Value]) {
             let _ = writeln!(
                 md,
                 "| {reg} | {weight} | {at} | {label} | {} | {} | {} | {} |",
-                it.as_u64().map(|i| i.to_string()).unwrap_or_else(|| "-".into()),
+                it.as_u64()
+                    .map(|i| i.to_string())
+                    .unwrap_or_else(|| "-".into()),
                 num(&obj["objective"], &|o| format!("{o:.4e}")),
                 num(&obj["relative_residual"], &|r| format!("{r:.2e}")),
                 num(psnr, &|p| format!("{p:.2}"))
@@ -627,19 +848,43 @@ fn same_problem_table(md: &mut String, entries: &[Value]) {
         };
         for side in ["naive", "fair"] {
             let s = &e[side];
-            line(format!("{} {}", s["tool"].as_str().unwrap_or("?"), s["method"].as_str().unwrap_or("?")), &s["iterations"], &s["objective"], &s["psnr_db"]);
+            line(
+                format!(
+                    "{} {}",
+                    s["tool"].as_str().unwrap_or("?"),
+                    s["method"].as_str().unwrap_or("?")
+                ),
+                &s["iterations"],
+                &s["objective"],
+                &s["psnr_db"],
+            );
             let c = &s["check"];
             if !c.is_null() {
-                line("the same, twice the iterations".into(), &c["iterations"], &c["objective"], &c["psnr_db"]);
+                line(
+                    "the same, twice the iterations".into(),
+                    &c["iterations"],
+                    &c["objective"],
+                    &c["psnr_db"],
+                );
             }
         }
-        let _ = writeln!(md, "| {reg} | {weight} | {at} | the truth | - | {} | 0 | - |", num(&e["truth_objective"], &|o| format!("{o:.4e}")));
+        let _ = writeln!(
+            md,
+            "| {reg} | {weight} | {at} | the truth | - | {} | 0 | - |",
+            num(&e["truth_objective"], &|o| format!("{o:.4e}"))
+        );
     }
     md.push('\n');
 }
 
 fn fmt_seconds(s: f64) -> String {
-    if s < 0.01 { format!("{s:.5}") } else if s < 10.0 { format!("{s:.3}") } else { format!("{s:.1}") }
+    if s < 0.01 {
+        format!("{s:.5}")
+    } else if s < 10.0 {
+        format!("{s:.3}")
+    } else {
+        format!("{s:.1}")
+    }
 }
 
 fn env_line(env: &Value) -> String {
@@ -647,7 +892,14 @@ fn env_line(env: &Value) -> String {
         Value::Object(m) => m
             .iter()
             .filter(|(k, _)| k.as_str() != "notes")
-            .map(|(k, v)| format!("{k} {}", v.as_str().map(str::to_string).unwrap_or_else(|| v.to_string())))
+            .map(|(k, v)| {
+                format!(
+                    "{k} {}",
+                    v.as_str()
+                        .map(str::to_string)
+                        .unwrap_or_else(|| v.to_string())
+                )
+            })
             .collect::<Vec<_>>()
             .join(", "),
         _ => "not run".into(),
@@ -656,14 +908,35 @@ fn env_line(env: &Value) -> String {
 
 /// The best of ours against the best other tool, by PSNR, with their times; computed, not written.
 fn verdict(rows: &[Row]) -> Option<String> {
-    let best = |ours: bool| rows.iter().filter(|r| (r.tool == "helmholtz") == ours).max_by(|a, b| a.psnr_db.total_cmp(&b.psnr_db));
+    let best = |ours: bool| {
+        rows.iter()
+            .filter(|r| (r.tool == "helmholtz") == ours)
+            .max_by(|a, b| a.psnr_db.total_cmp(&b.psnr_db))
+    };
     let (o, t) = (best(true)?, best(false)?);
-    let faster_theirs = rows.iter().filter(|r| r.tool != "helmholtz").min_by(|a, b| a.seconds.total_cmp(&b.seconds))?;
-    let speed = if o.seconds <= t.seconds { format!("{:.1}x faster", t.seconds / o.seconds) } else { format!("{:.1}x slower", o.seconds / t.seconds) };
+    let faster_theirs = rows
+        .iter()
+        .filter(|r| r.tool != "helmholtz")
+        .min_by(|a, b| a.seconds.total_cmp(&b.seconds))?;
+    let speed = if o.seconds <= t.seconds {
+        format!("{:.1}x faster", t.seconds / o.seconds)
+    } else {
+        format!("{:.1}x slower", o.seconds / t.seconds)
+    };
     Some(format!(
         "Best of ours by PSNR: `{}` {:.2} dB in {} s; best other tool: {} {} {:.2} dB in {} s (its best weight alone; its sweep is not counted): ours {:+.2} dB, {speed}. The fastest other tool: {} {} {:.2} dB in {} s.",
-        o.method, o.psnr_db, fmt_seconds(o.seconds), t.tool, t.method, t.psnr_db, fmt_seconds(t.seconds), o.psnr_db - t.psnr_db,
-        faster_theirs.tool, faster_theirs.method, faster_theirs.psnr_db, fmt_seconds(faster_theirs.seconds)
+        o.method,
+        o.psnr_db,
+        fmt_seconds(o.seconds),
+        t.tool,
+        t.method,
+        t.psnr_db,
+        fmt_seconds(t.seconds),
+        o.psnr_db - t.psnr_db,
+        faster_theirs.tool,
+        faster_theirs.method,
+        faster_theirs.psnr_db,
+        fmt_seconds(faster_theirs.seconds)
     ))
 }
 
@@ -684,7 +957,13 @@ mod tests {
     use super::*;
 
     fn small(family: &str, size: u32, ratio: f64) -> (CompareProblem, Acquisition) {
-        let p = CompareProblem { name: "small", title: "small", case: case("camera", size, family, ratio), ours: &["tv"], reference: "-" };
+        let p = CompareProblem {
+            name: "small",
+            title: "small",
+            case: case("camera", size, family, ratio),
+            ours: &["tv"],
+            reference: "-",
+        };
         let acq = acquire(&p.case).unwrap();
         (p, acq)
     }
@@ -695,7 +974,10 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let manifest = export(&p, &acq, dir.path()).unwrap();
         assert_eq!(manifest["operator"]["kind"], "dense");
-        assert_eq!((manifest["width"].as_u64(), manifest["height"].as_u64()), (Some(16), Some(16)));
+        assert_eq!(
+            (manifest["width"].as_u64(), manifest["height"].as_u64()),
+            (Some(16), Some(16))
+        );
         let truth: Array2<f32> = read_npy(dir.path().join("truth.npy")).unwrap();
         assert_eq!(truth.dim(), (16, 16));
         assert_eq!(truth.iter().copied().collect::<Vec<_>>(), acq.truth);
@@ -704,18 +986,29 @@ mod tests {
         let rows = acq.spec.count() as usize;
         assert_eq!(a.dim(), (rows, 256));
         assert_eq!(b.to_vec(), acq.values);
-        assert!(a.iter().all(|&v| v == 0.0 || v == 1.0) && a.iter().any(|&v| v == 1.0) && a.iter().any(|&v| v == 0.0));
+        assert!(
+            a.iter().all(|&v| v == 0.0 || v == 1.0)
+                && a.iter().any(|&v| v == 1.0)
+                && a.iter().any(|&v| v == 0.0)
+        );
         // The exported matrix times the ground truth is the simulator's buckets.
         let t: Vec<f64> = acq.truth.iter().map(|&v| v as f64).collect();
         for r in 0..rows {
             let at: f64 = a.row(r).iter().zip(&t).map(|(&x, &y)| x as f64 * y).sum();
-            assert!((at - b[r]).abs() <= 1e-9 * b[r].abs().max(1.0), "row {r}: {at} vs {}", b[r]);
+            assert!(
+                (at - b[r]).abs() <= 1e-9 * b[r].abs().max(1.0),
+                "row {r}: {at} vs {}",
+                b[r]
+            );
         }
         // And it is the patterns of the contract (pattern 0 from the generator).
         let mut p0 = vec![0f32; 256];
         helmholtz_proto::patterns::PatternGenerator::new(&acq.spec).fill_values(0, &mut p0);
         assert_eq!(a.row(0).to_vec(), p0);
-        let again: Value = serde_json::from_str(&std::fs::read_to_string(dir.path().join("problem.json")).unwrap()).unwrap();
+        let again: Value = serde_json::from_str(
+            &std::fs::read_to_string(dir.path().join("problem.json")).unwrap(),
+        )
+        .unwrap();
         assert_eq!(again, manifest);
     }
 
@@ -736,8 +1029,21 @@ mod tests {
         // The documented convention, as a dense matrix, times the truth is the exported data ...
         for r in 0..m {
             let n = natural[r] as usize;
-            let row_dot: f64 = (0..k).map(|p| if (n & p).count_ones() % 2 == 0 { t[p] } else { -t[p] }).sum::<f64>() / (k as f64).sqrt();
-            assert!((row_dot - b[r]).abs() < 1e-9, "row {r}: {row_dot} vs {}", b[r]);
+            let row_dot: f64 = (0..k)
+                .map(|p| {
+                    if (n & p).count_ones() % 2 == 0 {
+                        t[p]
+                    } else {
+                        -t[p]
+                    }
+                })
+                .sum::<f64>()
+                / (k as f64).sqrt();
+            assert!(
+                (row_dot - b[r]).abs() < 1e-9,
+                "row {r}: {row_dot} vs {}",
+                b[r]
+            );
             assert!(((frames[2 * r] - frames[2 * r + 1]) / (k as f64).sqrt() - b[r]).abs() < 1e-12);
         }
         // ... and the same as our operator's product.
@@ -782,10 +1088,28 @@ mod tests {
         let mut md = String::new();
         same_problem_table(&mut md, &[entry]);
         let w = "| tv | 1.500e0 (1.0e-3) | naive |";
-        assert!(md.contains(&format!("{w} pyproximal primal-dual TV, naive set-up | 500 | 4.0000e1 | 1.00e-2 | 11.00 |")), "{md}");
-        assert!(md.contains(&format!("{w} the same, twice the iterations | 1000 | 3.9000e1 | 9.00e-3 | 11.50 |")), "{md}");
-        assert!(md.contains(&format!("{w} pyproximal primal-dual TV, fair set-up | 500 | 2.0000e1 | 1.00e-3 | 20.00 |")), "{md}");
-        assert!(md.contains(&format!("{w} the truth | - | 3.0000e1 | 0 | - |")), "{md}");
+        assert!(
+            md.contains(&format!(
+                "{w} pyproximal primal-dual TV, naive set-up | 500 | 4.0000e1 | 1.00e-2 | 11.00 |"
+            )),
+            "{md}"
+        );
+        assert!(
+            md.contains(&format!(
+                "{w} the same, twice the iterations | 1000 | 3.9000e1 | 9.00e-3 | 11.50 |"
+            )),
+            "{md}"
+        );
+        assert!(
+            md.contains(&format!(
+                "{w} pyproximal primal-dual TV, fair set-up | 500 | 2.0000e1 | 1.00e-3 | 20.00 |"
+            )),
+            "{md}"
+        );
+        assert!(
+            md.contains(&format!("{w} the truth | - | 3.0000e1 | 0 | - |")),
+            "{md}"
+        );
         assert_eq!(md.matches("twice the iterations |").count(), 1, "{md}");
         let mut none = String::new();
         same_problem_table(&mut none, &[]);
@@ -794,7 +1118,11 @@ mod tests {
             name: "p".into(),
             title: "t".into(),
             reference: "24.4 dB".into(),
-            rows: vec![row("primal-dual TV, naive set-up", 11.0), row("primal-dual TV, fair set-up", 24.0), row("primal-dual TV, t >= 0", 30.0)],
+            rows: vec![
+                row("primal-dual TV, naive set-up", 11.0),
+                row("primal-dual TV, fair set-up", 24.0),
+                row("primal-dual TV, t >= 0", 30.0),
+            ],
             same_problem: Vec::new(),
         };
         let summary = bernoulli_summary(&[p]);
@@ -806,11 +1134,28 @@ mod tests {
     fn python_images_are_read_in_either_precision_and_checked() {
         let dir = tempfile::tempdir().unwrap();
         let f32_path = dir.path().join("a.npy");
-        write_npy(&f32_path, &Array2::from_shape_vec((2, 3), vec![1f32, 2., 3., 4., 5., 6.]).unwrap()).unwrap();
-        assert_eq!(read_image(&f32_path, 3, 2).unwrap(), vec![1., 2., 3., 4., 5., 6.]);
+        write_npy(
+            &f32_path,
+            &Array2::from_shape_vec((2, 3), vec![1f32, 2., 3., 4., 5., 6.]).unwrap(),
+        )
+        .unwrap();
+        assert_eq!(
+            read_image(&f32_path, 3, 2).unwrap(),
+            vec![1., 2., 3., 4., 5., 6.]
+        );
         let f64_path = dir.path().join("b.npy");
-        write_npy(&f64_path, &Array2::from_shape_vec((2, 3), vec![1f64, 2., 3., 4., 5., 6.5]).unwrap()).unwrap();
-        assert_eq!(read_image(&f64_path, 3, 2).unwrap(), vec![1., 2., 3., 4., 5., 6.5]);
-        assert!(read_image(&f64_path, 2, 3).is_err(), "a transposed shape is refused");
+        write_npy(
+            &f64_path,
+            &Array2::from_shape_vec((2, 3), vec![1f64, 2., 3., 4., 5., 6.5]).unwrap(),
+        )
+        .unwrap();
+        assert_eq!(
+            read_image(&f64_path, 3, 2).unwrap(),
+            vec![1., 2., 3., 4., 5., 6.5]
+        );
+        assert!(
+            read_image(&f64_path, 2, 3).is_err(),
+            "a transposed shape is refused"
+        );
     }
 }

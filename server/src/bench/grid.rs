@@ -23,8 +23,16 @@ impl Noise {
     pub fn model(self) -> NoiseModel {
         match self {
             Noise::None => NoiseModel::default(),
-            Noise::Snr30 => NoiseModel { snr_db: Some(30.0), seed: 17, ..NoiseModel::default() },
-            Noise::Poisson => NoiseModel { photons: Some(1e4), seed: 17, ..NoiseModel::default() },
+            Noise::Snr30 => NoiseModel {
+                snr_db: Some(30.0),
+                seed: 17,
+                ..NoiseModel::default()
+            },
+            Noise::Poisson => NoiseModel {
+                photons: Some(1e4),
+                seed: 17,
+                ..NoiseModel::default()
+            },
         }
     }
     pub fn name(self) -> &'static str {
@@ -52,7 +60,9 @@ pub struct Case {
 impl Case {
     pub fn family(&self) -> Family {
         match self.family.as_str() {
-            "hadamard" => Family::Hadamard { ordering: HadamardOrdering::RussianDoll },
+            "hadamard" => Family::Hadamard {
+                ordering: HadamardOrdering::RussianDoll,
+            },
             _ => Family::Bernoulli { fill: 0.5 },
         }
     }
@@ -66,7 +76,10 @@ impl Case {
 
     /// Cases with the same key share one simulated acquisition.
     pub fn acquisition_key(&self) -> String {
-        format!("{}|{}x{}|{}|{}|{:?}", self.scene, self.size.0, self.size.1, self.ratio, self.family, self.noise)
+        format!(
+            "{}|{}x{}|{}|{}|{:?}",
+            self.scene, self.size.0, self.size.1, self.ratio, self.family, self.noise
+        )
     }
 
     pub fn label(&self) -> String {
@@ -108,7 +121,18 @@ impl FromStr for Preset {
 }
 
 /// Every method the service offers, cheapest first.
-pub const METHODS: &[&str] = &["gi", "dgi", "ngi", "direct", "zero_filled", "levels", "lsq", "cs", "tv", "auto"];
+pub const METHODS: &[&str] = &[
+    "gi",
+    "dgi",
+    "ngi",
+    "direct",
+    "zero_filled",
+    "levels",
+    "lsq",
+    "cs",
+    "tv",
+    "auto",
+];
 
 /// Iterative methods on Bernoulli patterns cost about `rows x pixels x 1.5e-10 s` per iteration
 /// here (a few hundred iterations per case, several paths for `auto`); above this product
@@ -122,7 +146,9 @@ fn applicable(family: &str, size: u32, ratio: f64, method: &str) -> bool {
         // The exact inverse needs the complete set.
         "direct" => family == "hadamard" && ratio >= 1.0,
         "zero_filled" | "levels" => family == "hadamard",
-        "lsq" | "cs" | "tv" | "auto" if family == "bernoulli" => ratio * k * k <= MAX_ITERATIVE_BERNOULLI_WORK,
+        "lsq" | "cs" | "tv" | "auto" if family == "bernoulli" => {
+            ratio * k * k <= MAX_ITERATIVE_BERNOULLI_WORK
+        }
         _ => true,
     }
 }
@@ -132,7 +158,13 @@ fn applicable(family: &str, size: u32, ratio: f64, method: &str) -> bool {
 /// acquisition out altogether (the 256 x 256 Bernoulli cases keep 1 %, the source paper's regime).
 pub const MAX_BERNOULLI_SIMULATION: f64 = 1e9;
 
-fn grid(scenes: &[&str], sizes: &[u32], ratios: &[f64], families: &[&str], noises: &[Noise]) -> Vec<Case> {
+fn grid(
+    scenes: &[&str],
+    sizes: &[u32],
+    ratios: &[f64],
+    families: &[&str],
+    noises: &[Noise],
+) -> Vec<Case> {
     let mut out = Vec::new();
     for &scene in scenes {
         for &n in sizes {
@@ -166,11 +198,35 @@ fn grid(scenes: &[&str], sizes: &[u32], ratios: &[f64], families: &[&str], noise
 impl Preset {
     pub fn cases(self) -> Vec<Case> {
         match self {
-            Preset::Smoke => grid(&["shapes"], &[32], &[0.1, 1.0], &["bernoulli", "hadamard"], &[Noise::None]),
+            Preset::Smoke => grid(
+                &["shapes"],
+                &[32],
+                &[0.1, 1.0],
+                &["bernoulli", "hadamard"],
+                &[Noise::None],
+            ),
             Preset::Targets => {
-                let mut cases = grid(&["camera"], &[128], &[0.1], &["bernoulli", "hadamard"], &[Noise::None]);
-                cases.extend(grid(&["camera"], &[256], &[0.1], &["hadamard"], &[Noise::None]));
-                cases.extend(grid(&["shapes"], &[256], &[1000.0 / 65536.0], &["bernoulli"], &[Noise::None]));
+                let mut cases = grid(
+                    &["camera"],
+                    &[128],
+                    &[0.1],
+                    &["bernoulli", "hadamard"],
+                    &[Noise::None],
+                );
+                cases.extend(grid(
+                    &["camera"],
+                    &[256],
+                    &[0.1],
+                    &["hadamard"],
+                    &[Noise::None],
+                ));
+                cases.extend(grid(
+                    &["shapes"],
+                    &[256],
+                    &[1000.0 / 65536.0],
+                    &["bernoulli"],
+                    &[Noise::None],
+                ));
                 cases
             }
             Preset::Full => grid(

@@ -27,7 +27,10 @@ use crate::recon::{self, Control, MethodConfig, Problem, SliceSource, metrics};
 pub use grid::{Case, Noise, Preset};
 
 #[derive(Parser, Debug)]
-#[command(name = "helmholtz-bench", about = "Speed against error of every reconstruction method on a grid of simulated acquisitions.\n\nWrites DIR/benchmarks.md (tables and plots) and DIR/benchmarks.json (raw figures); the smaller presets write DIR/benchmarks-PRESET.{md,json}.\n\n--preset compare runs the target problems side by side with other tools (pylops, pyproximal, spyrit; bench/compare/run.py in a venv under target/compare-venv, created on first use) and writes DIR/comparison.md and DIR/comparison.json.\n\n--preset transport benchmarks camera sessions (transport matrix reconstruction, relight/primal latency) and writes DIR/benchmarks-transport.{md,json}.")]
+#[command(
+    name = "helmholtz-bench",
+    about = "Speed against error of every reconstruction method on a grid of simulated acquisitions.\n\nWrites DIR/benchmarks.md (tables and plots) and DIR/benchmarks.json (raw figures); the smaller presets write DIR/benchmarks-PRESET.{md,json}.\n\n--preset compare runs the target problems side by side with other tools (pylops, pyproximal, spyrit; bench/compare/run.py in a venv under target/compare-venv, created on first use) and writes DIR/comparison.md and DIR/comparison.json.\n\n--preset transport benchmarks camera sessions (transport matrix reconstruction, relight/primal latency) and writes DIR/benchmarks-transport.{md,json}."
+)]
 struct Args {
     /// smoke: a few small cases (CI); targets: the target problems; full: the whole grid;
     /// compare: the target problems against other tools; transport: camera sessions (transport
@@ -93,10 +96,18 @@ pub struct Measurement {
 impl Measurement {
     /// The figure plotted: fitted for the scale-free correlation methods, raw for the others.
     pub fn quality_db(&self) -> f64 {
-        if grid::scale_free(&self.case.method) { self.psnr_fitted_db } else { self.psnr_db }
+        if grid::scale_free(&self.case.method) {
+            self.psnr_fitted_db
+        } else {
+            self.psnr_db
+        }
     }
     pub fn quality_ssim(&self) -> f64 {
-        if grid::scale_free(&self.case.method) { self.ssim_fitted } else { self.ssim }
+        if grid::scale_free(&self.case.method) {
+            self.ssim_fitted
+        } else {
+            self.ssim
+        }
     }
 }
 
@@ -115,15 +126,26 @@ pub fn main() {
             eprintln!("helmholtz-bench: {e:#}");
             std::process::exit(1);
         }
-        eprintln!("wrote {}/comparison.md and comparison.json", args.out.display());
+        eprintln!(
+            "wrote {}/comparison.md and comparison.json",
+            args.out.display()
+        );
         return;
     }
     if args.preset == "transport" {
-        if let Err(e) = transport::run(&args.out, args.calls as usize, args.latency_only, args.cases.as_deref()) {
+        if let Err(e) = transport::run(
+            &args.out,
+            args.calls as usize,
+            args.latency_only,
+            args.cases.as_deref(),
+        ) {
             eprintln!("helmholtz-bench: {e:#}");
             std::process::exit(1);
         }
-        eprintln!("wrote {}/benchmarks-transport.md and benchmarks-transport.json", args.out.display());
+        eprintln!(
+            "wrote {}/benchmarks-transport.md and benchmarks-transport.json",
+            args.out.display()
+        );
         return;
     }
     let preset: Preset = args.preset.parse().expect("clap checked the preset");
@@ -131,7 +153,12 @@ pub fn main() {
     if let Some(methods) = &args.methods {
         cases.retain(|c| methods.contains(&c.method));
     }
-    eprintln!("helmholtz-bench: {} cases ({}), {} threads", cases.len(), args.preset, rayon::current_num_threads());
+    eprintln!(
+        "helmholtz-bench: {} cases ({}), {} threads",
+        cases.len(),
+        args.preset,
+        rayon::current_num_threads()
+    );
     let results = run_cases_repeated(&cases, args.repeat as usize, |i, m| {
         eprintln!(
             "[{}/{}] {:<48} {:>9.4} s  {:>6.2} dB  SSIM {:.3}{}",
@@ -141,7 +168,10 @@ pub fn main() {
             m.seconds,
             m.quality_db(),
             m.quality_ssim(),
-            m.error.as_deref().map(|e| format!("  ({e})")).unwrap_or_default()
+            m.error
+                .as_deref()
+                .map(|e| format!("  ({e})"))
+                .unwrap_or_default()
         )
     });
     if let Err(e) = report::write_with(&args.out, &args.preset, args.repeat, &results) {
@@ -158,14 +188,20 @@ pub fn run_cases(cases: &[Case], progress: impl FnMut(usize, &Measurement)) -> V
 
 /// [`run_cases`], each case `repeat` times: the median wall time is reported (with the figures
 /// of the last run) and every run's time is kept in `all_seconds`.
-pub fn run_cases_repeated(cases: &[Case], repeat: usize, mut progress: impl FnMut(usize, &Measurement)) -> Vec<Measurement> {
+pub fn run_cases_repeated(
+    cases: &[Case],
+    repeat: usize,
+    mut progress: impl FnMut(usize, &Measurement),
+) -> Vec<Measurement> {
     let mut out = Vec::with_capacity(cases.len());
     let mut cache: Option<(String, PatternSpec, Vec<f32>, Vec<f64>)> = None;
     for (i, case) in cases.iter().enumerate() {
         let key = case.acquisition_key();
         if cache.as_ref().map(|c| &c.0) != Some(&key) {
             let spec = case.spec();
-            let truth = Scene::builtin(&case.scene, case.size.0, case.size.1).expect("built-in scene").transport(1.0);
+            let truth = Scene::builtin(&case.scene, case.size.0, case.size.1)
+                .expect("built-in scene")
+                .transport(1.0);
             let sim = simulate::simulate(&spec, &[&truth], &case.noise.model(), None);
             cache = Some((key, spec, truth, sim.values));
         }
@@ -195,9 +231,19 @@ fn measure(case: &Case, spec: &PatternSpec, truth: &[f32], values: &[f64]) -> Me
 }
 
 /// [`measure`], also handing back the reconstructed image (channel 0; `None` on error).
-pub(crate) fn measure_with_image(case: &Case, spec: &PatternSpec, truth: &[f32], values: &[f64]) -> (Measurement, Option<Vec<f32>>) {
-    let problem = Problem { spec, channels: 1, rows: spec.count() };
-    let config = MethodConfig::parse(&case.method, &serde_json::Value::Null).expect("grid methods exist");
+pub(crate) fn measure_with_image(
+    case: &Case,
+    spec: &PatternSpec,
+    truth: &[f32],
+    values: &[f64],
+) -> (Measurement, Option<Vec<f32>>) {
+    let problem = Problem {
+        spec,
+        channels: 1,
+        rows: spec.count(),
+    };
+    let config =
+        MethodConfig::parse(&case.method, &serde_json::Value::Null).expect("grid methods exist");
     let control = Control::new();
     let mut source = SliceSource::new(values, 1, 4096);
     let base = crate::alloc::live_bytes();
@@ -223,27 +269,31 @@ pub(crate) fn measure_with_image(case: &Case, spec: &PatternSpec, truth: &[f32],
                 ssim: metrics::ssim(image, truth, w, h),
                 psnr_fitted_db: metrics::psnr(&fitted, truth),
                 ssim_fitted: metrics::ssim(&fitted, truth, w, h),
-                updates_per_second: grid::scale_free(&case.method).then(|| spec.count() as f64 * k / seconds),
+                updates_per_second: grid::scale_free(&case.method)
+                    .then(|| spec.count() as f64 * k / seconds),
                 report: without_histories(serde_json::to_value(&r.report).unwrap_or_default()),
                 error: None,
                 all_seconds: Vec::new(),
             };
             (m, Some(data))
         }
-        Err(e) => (Measurement {
-            case: case.clone(),
-            rows: spec.count(),
-            seconds,
-            peak_memory_bytes: peak,
-            psnr_db: f64::NAN,
-            ssim: f64::NAN,
-            psnr_fitted_db: f64::NAN,
-            ssim_fitted: f64::NAN,
-            updates_per_second: None,
-            report: serde_json::Value::Null,
-            error: Some(e.to_string()),
-            all_seconds: Vec::new(),
-        }, None),
+        Err(e) => (
+            Measurement {
+                case: case.clone(),
+                rows: spec.count(),
+                seconds,
+                peak_memory_bytes: peak,
+                psnr_db: f64::NAN,
+                ssim: f64::NAN,
+                psnr_fitted_db: f64::NAN,
+                ssim_fitted: f64::NAN,
+                updates_per_second: None,
+                report: serde_json::Value::Null,
+                error: Some(e.to_string()),
+                all_seconds: Vec::new(),
+            },
+            None,
+        ),
     }
 }
 
@@ -252,7 +302,12 @@ pub(crate) fn measure_with_image(case: &Case, spec: &PatternSpec, truth: &[f32],
 fn without_histories(v: serde_json::Value) -> serde_json::Value {
     use serde_json::Value;
     match v {
-        Value::Object(map) => Value::Object(map.into_iter().filter(|(k, _)| k != "objective_history").map(|(k, v)| (k, without_histories(v))).collect()),
+        Value::Object(map) => Value::Object(
+            map.into_iter()
+                .filter(|(k, _)| k != "objective_history")
+                .map(|(k, v)| (k, without_histories(v)))
+                .collect(),
+        ),
         Value::Array(items) => Value::Array(items.into_iter().map(without_histories).collect()),
         other => other,
     }

@@ -9,7 +9,11 @@ fn smoke_grid_runs_and_writes_the_report() {
     for m in &results {
         assert!(m.error.is_none(), "{}: {:?}", m.case.label(), m.error);
         assert!(m.seconds.is_finite() && m.seconds >= 0.0);
-        assert!(m.quality_db().is_finite() || m.quality_db() == f64::INFINITY, "{}", m.case.label());
+        assert!(
+            m.quality_db().is_finite() || m.quality_db() == f64::INFINITY,
+            "{}",
+            m.case.label()
+        );
     }
     // The complete noise-free Hadamard set is inverted exactly.
     let direct = results.iter().find(|m| m.case.method == "direct").unwrap();
@@ -18,7 +22,9 @@ fn smoke_grid_runs_and_writes_the_report() {
     report::write_with(dir.path(), "smoke", 1, &results).unwrap();
     let md = std::fs::read_to_string(dir.path().join("benchmarks-smoke.md")).unwrap();
     assert!(md.contains("| shapes |") && md.contains(".svg"));
-    let json: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(dir.path().join("benchmarks-smoke.json")).unwrap()).unwrap();
+    let json: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(dir.path().join("benchmarks-smoke.json")).unwrap(),
+    )
+    .unwrap();
     assert_eq!(json["results"].as_array().unwrap().len(), results.len());
 }

@@ -16,7 +16,9 @@ use serde_json::json;
 
 use crate::recon::metrics::{psnr, relative_error};
 use crate::recon::transforms::TransformKind;
-use crate::recon::transport::{CameraGrid, SliceFrames, TransportConfig, TransportMatrix, reconstruct_transport};
+use crate::recon::transport::{
+    CameraGrid, SliceFrames, TransportConfig, TransportMatrix, reconstruct_transport,
+};
 use crate::recon::{Control, linop::test_vector};
 
 #[derive(Clone, Debug, Serialize)]
@@ -74,7 +76,9 @@ fn relit_psnr(t: &TransportMatrix, view: &CameraView) -> f64 {
     let w = view.width();
     let lights: Vec<Vec<f64>> = vec![
         vec![1.0; m],
-        (0..m).map(|j| (((j % w) / 4 + (j / w) / 4) % 2) as f64).collect(),
+        (0..m)
+            .map(|j| (((j % w) / 4 + (j / w) / 4) % 2) as f64)
+            .collect(),
         test_vector(m, 11).iter().map(|v| 0.5 + 0.5 * v).collect(),
     ];
     let (mut est, mut truth) = (Vec::new(), Vec::new());
@@ -95,23 +99,71 @@ fn percentile(sorted: &[f64], q: f64) -> f64 {
     sorted[((sorted.len() - 1) as f64 * q).round() as usize]
 }
 
-pub fn run(out: &Path, calls: usize, latency_only: bool, only: Option<&[String]>) -> anyhow::Result<()> {
+pub fn run(
+    out: &Path,
+    calls: usize,
+    latency_only: bool,
+    only: Option<&[String]>,
+) -> anyhow::Result<()> {
     let (pw, ph, cw, chh) = (64u32, 64u32, 32u32, 32u32);
     let scene = Scene::demo(pw, ph, 7);
     let view = scene.view(&Camera::tilted(cw, chh, 25.0));
     let truth = view.dense();
-    let camera = CameraGrid { width: cw, height: chh };
+    let camera = CameraGrid {
+        width: cw,
+        height: chh,
+    };
     let k = (pw * ph) as u64;
     let rd = HadamardOrdering::RussianDoll;
     let mut cases: Vec<(String, Family, u64, bool)> = vec![
-        ("hadamard complete".into(), Family::Hadamard { ordering: rd }, 2 * k, false),
-        ("hadamard 50 %".into(), Family::Hadamard { ordering: rd }, k, false),
-        ("hadamard 50 %".into(), Family::Hadamard { ordering: rd }, k, true),
-        ("hadamard 25 %".into(), Family::Hadamard { ordering: rd }, k / 2, false),
-        ("hadamard 25 %".into(), Family::Hadamard { ordering: rd }, k / 2, true),
-        ("bernoulli 25 %".into(), Family::Bernoulli { fill: 0.5 }, k / 4, false),
-        ("bernoulli 25 %".into(), Family::Bernoulli { fill: 0.5 }, k / 4, true),
-        ("bernoulli 10 %".into(), Family::Bernoulli { fill: 0.5 }, k / 10, false),
+        (
+            "hadamard complete".into(),
+            Family::Hadamard { ordering: rd },
+            2 * k,
+            false,
+        ),
+        (
+            "hadamard 50 %".into(),
+            Family::Hadamard { ordering: rd },
+            k,
+            false,
+        ),
+        (
+            "hadamard 50 %".into(),
+            Family::Hadamard { ordering: rd },
+            k,
+            true,
+        ),
+        (
+            "hadamard 25 %".into(),
+            Family::Hadamard { ordering: rd },
+            k / 2,
+            false,
+        ),
+        (
+            "hadamard 25 %".into(),
+            Family::Hadamard { ordering: rd },
+            k / 2,
+            true,
+        ),
+        (
+            "bernoulli 25 %".into(),
+            Family::Bernoulli { fill: 0.5 },
+            k / 4,
+            false,
+        ),
+        (
+            "bernoulli 25 %".into(),
+            Family::Bernoulli { fill: 0.5 },
+            k / 4,
+            true,
+        ),
+        (
+            "bernoulli 10 %".into(),
+            Family::Bernoulli { fill: 0.5 },
+            k / 10,
+            false,
+        ),
     ];
     if latency_only {
         cases.clear();
@@ -128,14 +180,19 @@ pub fn run(out: &Path, calls: usize, latency_only: bool, only: Option<&[String]>
             cache = Some((key.clone(), frames_of(&view, &spec)));
         }
         let f = &cache.as_ref().expect("cached").1;
-        let config = TransportConfig { coarse_to_fine: c2f, ..TransportConfig::default() };
+        let config = TransportConfig {
+            coarse_to_fine: c2f,
+            ..TransportConfig::default()
+        };
         let mut source = SliceFrames::new(f, camera.pixels());
         crate::alloc::reset_peak();
         let base = crate::alloc::live_bytes();
         let started = Instant::now();
-        let result = reconstruct_transport(&spec, camera, count, &config, &mut source, &Control::new());
+        let result =
+            reconstruct_transport(&spec, camera, count, &config, &mut source, &Control::new());
         let seconds = started.elapsed().as_secs_f64();
-        let peak = crate::alloc::installed().then(|| crate::alloc::peak_bytes().saturating_sub(base));
+        let peak =
+            crate::alloc::installed().then(|| crate::alloc::peak_bytes().saturating_sub(base));
         let row = match result {
             Ok((t, report)) => {
                 let d = &report.details;
@@ -192,7 +249,10 @@ pub fn run(out: &Path, calls: usize, latency_only: bool, only: Option<&[String]>
             row.held_out,
             row.iterations_per_row,
             row.transform,
-            row.error.as_deref().map(|e| format!("  ({e})")).unwrap_or_default()
+            row.error
+                .as_deref()
+                .map(|e| format!("  ({e})"))
+                .unwrap_or_default()
         );
         rows.push(row);
     }
@@ -202,16 +262,32 @@ pub fn run(out: &Path, calls: usize, latency_only: bool, only: Option<&[String]>
     let big_view = big.view(&Camera::tilted(64, 64, 25.0));
     let m = big_view.pixels();
     let mut latencies = Vec::new();
-    for kind in [TransformKind::Haar, TransformKind::Identity, TransformKind::Dct] {
-        let t = TransportMatrix::from_rows((256, 256), (64, 64), kind, (0..m).map(|j| big_view.row(j)), 1e-3);
+    for kind in [
+        TransformKind::Haar,
+        TransformKind::Identity,
+        TransformKind::Dct,
+    ] {
+        let t = TransportMatrix::from_rows(
+            (256, 256),
+            (64, 64),
+            kind,
+            (0..m).map(|j| big_view.row(j)),
+            1e-3,
+        );
         // Error of the stored rows on a sample of them (the dense T is 1 GiB).
         let (mut est, mut exact) = (Vec::new(), Vec::new());
         for j in (0..m).step_by(37) {
             est.extend(t.row(j));
             exact.extend(big_view.row(j).into_iter().map(|v| v as f32));
         }
-        let light: Vec<f32> = test_vector(m, 5).iter().map(|v| (0.5 + 0.5 * v) as f32).collect();
-        let pattern: Vec<f32> = test_vector(256 * 256, 6).iter().map(|v| (0.5 + 0.5 * v) as f32).collect();
+        let light: Vec<f32> = test_vector(m, 5)
+            .iter()
+            .map(|v| (0.5 + 0.5 * v) as f32)
+            .collect();
+        let pattern: Vec<f32> = test_vector(256 * 256, 6)
+            .iter()
+            .map(|v| (0.5 + 0.5 * v) as f32)
+            .collect();
         let time = |f: &mut dyn FnMut()| {
             let mut v: Vec<f64> = (0..calls)
                 .map(|_| {
@@ -250,10 +326,15 @@ pub fn run(out: &Path, calls: usize, latency_only: bool, only: Option<&[String]>
 fn write(out: &Path, rows: &[Row], latencies: &[Latency]) -> anyhow::Result<()> {
     std::fs::create_dir_all(out)?;
     let json = json!({"reconstructions": rows, "latency": latencies, "threads": rayon::current_num_threads()});
-    std::fs::write(out.join("benchmarks-transport.json"), serde_json::to_string_pretty(&json)?)?;
+    std::fs::write(
+        out.join("benchmarks-transport.json"),
+        serde_json::to_string_pretty(&json)?,
+    )?;
     let mut md = String::new();
     md.push_str("# Transport matrix benchmarks\n\n");
-    md.push_str("`cargo run -p helmholtz-server --bin helmholtz-bench -- --preset transport --out docs` ");
+    md.push_str(
+        "`cargo run -p helmholtz-server --bin helmholtz-bench -- --preset transport --out docs` ",
+    );
     md.push_str(&format!("({} threads). Scene: `helmholtz_scenes::Scene::demo(64, 64, 7)`, camera `Camera::tilted(32, 32, 25)`; noise-free frames `c_i = T p_i`. ", rayon::current_num_threads()));
     md.push_str("Error: relative Frobenius error of T; relit PSNR over three camera-side lights (uniform, checkerboard, random) against the scene's own relight.\n\n");
     md.push_str("| case | frames | coarse-to-fine | seconds | peak heap MiB | transform | lambda | stored KiB (dense KiB) | nnz/row | rel. error T | relit PSNR dB | held-out | iterations/row |\n");

@@ -98,8 +98,10 @@ pub const EXACT_REASON: &str = "the rows are a complete orthogonal set (raster o
 /// Whether the session is a complete raster or Hadamard set, which `auto` inverts exactly.
 pub fn exact_inverse_applies(problem: &super::Problem) -> bool {
     use helmholtz_proto::Family;
-    matches!(problem.spec.family(), Family::Raster { .. } | Family::Hadamard { .. })
-        && super::MethodConfig::Direct.check(problem).is_ok()
+    matches!(
+        problem.spec.family(),
+        Family::Raster { .. } | Family::Hadamard { .. }
+    ) && super::MethodConfig::Direct.check(problem).is_ok()
 }
 
 /// One channel's problem.
@@ -194,7 +196,9 @@ impl<'a> Running<'a> {
         let start = Instant::now();
         let penalty = match model {
             Model::L1(_) => Penalty::L1 { psi },
-            Model::Tv => Penalty::Tv { grid: Grid::new(grid.0, grid.1) },
+            Model::Tv => Penalty::Tv {
+                grid: Grid::new(grid.0, grid.1),
+            },
         };
         let opts = super::compressive::model_options(model, opts);
         let runner = PathRunner::new(op_train, penalty, b_train, &opts)?;
@@ -256,7 +260,10 @@ impl<'a> Running<'a> {
         Candidate {
             model: self.model.name(),
             grid: [self.grid.0, self.grid.1],
-            best_fraction: self.points.get(self.best.1).map_or(FRACTIONS[0], |p| p.fraction),
+            best_fraction: self
+                .points
+                .get(self.best.1)
+                .map_or(FRACTIONS[0], |p| p.fraction),
             best_held_out: self.best.0,
             path: self.points,
             eliminated: self.eliminated,
@@ -302,11 +309,17 @@ fn race(
         .collect::<Result<Vec<_>, _>>()?;
     let rounds = fractions.len() as f64;
     for (i, &f) in fractions.iter().enumerate() {
-        let progress = (lo + (hi - lo) * i as f64 / rounds, lo + (hi - lo) * (i + 1) as f64 / rounds);
+        let progress = (
+            lo + (hi - lo) * i as f64 / rounds,
+            lo + (hi - lo) * (i + 1) as f64 / rounds,
+        );
         let jobs: Vec<Box<dyn FnOnce() -> Result<(), ReconError> + Send + '_>> = running
             .iter_mut()
             .filter(|r| r.active)
-            .map(|r| Box::new(move || r.step(f, scorer, b_test, progress, control)) as Box<dyn FnOnce() -> _ + Send + '_>)
+            .map(|r| {
+                Box::new(move || r.step(f, scorer, b_test, progress, control))
+                    as Box<dyn FnOnce() -> _ + Send + '_>
+            })
             .collect();
         for result in gather.run(jobs) {
             result?;
@@ -317,7 +330,10 @@ fn race(
             _ => None,
         };
         if let Some(threshold) = threshold {
-            let leader = running.iter().map(|r| r.best.0).fold(f64::INFINITY, f64::min);
+            let leader = running
+                .iter()
+                .map(|r| r.best.0)
+                .fold(f64::INFINITY, f64::min);
             for r in running.iter_mut().filter(|r| r.active) {
                 if r.best.0 > threshold * leader {
                     r.active = false;
@@ -347,7 +363,10 @@ pub fn run(
     // The fitting problems ((P A, P b) when the offset is fitted) and the held-out scorer.
     let (train_fit, b_train_fit) = fitting(job.train, &job.b_train, job.offset);
     let (full_fit, b_fit) = fitting(job.full, job.b, job.offset);
-    let scorer = Scorer { test: job.test, offset: job.offset.then(|| Offset::new(job.train, &job.b_train)) };
+    let scorer = Scorer {
+        test: job.test,
+        offset: job.offset.then(|| Offset::new(job.train, &job.b_train)),
+    };
     // One power iteration for every candidate on the fitting rows.
     let lipschitz = solve::step_constant(train_fit.as_ref(), None, true)?;
     let base = SolveOptions {
@@ -357,7 +376,18 @@ pub fn run(
         ..SolveOptions::default()
     };
     let stages = 3.0;
-    let candidates = race(models, (w, h), train_fit.as_ref(), &scorer, &b_train_fit, &job.b_test, &FRACTIONS, &base, (lo, lo + (hi - lo) / stages), control)?;
+    let candidates = race(
+        models,
+        (w, h),
+        train_fit.as_ref(),
+        &scorer,
+        &b_train_fit,
+        &job.b_test,
+        &FRACTIONS,
+        &base,
+        (lo, lo + (hi - lo) / stages),
+        control,
+    )?;
     let winner = candidates
         .iter()
         .enumerate()
@@ -369,7 +399,11 @@ pub fn run(
     let fraction = candidates[winner].best_fraction;
 
     // The resolution the rows support (only a question when there are fewer rows than pixels).
-    let mut chosen = (1usize, candidates[winner].best_held_out, candidates[winner].best_t.clone());
+    let mut chosen = (
+        1usize,
+        candidates[winner].best_held_out,
+        candidates[winner].best_t.clone(),
+    );
     let mut resolution = Vec::new();
     if job.full.rows() < k && job.measured_resolution.is_none() {
         let mut factor = 2;
@@ -377,7 +411,10 @@ pub fn run(
             let train = Binned::new(train_fit.as_ref(), w, h, factor);
             let test = Binned::new(job.test, w, h, factor);
             let raw_train = Binned::new(job.train, w, h, factor);
-            let scorer = Scorer { test: &test, offset: job.offset.then(|| Offset::new(&raw_train, &job.b_train)) };
+            let scorer = Scorer {
+                test: &test,
+                offset: job.offset.then(|| Offset::new(&raw_train, &job.b_train)),
+            };
             let coarse = train.coarse_size();
             // One point, at the winner's weight (relative weights carry over between grids),
             // started from the winner's block means: a cold start at a small weight does not
@@ -386,11 +423,26 @@ pub fn run(
             let near = [fraction];
             let mut warm = vec![0.0; coarse.0 * coarse.1];
             train.block_means(&candidates[winner].best_t, &mut warm);
-            let opts = SolveOptions { lipschitz: None, warm_start: Some(warm), ..base.clone() };
+            let opts = SolveOptions {
+                lipschitz: None,
+                warm_start: Some(warm),
+                ..base.clone()
+            };
             let progress = (lo + (hi - lo) / stages, lo + (hi - lo) * 2.0 / stages);
-            let c = race(&[model], coarse, &train, &scorer, &b_train_fit, &job.b_test, &near, &opts, progress, control)?
-                .pop()
-                .expect("one candidate");
+            let c = race(
+                &[model],
+                coarse,
+                &train,
+                &scorer,
+                &b_train_fit,
+                &job.b_test,
+                &near,
+                &opts,
+                progress,
+                control,
+            )?
+            .pop()
+            .expect("one candidate");
             let better = c.best_held_out < chosen.1 * (1.0 - COARSER_MARGIN);
             let iterations = c.path.first().map_or(0, |p| p.iterations);
             resolution.push(json!({"grid": coarse, "held_out": finite(c.best_held_out), "fraction": c.best_fraction, "iterations": iterations, "better": better}));
@@ -408,12 +460,19 @@ pub fn run(
     let binned_test = Binned::new(job.test, w, h, factor);
     let binned_train = Binned::new(job.train, w, h, factor);
     let grid = binned_full.coarse_size();
-    let (full, raw): (&dyn LinearOperator, &dyn LinearOperator) =
-        if factor == 1 { (full_fit.as_ref(), job.full) } else { (&binned_full, &binned_raw) };
+    let (full, raw): (&dyn LinearOperator, &dyn LinearOperator) = if factor == 1 {
+        (full_fit.as_ref(), job.full)
+    } else {
+        (&binned_full, &binned_raw)
+    };
     let held_out_prediction = if factor == 1 {
         scorer.predict(&warm)
     } else {
-        Scorer { test: &binned_test, offset: job.offset.then(|| Offset::new(&binned_train, &job.b_train)) }.predict(&warm)
+        Scorer {
+            test: &binned_test,
+            offset: job.offset.then(|| Offset::new(&binned_train, &job.b_train)),
+        }
+        .predict(&warm)
     };
 
     // Refit on all rows (from the held-out fit at the same weight: a few dozen iterations).
@@ -478,7 +537,10 @@ pub fn run(
              few or too noisy for any of the models at this size"
         ));
     }
-    let iterations = candidates.iter().flat_map(|c| c.path.iter().map(|p| p.iterations)).sum::<usize>()
+    let iterations = candidates
+        .iter()
+        .flat_map(|c| c.path.iter().map(|p| p.iterations))
+        .sum::<usize>()
         + solution.report.iterations;
     let report = json!({
         "model": model.name(),
@@ -505,7 +567,12 @@ pub fn run(
         "seconds": start.elapsed().as_secs_f64(),
         "stage_seconds": {"race": race_seconds, "resolution": resolution_seconds, "refit": solution.report.seconds},
     });
-    Ok(Outcome { t, held_out_prediction, iterations, report })
+    Ok(Outcome {
+        t,
+        held_out_prediction,
+        iterations,
+        report,
+    })
 }
 
 /// The model size of `t`: the fewest coefficients (TV: per-pixel gradient magnitudes; l1: the
@@ -563,8 +630,8 @@ mod tests {
     use helmholtz_proto::{Family, HadamardOrdering, PatternGenerator, PatternSpec};
     use serde_json::json;
 
-    use crate::recon::{MethodConfig, Problem, Reconstruction, SliceSource, metrics, reconstruct};
     use crate::recon::Control;
+    use crate::recon::{MethodConfig, Problem, Reconstruction, SliceSource, metrics, reconstruct};
 
     fn scene(name: &str, n: u32) -> Vec<f32> {
         Scene::builtin(name, n, n).unwrap().transport(1.0)
@@ -576,16 +643,32 @@ mod tests {
         (0..spec.count())
             .map(|i| {
                 g.fill_values(i, &mut p);
-                p.iter().zip(t).map(|(a, b)| *a as f64 * *b as f64).sum::<f64>()
+                p.iter()
+                    .zip(t)
+                    .map(|(a, b)| *a as f64 * *b as f64)
+                    .sum::<f64>()
             })
             .collect()
     }
 
     fn auto(spec: &PatternSpec, c: &[f64], params: serde_json::Value) -> Reconstruction {
         let config = MethodConfig::parse("auto", &params).unwrap();
-        let problem = Problem { spec, channels: 1, rows: c.len() as u64 };
-        let r = reconstruct(&problem, &config, &mut SliceSource::new(c, 1, 500), &Control::new()).unwrap();
-        assert!(r.images[0].data.iter().all(|v| v.is_finite() && *v >= 0.0), "finite, non-negative");
+        let problem = Problem {
+            spec,
+            channels: 1,
+            rows: c.len() as u64,
+        };
+        let r = reconstruct(
+            &problem,
+            &config,
+            &mut SliceSource::new(c, 1, 500),
+            &Control::new(),
+        )
+        .unwrap();
+        assert!(
+            r.images[0].data.iter().all(|v| v.is_finite() && *v >= 0.0),
+            "finite, non-negative"
+        );
         r
     }
 
@@ -603,13 +686,31 @@ mod tests {
             let r = auto(&spec, &buckets(&spec, &truth), json!({}));
             let a = &r.report.details["auto"][0];
             let psnr = metrics::psnr(&r.images[0].data, &truth);
-            let held = r.report.held_out.as_ref().unwrap().relative_residual.unwrap();
-            println!("{name}: model {} kept {} ({}) f {} held-out {held:.4} PSNR {psnr:.2} dB", a["model"], a["kept"], a["kept_meaning"], a["lambda_fraction"]);
+            let held = r
+                .report
+                .held_out
+                .as_ref()
+                .unwrap()
+                .relative_residual
+                .unwrap();
+            println!(
+                "{name}: model {} kept {} ({}) f {} held-out {held:.4} PSNR {psnr:.2} dB",
+                a["model"], a["kept"], a["kept_meaning"], a["lambda_fraction"]
+            );
             assert!(held < 0.5, "{name}: held-out {held}");
-            assert_eq!(a["resolution"]["supported"], json!([48, 48]), "{name}: 25 % of the rows support the full grid");
+            assert_eq!(
+                a["resolution"]["supported"],
+                json!([48, 48]),
+                "{name}: 25 % of the rows support the full grid"
+            );
             kept.push(a["kept_fraction"].as_f64().unwrap());
         }
-        assert!(kept[0] * 3.0 < kept[1], "sparse scene kept {} of the grid, the photo {}", kept[0], kept[1]);
+        assert!(
+            kept[0] * 3.0 < kept[1],
+            "sparse scene kept {} of the grid, the photo {}",
+            kept[0],
+            kept[1]
+        );
     }
 
     #[test]
@@ -621,15 +722,30 @@ mod tests {
         let c = buckets(&spec, &truth);
         let r = auto(&spec, &c, json!({}));
         let p_auto = metrics::psnr(&r.images[0].data, &truth);
-        let problem = Problem { spec: &spec, channels: 1, rows: 256 };
+        let problem = Problem {
+            spec: &spec,
+            channels: 1,
+            rows: 256,
+        };
         for (m, params) in [("tv", json!({})), ("cs", json!({}))] {
             let config = MethodConfig::parse(m, &params).unwrap();
-            let fixed = reconstruct(&problem, &config, &mut SliceSource::new(&c, 1, 500), &Control::new()).unwrap();
+            let fixed = reconstruct(
+                &problem,
+                &config,
+                &mut SliceSource::new(&c, 1, 500),
+                &Control::new(),
+            )
+            .unwrap();
             let p = metrics::psnr(&fixed.images[0].data, &truth);
             println!("auto {p_auto:.2} dB vs {m} {p:.2} dB");
-            assert!(p_auto > p - 0.3, "auto {p_auto:.2} dB vs {m} default {p:.2} dB");
+            assert!(
+                p_auto > p - 0.3,
+                "auto {p_auto:.2} dB vs {m} default {p:.2} dB"
+            );
         }
-        let candidates = r.report.details["auto"][0]["candidates"].as_array().unwrap();
+        let candidates = r.report.details["auto"][0]["candidates"]
+            .as_array()
+            .unwrap();
         assert_eq!(candidates.len(), 3);
         for c in candidates {
             // A path either ran until its held-out score stopped improving, or was dropped for
@@ -649,18 +765,32 @@ mod tests {
         let truth = scene("camera", 64);
         let r = auto(&spec, &buckets(&spec, &truth), json!({}));
         let a = &r.report.details["auto"][0];
-        println!("{}", serde_json::to_string_pretty(&a["resolution"]).unwrap());
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&a["resolution"]).unwrap()
+        );
         let supported = a["resolution"]["supported"][0].as_u64().unwrap();
-        println!("kept {} identifiable {} supported {supported}", a["kept"], a["identifiable_coefficients"]);
+        println!(
+            "kept {} identifiable {} supported {supported}",
+            a["kept"], a["identifiable_coefficients"]
+        );
         let warnings = a["warnings"].as_array().unwrap();
-        assert!(warnings.iter().any(|w| w.as_str().unwrap().contains("too few rows for 64x64")), "{warnings:?}");
+        assert!(
+            warnings
+                .iter()
+                .any(|w| w.as_str().unwrap().contains("too few rows for 64x64")),
+            "{warnings:?}"
+        );
         // The held-out check itself must say so: 120 rows predict held-out rows better on a
         // coarser grid. Each coarse fit starts from the fine winner's block means and converges
         // before the path's iteration cap; cold, the 32x32 fit at the winner's small weight ran
         // into the cap half-solved and lost to 64x64 (held-out 0.37).
         assert!(supported < 64, "supported {supported}");
         for c in a["resolution"]["checked"].as_array().unwrap() {
-            assert!(c["iterations"].as_u64().unwrap() < super::PATH_MAX_ITER as u64, "{c}");
+            assert!(
+                c["iterations"].as_u64().unwrap() < super::PATH_MAX_ITER as u64,
+                "{c}"
+            );
         }
     }
 
@@ -671,20 +801,41 @@ mod tests {
         for rows in [150, 400, 1000] {
             let spec = bernoulli(32, rows);
             let r = auto(&spec, &buckets(&spec, &truth), json!({"models": ["tv"]}));
-            let held = r.report.held_out.as_ref().unwrap().relative_residual.unwrap();
+            let held = r
+                .report
+                .held_out
+                .as_ref()
+                .unwrap()
+                .relative_residual
+                .unwrap();
             println!("{rows} rows: held-out {held:.4}");
-            assert!(held < last * 0.9, "{rows} rows: held-out {held} after {last}");
+            assert!(
+                held < last * 0.9,
+                "{rows} rows: held-out {held} after {last}"
+            );
             last = held;
         }
         // 12 rows: the default hold-out (25 % for small sessions) leaves fewer than 8.
         let spec = bernoulli(32, 12);
-        let problem = Problem { spec: &spec, channels: 1, rows: 12 };
+        let problem = Problem {
+            spec: &spec,
+            channels: 1,
+            rows: 12,
+        };
         let c = buckets(&spec, &truth);
-        let Err(e) = reconstruct(&problem, &MethodConfig::parse("auto", &json!({})).unwrap(), &mut SliceSource::new(&c, 1, 9), &Control::new()) else {
+        let Err(e) = reconstruct(
+            &problem,
+            &MethodConfig::parse("auto", &json!({})).unwrap(),
+            &mut SliceSource::new(&c, 1, 9),
+            &Control::new(),
+        ) else {
             panic!("auto ran on 12 rows")
         };
         let e = e.to_string();
-        assert!(e.contains("auto chooses its model by held-out error") && e.contains("at least 8"), "{e}");
+        assert!(
+            e.contains("auto chooses its model by held-out error") && e.contains("at least 8"),
+            "{e}"
+        );
     }
 
     #[test]
@@ -695,24 +846,54 @@ mod tests {
         let spec = PatternSpec::new(Family::Hadamard { ordering }, n, n, 2 * 256, 0).unwrap();
         let r = auto(&spec, &buckets(&spec, &truth), json!({}));
         let zf = {
-            let problem = Problem { spec: &spec, channels: 1, rows: 512 };
+            let problem = Problem {
+                spec: &spec,
+                channels: 1,
+                rows: 512,
+            };
             let c = buckets(&spec, &truth);
-            reconstruct(&problem, &MethodConfig::ZeroFilled, &mut SliceSource::new(&c, 1, 64), &Control::new()).unwrap()
+            reconstruct(
+                &problem,
+                &MethodConfig::ZeroFilled,
+                &mut SliceSource::new(&c, 1, 64),
+                &Control::new(),
+            )
+            .unwrap()
         };
-        let (pa, pz) = (metrics::psnr(&r.images[0].data, &truth), metrics::psnr(&zf.images[0].data, &truth));
-        println!("hadamard 25 %: auto {pa:.2} dB ({}), zero-filled {pz:.2} dB", r.report.details["auto"][0]["model"]);
+        let (pa, pz) = (
+            metrics::psnr(&r.images[0].data, &truth),
+            metrics::psnr(&zf.images[0].data, &truth),
+        );
+        println!(
+            "hadamard 25 %: auto {pa:.2} dB ({}), zero-filled {pz:.2} dB",
+            r.report.details["auto"][0]["model"]
+        );
         // After two points a candidate more than 2x behind the leader is dropped; here the l1
         // models are (db4 0.71 and DCT 1.00 against TV 0.35), and only those.
-        let candidates = r.report.details["auto"][0]["candidates"].as_array().unwrap();
+        let candidates = r.report.details["auto"][0]["candidates"]
+            .as_array()
+            .unwrap();
         let best2 = |c: &serde_json::Value| {
-            c["path"].as_array().unwrap()[..2].iter().filter_map(|p| p["held_out"].as_f64()).fold(f64::INFINITY, f64::min)
+            c["path"].as_array().unwrap()[..2]
+                .iter()
+                .filter_map(|p| p["held_out"].as_f64())
+                .fold(f64::INFINITY, f64::min)
         };
         let leader = candidates.iter().map(best2).fold(f64::INFINITY, f64::min);
         let mut early = 0;
         for c in candidates {
-            println!("  {} eliminated {} after two points {:.3} (leader {leader:.3})", c["model"], c["eliminated"], best2(c));
+            println!(
+                "  {} eliminated {} after two points {:.3} (leader {leader:.3})",
+                c["model"],
+                c["eliminated"],
+                best2(c)
+            );
             let dropped_early = c["path"].as_array().unwrap().len() == 2;
-            assert_eq!(dropped_early, best2(c) > super::ELIMINATE_EARLY * leader, "{c}");
+            assert_eq!(
+                dropped_early,
+                best2(c) > super::ELIMINATE_EARLY * leader,
+                "{c}"
+            );
             if dropped_early {
                 assert_eq!(c["eliminated"], json!(true));
                 early += 1;
@@ -726,7 +907,16 @@ mod tests {
     fn a_complete_orthogonal_set_needs_no_model() {
         let n = 16u32;
         let truth = scene("camera", n);
-        let spec = PatternSpec::new(Family::Hadamard { ordering: HadamardOrdering::Sequency }, n, n, 512, 0).unwrap();
+        let spec = PatternSpec::new(
+            Family::Hadamard {
+                ordering: HadamardOrdering::Sequency,
+            },
+            n,
+            n,
+            512,
+            0,
+        )
+        .unwrap();
         let c = buckets(&spec, &truth);
         let r = auto(&spec, &c, json!({}));
         assert_eq!(r.report.method, "auto");
@@ -736,5 +926,3 @@ mod tests {
         assert!(err < 1e-5, "{err}");
     }
 }
-
-

@@ -46,7 +46,11 @@ enum PlannedOp {
 }
 
 impl<'a> Planned<'a> {
-    pub fn load(problem: &Problem<'a>, source: &mut dyn BucketSource, control: &Control) -> Result<Self, ReconError> {
+    pub fn load(
+        problem: &Problem<'a>,
+        source: &mut dyn BucketSource,
+        control: &Control,
+    ) -> Result<Self, ReconError> {
         let spec = problem.spec;
         let channels = problem.channels;
         let mut buckets = Vec::with_capacity(problem.rows as usize * channels);
@@ -61,25 +65,44 @@ impl<'a> Planned<'a> {
                 // Only whole P+/P- pairs are used.
                 let frames = problem.rows - problem.rows % 2;
                 if frames == 0 {
-                    return Err(ReconError::Unsolvable("Hadamard needs at least one P+/P- pair of frames; the session has 1 frame".into()));
+                    return Err(ReconError::Unsolvable(
+                        "Hadamard needs at least one P+/P- pair of frames; the session has 1 frame"
+                            .into(),
+                    ));
                 }
                 let op = HadamardOperator::from_spec(spec, frames).map_err(unsolvable)?;
                 let used = &buckets[..frames as usize * channels];
-                let data = (0..channels).map(|ch| op.split_pairs_channel(used, channels, ch).data).collect();
-                details.insert("data".into(), json!("split-pair differences (y+ - y-)/sqrt(k)"));
+                let data = (0..channels)
+                    .map(|ch| op.split_pairs_channel(used, channels, ch).data)
+                    .collect();
+                details.insert(
+                    "data".into(),
+                    json!("split-pair differences (y+ - y-)/sqrt(k)"),
+                );
                 (PlannedOp::Hadamard(op), data)
             }
             family => {
-                let data = (0..channels).map(|ch| buckets.iter().skip(ch).step_by(channels).copied().collect()).collect();
+                let data = (0..channels)
+                    .map(|ch| buckets.iter().skip(ch).step_by(channels).copied().collect())
+                    .collect();
                 let op = if family.is_binary() {
-                    PlannedOp::Bernoulli(BernoulliOperator::from_spec(spec, problem.rows).map_err(unsolvable)?)
+                    PlannedOp::Bernoulli(
+                        BernoulliOperator::from_spec(spec, problem.rows).map_err(unsolvable)?,
+                    )
                 } else {
-                    PlannedOp::Other(ops::try_measurement_operator(spec, problem.rows).map_err(unsolvable)?)
+                    PlannedOp::Other(
+                        ops::try_measurement_operator(spec, problem.rows).map_err(unsolvable)?,
+                    )
                 };
                 (op, data)
             }
         };
-        Ok(Planned { spec, op, data, details })
+        Ok(Planned {
+            spec,
+            op,
+            data,
+            details,
+        })
     }
 
     pub fn op(&self) -> &dyn LinearOperator {
@@ -127,7 +150,8 @@ impl<'a> Planned<'a> {
             PlannedOp::Bernoulli(op) => Box::new(op.select_rows(rows)),
             PlannedOp::Hadamard(op) => Box::new(op.select_rows(rows)),
             PlannedOp::Other(op) => {
-                let again = ops::try_measurement_operator(self.spec, op.rows() as u64).map_err(|e| ReconError::Unsolvable(e.to_string()))?;
+                let again = ops::try_measurement_operator(self.spec, op.rows() as u64)
+                    .map_err(|e| ReconError::Unsolvable(e.to_string()))?;
                 Box::new(RowSubset::new(again, rows.to_vec()))
             }
         })
@@ -168,7 +192,11 @@ fn centre(v: &mut [f64]) {
 }
 
 /// The operator and data a fit runs on: `(A, b)`, or `(P A, P b)` when the offset is fitted.
-pub(crate) fn fitting<'a>(op: &'a dyn LinearOperator, b: &[f64], offset: bool) -> (Box<dyn LinearOperator + 'a>, Vec<f64>) {
+pub(crate) fn fitting<'a>(
+    op: &'a dyn LinearOperator,
+    b: &[f64],
+    offset: bool,
+) -> (Box<dyn LinearOperator + 'a>, Vec<f64>) {
     if offset {
         let mut c = b.to_vec();
         centre(&mut c);
@@ -189,7 +217,10 @@ impl Offset {
         let n = op.rows().max(1) as f64;
         let mut mu = vec![0.0; op.cols()];
         op.adjoint(&vec![1.0 / n; op.rows()], &mut mu);
-        Offset { mean_b: b.iter().sum::<f64>() / n, mu }
+        Offset {
+            mean_b: b.iter().sum::<f64>() / n,
+            mu,
+        }
     }
     pub fn at(&self, t: &[f64]) -> f64 {
         self.mean_b - super::linop::dot(&self.mu, t)
@@ -240,14 +271,22 @@ pub(crate) fn fit_model(
         Model::Tv => None,
     };
     let penalty = match model {
-        Model::L1(_) => Penalty::L1 { psi: psi.as_deref() },
-        Model::Tv => Penalty::Tv { grid: Grid::new(w, h) },
+        Model::L1(_) => Penalty::L1 {
+            psi: psi.as_deref(),
+        },
+        Model::Tv => Penalty::Tv {
+            grid: Grid::new(w, h),
+        },
     };
     let opts = &model_options(model, opts);
     match (noise, penalty) {
-        (Noise::Poisson { photon }, penalty) => solve::poisson_irls(op, penalty, b, photon, POISSON_ROUNDS, opts, control),
+        (Noise::Poisson { photon }, penalty) => {
+            solve::poisson_irls(op, penalty, b, photon, POISSON_ROUNDS, opts, control)
+        }
         (Noise::Gaussian, Penalty::L1 { psi }) => solve::fista(op, psi, b, opts, control),
-        (Noise::Gaussian, Penalty::Tv { grid } | Penalty::TvPrimalDual { grid }) => solve::tv_fista(op, grid, b, opts, control),
+        (Noise::Gaussian, Penalty::Tv { grid } | Penalty::TvPrimalDual { grid }) => {
+            solve::tv_fista(op, grid, b, opts, control)
+        }
     }
 }
 
@@ -272,16 +311,37 @@ fn fit_fixed(
     control: &Control,
 ) -> Result<Solution, ReconError> {
     match config {
-        MethodConfig::Cs { transform, lambda, max_iter, fit } => {
-            let o = SolveOptions { lambda: Lambda::Relative(*lambda), max_iter: *max_iter, ..opts };
+        MethodConfig::Cs {
+            transform,
+            lambda,
+            max_iter,
+            fit,
+        } => {
+            let o = SolveOptions {
+                lambda: Lambda::Relative(*lambda),
+                max_iter: *max_iter,
+                ..opts
+            };
             fit_model(Model::L1(*transform), size, op, b, fit.noise, &o, control)
         }
-        MethodConfig::Tv { lambda, max_iter, fit } => {
-            let o = SolveOptions { lambda: Lambda::Relative(*lambda), max_iter: *max_iter, ..opts };
+        MethodConfig::Tv {
+            lambda,
+            max_iter,
+            fit,
+        } => {
+            let o = SolveOptions {
+                lambda: Lambda::Relative(*lambda),
+                max_iter: *max_iter,
+                ..opts
+            };
             fit_model(Model::Tv, size, op, b, fit.noise, &o, control)
         }
         MethodConfig::Lsq { mu, max_iter, .. } => {
-            let o = SolveOptions { max_iter: *max_iter, nonnegative: false, ..opts };
+            let o = SolveOptions {
+                max_iter: *max_iter,
+                nonnegative: false,
+                ..opts
+            };
             solve::cgls(op, b, *mu, &o, control)
         }
         other => unreachable!("fit_fixed called for {}", other.name()),
@@ -300,7 +360,9 @@ pub fn run(
     let fit: Fit = config.fit().expect("an iterative method");
     let planned = Planned::load(problem, source, control)?;
     let offset = fit.fits_offset(spec.family());
-    let fraction = fit.holdout.unwrap_or_else(|| holdout::default_fraction(planned.rows()));
+    let fraction = fit
+        .holdout
+        .unwrap_or_else(|| holdout::default_fraction(planned.rows()));
     let split = holdout::split(planned.rows(), fraction);
     if let (MethodConfig::Auto { .. }, Err(why)) = (config, &split) {
         return Err(ReconError::Unsolvable(format!(
@@ -317,10 +379,21 @@ pub fn run(
     let mut iterations = 0u64;
     for ch in 0..channels {
         let b = &planned.data[ch];
-        let span = (ch as f64 / channels as f64, (ch + 1) as f64 / channels as f64);
+        let span = (
+            ch as f64 / channels as f64,
+            (ch + 1) as f64 / channels as f64,
+        );
         let mid = span.0 + 0.6 * (span.1 - span.0);
         let (t, report) = match (config, &split, &parts) {
-            (MethodConfig::Auto { models, max_iter, fit }, Ok(split), Some((train, test))) => {
+            (
+                MethodConfig::Auto {
+                    models,
+                    max_iter,
+                    fit,
+                },
+                Ok(split),
+                Some((train, test)),
+            ) => {
                 let job = super::auto::Channel {
                     size,
                     full: planned.op(),
@@ -341,13 +414,25 @@ pub fn run(
             (_, Ok(split), Some((train, test))) => {
                 let b_train = gather(b, &split.train);
                 let (op_fit, b_fit) = fitting(train.as_ref(), &b_train, offset);
-                let warm_start = Planned::cold_start(op_fit.as_ref(), &b_fit, planned.is_hadamard());
-                let opts = SolveOptions { progress: (span.0, mid), warm_start, ..SolveOptions::default() };
+                let warm_start =
+                    Planned::cold_start(op_fit.as_ref(), &b_fit, planned.is_hadamard());
+                let opts = SolveOptions {
+                    progress: (span.0, mid),
+                    warm_start,
+                    ..SolveOptions::default()
+                };
                 let first = fit_fixed(config, size, op_fit.as_ref(), &b_fit, opts, control)?;
-                let scorer = Scorer { test: test.as_ref(), offset: offset.then(|| Offset::new(train.as_ref(), &b_train)) };
+                let scorer = Scorer {
+                    test: test.as_ref(),
+                    offset: offset.then(|| Offset::new(train.as_ref(), &b_train)),
+                };
                 score.add_channel(ch, &gather(b, &split.test), &scorer.predict(&first.t));
                 let (op_fit, b_fit) = fitting(planned.op(), b, offset);
-                let opts = SolveOptions { progress: (mid, span.1), warm_start: Some(first.t), ..SolveOptions::default() };
+                let opts = SolveOptions {
+                    progress: (mid, span.1),
+                    warm_start: Some(first.t),
+                    ..SolveOptions::default()
+                };
                 let sol = fit_fixed(config, size, op_fit.as_ref(), &b_fit, opts, control)?;
                 iterations += (first.report.iterations + sol.report.iterations) as u64;
                 let mut report = json!({"held_out_fit": first.report, "fit": sol.report});
@@ -358,8 +443,13 @@ pub fn run(
             }
             _ => {
                 let (op_fit, b_fit) = fitting(planned.op(), b, offset);
-                let warm_start = Planned::cold_start(op_fit.as_ref(), &b_fit, planned.is_hadamard());
-                let opts = SolveOptions { progress: span, warm_start, ..SolveOptions::default() };
+                let warm_start =
+                    Planned::cold_start(op_fit.as_ref(), &b_fit, planned.is_hadamard());
+                let opts = SolveOptions {
+                    progress: span,
+                    warm_start,
+                    ..SolveOptions::default()
+                };
                 let sol = fit_fixed(config, size, op_fit.as_ref(), &b_fit, opts, control)?;
                 iterations += sol.report.iterations as u64;
                 let mut report = json!({"fit": sol.report});
@@ -370,19 +460,33 @@ pub fn run(
             }
         };
         if let Some(i) = t.iter().position(|v| !v.is_finite()) {
-            return Err(ReconError::Unsolvable(format!("the solver produced a non-finite value at pixel {i}")));
+            return Err(ReconError::Unsolvable(format!(
+                "the solver produced a non-finite value at pixel {i}"
+            )));
         }
-        images.push(DualImage { width: spec.width(), height: spec.height(), data: t.iter().map(|&v| v as f32).collect() });
+        images.push(DualImage {
+            width: spec.width(),
+            height: spec.height(),
+            data: t.iter().map(|&v| v as f32).collect(),
+        });
         channel_reports.push(report);
     }
     control.set_progress(1.0);
     let mut details = planned.details.clone();
-    let key = if matches!(config, MethodConfig::Auto { .. }) { "auto" } else { "solver" };
+    let key = if matches!(config, MethodConfig::Auto { .. }) {
+        "auto"
+    } else {
+        "solver"
+    };
     details.insert(key.into(), Value::Array(channel_reports));
     details.insert("operator_rows".into(), json!(planned.rows()));
     details.insert(
         "offset".into(),
-        json!(if offset { "fitted: buckets = A t + d, d unknown (reported per channel)" } else { "none: buckets = A t" }),
+        json!(if offset {
+            "fitted: buckets = A t + d, d unknown (reported per channel)"
+        } else {
+            "none: buckets = A t"
+        }),
     );
     let (held_out, held_out_unavailable) = match &split {
         Ok(s) => (Some(score.finish(s.fraction)), None),
@@ -431,17 +535,34 @@ mod tests {
         (0..spec.count())
             .map(|i| {
                 g.fill_values(i, &mut p);
-                p.iter().zip(t).map(|(a, b)| *a as f64 * *b as f64).sum::<f64>() + offset
+                p.iter()
+                    .zip(t)
+                    .map(|(a, b)| *a as f64 * *b as f64)
+                    .sum::<f64>()
+                    + offset
             })
             .collect()
     }
 
     fn solve(spec: &PatternSpec, c: &[f64], method: &str, params: Value) -> Vec<f32> {
         let config = MethodConfig::parse(method, &params).unwrap();
-        let problem = Problem { spec, channels: 1, rows: spec.count() };
-        let r = reconstruct(&problem, &config, &mut SliceSource::new(c, 1, 1000), &Control::new()).unwrap();
+        let problem = Problem {
+            spec,
+            channels: 1,
+            rows: spec.count(),
+        };
+        let r = reconstruct(
+            &problem,
+            &config,
+            &mut SliceSource::new(c, 1, 1000),
+            &Control::new(),
+        )
+        .unwrap();
         let image = r.images.into_iter().next().unwrap().data;
-        assert!(image.iter().all(|v| v.is_finite()), "{method}: non-finite pixel");
+        assert!(
+            image.iter().all(|v| v.is_finite()),
+            "{method}: non-finite pixel"
+        );
         image
     }
 
@@ -449,13 +570,20 @@ mod tests {
     fn compressive_methods_beat_least_squares_on_30_percent_bernoulli() {
         let (w, h) = (32, 32);
         let truth = blocks(w, h);
-        let spec = PatternSpec::new(Family::Bernoulli { fill: 0.5 }, w as u32, h as u32, 307, 5).unwrap();
+        let spec =
+            PatternSpec::new(Family::Bernoulli { fill: 0.5 }, w as u32, h as u32, 307, 5).unwrap();
         let c = buckets(&spec, &truth, 0.0);
         let lsq = metrics::psnr(&solve(&spec, &c, "lsq", json!({})), &truth);
         let tv_img = solve(&spec, &c, "tv", json!({}));
         let cs_img = solve(&spec, &c, "cs", json!({"transform": "haar"}));
-        assert!(tv_img.iter().chain(&cs_img).all(|&v| v >= 0.0), "transport is never negative");
-        let (tv, cs) = (metrics::psnr(&tv_img, &truth), metrics::psnr(&cs_img, &truth));
+        assert!(
+            tv_img.iter().chain(&cs_img).all(|&v| v >= 0.0),
+            "transport is never negative"
+        );
+        let (tv, cs) = (
+            metrics::psnr(&tv_img, &truth),
+            metrics::psnr(&cs_img, &truth),
+        );
         // Noise-free, piecewise-constant scene: TV is near exact, Haar-l1 far above the min-norm
         // least-squares image (which spreads the missing 70 % of the information as noise).
         assert!(tv > 30.0, "tv {tv:.1} dB");
@@ -467,13 +595,20 @@ mod tests {
         let (w, h) = (32, 32);
         let truth = blocks(w, h);
         let ordering = HadamardOrdering::RussianDoll;
-        let spec = PatternSpec::new(Family::Hadamard { ordering }, w as u32, h as u32, 512, 0).unwrap();
+        let spec =
+            PatternSpec::new(Family::Hadamard { ordering }, w as u32, h as u32, 512, 0).unwrap();
         let clean = solve(&spec, &buckets(&spec, &truth, 0.0), "tv", json!({}));
         let dark = solve(&spec, &buckets(&spec, &truth, 3.0), "tv", json!({}));
         let diff = metrics::relative_error(&dark, &clean);
-        assert!(diff < 1e-6, "a constant dark level changed the image by {diff:e}");
+        assert!(
+            diff < 1e-6,
+            "a constant dark level changed the image by {diff:e}"
+        );
         let psnr = metrics::psnr(&clean, &truth);
-        assert!(psnr > 25.0, "tv on 25 % Russian-doll Hadamard: {psnr:.1} dB");
+        assert!(
+            psnr > 25.0,
+            "tv on 25 % Russian-doll Hadamard: {psnr:.1} dB"
+        );
     }
 
     #[test]
@@ -499,7 +634,8 @@ mod tests {
         // cancelled with it (and reported).
         let (w, h) = (32, 32);
         let truth = blocks(w, h);
-        let spec = PatternSpec::new(Family::Bernoulli { fill: 0.5 }, w as u32, h as u32, 400, 9).unwrap();
+        let spec =
+            PatternSpec::new(Family::Bernoulli { fill: 0.5 }, w as u32, h as u32, 400, 9).unwrap();
         let clean = buckets(&spec, &truth, 0.0);
         let dark = 2.0 * clean.iter().sum::<f64>() / clean.len() as f64;
         let dim = buckets(&spec, &truth, dark);
@@ -507,22 +643,47 @@ mod tests {
             let reference = metrics::psnr(&solve(&spec, &clean, method, json!({})), &truth);
             let ignored = metrics::psnr(&solve(&spec, &dim, method, json!({})), &truth);
             let config = MethodConfig::parse(method, &json!({"offset": "fit"})).unwrap();
-            let problem = Problem { spec: &spec, channels: 1, rows: 400 };
-            let r = reconstruct(&problem, &config, &mut SliceSource::new(&dim, 1, 1000), &Control::new()).unwrap();
+            let problem = Problem {
+                spec: &spec,
+                channels: 1,
+                rows: 400,
+            };
+            let r = reconstruct(
+                &problem,
+                &config,
+                &mut SliceSource::new(&dim, 1, 1000),
+                &Control::new(),
+            )
+            .unwrap();
             let fitted = metrics::psnr(&r.images[0].data, &truth);
             let key = if method == "auto" { "auto" } else { "solver" };
             let d = r.report.details[key][0]["offset"].as_f64().unwrap();
-            println!("{method}: no offset {reference:.1} dB; dark {dark:.1} ignored {ignored:.1} dB, fitted {fitted:.1} dB (d = {d:.2})");
+            println!(
+                "{method}: no offset {reference:.1} dB; dark {dark:.1} ignored {ignored:.1} dB, fitted {fitted:.1} dB (d = {d:.2})"
+            );
             // Measured: tv 59.5 dB clean, 2.3 dB with the dark level ignored, 59.9 dB with it
             // fitted; auto 81.3 / 4.2 / 75.6 dB; the fitted d within 0.03 % of the true one.
-            assert!(ignored < reference - 15.0, "{method}: ignoring the dark level should hurt");
-            assert!(fitted > reference - 6.0, "{method}: {fitted:.1} dB vs {reference:.1} dB");
-            assert!((d - dark).abs() < 0.01 * dark, "{method}: offset {d} vs {dark}");
+            assert!(
+                ignored < reference - 15.0,
+                "{method}: ignoring the dark level should hurt"
+            );
+            assert!(
+                fitted > reference - 6.0,
+                "{method}: {fitted:.1} dB vs {reference:.1} dB"
+            );
+            assert!(
+                (d - dark).abs() < 0.01 * dark,
+                "{method}: offset {d} vs {dark}"
+            );
         }
         // Where the offset cannot be fitted, the request says why.
         let raster = PatternSpec::new(Family::Raster { block: 1 }, 4, 4, 16, 0).unwrap();
         let e = reconstruct(
-            &Problem { spec: &raster, channels: 1, rows: 16 },
+            &Problem {
+                spec: &raster,
+                channels: 1,
+                rows: 16,
+            },
             &MethodConfig::parse("tv", &json!({"offset": "fit"})).unwrap(),
             &mut SliceSource::new(&[1.0; 16], 1, 16),
             &Control::new(),

@@ -176,7 +176,10 @@ fn run_inner(
     let plan = Plan::new(problem, kind, tuning);
     let m = plan.m;
     let mut workers: Vec<Worker> = (0..plan.workers).map(|_| Worker::new(&plan)).collect();
-    let mut shift = Shift { values: vec![0.0; m], fixed: false };
+    let mut shift = Shift {
+        values: vec![0.0; m],
+        fixed: false,
+    };
     let mut record = held_out.then(|| Recorded::new(&plan, problem.rows));
 
     let mut pending: Vec<f64> = Vec::new();
@@ -268,8 +271,12 @@ impl Plan {
         let m = problem.channels;
         let pairs = (m + 1).div_ceil(2);
 
-        let per_worker =
-            pairs * padded * 16 + if binary { BATCH * stride * 8 } else { GREY_BATCH * k * 4 };
+        let per_worker = pairs * padded * 16
+            + if binary {
+                BATCH * stride * 8
+            } else {
+                GREY_BATCH * k * 4
+            };
         let threads = rayon::current_num_threads().max(1);
         let workers = tuning
             .workers
@@ -305,7 +312,9 @@ impl Plan {
     fn pattern_sum(&self, row: u64) -> f64 {
         if self.binary {
             let mut words = vec![0u64; self.nw];
-            self.generator.fill_bits(row, &mut words).expect("binary family");
+            self.generator
+                .fill_bits(row, &mut words)
+                .expect("binary family");
             count_ones(&words, self.popcnt) as f64
         } else {
             let mut values = vec![0f32; self.k];
@@ -383,11 +392,20 @@ fn dispatch(
     if parts <= 1 {
         workers[0].process(plan, shift, rows, first, control);
     } else {
-        workers[..parts].par_iter_mut().enumerate().for_each(|(w, worker)| {
-            let lo = w * per;
-            let hi = (lo + per).min(n);
-            worker.process(plan, shift, &rows[lo * m..hi * m], first + lo as u64, control);
-        });
+        workers[..parts]
+            .par_iter_mut()
+            .enumerate()
+            .for_each(|(w, worker)| {
+                let lo = w * per;
+                let hi = (lo + per).min(n);
+                worker.process(
+                    plan,
+                    shift,
+                    &rows[lo * m..hi * m],
+                    first + lo as u64,
+                    control,
+                );
+            });
     }
     if control.is_cancelled() {
         return Err(ReconError::Cancelled);
@@ -418,10 +436,22 @@ impl Worker {
     fn new(plan: &Plan) -> Worker {
         Worker {
             acc: vec![[0.0; 2]; plan.pairs * plan.padded],
-            bits: if plan.binary { vec![0; BATCH * plan.stride] } else { Vec::new() },
-            grey: if plan.binary { Vec::new() } else { vec![0.0; GREY_BATCH * plan.k] },
+            bits: if plan.binary {
+                vec![0; BATCH * plan.stride]
+            } else {
+                Vec::new()
+            },
+            grey: if plan.binary {
+                Vec::new()
+            } else {
+                vec![0.0; GREY_BATCH * plan.k]
+            },
             weights: vec![0.0; 2 * plan.pairs * BATCH],
-            luts: if plan.binary { vec![[[0.0; 2]; 256]; plan.pairs * 8] } else { Vec::new() },
+            luts: if plan.binary {
+                vec![[[0.0; 2]; 256]; plan.pairs * 8]
+            } else {
+                Vec::new()
+            },
             rows: 0,
             sum_r: 0.0,
             sum_shifted: vec![0.0; plan.m],
@@ -477,7 +507,10 @@ impl Worker {
         for (a, b) in self.sum_raw.iter_mut().zip(&other.sum_raw) {
             *a += b;
         }
-        self.acc.par_iter_mut().zip(other.acc.par_iter()).for_each(|(a, b)| *a = add2(*a, *b));
+        self.acc
+            .par_iter_mut()
+            .zip(other.acc.par_iter())
+            .for_each(|(a, b)| *a = add2(*a, *b));
     }
 
     /// Replaces these sums (a subset of the rows) by `total`'s minus these: the other rows' sums.
@@ -517,7 +550,9 @@ impl Worker {
             pair.iter().map(move |v| v[c % 2])
         };
         // Column 0: sum_i p_i(x) (GI, NGI) or sum_i R_i p_i(x) (DGI).
-        column(1 + ch).zip(column(0)).map(move |(a, b)| (a - beta * b) / n)
+        column(1 + ch)
+            .zip(column(0))
+            .map(move |(a, b)| (a - beta * b) / n)
     }
 
     /// Weights of pattern j (bucket values `c`, pattern sum `r`) in every column; updates the
@@ -560,7 +595,9 @@ impl Worker {
         for j in 0..BATCH {
             let words = &mut self.bits[j * stride..j * stride + nw];
             if j < n {
-                plan.generator.fill_bits(row(j), words).expect("binary family");
+                plan.generator
+                    .fill_bits(row(j), words)
+                    .expect("binary family");
                 let r = count_ones(words, plan.popcnt) as f64;
                 self.set_weights(plan, shift, j, &batch[j * m..(j + 1) * m], r);
             } else {
@@ -571,10 +608,21 @@ impl Worker {
             let w0 = &self.weights[2 * p * BATCH..(2 * p + 1) * BATCH];
             let w1 = &self.weights[(2 * p + 1) * BATCH..(2 * p + 2) * BATCH];
             for g in 0..8 {
-                build_lut(&w0[g * 8..g * 8 + 8], &w1[g * 8..g * 8 + 8], &mut self.luts[p * 8 + g]);
+                build_lut(
+                    &w0[g * 8..g * 8 + 8],
+                    &w1[g * 8..g * 8 + 8],
+                    &mut self.luts[p * 8 + g],
+                );
             }
         }
-        bit_kernel(&self.bits, stride, nw, &self.luts, &mut self.acc, plan.padded);
+        bit_kernel(
+            &self.bits,
+            stride,
+            nw,
+            &self.luts,
+            &mut self.acc,
+            plan.padded,
+        );
     }
 
     /// One batch of up to [`GREY_BATCH`] rows; row j of the batch is pattern `row(j)`.
@@ -602,8 +650,10 @@ impl Worker {
                 let local = &mut local[..len];
                 local.fill([0.0; 2]);
                 for j in 0..n {
-                    let w =
-                        [self.weights[2 * p * BATCH + j], self.weights[(2 * p + 1) * BATCH + j]];
+                    let w = [
+                        self.weights[2 * p * BATCH + j],
+                        self.weights[(2 * p + 1) * BATCH + j],
+                    ];
                     let values = &self.grey[j * k + start..j * k + start + len];
                     for (a, &v) in local.iter_mut().zip(values) {
                         a[0] += w[0] * v as f64;
@@ -851,7 +901,11 @@ impl Calibration {
         } else {
             (0.0, 0.0)
         };
-        Calibration { gain, pattern_sum, offset: mc - gain * mu - pattern_sum * mr }
+        Calibration {
+            gain,
+            pattern_sum,
+            offset: mc - gain * mu - pattern_sum * mr,
+        }
     }
 
     fn predict(&self, u: f64, r: f64) -> f64 {
@@ -898,10 +952,18 @@ fn held_out_estimate(
     let granule = if plan.binary { BATCH } else { GREY_BATCH };
     let per = held.div_ceil(pool.len()).div_ceil(granule) * granule;
     let parts = held.div_ceil(per);
-    pool[..parts].par_iter_mut().enumerate().for_each(|(w, worker)| {
-        let (lo, hi) = (w * per, ((w + 1) * per).min(held));
-        worker.process_rows(plan, shift, &record.held_values[lo * m..hi * m], &record.held[lo..hi]);
-    });
+    pool[..parts]
+        .par_iter_mut()
+        .enumerate()
+        .for_each(|(w, worker)| {
+            let (lo, hi) = (w * per, ((w + 1) * per).min(held));
+            worker.process_rows(
+                plan,
+                shift,
+                &record.held_values[lo * m..hi * m],
+                &record.held[lo..hi],
+            );
+        });
     pool.truncate(parts);
     let mut train = pool.swap_remove(0);
     for w in &pool {
@@ -913,7 +975,12 @@ fn held_out_estimate(
     drop(train);
 
     // Features R and p . t_tr of the calibration rows, then the held-out rows.
-    let rows: Vec<u64> = record.calibration.iter().chain(&record.held).copied().collect();
+    let rows: Vec<u64> = record
+        .calibration
+        .iter()
+        .chain(&record.held)
+        .copied()
+        .collect();
     let features = row_features(plan, &training, &rows);
     let (fc, fh) = features.split_at(calibration * (m + 1));
     let feature = |f: &[f64], i: usize, ch: usize| f[i * (m + 1) + 1 + ch];
@@ -922,18 +989,27 @@ fn held_out_estimate(
     let fits: Vec<Calibration> = (0..m)
         .map(|ch| {
             let u: Vec<f64> = (0..calibration).map(|i| feature(fc, i, ch)).collect();
-            let c: Vec<f64> =
-                (0..calibration).map(|i| record.calibration_values[i * m + ch]).collect();
+            let c: Vec<f64> = (0..calibration)
+                .map(|i| record.calibration_values[i * m + ch])
+                .collect();
             Calibration::fit(&u, &r_c, &c)
         })
         .collect();
     for i in 0..held {
         let r = fh[i * (m + 1)];
         for (ch, fit) in fits.iter().enumerate() {
-            score.add(ch, record.held_values[i * m + ch], fit.predict(feature(fh, i, ch), r));
+            score.add(
+                ch,
+                record.held_values[i * m + ch],
+                fit.predict(feature(fh, i, ch), r),
+            );
         }
     }
-    Ok(Estimate { held_out: score.finish(record.fraction), calibration: fits, training })
+    Ok(Estimate {
+        held_out: score.finish(record.fraction),
+        calibration: fits,
+        training,
+    })
 }
 
 /// Rows per task in [`row_features`]: the binary path streams every nibble table once per this
@@ -945,15 +1021,22 @@ const FEATURE_ROWS: usize = 32;
 fn row_features(plan: &Plan, t: &[Vec<f64>], rows: &[u64]) -> Vec<f64> {
     let (m, nw, k) = (plan.m, plan.nw, plan.k);
     // Binary: per channel, a table of the 16 subset sums of t over each nibble of pixels.
-    let tables: Vec<Vec<[f64; 16]>> =
-        if plan.binary { t.iter().map(|t| nibble_table(t, nw)).collect() } else { Vec::new() };
+    let tables: Vec<Vec<[f64; 16]>> = if plan.binary {
+        t.iter().map(|t| nibble_table(t, nw)).collect()
+    } else {
+        Vec::new()
+    };
     let mut out = vec![0.0; rows.len() * (m + 1)];
-    let chunks = out.par_chunks_mut((m + 1) * FEATURE_ROWS).zip(rows.par_chunks(FEATURE_ROWS));
+    let chunks = out
+        .par_chunks_mut((m + 1) * FEATURE_ROWS)
+        .zip(rows.par_chunks(FEATURE_ROWS));
     chunks.for_each(|(out, rows)| {
         if plan.binary {
             let mut bits = vec![0u64; rows.len() * nw];
-            for ((words, f), &row) in
-                bits.chunks_exact_mut(nw).zip(out.chunks_exact_mut(m + 1)).zip(rows)
+            for ((words, f), &row) in bits
+                .chunks_exact_mut(nw)
+                .zip(out.chunks_exact_mut(m + 1))
+                .zip(rows)
             {
                 plan.generator.fill_bits(row, words).expect("binary family");
                 f[0] = count_ones(words, plan.popcnt) as f64;
@@ -1017,8 +1100,12 @@ fn dot_bits(bits: &[u64], nw: usize, table: &[[f64; 16]], dots: &mut [f64]) {
 fn dot_values(values: &[f32], t: &[f64]) -> f64 {
     let mut lanes = [0f64; 8];
     let (chunks, tail) = (values.chunks_exact(8), t.chunks_exact(8));
-    let rest: f64 =
-        chunks.remainder().iter().zip(tail.remainder()).map(|(&v, &t)| v as f64 * t).sum();
+    let rest: f64 = chunks
+        .remainder()
+        .iter()
+        .zip(tail.remainder())
+        .map(|(&v, &t)| v as f64 * t)
+        .sum();
     for (c, t) in chunks.zip(tail) {
         for ((l, &v), &t) in lanes.iter_mut().zip(c).zip(t) {
             *l += v as f64 * t;
@@ -1091,7 +1178,10 @@ fn finish(
                     })
                     .collect();
                 details.insert("held_out_calibration".into(), Value::Array(calibration));
-                details.insert("held_out_calibration_rows".into(), json!(record.calibration.len()));
+                details.insert(
+                    "held_out_calibration_rows".into(),
+                    json!(record.calibration.len()),
+                );
                 held_out = Some(estimate.held_out);
                 training = Some(estimate.training);
             }
@@ -1138,7 +1228,11 @@ mod tests {
         tuning: Tuning,
         block_rows: usize,
     ) -> Reconstruction {
-        let problem = Problem { spec, channels, rows };
+        let problem = Problem {
+            spec,
+            channels,
+            rows,
+        };
         let mut src = SliceSource::new(&buckets[..rows as usize * channels], channels, block_rows);
         run_tuned(&problem, config, &mut src, &Control::new(), tuning).unwrap()
     }
@@ -1261,7 +1355,9 @@ mod tests {
             PatternSpec::new(Family::Raster { block: 3 }, 10, 7, 1000, 0).unwrap(),
             // Hadamard: frame 1 (P- of natural row 0) is all-off, exercising R = 0 in NGI.
             PatternSpec::new(
-                Family::Hadamard { ordering: HadamardOrdering::Natural },
+                Family::Hadamard {
+                    ordering: HadamardOrdering::Natural,
+                },
                 16,
                 8,
                 256,
@@ -1283,7 +1379,10 @@ mod tests {
             for (config, kind) in &CONFIGS {
                 let want = dense_reference(spec, *kind, &buckets, 2, n);
                 for (workers, dispatch, block) in [(1, 1000, 1000), (3, 70, 13), (2, 64, 1)] {
-                    let tuning = Tuning { workers: Some(workers), dispatch_rows: Some(dispatch) };
+                    let tuning = Tuning {
+                        workers: Some(workers),
+                        dispatch_rows: Some(dispatch),
+                    };
                     let got = solve(spec, config, &buckets, 2, n, tuning, block);
                     for ch in 0..2 {
                         let g = image(&got, ch);
@@ -1330,12 +1429,28 @@ mod tests {
         let buckets = simulate(&spec, std::slice::from_ref(&t), n_max, |_| 1.0, 0.0);
         let mut errors = Vec::new();
         for n in [4096u64, 16384, 65536] {
-            let r = solve(&spec, &MethodConfig::Gi, &buckets, 1, n, Tuning::default(), 5000);
+            let r = solve(
+                &spec,
+                &MethodConfig::Gi,
+                &buckets,
+                1,
+                n,
+                Tuning::default(),
+                5000,
+            );
             let g = image(&r, 0);
-            let err = g.iter().zip(&t).map(|(a, b)| (a - b / 4.0).powi(2)).sum::<f64>().sqrt();
+            let err = g
+                .iter()
+                .zip(&t)
+                .map(|(a, b)| (a - b / 4.0).powi(2))
+                .sum::<f64>()
+                .sqrt();
             let predicted = ((k - 1) as f64 * t_norm2 / (16.0 * n as f64)).sqrt();
             let ratio = err / predicted;
-            assert!((0.75..1.25).contains(&ratio), "n {n}: error {err}, predicted {predicted}");
+            assert!(
+                (0.75..1.25).contains(&ratio),
+                "n {n}: error {err}, predicted {predicted}"
+            );
             assert_eq!(r.report.details["expected_gain"], json!(0.25));
             errors.push(err);
         }
@@ -1343,7 +1458,10 @@ mod tests {
         // ratio lies in [0.5 * 0.75 / 1.25, 0.5 * 1.25 / 0.75] = [0.3, 0.83]; typically ~0.5.
         for pair in errors.windows(2) {
             let ratio = pair[1] / pair[0];
-            assert!((0.3..0.83).contains(&ratio), "error ratio {ratio} for 4x rows");
+            assert!(
+                (0.3..0.83).contains(&ratio),
+                "error ratio {ratio} for 4x rows"
+            );
         }
     }
 
@@ -1389,7 +1507,10 @@ mod tests {
             let g32: Vec<f32> = g.iter().map(|&v| v as f32).collect();
             let tt: Vec<f32> = target.iter().map(|&v| v as f32).collect();
             let (a, _) = crate::recon::metrics::fit_affine(&tt, &g32);
-            assert!((a / gain - 1.0).abs() < 0.1, "{kind:?}: slope {a}, expected {gain}");
+            assert!(
+                (a / gain - 1.0).abs() < 0.1,
+                "{kind:?}: slope {a}, expected {gain}"
+            );
             assert_eq!(r.report.details["expected_gain"], json!(gain));
             if *kind != Kind::Gi {
                 // Offset: DGI/NGI estimate t - mean t, so the image mean is ~0.
@@ -1413,9 +1534,16 @@ mod tests {
         let spec = bernoulli(w, h, n, 0.5, 5);
         let t = random_scene(k, 0.8, 1.0, 9);
         let mut jitter = Rng::new(4);
-        let gains: Vec<f64> =
-            (0..n).map(|i| 0.95 + 0.1 * i as f64 / n as f64 + 0.01 * jitter.normal()).collect();
-        let buckets = simulate(&spec, std::slice::from_ref(&t), n, |i| gains[i as usize], 0.0);
+        let gains: Vec<f64> = (0..n)
+            .map(|i| 0.95 + 0.1 * i as f64 / n as f64 + 0.01 * jitter.normal())
+            .collect();
+        let buckets = simulate(
+            &spec,
+            std::slice::from_ref(&t),
+            n,
+            |i| gains[i as usize],
+            0.0,
+        );
 
         let mean = t.iter().sum::<f64>() / k as f64;
         let var = t.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / k as f64;
@@ -1429,17 +1557,25 @@ mod tests {
             let r = solve(&spec, config, &buckets, 1, n, Tuning::default(), 1000);
             pearson(&image(&r, 0), &t)
         };
-        let (gi, dgi, ngi) =
-            (rho(&MethodConfig::Gi), rho(&MethodConfig::Dgi), rho(&MethodConfig::Ngi));
+        let (gi, dgi, ngi) = (
+            rho(&MethodConfig::Gi),
+            rho(&MethodConfig::Dgi),
+            rho(&MethodConfig::Ngi),
+        );
         let model = |noise: f64| 1.0 / (1.0 + noise / var).sqrt();
-        let (gi_model, dgi_model) =
-            (model(norm2 / n as f64 + drift), model(centred2 / n as f64 + drift));
+        let (gi_model, dgi_model) = (
+            model(norm2 / n as f64 + drift),
+            model(centred2 / n as f64 + drift),
+        );
         assert!(dgi > gi + 0.15, "dgi {dgi} vs gi {gi}");
         assert!(ngi > gi + 0.15, "ngi {ngi} vs gi {gi}");
         // Both near their models. Over 8 pattern seeds rho spread by ~0.06 (GI) and ~0.02
         // (DGI) around means 0.44 and 0.75; allow about 3.5 and 5 of those.
         assert!((gi - gi_model).abs() < 0.2, "gi {gi}, model {gi_model}");
-        assert!((dgi - dgi_model).abs() < 0.1, "dgi {dgi}, model {dgi_model}");
+        assert!(
+            (dgi - dgi_model).abs() < 0.1,
+            "dgi {dgi}, model {dgi_model}"
+        );
     }
 
     #[test]
@@ -1450,7 +1586,15 @@ mod tests {
         let spec = PatternSpec::new(Family::Speckle { grain: 1 }, w, h, n, 31).unwrap();
         let t = random_scene(k, 0.0, 1.0, 12);
         let buckets = simulate(&spec, std::slice::from_ref(&t), n, |_| 1.0, 0.0);
-        let r = solve(&spec, &MethodConfig::Gi, &buckets, 1, n, Tuning::default(), 3000);
+        let r = solve(
+            &spec,
+            &MethodConfig::Gi,
+            &buckets,
+            1,
+            n,
+            Tuning::default(),
+            3000,
+        );
         let g = image(&r, 0);
         // Uniform levels: sigma^2 = 1/12, E p^4 - sigma^4... noise var ~ E[(A s)^2]/sigma^4 / n
         // = ||t||^2 / n (as for Bernoulli, up to the kurtosis of one term).
@@ -1481,12 +1625,25 @@ mod tests {
             for (ch, scene) in scenes.iter().enumerate() {
                 let single_buckets: Vec<f64> = all.iter().skip(ch).step_by(3).copied().collect();
                 for block in [1usize, 7, 3000] {
-                    let single =
-                        solve(&spec, config, &single_buckets, 1, n, Tuning::default(), block);
+                    let single = solve(
+                        &spec,
+                        config,
+                        &single_buckets,
+                        1,
+                        n,
+                        Tuning::default(),
+                        block,
+                    );
                     let (a, b) = (image(&multi, ch), image(&single, 0));
                     let scale = b.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-                    let diff = a.iter().zip(&b).fold(0.0f64, |m, (x, y)| m.max((x - y).abs()));
-                    assert!(diff <= 1e-6 * scale, "{config:?} ch {ch} block {block}: {diff}");
+                    let diff = a
+                        .iter()
+                        .zip(&b)
+                        .fold(0.0f64, |m, (x, y)| m.max((x - y).abs()));
+                    assert!(
+                        diff <= 1e-6 * scale,
+                        "{config:?} ch {ch} block {block}: {diff}"
+                    );
                 }
                 assert!(pearson(&image(&multi, ch), scene) > 0.8);
             }
@@ -1498,8 +1655,15 @@ mod tests {
     #[test]
     fn malformed_blocks_are_bad_rows() {
         let spec = bernoulli(8, 8, 100, 0.5, 1);
-        let problem = Problem { spec: &spec, channels: 2, rows: 10 };
-        let block = |first_row: u64, len: usize| BucketBlock { first_row, values: vec![1.0; len] };
+        let problem = Problem {
+            spec: &spec,
+            channels: 2,
+            rows: 10,
+        };
+        let block = |first_row: u64, len: usize| BucketBlock {
+            first_row,
+            values: vec![1.0; len],
+        };
         let cases: Vec<(Vec<BucketBlock>, &str)> = vec![
             (vec![block(0, 7)], "multiple"),
             (vec![block(0, 4), block(3, 4)], "expected row 2"),
@@ -1507,7 +1671,10 @@ mod tests {
             (vec![block(0, 22)], "run past"),
             (vec![block(0, 16), block(8, 6)], "run past"),
             (
-                vec![BucketBlock { first_row: 0, values: vec![1.0, 2.0, f64::NAN, 4.0] }],
+                vec![BucketBlock {
+                    first_row: 0,
+                    values: vec![1.0, 2.0, f64::NAN, 4.0],
+                }],
                 "row 1 channel 0",
             ),
         ];
@@ -1524,7 +1691,11 @@ mod tests {
         let err = run(&problem, &MethodConfig::Dgi, &mut src, &Control::new()).unwrap_err();
         assert!(matches!(err, ReconError::Unsolvable(_)), "{err:?}");
         // Zero channels.
-        let bad = Problem { spec: &spec, channels: 0, rows: 10 };
+        let bad = Problem {
+            spec: &spec,
+            channels: 0,
+            rows: 10,
+        };
         let mut src = BlockList(Default::default());
         assert!(matches!(
             run(&bad, &MethodConfig::Gi, &mut src, &Control::new()),
@@ -1536,7 +1707,11 @@ mod tests {
     fn cancellation_stops_the_run() {
         let spec = bernoulli(64, 64, 4096, 0.5, 1);
         let buckets = vec![1.0; 4096];
-        let problem = Problem { spec: &spec, channels: 1, rows: 4096 };
+        let problem = Problem {
+            spec: &spec,
+            channels: 1,
+            rows: 4096,
+        };
         // Cancelled before the start.
         let control = Control::new();
         control.cancel();
@@ -1553,17 +1728,28 @@ mod tests {
             after: 3,
             seen: 0,
         };
-        let tuning = Tuning { workers: None, dispatch_rows: Some(64) };
+        let tuning = Tuning {
+            workers: None,
+            dispatch_rows: Some(64),
+        };
         let res = run_tuned(&problem, &MethodConfig::Ngi, &mut src, &control, tuning);
         assert!(matches!(res, Err(ReconError::Cancelled)), "{res:?}");
-        assert!(control.progress() > 0.0 && control.progress() < 1.0, "{}", control.progress());
+        assert!(
+            control.progress() > 0.0 && control.progress() < 1.0,
+            "{}",
+            control.progress()
+        );
     }
 
     #[test]
     fn progress_reaches_one() {
         let spec = bernoulli(8, 8, 1000, 0.5, 1);
         let buckets = vec![1.0; 1000];
-        let problem = Problem { spec: &spec, channels: 1, rows: 1000 };
+        let problem = Problem {
+            spec: &spec,
+            channels: 1,
+            rows: 1000,
+        };
         let control = Control::new();
         let mut src = SliceSource::new(&buckets, 1, 100);
         let r = run(&problem, &MethodConfig::Gi, &mut src, &control).unwrap();
@@ -1586,15 +1772,31 @@ mod tests {
         block_rows: usize,
         held_out: bool,
     ) -> Run {
-        let problem = Problem { spec, channels, rows };
+        let problem = Problem {
+            spec,
+            channels,
+            rows,
+        };
         let mut src = SliceSource::new(&buckets[..rows as usize * channels], channels, block_rows);
-        run_inner(&problem, config, &mut src, &Control::new(), tuning, held_out).unwrap()
+        run_inner(
+            &problem,
+            config,
+            &mut src,
+            &Control::new(),
+            tuning,
+            held_out,
+        )
+        .unwrap()
     }
 
     /// Whether row `i` of `n` is held out, by the rule of the module docs (restated here).
     fn is_held(spec: &PatternSpec, n: u64, i: u64) -> bool {
         let fraction = holdout::DEFAULT_FRACTION.min(MAX_HELD_OUT as f64 / n as f64);
-        let unit = if matches!(spec.family(), Family::Hadamard { .. }) { i / 2 } else { i };
+        let unit = if matches!(spec.family(), Family::Hadamard { .. }) {
+            i / 2
+        } else {
+            i
+        };
         holdout::is_held_out(unit, fraction)
     }
 
@@ -1614,10 +1816,15 @@ mod tests {
         let specs = [
             (bernoulli(10, 7, 1000, 0.5, 1), 237u64),
             (bernoulli(9, 9, 1000, 0.3, 2), 237),
-            (PatternSpec::new(Family::Raster { block: 3 }, 10, 7, 1000, 0).unwrap(), 237),
+            (
+                PatternSpec::new(Family::Raster { block: 3 }, 10, 7, 1000, 0).unwrap(),
+                237,
+            ),
             (
                 PatternSpec::new(
-                    Family::Hadamard { ordering: HadamardOrdering::Natural },
+                    Family::Hadamard {
+                        ordering: HadamardOrdering::Natural,
+                    },
                     16,
                     8,
                     256,
@@ -1626,7 +1833,10 @@ mod tests {
                 .unwrap(),
                 256,
             ),
-            (PatternSpec::new(Family::Speckle { grain: 2 }, 11, 6, 1000, 3).unwrap(), 237),
+            (
+                PatternSpec::new(Family::Speckle { grain: 2 }, 11, 6, 1000, 3).unwrap(),
+                237,
+            ),
             (bernoulli(8, 8, 20000, 0.5, 4), 20000),
         ];
         let mut worst_training = 0.0f64;
@@ -1644,14 +1854,22 @@ mod tests {
                 let train =
                     dense_reference_where(spec, *kind, &buckets, 2, n, |i| !is_held(spec, n, i));
                 for (workers, dispatch, block) in [(1, 1000, 1000), (3, 70, 13), (2, 64, 1)] {
-                    let tuning = Tuning { workers: Some(workers), dispatch_rows: Some(dispatch) };
+                    let tuning = Tuning {
+                        workers: Some(workers),
+                        dispatch_rows: Some(dispatch),
+                    };
                     let with = run_with(spec, config, &buckets, 2, n, tuning, block, true);
                     let without = run_with(spec, config, &buckets, 2, n, tuning, block, false);
                     let what = format!("{} {kind:?} workers {workers}", spec.family().name());
                     assert!(without.reconstruction.report.held_out.is_none());
                     let report = &with.reconstruction.report;
                     assert_eq!(held_out(&with.reconstruction).rows, held.len(), "{what}");
-                    assert!(report.details["held_out_calibration_rows"].as_u64().unwrap() >= 8);
+                    assert!(
+                        report.details["held_out_calibration_rows"]
+                            .as_u64()
+                            .unwrap()
+                            >= 8
+                    );
                     let training = with.training.as_ref().unwrap();
                     for ch in 0..2 {
                         // (a) Bit-identical, and as close to the dense formulas as before.
@@ -1685,7 +1903,11 @@ mod tests {
     /// `rho^2 = kappa r / (1 + r)` (see `held_out_residual_falls_with_rows_and_rises_with_noise`).
     fn noise_to_signal(rho: f64, kappa: f64) -> f64 {
         let x = rho / kappa.sqrt();
-        if x < 1.0 { x / (1.0 - x * x).sqrt() } else { f64::INFINITY }
+        if x < 1.0 {
+            x / (1.0 - x * x).sqrt()
+        } else {
+            f64::INFINITY
+        }
     }
 
     /// (c) Noise-free buckets, Bernoulli(1/2) patterns, a 32 x 32 binary scene.
@@ -1746,7 +1968,10 @@ mod tests {
                     noise_to_signal(rho, kappa),
                     r.sqrt()
                 );
-                assert!((rho / model - 1.0).abs() < bound, "{kind:?} n {n}: {rho} vs {model}");
+                assert!(
+                    (rho / model - 1.0).abs() < bound,
+                    "{kind:?} n {n}: {rho} vs {model}"
+                );
                 rhos.push(rho);
                 snr.push(noise_to_signal(rho, kappa));
 
@@ -1760,7 +1985,10 @@ mod tests {
                     println!("{kind:?} n {n}: with noise rho {noisy:.4}, model {noisy_model:.4}");
                     // Measured 0.723-0.730 against models 0.736-0.744 (0.98 of them; 0.97-1.02
                     // over six other seeds, measured with a 4x larger calibration set).
-                    assert!((noisy / noisy_model - 1.0).abs() < bound, "{kind:?}: {noisy}");
+                    assert!(
+                        (noisy / noisy_model - 1.0).abs() < bound,
+                        "{kind:?}: {noisy}"
+                    );
                     assert!(noisy > rho + 0.3, "{kind:?}: {noisy} vs clean {rho}");
                 }
             }
@@ -1776,7 +2004,10 @@ mod tests {
             // error is ~6 %. (From 1024 rows it is too noisy to pin: rho near its ceiling
             // sqrt(kappa) amplifies its error ~4x.)
             let fall = snr[2] / snr[1];
-            assert!((0.35..0.65).contains(&fall), "{kind:?}: noise/signal fell by {fall}");
+            assert!(
+                (0.35..0.65).contains(&fall),
+                "{kind:?}: noise/signal fell by {fall}"
+            );
         }
     }
 
@@ -1788,7 +2019,9 @@ mod tests {
         let t = random_scene(k, 0.0, 1.0, 2);
         let buckets = simulate(&spec, std::slice::from_ref(&t), 4000, |_| 1.0, 0.0);
         let count = |n: u64, lo: f64, hi: f64| {
-            (0..n).filter(|&i| (lo..hi).contains(&holdout::key(i))).count()
+            (0..n)
+                .filter(|&i| (lo..hi).contains(&holdout::key(i)))
+                .count()
         };
         let n = 40;
         assert!(count(n, 0.0, 0.1) < 8);
@@ -1796,13 +2029,20 @@ mod tests {
             let r = solve(&spec, config, &buckets, 1, n, Tuning::default(), 7);
             assert!(r.report.held_out.is_none());
             let why = r.report.held_out_unavailable.as_deref().unwrap();
-            assert!(why.contains("at least 8") && why.contains("hold out only"), "{why}");
+            assert!(
+                why.contains("at least 8") && why.contains("hold out only"),
+                "{why}"
+            );
             assert!(!r.report.details.contains_key("held_out_calibration"));
         }
         // Enough held out, too few to calibrate with. (With this hash no prefix of the rows
         // does that: the calibration set always fills first; so a hand-made record.)
         let plan = Plan::new(
-            &Problem { spec: &spec, channels: 1, rows: 100 },
+            &Problem {
+                spec: &spec,
+                channels: 1,
+                rows: 100,
+            },
             Kind::Gi,
             Tuning::default(),
         );
@@ -1814,7 +2054,15 @@ mod tests {
         record.calibration.push(15);
         assert_eq!(record.check(), Ok(()));
         // Enough of both.
-        let r = solve(&spec, &MethodConfig::Gi, &buckets, 1, 400, Tuning::default(), 64);
+        let r = solve(
+            &spec,
+            &MethodConfig::Gi,
+            &buckets,
+            1,
+            400,
+            Tuning::default(),
+            64,
+        );
         assert!(r.report.held_out.is_some() && r.report.held_out_unavailable.is_none());
     }
 
@@ -1826,7 +2074,9 @@ mod tests {
         let n = 2000;
         let flat = simulate(&spec, &[vec![0.7; k]], n, |_| 1.0, 0.0);
         let hadamard = PatternSpec::new(
-            Family::Hadamard { ordering: HadamardOrdering::Natural },
+            Family::Hadamard {
+                ordering: HadamardOrdering::Natural,
+            },
             16,
             16,
             512,
@@ -1848,7 +2098,10 @@ mod tests {
                 assert!(h.rms_residual.is_finite(), "{what} {kind:?}");
                 for c in r.report.details["held_out_calibration"].as_array().unwrap() {
                     for key in ["gain", "pattern_sum", "offset"] {
-                        assert!(c[key].as_f64().is_some_and(f64::is_finite), "{what} {kind:?}");
+                        assert!(
+                            c[key].as_f64().is_some_and(f64::is_finite),
+                            "{what} {kind:?}"
+                        );
                     }
                 }
                 match *what {
@@ -1859,7 +2112,10 @@ mod tests {
                     }
                     // No spread to compare with: 0 or None (null), never NaN.
                     "constant buckets" => {
-                        assert!(h.relative_residual.is_none_or(|v| v == 0.0), "{what} {kind:?}");
+                        assert!(
+                            h.relative_residual.is_none_or(|v| v == 0.0),
+                            "{what} {kind:?}"
+                        );
                         assert!(h.rms_residual < 1e-9, "{what} {kind:?}: {}", h.rms_residual);
                     }
                     // c = 0.7 R: the R term predicts it exactly (measured ~1e-15).
@@ -1892,23 +2148,41 @@ mod tests {
             let multi = solve(&spec, config, &buckets, 3, n, Tuning::default(), 500);
             let h = held_out(&multi);
             assert_eq!(h.per_channel.len(), 3);
-            assert_eq!(multi.report.details["held_out_calibration"].as_array().unwrap().len(), 3);
+            assert_eq!(
+                multi.report.details["held_out_calibration"]
+                    .as_array()
+                    .unwrap()
+                    .len(),
+                3
+            );
             let (mut num, mut den) = (0.0, 0.0);
             for ch in 0..3 {
                 let single: Vec<f64> = buckets.iter().skip(ch).step_by(3).copied().collect();
                 let s = solve(&spec, config, &single, 1, n, Tuning::default(), 500);
                 let hs = held_out(&s);
                 let (rho, rho_s) = (h.per_channel[ch].unwrap(), hs.relative_residual.unwrap());
-                assert!((rho - rho_s).abs() <= 1e-9 * rho_s, "{kind:?} ch {ch}: {rho} vs {rho_s}");
+                assert!(
+                    (rho - rho_s).abs() <= 1e-9 * rho_s,
+                    "{kind:?} ch {ch}: {rho} vs {rho_s}"
+                );
                 let residual2 = hs.rms_residual.powi(2) * hs.rows as f64;
                 num += residual2;
                 den += residual2 / (rho_s * rho_s);
             }
             let pooled = h.relative_residual.unwrap();
-            assert!((pooled - (num / den).sqrt()).abs() < 1e-9 * pooled, "{kind:?}: {pooled}");
-            let (p0, p1, p2) =
-                (h.per_channel[0].unwrap(), h.per_channel[1].unwrap(), h.per_channel[2].unwrap());
-            assert!((p2 - p0).abs() < 1e-9 * p0, "{kind:?}: scaled channel {p2} vs {p0}");
+            assert!(
+                (pooled - (num / den).sqrt()).abs() < 1e-9 * pooled,
+                "{kind:?}: {pooled}"
+            );
+            let (p0, p1, p2) = (
+                h.per_channel[0].unwrap(),
+                h.per_channel[1].unwrap(),
+                h.per_channel[2].unwrap(),
+            );
+            assert!(
+                (p2 - p0).abs() < 1e-9 * p0,
+                "{kind:?}: scaled channel {p2} vs {p0}"
+            );
             // The noisy channel scores worse.
             assert!(p1 > p0, "{kind:?}: {p1} vs {p0}");
             println!("{kind:?}: per channel {p0:.4} {p1:.4} {p2:.4}, pooled {pooled:.4}");
@@ -1919,7 +2193,11 @@ mod tests {
     fn calibration_recovers_an_exact_fit_and_survives_collinearity() {
         let u: Vec<f64> = (0..50).map(|i| ((i * 37) % 11) as f64 + 1e6).collect();
         let r: Vec<f64> = (0..50).map(|i| ((i * 13) % 7) as f64 + 500.0).collect();
-        let c: Vec<f64> = u.iter().zip(&r).map(|(u, r)| 2.0 * u - 3.0 * r + 7.0).collect();
+        let c: Vec<f64> = u
+            .iter()
+            .zip(&r)
+            .map(|(u, r)| 2.0 * u - 3.0 * r + 7.0)
+            .collect();
         let fit = Calibration::fit(&u, &r, &c);
         for (i, (&u, &r)) in u.iter().zip(&r).enumerate() {
             assert!((fit.predict(u, r) - c[i]).abs() < 1e-6, "{fit:?}");
@@ -1935,7 +2213,14 @@ mod tests {
         }
         // Nothing varies: the mean.
         let fit = Calibration::fit(&[1.0; 4], &[2.0; 4], &[3.0; 4]);
-        assert_eq!(fit, Calibration { gain: 0.0, pattern_sum: 0.0, offset: 3.0 });
+        assert_eq!(
+            fit,
+            Calibration {
+                gain: 0.0,
+                pattern_sum: 0.0,
+                offset: 3.0
+            }
+        );
     }
 
     #[test]
@@ -1947,15 +2232,25 @@ mod tests {
         // last word clear.
         let mut bits = Vec::new();
         for j in 0..20 {
-            let last = if j % 2 == 0 { rng.next_u64() & ((1 << 22) - 1) } else { 0 };
+            let last = if j % 2 == 0 {
+                rng.next_u64() & ((1 << 22) - 1)
+            } else {
+                0
+            };
             bits.extend([rng.next_u64(), rng.next_u64(), last]);
         }
         let mut dots = vec![0.0; 20];
         dot_bits(&bits, 3, &table, &mut dots);
         for (j, words) in bits.chunks_exact(3).enumerate() {
-            let plain: f64 =
-                (0..150).filter(|&x| words[x / 64] >> (x % 64) & 1 == 1).map(|x| t[x]).sum();
-            assert!((dots[j] - plain).abs() < 1e-12, "pattern {j}: {} vs {plain}", dots[j]);
+            let plain: f64 = (0..150)
+                .filter(|&x| words[x / 64] >> (x % 64) & 1 == 1)
+                .map(|x| t[x])
+                .sum();
+            assert!(
+                (dots[j] - plain).abs() < 1e-12,
+                "pattern {j}: {} vs {plain}",
+                dots[j]
+            );
         }
         let v: Vec<f32> = (0..150).map(|i| (i % 9) as f32 / 8.0).collect();
         let plain: f64 = v.iter().zip(&t).map(|(&v, &t)| v as f64 * t).sum();
@@ -1965,8 +2260,18 @@ mod tests {
     /// CPU seconds used by this process so far (all threads), from /proc/self/stat.
     fn cpu_seconds() -> f64 {
         let stat = std::fs::read_to_string("/proc/self/stat").unwrap_or_default();
-        let fields: Vec<&str> = stat.rsplit(')').next().unwrap_or("").split_whitespace().collect();
-        let ticks = |i: usize| fields.get(i).and_then(|v| v.parse::<f64>().ok()).unwrap_or(0.0);
+        let fields: Vec<&str> = stat
+            .rsplit(')')
+            .next()
+            .unwrap_or("")
+            .split_whitespace()
+            .collect();
+        let ticks = |i: usize| {
+            fields
+                .get(i)
+                .and_then(|v| v.parse::<f64>().ok())
+                .unwrap_or(0.0)
+        };
         // After the command name: state is field 0, utime 11, stime 12 (clock ticks, 100 Hz).
         (ticks(11) + ticks(12)) / 100.0
     }
@@ -1979,7 +2284,13 @@ mod tests {
     #[ignore]
     fn bench_throughput() {
         for (family, w, h, n, m) in [
-            (Family::Bernoulli { fill: 0.5 }, 256u32, 256u32, 32768u64, 1usize),
+            (
+                Family::Bernoulli { fill: 0.5 },
+                256u32,
+                256u32,
+                32768u64,
+                1usize,
+            ),
             (Family::Bernoulli { fill: 0.5 }, 128, 128, 131072, 1),
             (Family::Bernoulli { fill: 0.5 }, 256, 256, 16384, 3),
             (Family::Speckle { grain: 1 }, 128, 128, 4096, 1),
@@ -1994,7 +2305,11 @@ mod tests {
                 (MethodConfig::Dgi, false),
                 (MethodConfig::Dgi, true),
             ] {
-                let problem = Problem { spec: &spec, channels: m, rows: n };
+                let problem = Problem {
+                    spec: &spec,
+                    channels: m,
+                    rows: n,
+                };
                 let mut src = SliceSource::new(&buckets, m, 4096);
                 let (t0, c0) = (std::time::Instant::now(), cpu_seconds());
                 run_inner(

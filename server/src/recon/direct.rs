@@ -42,14 +42,26 @@ pub fn run(
         (Family::Hadamard { .. }, MethodConfig::ZeroFilled) => {
             let mut out = hadamard(problem, stream, control, (problem.rows / 2) as usize)?;
             out.1.insert("pairs_used".into(), json!(problem.rows / 2));
-            out.1.insert("pairs_missing".into(), json!(k as u64 - (problem.rows / 2).min(k as u64)));
+            out.1.insert(
+                "pairs_missing".into(),
+                json!(k as u64 - (problem.rows / 2).min(k as u64)),
+            );
             out
         }
         (Family::Hadamard { .. }, MethodConfig::Levels { level }) => {
-            let (w, h) = (problem.spec.width() as usize, problem.spec.height() as usize);
+            let (w, h) = (
+                problem.spec.width() as usize,
+                problem.spec.height() as usize,
+            );
             let available = (problem.rows / 2) as usize;
-            let complete: Vec<u32> = (0..=12u32).filter(|&j| level_pairs(w, h, j) <= available && (j == 0 || level_pairs(w, h, j - 1) < k)).collect();
-            let finest = *complete.last().expect("level 0 needs one pair and check() refused zero rows");
+            let complete: Vec<u32> = (0..=12u32)
+                .filter(|&j| {
+                    level_pairs(w, h, j) <= available && (j == 0 || level_pairs(w, h, j - 1) < k)
+                })
+                .collect();
+            let finest = *complete
+                .last()
+                .expect("level 0 needs one pair and check() refused zero rows");
             let j = match level {
                 None => finest,
                 Some(j) if complete.contains(j) => *j,
@@ -63,9 +75,12 @@ pub fn run(
             };
             let mut out = hadamard(problem, stream, control, level_pairs(w, h, j))?;
             out.1.insert("level".into(), json!(j));
-            out.1.insert("resolution".into(), json!([w.min(1 << j), h.min(1 << j)]));
-            out.1.insert("block".into(), json!([(w >> j).max(1), (h >> j).max(1)]));
-            out.1.insert("pairs_used".into(), json!(level_pairs(w, h, j)));
+            out.1
+                .insert("resolution".into(), json!([w.min(1 << j), h.min(1 << j)]));
+            out.1
+                .insert("block".into(), json!([(w >> j).max(1), (h >> j).max(1)]));
+            out.1
+                .insert("pairs_used".into(), json!(level_pairs(w, h, j)));
             out.1.insert(
                 "complete_levels".into(),
                 Value::Array(complete.iter().map(|&j| json!({"level": j, "resolution": [w.min(1 << j), h.min(1 << j)], "pairs": level_pairs(w, h, j)})).collect()),
@@ -124,7 +139,9 @@ fn raster(
     let mut counts = vec![0u64; blocks];
     while let Some(b) = stream.next_block()? {
         for (i, row) in b.values.chunks_exact(m).enumerate() {
-            let blk = generator.raster_block(b.first_row + i as u64).expect("raster") as usize;
+            let blk = generator
+                .raster_block(b.first_row + i as u64)
+                .expect("raster") as usize;
             counts[blk] += 1;
             for (s, v) in sums[blk * m..(blk + 1) * m].iter_mut().zip(row) {
                 *s += v;
@@ -151,11 +168,17 @@ fn raster(
                     values[blk * m + ch] as f32
                 })
                 .collect();
-            DualImage { width: spec.width(), height: spec.height(), data }
+            DualImage {
+                width: spec.width(),
+                height: spec.height(),
+                data,
+            }
         })
         .collect();
-    let (lo, hi) =
-        (counts.iter().min().copied().unwrap_or(0), counts.iter().max().copied().unwrap_or(0));
+    let (lo, hi) = (
+        counts.iter().min().copied().unwrap_or(0),
+        counts.iter().max().copied().unwrap_or(0),
+    );
     let mut details = Map::new();
     details.insert("family".into(), json!("raster"));
     details.insert("block".into(), json!(block));
@@ -257,12 +280,19 @@ fn hadamard(
             }
             fwht(t);
             let data = t.iter().map(|v| (v * scale) as f32).collect();
-            Ok(DualImage { width: spec.width(), height: spec.height(), data })
+            Ok(DualImage {
+                width: spec.width(),
+                height: spec.height(),
+                data,
+            })
         })
         .collect::<Result<Vec<_>, _>>()?;
     let mut details = Map::new();
     details.insert("family".into(), json!("hadamard"));
-    details.insert("dark_level".into(), Value::Array(dark.iter().map(|&v| finite(v)).collect()));
+    details.insert(
+        "dark_level".into(),
+        Value::Array(dark.iter().map(|&v| finite(v)).collect()),
+    );
     details.insert(
         "pair_sum_mean".into(),
         Value::Array(stats.iter().map(|s| finite(s.mean)).collect()),
@@ -295,7 +325,11 @@ mod tests {
         block_rows: usize,
     ) -> Reconstruction {
         let rows = (buckets.len() / channels) as u64;
-        let problem = Problem { spec, channels, rows };
+        let problem = Problem {
+            spec,
+            channels,
+            rows,
+        };
         let mut src = SliceSource::new(buckets, channels, block_rows);
         let control = Control::new();
         let r = reconstruct(&problem, &MethodConfig::Direct, &mut src, &control).unwrap();
@@ -355,8 +389,13 @@ mod tests {
         // Repeats 0, 1, 2 of each block with gains 0.9, 1.1, 1.0 (blocks 6.. only get 2).
         let rows = 2 * blocks + blocks / 2;
         let gains = [0.9, 1.1, 1.0];
-        let rep =
-            simulate(&spec, std::slice::from_ref(&t), rows, |i| gains[(i / blocks) as usize], 0.0);
+        let rep = simulate(
+            &spec,
+            std::slice::from_ref(&t),
+            rows,
+            |i| gains[(i / blocks) as usize],
+            0.0,
+        );
         let r = solve(&spec, &rep, 1, 7);
         assert!(relative_error(&r.images[0].data, &want) < 1e-6);
         assert_eq!(r.report.details["complete_scans"], json!(2));
@@ -389,7 +428,9 @@ mod tests {
         let k = (w * h) as usize;
         let t = random_scene(k, 0.0, 1.0, 3);
         let spec = PatternSpec::new(
-            Family::Hadamard { ordering: HadamardOrdering::CakeCutting },
+            Family::Hadamard {
+                ordering: HadamardOrdering::CakeCutting,
+            },
             w,
             h,
             2 * k as u64,
@@ -418,7 +459,9 @@ mod tests {
         let k = (w * h) as usize;
         let t = random_scene(k, 0.5, 1.0, 4);
         let spec = PatternSpec::new(
-            Family::Hadamard { ordering: HadamardOrdering::Natural },
+            Family::Hadamard {
+                ordering: HadamardOrdering::Natural,
+            },
             w,
             h,
             128,
@@ -428,10 +471,17 @@ mod tests {
         // Gain ramps linearly 1.0 -> 1.2 over the frames; both frames of a pair see nearly the
         // same gain, so s_r ~ g_r (1 . t).
         let n = 2 * k as u64;
-        let buckets =
-            simulate(&spec, std::slice::from_ref(&t), n, |i| 1.0 + 0.2 * i as f64 / n as f64, 0.0);
+        let buckets = simulate(
+            &spec,
+            std::slice::from_ref(&t),
+            n,
+            |i| 1.0 + 0.2 * i as f64 / n as f64,
+            0.0,
+        );
         let r = solve(&spec, &buckets, 1, 16);
-        let dev = r.report.details["pair_sum_max_rel_dev"][0].as_f64().unwrap();
+        let dev = r.report.details["pair_sum_max_rel_dev"][0]
+            .as_f64()
+            .unwrap();
         let std = r.report.details["pair_sum_rel_std"][0].as_f64().unwrap();
         let mean = r.report.details["pair_sum_mean"][0].as_f64().unwrap();
         // The statistics of the pair sums, computed here the plain way.
@@ -441,10 +491,17 @@ mod tests {
         let worst = sums.iter().map(|s| (s - m).abs()).fold(0.0, f64::max);
         assert!((mean - m).abs() < 1e-9 * m);
         assert!((std - sd / m).abs() < 1e-9, "rel std {std} vs {}", sd / m);
-        assert!((dev - worst / m).abs() < 1e-9, "max rel dev {dev} vs {}", worst / m);
+        assert!(
+            (dev - worst / m).abs() < 1e-9,
+            "max rel dev {dev} vs {}",
+            worst / m
+        );
         // And they see the ramp: range ~0.2 about a mean ~1.1 (+-0.091), std = range / sqrt(12).
         assert!((dev - 0.1 / 1.1).abs() < 0.005, "max rel dev {dev}");
-        assert!((std - 0.2 / 1.1 / 12f64.sqrt()).abs() < 0.003, "rel std {std}");
+        assert!(
+            (std - 0.2 / 1.1 / 12f64.sqrt()).abs() < 0.003,
+            "rel std {std}"
+        );
     }
 
     #[test]
@@ -452,11 +509,17 @@ mod tests {
         let (w, h) = (8u32, 4u32);
         let k = (w * h) as usize;
         let scenes = [random_scene(k, 0.0, 1.0, 5), random_scene(k, 0.0, 3.0, 6)];
-        for family in
-            [Family::Hadamard { ordering: HadamardOrdering::Zigzag }, Family::Raster { block: 1 }]
-        {
-            let count =
-                if matches!(family, Family::Raster { .. }) { k as u64 } else { 2 * k as u64 };
+        for family in [
+            Family::Hadamard {
+                ordering: HadamardOrdering::Zigzag,
+            },
+            Family::Raster { block: 1 },
+        ] {
+            let count = if matches!(family, Family::Raster { .. }) {
+                k as u64
+            } else {
+                2 * k as u64
+            };
             let spec = PatternSpec::new(family, w, h, count, 0).unwrap();
             let buckets = simulate(&spec, &scenes, count, |_| 1.0, 0.25);
             let r = solve(&spec, &buckets, 2, 9);
@@ -477,9 +540,22 @@ mod tests {
         }
     }
 
-    fn run_config(spec: &PatternSpec, buckets: &[f64], config: &MethodConfig) -> Result<Reconstruction, ReconError> {
-        let problem = Problem { spec, channels: 1, rows: buckets.len() as u64 };
-        reconstruct(&problem, config, &mut SliceSource::new(buckets, 1, 13), &Control::new())
+    fn run_config(
+        spec: &PatternSpec,
+        buckets: &[f64],
+        config: &MethodConfig,
+    ) -> Result<Reconstruction, ReconError> {
+        let problem = Problem {
+            spec,
+            channels: 1,
+            rows: buckets.len() as u64,
+        };
+        reconstruct(
+            &problem,
+            config,
+            &mut SliceSource::new(buckets, 1, 13),
+            &Control::new(),
+        )
     }
 
     #[test]
@@ -489,7 +565,14 @@ mod tests {
             let k = w * h;
             let t = random_scene(k, 0.0, 1.0, 11);
             let ordering = HadamardOrdering::RussianDoll;
-            let spec = PatternSpec::new(Family::Hadamard { ordering }, w as u32, h as u32, 2 * k as u64, 0).unwrap();
+            let spec = PatternSpec::new(
+                Family::Hadamard { ordering },
+                w as u32,
+                h as u32,
+                2 * k as u64,
+                0,
+            )
+            .unwrap();
             let all = simulate(&spec, std::slice::from_ref(&t), 2 * k as u64, |_| 1.0, 3.0);
             let max_level = w.max(h).trailing_zeros();
             for j in 0..=max_level {
@@ -498,8 +581,14 @@ mod tests {
                 // level j complete), as a session stopped mid-level.
                 for extra in [0, 2] {
                     let frames = (2 * pairs + extra).min(2 * k);
-                    let r = run_config(&spec, &all[..frames], &MethodConfig::Levels { level: None }).unwrap();
-                    assert_eq!(r.report.details["level"], json!(j), "{w}x{h} level {j} +{extra}");
+                    let r =
+                        run_config(&spec, &all[..frames], &MethodConfig::Levels { level: None })
+                            .unwrap();
+                    assert_eq!(
+                        r.report.details["level"],
+                        json!(j),
+                        "{w}x{h} level {j} +{extra}"
+                    );
                     let (bw, bh) = ((w >> j).max(1), (h >> j).max(1));
                     // The block average over bw x bh blocks (block_average takes square blocks,
                     // so average explicitly).
@@ -525,7 +614,9 @@ mod tests {
             let r = run_config(&spec, &all, &MethodConfig::Levels { level: Some(1) }).unwrap();
             assert_eq!(r.report.details["resolution"], json!([2, 2]));
             let half = &all[..2 * level_pairs(w, h, 2)];
-            let e = run_config(&spec, half, &MethodConfig::Levels { level: Some(3) }).unwrap_err().to_string();
+            let e = run_config(&spec, half, &MethodConfig::Levels { level: Some(3) })
+                .unwrap_err()
+                .to_string();
             assert!(e.contains("level 3 is not complete"), "{e}");
         }
     }
@@ -536,7 +627,14 @@ mod tests {
         let k = w * h;
         let t = random_scene(k, 0.0, 1.0, 12);
         for ordering in [HadamardOrdering::Sequency, HadamardOrdering::Zigzag] {
-            let spec = PatternSpec::new(Family::Hadamard { ordering }, w as u32, h as u32, 2 * k as u64, 0).unwrap();
+            let spec = PatternSpec::new(
+                Family::Hadamard { ordering },
+                w as u32,
+                h as u32,
+                2 * k as u64,
+                0,
+            )
+            .unwrap();
             let all = simulate(&spec, std::slice::from_ref(&t), 2 * k as u64, |_| 1.0, 0.0);
             // All pairs: the exact inverse.
             let full = run_config(&spec, &all, &MethodConfig::ZeroFilled).unwrap();
@@ -553,52 +651,118 @@ mod tests {
             assert!(err < 1e-5, "{ordering:?}: {err}");
         }
         let bern = PatternSpec::new(Family::Bernoulli { fill: 0.5 }, 8, 8, 10, 0).unwrap();
-        let e = run_config(&bern, &[1.0; 10], &MethodConfig::ZeroFilled).unwrap_err().to_string();
+        let e = run_config(&bern, &[1.0; 10], &MethodConfig::ZeroFilled)
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("zero_filled inverts Hadamard"), "{e}");
-        let seq = PatternSpec::new(Family::Hadamard { ordering: HadamardOrdering::Sequency }, 8, 8, 128, 0).unwrap();
-        let e = run_config(&seq, &[1.0; 8], &MethodConfig::Levels { level: None }).unwrap_err().to_string();
+        let seq = PatternSpec::new(
+            Family::Hadamard {
+                ordering: HadamardOrdering::Sequency,
+            },
+            8,
+            8,
+            128,
+            0,
+        )
+        .unwrap();
+        let e = run_config(&seq, &[1.0; 8], &MethodConfig::Levels { level: None })
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("russian_doll"), "{e}");
     }
 
     #[test]
     fn direct_refuses_incomplete_or_other_families() {
         let spec = PatternSpec::new(Family::Bernoulli { fill: 0.5 }, 8, 8, 200, 0).unwrap();
-        let problem = Problem { spec: &spec, channels: 1, rows: 100 };
+        let problem = Problem {
+            spec: &spec,
+            channels: 1,
+            rows: 100,
+        };
         let mut src = BlockList(Default::default());
-        assert!(matches!(run(&problem, &MethodConfig::Direct, &mut src, &Control::new()), Err(ReconError::Unsolvable(_))));
+        assert!(matches!(
+            run(&problem, &MethodConfig::Direct, &mut src, &Control::new()),
+            Err(ReconError::Unsolvable(_))
+        ));
         let spec = PatternSpec::new(
-            Family::Hadamard { ordering: HadamardOrdering::Natural },
+            Family::Hadamard {
+                ordering: HadamardOrdering::Natural,
+            },
             8,
             8,
             100,
             0,
         )
         .unwrap();
-        let problem = Problem { spec: &spec, channels: 1, rows: 100 };
-        assert!(matches!(run(&problem, &MethodConfig::Direct, &mut src, &Control::new()), Err(ReconError::Unsolvable(_))));
+        let problem = Problem {
+            spec: &spec,
+            channels: 1,
+            rows: 100,
+        };
+        assert!(matches!(
+            run(&problem, &MethodConfig::Direct, &mut src, &Control::new()),
+            Err(ReconError::Unsolvable(_))
+        ));
         // Complete spec, but the source stops early.
         let spec = PatternSpec::new(Family::Raster { block: 1 }, 4, 4, 16, 0).unwrap();
-        let problem = Problem { spec: &spec, channels: 1, rows: 16 };
-        let mut src = BlockList(vec![BucketBlock { first_row: 0, values: vec![1.0; 10] }].into());
-        assert!(matches!(run(&problem, &MethodConfig::Direct, &mut src, &Control::new()), Err(ReconError::Unsolvable(_))));
+        let problem = Problem {
+            spec: &spec,
+            channels: 1,
+            rows: 16,
+        };
+        let mut src = BlockList(
+            vec![BucketBlock {
+                first_row: 0,
+                values: vec![1.0; 10],
+            }]
+            .into(),
+        );
+        assert!(matches!(
+            run(&problem, &MethodConfig::Direct, &mut src, &Control::new()),
+            Err(ReconError::Unsolvable(_))
+        ));
         // Malformed blocks.
-        let problem = Problem { spec: &spec, channels: 2, rows: 16 };
-        let mut src = BlockList(vec![BucketBlock { first_row: 0, values: vec![1.0; 9] }].into());
-        assert!(matches!(run(&problem, &MethodConfig::Direct, &mut src, &Control::new()), Err(ReconError::BadRows(_))));
+        let problem = Problem {
+            spec: &spec,
+            channels: 2,
+            rows: 16,
+        };
+        let mut src = BlockList(
+            vec![BucketBlock {
+                first_row: 0,
+                values: vec![1.0; 9],
+            }]
+            .into(),
+        );
+        assert!(matches!(
+            run(&problem, &MethodConfig::Direct, &mut src, &Control::new()),
+            Err(ReconError::BadRows(_))
+        ));
         let mut src = BlockList(
             vec![
-                BucketBlock { first_row: 0, values: vec![1.0; 8] },
-                BucketBlock { first_row: 5, values: vec![1.0; 8] },
+                BucketBlock {
+                    first_row: 0,
+                    values: vec![1.0; 8],
+                },
+                BucketBlock {
+                    first_row: 5,
+                    values: vec![1.0; 8],
+                },
             ]
             .into(),
         );
-        assert!(matches!(run(&problem, &MethodConfig::Direct, &mut src, &Control::new()), Err(ReconError::BadRows(_))));
+        assert!(matches!(
+            run(&problem, &MethodConfig::Direct, &mut src, &Control::new()),
+            Err(ReconError::BadRows(_))
+        ));
     }
 
     #[test]
     fn direct_cancels() {
         let spec = PatternSpec::new(
-            Family::Hadamard { ordering: HadamardOrdering::Natural },
+            Family::Hadamard {
+                ordering: HadamardOrdering::Natural,
+            },
             16,
             16,
             512,
@@ -606,7 +770,11 @@ mod tests {
         )
         .unwrap();
         let buckets = vec![1.0; 512];
-        let problem = Problem { spec: &spec, channels: 1, rows: 512 };
+        let problem = Problem {
+            spec: &spec,
+            channels: 1,
+            rows: 512,
+        };
         let control = Control::new();
         let mut src = CancelAfter {
             inner: SliceSource::new(&buckets, 1, 64),
@@ -614,6 +782,9 @@ mod tests {
             after: 2,
             seen: 0,
         };
-        assert!(matches!(run(&problem, &MethodConfig::Direct, &mut src, &control), Err(ReconError::Cancelled)));
+        assert!(matches!(
+            run(&problem, &MethodConfig::Direct, &mut src, &control),
+            Err(ReconError::Cancelled)
+        ));
     }
 }

@@ -29,7 +29,10 @@ pub fn fwht(data: &mut [f64]) {
     if n <= 1 {
         return;
     }
-    assert!(n.is_power_of_two(), "fwht needs a power-of-two length, got {n}");
+    assert!(
+        n.is_power_of_two(),
+        "fwht needs a power-of-two length, got {n}"
+    );
     if n <= BLOCK {
         fwht_small(data);
         return;
@@ -116,7 +119,9 @@ fn butterfly2_wide(a: &mut [f64], b: &mut [f64]) {
 
 fn radix2(a: &mut [f64], b: &mut [f64], parallel: bool) {
     if parallel && a.len() > TASK {
-        a.par_chunks_mut(TASK).zip(b.par_chunks_mut(TASK)).for_each(|(a, b)| butterfly2_wide(a, b));
+        a.par_chunks_mut(TASK)
+            .zip(b.par_chunks_mut(TASK))
+            .for_each(|(a, b)| butterfly2_wide(a, b));
     } else {
         butterfly2_wide(a, b);
     }
@@ -142,7 +147,17 @@ mod tests {
     fn dense(x: &[f64]) -> Vec<f64> {
         let n = x.len();
         (0..n)
-            .map(|i| (0..n).map(|j| if (i & j).count_ones() % 2 == 0 { x[j] } else { -x[j] }).sum())
+            .map(|i| {
+                (0..n)
+                    .map(|j| {
+                        if (i & j).count_ones() % 2 == 0 {
+                            x[j]
+                        } else {
+                            -x[j]
+                        }
+                    })
+                    .sum()
+            })
             .collect()
     }
 
@@ -152,7 +167,10 @@ mod tests {
     }
 
     fn max_abs_diff(a: &[f64], b: &[f64]) -> f64 {
-        a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f64::max)
+        a.iter()
+            .zip(b)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0, f64::max)
     }
 
     #[test]
@@ -194,7 +212,11 @@ mod tests {
         x[row] = 1.0;
         fwht(&mut x);
         for (j, v) in x.iter().enumerate() {
-            let want = if (row & j).count_ones() % 2 == 0 { 1.0 } else { -1.0 };
+            let want = if (row & j).count_ones() % 2 == 0 {
+                1.0
+            } else {
+                -1.0
+            };
             assert_eq!(*v, want);
         }
     }

@@ -970,13 +970,7 @@ fn unsolvable_requests_say_why() {
             EXACT.to_vec(),
             "direct needs the complete Hadamard set",
         ),
-        (
-            &hd,
-            1,
-            1,
-            COMPRESSIVE.to_vec(),
-            "at least one P+/P- pair",
-        ),
+        (&hd, 1, 1, COMPRESSIVE.to_vec(), "at least one P+/P- pair"),
         // The source ends early.
         (
             &b,

@@ -76,9 +76,17 @@ pub fn split(rows: usize, fraction: f64) -> Result<Split, String> {
         ));
     }
     if train.len() < MIN_HELD_OUT {
-        return Err(format!("{rows} rows leave only {} to fit after holding out {}", train.len(), test.len()));
+        return Err(format!(
+            "{rows} rows leave only {} to fit after holding out {}",
+            train.len(),
+            test.len()
+        ));
     }
-    Ok(Split { fraction, train, test })
+    Ok(Split {
+        fraction,
+        train,
+        test,
+    })
 }
 
 /// Rows `0..rows` split so that the held-out rows are the LAST `fraction` of them (at least
@@ -90,10 +98,16 @@ pub fn split(rows: usize, fraction: f64) -> Result<Split, String> {
 pub fn tail(rows: usize, fraction: f64) -> Result<Split, String> {
     let test_len = ((rows as f64 * fraction).round() as usize).max(MIN_HELD_OUT);
     if test_len + MIN_HELD_OUT > rows {
-        return Err(format!("{rows} rows cannot hold out the last {test_len} and still leave {MIN_HELD_OUT} to fit"));
+        return Err(format!(
+            "{rows} rows cannot hold out the last {test_len} and still leave {MIN_HELD_OUT} to fit"
+        ));
     }
     let cut = rows - test_len;
-    Ok(Split { fraction: test_len as f64 / rows as f64, train: (0..cut).collect(), test: (cut..rows).collect() })
+    Ok(Split {
+        fraction: test_len as f64 / rows as f64,
+        train: (0..cut).collect(),
+        test: (cut..rows).collect(),
+    })
 }
 
 /// Accumulates `||c - c_hat||^2` and the centred `||c - mean(c)||^2` over held-out rows, per
@@ -160,7 +174,9 @@ impl Score {
             }
         };
         let channels = self.residual2.len();
-        let per_channel = (0..channels).map(|ch| ratio(self.residual2[ch], self.spread2(ch))).collect();
+        let per_channel = (0..channels)
+            .map(|ch| ratio(self.residual2[ch], self.spread2(ch)))
+            .collect();
         let num: f64 = self.residual2.iter().sum();
         let den: f64 = (0..channels).map(|ch| self.spread2(ch)).sum();
         HeldOut {
@@ -214,7 +230,14 @@ mod tests {
         assert!(all.iter().enumerate().all(|(i, &v)| i == v));
         // A prefix of the rows holds out the same rows (a grown session keeps its held-out rows).
         let prefix = split(5_000, 0.1).unwrap();
-        assert_eq!(prefix.test, s.test.iter().copied().filter(|&i| i < 5_000).collect::<Vec<_>>());
+        assert_eq!(
+            prefix.test,
+            s.test
+                .iter()
+                .copied()
+                .filter(|&i| i < 5_000)
+                .collect::<Vec<_>>()
+        );
         // Unrelated to parity (Hadamard frames come in pairs; orderings have structure).
         let odd = s.test.iter().filter(|&&i| i % 2 == 1).count() as f64 / s.test.len() as f64;
         assert!((odd - 0.5).abs() < 0.05, "odd share {odd}");

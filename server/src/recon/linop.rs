@@ -49,7 +49,11 @@ pub struct DenseOperator {
 
 impl DenseOperator {
     pub fn new(rows: usize, cols: usize, data: Vec<f64>) -> Self {
-        assert_eq!(data.len(), rows * cols, "dense operator needs rows * cols values");
+        assert_eq!(
+            data.len(),
+            rows * cols,
+            "dense operator needs rows * cols values"
+        );
         DenseOperator { rows, cols, data }
     }
 
@@ -67,7 +71,11 @@ impl DenseOperator {
                 data[i * n + j] = col[i];
             }
         }
-        DenseOperator { rows: m, cols: n, data }
+        DenseOperator {
+            rows: m,
+            cols: n,
+            data,
+        }
     }
 
     pub fn data(&self) -> &[f64] {
@@ -154,7 +162,11 @@ pub fn adjoint_mismatch(op: &dyn LinearOperator, seed: u64) -> f64 {
     op.adjoint(&y, &mut aty);
     let (l, r) = (dot(&ax, &y), dot(&x, &aty));
     let scale = l.abs() + r.abs();
-    if scale == 0.0 { 0.0 } else { (l - r).abs() / scale }
+    if scale == 0.0 {
+        0.0
+    } else {
+        (l - r).abs() / scale
+    }
 }
 
 /// Estimates the largest singular value `||A||_2` by power iteration on `A^T A` (the step size

@@ -25,15 +25,28 @@ pub enum MethodConfig {
     Levels { level: Option<u32> },
     /// Compressed sensing: `min 1/2 ||A t - c||^2 + lambda ||Psi t||_1`, `t >= 0`, Psi an orthonormal
     /// transform; `lambda` is a fraction of lambda_max (scale-free).
-    Cs { transform: TransformKind, lambda: f64, max_iter: usize, fit: Fit },
+    Cs {
+        transform: TransformKind,
+        lambda: f64,
+        max_iter: usize,
+        fit: Fit,
+    },
     /// `min 1/2 ||A t - c||^2 + lambda TV(t)`, `t >= 0`; `lambda` a fraction of lambda_max.
-    Tv { lambda: f64, max_iter: usize, fit: Fit },
+    Tv {
+        lambda: f64,
+        max_iter: usize,
+        fit: Fit,
+    },
     /// Least squares / Tikhonov `min ||A t - c||^2 + mu ||t||^2` by CGLS (unconstrained).
     Lsq { mu: f64, max_iter: usize, fit: Fit },
     /// The data choose the model: each candidate regulariser along a warm-started lambda path,
     /// fitted without the held-out rows and scored on them; the winner (and the resolution the
     /// rows support) is refitted on all rows.
-    Auto { models: Vec<Model>, max_iter: usize, fit: Fit },
+    Auto {
+        models: Vec<Model>,
+        max_iter: usize,
+        fit: Fit,
+    },
 }
 
 /// A regulariser `auto` can choose.
@@ -61,7 +74,11 @@ impl Model {
             Model::L1(_) => "nonzero wavelet coefficients",
         }
     }
-    pub const DEFAULT: [Model; 3] = [Model::Tv, Model::L1(TransformKind::Db4), Model::L1(TransformKind::Dct)];
+    pub const DEFAULT: [Model; 3] = [
+        Model::Tv,
+        Model::L1(TransformKind::Db4),
+        Model::L1(TransformKind::Dct),
+    ];
 }
 
 /// The data term and the hold-out shared by the iterative methods.
@@ -78,7 +95,11 @@ pub struct Fit {
 
 impl Default for Fit {
     fn default() -> Self {
-        Fit { holdout: None, noise: Noise::Gaussian, offset: None }
+        Fit {
+            holdout: None,
+            noise: Noise::Gaussian,
+            offset: None,
+        }
     }
 }
 
@@ -92,7 +113,8 @@ impl Fit {
     /// against their mean `k/2`), which costs accuracy when there is no offset (measured: 41
     /// rows of a 64x64 scene, the fit's raw residual rises from 6e-4 to 0.6).
     pub fn fits_offset(&self, family: &Family) -> bool {
-        matches!(family, Family::Bernoulli { .. } | Family::Speckle { .. }) && self.offset.unwrap_or(false)
+        matches!(family, Family::Bernoulli { .. } | Family::Speckle { .. })
+            && self.offset.unwrap_or(false)
     }
 }
 
@@ -114,7 +136,18 @@ pub struct ParamError {
     pub message: String,
 }
 
-pub const METHODS: [&str; 10] = ["gi", "dgi", "ngi", "direct", "zero_filled", "levels", "cs", "tv", "lsq", "auto"];
+pub const METHODS: [&str; 10] = [
+    "gi",
+    "dgi",
+    "ngi",
+    "direct",
+    "zero_filled",
+    "levels",
+    "cs",
+    "tv",
+    "lsq",
+    "auto",
+];
 
 /// Reads optional parameters from a JSON object, refusing unknown keys and naming bad ones.
 struct Params<'a> {
@@ -123,19 +156,34 @@ struct Params<'a> {
 }
 
 impl Params<'_> {
-    fn number(&mut self, key: &str, default: f64, valid: impl Fn(f64) -> bool, rule: &str) -> Result<f64, ParamError> {
+    fn number(
+        &mut self,
+        key: &str,
+        default: f64,
+        valid: impl Fn(f64) -> bool,
+        rule: &str,
+    ) -> Result<f64, ParamError> {
         match self.map.remove(key) {
             None | Some(Value::Null) => Ok(default),
             Some(Value::Number(n)) => {
                 let v = n.as_f64().unwrap_or(f64::NAN);
-                if v.is_finite() && valid(v) { Ok(v) } else { Err(bad(key, format!("must be {rule}, got {v}"))) }
+                if v.is_finite() && valid(v) {
+                    Ok(v)
+                } else {
+                    Err(bad(key, format!("must be {rule}, got {v}")))
+                }
             }
             Some(other) => Err(bad(key, format!("must be a number ({rule}), got {other}"))),
         }
     }
 
     fn iterations(&mut self, default: usize) -> Result<usize, ParamError> {
-        let v = self.number("max_iter", default as f64, |v| v.fract() == 0.0 && (1.0..=100_000.0).contains(&v), "an integer in 1..=100000")?;
+        let v = self.number(
+            "max_iter",
+            default as f64,
+            |v| v.fract() == 0.0 && (1.0..=100_000.0).contains(&v),
+            "an integer in 1..=100000",
+        )?;
         Ok(v as usize)
     }
 
@@ -145,7 +193,12 @@ impl Params<'_> {
             Some(Value::String(name)) => TransformKind::ALL
                 .into_iter()
                 .find(|k| k.name() == name)
-                .ok_or_else(|| bad("transform", format!("unknown transform {name:?}; known: {}", transform_names()))),
+                .ok_or_else(|| {
+                    bad(
+                        "transform",
+                        format!("unknown transform {name:?}; known: {}", transform_names()),
+                    )
+                }),
             Some(other) => Err(bad("transform", format!("must be a string, got {other}"))),
         }
     }
@@ -156,76 +209,145 @@ impl Params<'_> {
                 self.map.remove("holdout");
                 None
             }
-            Some(_) => Some(self.number("holdout", 0.0, |v| (0.02..=0.5).contains(&v), "a fraction in [0.02, 0.5]")?),
+            Some(_) => Some(self.number(
+                "holdout",
+                0.0,
+                |v| (0.02..=0.5).contains(&v),
+                "a fraction in [0.02, 0.5]",
+            )?),
         };
         let noise = match self.map.remove("noise") {
             None | Some(Value::Null) => "gaussian".to_string(),
             Some(Value::String(s)) => s,
-            Some(other) => return Err(bad("noise", format!("must be \"gaussian\" or \"poisson\", got {other}"))),
+            Some(other) => {
+                return Err(bad(
+                    "noise",
+                    format!("must be \"gaussian\" or \"poisson\", got {other}"),
+                ));
+            }
         };
         let noise = match noise.as_str() {
             "gaussian" => {
                 if self.map.contains_key("photon") {
-                    return Err(bad("photon", "applies only with \"noise\": \"poisson\"".into()));
+                    return Err(bad(
+                        "photon",
+                        "applies only with \"noise\": \"poisson\"".into(),
+                    ));
                 }
                 Noise::Gaussian
             }
             "poisson" => Noise::Poisson {
-                photon: self.number("photon", 1.0, |v| v > 0.0, "the bucket value of one photon, > 0")?,
+                photon: self.number(
+                    "photon",
+                    1.0,
+                    |v| v > 0.0,
+                    "the bucket value of one photon, > 0",
+                )?,
             },
-            other => return Err(bad("noise", format!("unknown noise {other:?}; known: gaussian, poisson"))),
+            other => {
+                return Err(bad(
+                    "noise",
+                    format!("unknown noise {other:?}; known: gaussian, poisson"),
+                ));
+            }
         };
         let offset = match self.map.remove("offset") {
             None | Some(Value::Null) => None,
             Some(Value::String(s)) if s == "fit" => Some(true),
             Some(Value::String(s)) if s == "none" => Some(false),
-            Some(other) => return Err(bad("offset", format!("must be \"fit\" (an unknown dark level added to every bucket) or \"none\", got {other}"))),
+            Some(other) => {
+                return Err(bad(
+                    "offset",
+                    format!(
+                        "must be \"fit\" (an unknown dark level added to every bucket) or \"none\", got {other}"
+                    ),
+                ));
+            }
         };
-        Ok(Fit { holdout, noise, offset })
+        Ok(Fit {
+            holdout,
+            noise,
+            offset,
+        })
     }
 
     fn models(&mut self) -> Result<Vec<Model>, ParamError> {
         let known = || {
-            std::iter::once("tv").chain(TransformKind::ALL.iter().map(|k| k.name())).collect::<Vec<_>>().join(", ")
+            std::iter::once("tv")
+                .chain(TransformKind::ALL.iter().map(|k| k.name()))
+                .collect::<Vec<_>>()
+                .join(", ")
         };
         match self.map.remove("models") {
             None | Some(Value::Null) => Ok(Model::DEFAULT.to_vec()),
             Some(Value::Array(items)) if !items.is_empty() => {
                 let mut out = Vec::new();
                 for (i, item) in items.iter().enumerate() {
-                    let name = item.as_str().ok_or_else(|| bad(&format!("models[{i}]"), format!("must be a string, got {item}")))?;
+                    let name = item.as_str().ok_or_else(|| {
+                        bad(
+                            &format!("models[{i}]"),
+                            format!("must be a string, got {item}"),
+                        )
+                    })?;
                     let model = if name == "tv" {
                         Model::Tv
                     } else {
-                        Model::L1(TransformKind::ALL.into_iter().find(|k| k.name() == name).ok_or_else(|| {
-                            bad(&format!("models[{i}]"), format!("unknown model {name:?}; known: {}", known()))
-                        })?)
+                        Model::L1(
+                            TransformKind::ALL
+                                .into_iter()
+                                .find(|k| k.name() == name)
+                                .ok_or_else(|| {
+                                    bad(
+                                        &format!("models[{i}]"),
+                                        format!("unknown model {name:?}; known: {}", known()),
+                                    )
+                                })?,
+                        )
                     };
                     if out.contains(&model) {
-                        return Err(bad(&format!("models[{i}]"), format!("{name:?} is listed twice")));
+                        return Err(bad(
+                            &format!("models[{i}]"),
+                            format!("{name:?} is listed twice"),
+                        ));
                     }
                     out.push(model);
                 }
                 Ok(out)
             }
-            Some(other) => Err(bad("models", format!("must be a non-empty array of model names ({}), got {other}", known()))),
+            Some(other) => Err(bad(
+                "models",
+                format!(
+                    "must be a non-empty array of model names ({}), got {other}",
+                    known()
+                ),
+            )),
         }
     }
 
     fn finish(self) -> Result<(), ParamError> {
         match self.map.keys().next() {
-            Some(key) => Err(bad(key, format!("method {} takes no parameter {key:?}", self.method))),
+            Some(key) => Err(bad(
+                key,
+                format!("method {} takes no parameter {key:?}", self.method),
+            )),
             None => Ok(()),
         }
     }
 }
 
 fn bad(key: &str, message: String) -> ParamError {
-    ParamError { field: format!("params.{key}"), message }
+    ParamError {
+        field: format!("params.{key}"),
+        message,
+    }
 }
 
 fn transform_names() -> String {
-    TransformKind::ALL.iter().map(|k| k.name()).collect::<Vec<_>>().join(", ")
+    TransformKind::ALL
+        .iter()
+        .map(|k| k.name())
+        .collect::<Vec<_>>()
+        .join(", ")
 }
 
 impl MethodConfig {
@@ -234,7 +356,12 @@ impl MethodConfig {
         let map = match params {
             Value::Null => serde_json::Map::new(),
             Value::Object(map) => map.clone(),
-            _ => return Err(ParamError { field: "params".into(), message: "must be a JSON object".into() }),
+            _ => {
+                return Err(ParamError {
+                    field: "params".into(),
+                    message: "must be a JSON object".into(),
+                });
+            }
         };
         let mut p = Params { method: name, map };
         let config = match name {
@@ -246,17 +373,32 @@ impl MethodConfig {
             "levels" => MethodConfig::Levels {
                 level: match p.map.contains_key("level") {
                     false => None,
-                    true => Some(p.number("level", 0.0, |v| v.fract() == 0.0 && (0.0..=12.0).contains(&v), "an integer level j in 0..=12 (2^j x 2^j blocks)")? as u32),
+                    true => Some(p.number(
+                        "level",
+                        0.0,
+                        |v| v.fract() == 0.0 && (0.0..=12.0).contains(&v),
+                        "an integer level j in 0..=12 (2^j x 2^j blocks)",
+                    )? as u32),
                 },
             },
             "cs" => MethodConfig::Cs {
                 transform: p.transform(TransformKind::Db4)?,
-                lambda: p.number("lambda", 3e-4, |v| v > 0.0 && v <= 1.0, "a fraction of lambda_max in (0, 1]")?,
+                lambda: p.number(
+                    "lambda",
+                    3e-4,
+                    |v| v > 0.0 && v <= 1.0,
+                    "a fraction of lambda_max in (0, 1]",
+                )?,
                 max_iter: p.iterations(300)?,
                 fit: p.fit()?,
             },
             "tv" => MethodConfig::Tv {
-                lambda: p.number("lambda", 1e-3, |v| v > 0.0 && v <= 1.0, "a fraction of lambda_max in (0, 1]")?,
+                lambda: p.number(
+                    "lambda",
+                    1e-3,
+                    |v| v > 0.0 && v <= 1.0,
+                    "a fraction of lambda_max in (0, 1]",
+                )?,
                 max_iter: p.iterations(200)?,
                 fit: p.fit()?,
             },
@@ -265,7 +407,11 @@ impl MethodConfig {
                 max_iter: p.iterations(200)?,
                 fit: p.fit()?,
             },
-            "auto" => MethodConfig::Auto { models: p.models()?, max_iter: p.iterations(300)?, fit: p.fit()? },
+            "auto" => MethodConfig::Auto {
+                models: p.models()?,
+                max_iter: p.iterations(300)?,
+                fit: p.fit()?,
+            },
             other => {
                 return Err(ParamError {
                     field: "method".into(),
@@ -295,12 +441,21 @@ impl MethodConfig {
     /// The parameters in canonical form (defaults filled in), as stored and reported.
     pub fn params_json(&self) -> Value {
         let mut v = match self {
-            MethodConfig::Cs { transform, lambda, max_iter, .. } => {
+            MethodConfig::Cs {
+                transform,
+                lambda,
+                max_iter,
+                ..
+            } => {
                 json!({"transform": transform.name(), "lambda": lambda, "max_iter": max_iter})
             }
-            MethodConfig::Tv { lambda, max_iter, .. } => json!({"lambda": lambda, "max_iter": max_iter}),
+            MethodConfig::Tv {
+                lambda, max_iter, ..
+            } => json!({"lambda": lambda, "max_iter": max_iter}),
             MethodConfig::Lsq { mu, max_iter, .. } => json!({"mu": mu, "max_iter": max_iter}),
-            MethodConfig::Auto { models, max_iter, .. } => {
+            MethodConfig::Auto {
+                models, max_iter, ..
+            } => {
                 json!({"models": models.iter().map(|m| m.name()).collect::<Vec<_>>(), "max_iter": max_iter})
             }
             MethodConfig::Levels { level: Some(level) } => json!({ "level": level }),
@@ -327,7 +482,10 @@ impl MethodConfig {
     /// The data term and hold-out of an iterative method.
     pub fn fit(&self) -> Option<Fit> {
         match self {
-            MethodConfig::Cs { fit, .. } | MethodConfig::Tv { fit, .. } | MethodConfig::Lsq { fit, .. } | MethodConfig::Auto { fit, .. } => Some(*fit),
+            MethodConfig::Cs { fit, .. }
+            | MethodConfig::Tv { fit, .. }
+            | MethodConfig::Lsq { fit, .. }
+            | MethodConfig::Auto { fit, .. } => Some(*fit),
             _ => None,
         }
     }
@@ -335,7 +493,9 @@ impl MethodConfig {
     /// Whether this method can run on `problem` at all; the error says why not.
     pub fn check(&self, problem: &Problem) -> Result<(), ReconError> {
         if problem.rows == 0 {
-            return Err(ReconError::Unsolvable("the session has no committed rows yet".into()));
+            return Err(ReconError::Unsolvable(
+                "the session has no committed rows yet".into(),
+            ));
         }
         if problem.rows > problem.spec.count() {
             return Err(ReconError::Unsolvable(format!(
@@ -345,7 +505,11 @@ impl MethodConfig {
             )));
         }
         let hadamard = matches!(problem.spec.family(), Family::Hadamard { .. });
-        if let Some(Fit { noise: Noise::Poisson { .. }, .. }) = self.fit() {
+        if let Some(Fit {
+            noise: Noise::Poisson { .. },
+            ..
+        }) = self.fit()
+        {
             if hadamard {
                 return Err(ReconError::Unsolvable(
                     "noise \"poisson\" does not apply to Hadamard split pairs: the difference y+ - y- of two \
@@ -360,7 +524,12 @@ impl MethodConfig {
                 ));
             }
         }
-        if let Some(Fit { offset: Some(true), noise, .. }) = self.fit() {
+        if let Some(Fit {
+            offset: Some(true),
+            noise,
+            ..
+        }) = self.fit()
+        {
             match problem.spec.family() {
                 Family::Raster { .. } => {
                     return Err(ReconError::Unsolvable(
@@ -390,7 +559,12 @@ impl MethodConfig {
             )));
         }
         if let MethodConfig::Levels { .. } = self
-            && !matches!(problem.spec.family(), Family::Hadamard { ordering: helmholtz_proto::HadamardOrdering::RussianDoll })
+            && !matches!(
+                problem.spec.family(),
+                Family::Hadamard {
+                    ordering: helmholtz_proto::HadamardOrdering::RussianDoll
+                }
+            )
         {
             return Err(ReconError::Unsolvable(
                 "levels needs the russian_doll ordering (complete 4^j levels of block-constant Walsh functions); \
@@ -439,40 +613,150 @@ mod tests {
 
     #[test]
     fn parse_names_the_bad_field() {
-        assert_eq!(MethodConfig::parse("dgi", &json!({})).unwrap(), MethodConfig::Dgi);
-        assert_eq!(MethodConfig::parse("gi", &Value::Null).unwrap(), MethodConfig::Gi);
-        assert_eq!(MethodConfig::parse("magic", &json!({})).unwrap_err().field, "method");
-        assert_eq!(MethodConfig::parse("gi", &json!({"lambda": 1})).unwrap_err().field, "params.lambda");
-        assert_eq!(MethodConfig::parse("gi", &json!([1])).unwrap_err().field, "params");
+        assert_eq!(
+            MethodConfig::parse("dgi", &json!({})).unwrap(),
+            MethodConfig::Dgi
+        );
+        assert_eq!(
+            MethodConfig::parse("gi", &Value::Null).unwrap(),
+            MethodConfig::Gi
+        );
+        assert_eq!(
+            MethodConfig::parse("magic", &json!({})).unwrap_err().field,
+            "method"
+        );
+        assert_eq!(
+            MethodConfig::parse("gi", &json!({"lambda": 1}))
+                .unwrap_err()
+                .field,
+            "params.lambda"
+        );
+        assert_eq!(
+            MethodConfig::parse("gi", &json!([1])).unwrap_err().field,
+            "params"
+        );
         let cs = MethodConfig::parse("cs", &json!({"transform": "haar", "lambda": 0.01})).unwrap();
-        assert_eq!(cs, MethodConfig::Cs { transform: TransformKind::Haar, lambda: 0.01, max_iter: 300, fit: Fit::default() });
-        assert_eq!(MethodConfig::parse(cs.name(), &cs.params_json()).unwrap(), cs, "canonical params round-trip");
-        assert_eq!(MethodConfig::parse("cs", &json!({"transform": "fourier"})).unwrap_err().field, "params.transform");
-        assert_eq!(MethodConfig::parse("tv", &json!({"lambda": -1})).unwrap_err().field, "params.lambda");
-        assert_eq!(MethodConfig::parse("tv", &json!({"max_iter": 2.5})).unwrap_err().field, "params.max_iter");
-        assert_eq!(MethodConfig::parse("lsq", &json!({"mu": "big"})).unwrap_err().field, "params.mu");
-        assert_eq!(MethodConfig::parse("tv", &json!({"holdout": 0.9})).unwrap_err().field, "params.holdout");
-        assert_eq!(MethodConfig::parse("tv", &json!({"noise": "cauchy"})).unwrap_err().field, "params.noise");
-        assert_eq!(MethodConfig::parse("tv", &json!({"photon": 2})).unwrap_err().field, "params.photon");
-        assert_eq!(MethodConfig::parse("cs", &json!({"noise": "poisson", "photon": 0})).unwrap_err().field, "params.photon");
-        assert_eq!(MethodConfig::parse("auto", &json!({"models": ["tv", "wavelet"]})).unwrap_err().field, "params.models[1]");
-        assert_eq!(MethodConfig::parse("auto", &json!({"models": ["tv", "tv"]})).unwrap_err().field, "params.models[1]");
-        assert_eq!(MethodConfig::parse("auto", &json!({"models": []})).unwrap_err().field, "params.models");
-        assert_eq!(MethodConfig::parse("levels", &json!({"level": 1.5})).unwrap_err().field, "params.level");
-        assert_eq!(MethodConfig::parse("tv", &json!({"offset": "maybe"})).unwrap_err().field, "params.offset");
+        assert_eq!(
+            cs,
+            MethodConfig::Cs {
+                transform: TransformKind::Haar,
+                lambda: 0.01,
+                max_iter: 300,
+                fit: Fit::default()
+            }
+        );
+        assert_eq!(
+            MethodConfig::parse(cs.name(), &cs.params_json()).unwrap(),
+            cs,
+            "canonical params round-trip"
+        );
+        assert_eq!(
+            MethodConfig::parse("cs", &json!({"transform": "fourier"}))
+                .unwrap_err()
+                .field,
+            "params.transform"
+        );
+        assert_eq!(
+            MethodConfig::parse("tv", &json!({"lambda": -1}))
+                .unwrap_err()
+                .field,
+            "params.lambda"
+        );
+        assert_eq!(
+            MethodConfig::parse("tv", &json!({"max_iter": 2.5}))
+                .unwrap_err()
+                .field,
+            "params.max_iter"
+        );
+        assert_eq!(
+            MethodConfig::parse("lsq", &json!({"mu": "big"}))
+                .unwrap_err()
+                .field,
+            "params.mu"
+        );
+        assert_eq!(
+            MethodConfig::parse("tv", &json!({"holdout": 0.9}))
+                .unwrap_err()
+                .field,
+            "params.holdout"
+        );
+        assert_eq!(
+            MethodConfig::parse("tv", &json!({"noise": "cauchy"}))
+                .unwrap_err()
+                .field,
+            "params.noise"
+        );
+        assert_eq!(
+            MethodConfig::parse("tv", &json!({"photon": 2}))
+                .unwrap_err()
+                .field,
+            "params.photon"
+        );
+        assert_eq!(
+            MethodConfig::parse("cs", &json!({"noise": "poisson", "photon": 0}))
+                .unwrap_err()
+                .field,
+            "params.photon"
+        );
+        assert_eq!(
+            MethodConfig::parse("auto", &json!({"models": ["tv", "wavelet"]}))
+                .unwrap_err()
+                .field,
+            "params.models[1]"
+        );
+        assert_eq!(
+            MethodConfig::parse("auto", &json!({"models": ["tv", "tv"]}))
+                .unwrap_err()
+                .field,
+            "params.models[1]"
+        );
+        assert_eq!(
+            MethodConfig::parse("auto", &json!({"models": []}))
+                .unwrap_err()
+                .field,
+            "params.models"
+        );
+        assert_eq!(
+            MethodConfig::parse("levels", &json!({"level": 1.5}))
+                .unwrap_err()
+                .field,
+            "params.level"
+        );
+        assert_eq!(
+            MethodConfig::parse("tv", &json!({"offset": "maybe"}))
+                .unwrap_err()
+                .field,
+            "params.offset"
+        );
         let tv = MethodConfig::parse("tv", &json!({"offset": "none"})).unwrap();
         assert_eq!(MethodConfig::parse("tv", &tv.params_json()).unwrap(), tv);
-        let auto = MethodConfig::parse("auto", &json!({"models": ["haar", "tv"], "noise": "poisson", "photon": 3.5})).unwrap();
+        let auto = MethodConfig::parse(
+            "auto",
+            &json!({"models": ["haar", "tv"], "noise": "poisson", "photon": 3.5}),
+        )
+        .unwrap();
         assert_eq!(
             auto,
             MethodConfig::Auto {
                 models: vec![Model::L1(TransformKind::Haar), Model::Tv],
                 max_iter: 300,
-                fit: Fit { holdout: None, noise: Noise::Poisson { photon: 3.5 }, offset: None }
+                fit: Fit {
+                    holdout: None,
+                    noise: Noise::Poisson { photon: 3.5 },
+                    offset: None
+                }
             }
         );
-        for m in [auto, MethodConfig::Levels { level: Some(3) }, MethodConfig::parse("lsq", &json!({"holdout": 0.2})).unwrap()] {
-            assert_eq!(MethodConfig::parse(m.name(), &m.params_json()).unwrap(), m, "canonical params round-trip");
+        for m in [
+            auto,
+            MethodConfig::Levels { level: Some(3) },
+            MethodConfig::parse("lsq", &json!({"holdout": 0.2})).unwrap(),
+        ] {
+            assert_eq!(
+                MethodConfig::parse(m.name(), &m.params_json()).unwrap(),
+                m,
+                "canonical params round-trip"
+            );
         }
     }
 }

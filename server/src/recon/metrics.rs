@@ -8,9 +8,11 @@
 /// The data range of `truth`: `max - min`, or `max |truth|` when the image is constant, or 1 when
 /// it is all zero (so the figures stay finite).
 fn data_range(truth: &[f32]) -> f64 {
-    let (lo, hi) = truth.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &v| {
-        (lo.min(v as f64), hi.max(v as f64))
-    });
+    let (lo, hi) = truth
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), &v| {
+            (lo.min(v as f64), hi.max(v as f64))
+        });
     let range = hi - lo;
     if range > 0.0 {
         return range;
@@ -20,7 +22,11 @@ fn data_range(truth: &[f32]) -> f64 {
 }
 
 fn check_lengths(estimate: &[f32], truth: &[f32]) {
-    assert_eq!(estimate.len(), truth.len(), "estimate and truth differ in length");
+    assert_eq!(
+        estimate.len(),
+        truth.len(),
+        "estimate and truth differ in length"
+    );
     assert!(!truth.is_empty(), "empty image");
 }
 
@@ -172,7 +178,11 @@ pub fn pearson(estimate: &[f32], truth: &[f32]) -> f64 {
         see += de * de;
         stt += dt * dt;
     }
-    if see == 0.0 || stt == 0.0 { 0.0 } else { set / (see * stt).sqrt() }
+    if see == 0.0 || stt == 0.0 {
+        0.0
+    } else {
+        set / (see * stt).sqrt()
+    }
 }
 
 #[cfg(test)]
@@ -182,7 +192,9 @@ mod tests {
 
     fn ramp(w: usize, h: usize) -> Vec<f32> {
         // t(x, y) = x / (w - 1): linear in x, constant in y.
-        (0..h).flat_map(|_| (0..w).map(move |x| x as f32 / (w - 1) as f32)).collect()
+        (0..h)
+            .flat_map(|_| (0..w).map(move |x| x as f32 / (w - 1) as f32))
+            .collect()
     }
 
     #[test]
@@ -219,9 +231,12 @@ mod tests {
         let (w, h) = (32usize, 16usize);
         let t = ramp(w, h);
         let g = gaussian(11);
-        let s2: f64 =
-            g.iter().enumerate().map(|(i, gi)| gi * (i as f64 - 5.0).powi(2)).sum::<f64>()
-                / ((w - 1) as f64).powi(2);
+        let s2: f64 = g
+            .iter()
+            .enumerate()
+            .map(|(i, gi)| gi * (i as f64 - 5.0).powi(2))
+            .sum::<f64>()
+            / ((w - 1) as f64).powi(2);
         let (c1, c2) = (1e-4, 9e-4); // L = 1
         let centres: Vec<f64> = (5..w - 5).map(|x| x as f64 / (w - 1) as f64).collect();
         let rows = (h - 10) as f64;
@@ -256,7 +271,10 @@ mod tests {
         let mut last = 1.0;
         for sigma in [0.01, 0.05, 0.2] {
             let mut rng = Rng::new(11);
-            let e: Vec<f32> = t.iter().map(|v| v + (sigma * rng.normal()) as f32).collect();
+            let e: Vec<f32> = t
+                .iter()
+                .map(|v| v + (sigma * rng.normal()) as f32)
+                .collect();
             let s = ssim(&e, &t, w, h);
             assert!(s < last - 1e-3, "sigma {sigma}: ssim {s} not below {last}");
             last = s;
@@ -269,7 +287,10 @@ mod tests {
         let t = [0.0f32, 1.0, 5.0, 2.0, 7.0];
         let e: Vec<f32> = t.iter().map(|v| 2.0 * v + 3.0).collect();
         let (a, b) = fit_affine(&e, &t);
-        assert!((a - 0.5).abs() < 1e-12 && (b + 1.5).abs() < 1e-12, "({a}, {b})");
+        assert!(
+            (a - 0.5).abs() < 1e-12 && (b + 1.5).abs() < 1e-12,
+            "({a}, {b})"
+        );
         let (a, b) = fit_affine(&[4.0; 5], &t);
         assert_eq!(a, 0.0);
         assert!((b - 3.0).abs() < 1e-12);

@@ -20,21 +20,21 @@ pub mod compressive;
 pub mod correlate;
 pub mod direct;
 pub mod fwht;
-pub mod holdout;
-pub mod linop;
-pub mod ops;
-pub mod photometric;
-pub mod solve;
-pub mod transport;
-pub mod transforms;
-pub mod method;
-pub mod metrics;
-pub(crate) mod simd;
-mod stream;
 #[cfg(test)]
 mod hard_cases;
+pub mod holdout;
+pub mod linop;
+pub mod method;
+pub mod metrics;
+pub mod ops;
+pub mod photometric;
+pub(crate) mod simd;
+pub mod solve;
+mod stream;
 #[cfg(test)]
 mod testutil;
+pub mod transforms;
+pub mod transport;
 
 pub use method::{MethodConfig, ParamError};
 
@@ -66,7 +66,12 @@ pub struct SliceSource<'a> {
 impl<'a> SliceSource<'a> {
     pub fn new(values: &'a [f64], channels: usize, block_rows: usize) -> Self {
         assert!(channels > 0 && block_rows > 0 && values.len().is_multiple_of(channels));
-        SliceSource { values, channels, block_rows, next_row: 0 }
+        SliceSource {
+            values,
+            channels,
+            block_rows,
+            next_row: 0,
+        }
     }
 }
 
@@ -106,7 +111,8 @@ impl Control {
         if fraction.is_nan() {
             return;
         }
-        self.progress_bits.fetch_max(fraction.clamp(0.0, 1.0).to_bits(), Ordering::Relaxed);
+        self.progress_bits
+            .fetch_max(fraction.clamp(0.0, 1.0).to_bits(), Ordering::Relaxed);
     }
     pub fn progress(&self) -> f64 {
         f64::from_bits(self.progress_bits.load(Ordering::Relaxed))
@@ -207,9 +213,10 @@ pub fn reconstruct(
             );
             Ok(r)
         }
-        MethodConfig::Cs { .. } | MethodConfig::Tv { .. } | MethodConfig::Lsq { .. } | MethodConfig::Auto { .. } => {
-            compressive::run(problem, config, source, control)
-        }
+        MethodConfig::Cs { .. }
+        | MethodConfig::Tv { .. }
+        | MethodConfig::Lsq { .. }
+        | MethodConfig::Auto { .. } => compressive::run(problem, config, source, control),
     }
 }
 
@@ -221,7 +228,15 @@ mod control_tests {
     fn progress_never_goes_back() {
         let c = Control::new();
         assert_eq!(c.progress(), 0.0);
-        for (report, seen) in [(0.5, 0.5), (0.3, 0.5), (0.7, 0.7), (f64::NAN, 0.7), (-1.0, 0.7), (2.0, 1.0), (0.9, 1.0)] {
+        for (report, seen) in [
+            (0.5, 0.5),
+            (0.3, 0.5),
+            (0.7, 0.7),
+            (f64::NAN, 0.7),
+            (-1.0, 0.7),
+            (2.0, 1.0),
+            (0.9, 1.0),
+        ] {
             c.set_progress(report);
             assert_eq!(c.progress(), seen, "after reporting {report}");
         }
@@ -231,14 +246,27 @@ mod control_tests {
     fn a_watcher_sees_auto_progress_only_grow() {
         // auto's candidates report from three threads at once, and every solve's polish starts
         // its iteration count again: a watcher polling the job must still see progress grow.
-        let spec = PatternSpec::new(helmholtz_proto::Family::Bernoulli { fill: 0.5 }, 32, 32, 300, 7).unwrap();
+        let spec = PatternSpec::new(
+            helmholtz_proto::Family::Bernoulli { fill: 0.5 },
+            32,
+            32,
+            300,
+            7,
+        )
+        .unwrap();
         let op = ops::measurement_operator(&spec, 300);
-        let t: Vec<f64> = (0..1024).map(|i| ((i % 32) as f64 / 31.0).powi(2)).collect();
+        let t: Vec<f64> = (0..1024)
+            .map(|i| ((i % 32) as f64 / 31.0).powi(2))
+            .collect();
         let mut c = vec![0.0; 300];
         op.apply(&t, &mut c);
         let control = Control::new();
         let config = MethodConfig::parse("auto", &serde_json::json!({})).unwrap();
-        let problem = Problem { spec: &spec, channels: 1, rows: 300 };
+        let problem = Problem {
+            spec: &spec,
+            channels: 1,
+            rows: 300,
+        };
         let done = AtomicBool::new(false);
         let seen = std::thread::scope(|s| {
             let watcher = s.spawn(|| {
@@ -249,7 +277,13 @@ mod control_tests {
                 }
                 seen
             });
-            reconstruct(&problem, &config, &mut SliceSource::new(&c, 1, 100), &control).unwrap();
+            reconstruct(
+                &problem,
+                &config,
+                &mut SliceSource::new(&c, 1, 100),
+                &control,
+            )
+            .unwrap();
             done.store(true, Ordering::Relaxed);
             watcher.join().unwrap()
         });

@@ -93,7 +93,11 @@ pub struct PhotometricOptions {
 
 impl Default for PhotometricOptions {
     fn default() -> Self {
-        PhotometricOptions { shadow_threshold: 0.05, dark_threshold: 0.05, gains: Gains::Auto }
+        PhotometricOptions {
+            shadow_threshold: 0.05,
+            dark_threshold: 0.05,
+            gains: Gains::Auto,
+        }
     }
 }
 
@@ -107,17 +111,30 @@ impl PhotometricOptions {
         let map = match params {
             Value::Null => return Ok(options),
             Value::Object(map) => map,
-            other => return Err(PhotometricError::BadOption { field: "params", message: format!("must be an object, got {other}") }),
+            other => {
+                return Err(PhotometricError::BadOption {
+                    field: "params",
+                    message: format!("must be an object, got {other}"),
+                });
+            }
         };
         for (key, value) in map {
             match key.as_str() {
                 "shadow_threshold" | "dark_threshold" => {
-                    let field = if key == "shadow_threshold" { "shadow_threshold" } else { "dark_threshold" };
+                    let field = if key == "shadow_threshold" {
+                        "shadow_threshold"
+                    } else {
+                        "dark_threshold"
+                    };
                     let v = value.as_f64().ok_or_else(|| PhotometricError::BadOption {
                         field,
                         message: format!("must be a number in [0, 1), got {value}"),
                     })?;
-                    *(if field == "shadow_threshold" { &mut options.shadow_threshold } else { &mut options.dark_threshold }) = v;
+                    *(if field == "shadow_threshold" {
+                        &mut options.shadow_threshold
+                    } else {
+                        &mut options.dark_threshold
+                    }) = v;
                 }
                 "gains" => {
                     options.gains = match value {
@@ -130,7 +147,9 @@ impl PhotometricOptions {
                                 .enumerate()
                                 .map(|(c, v)| {
                                     v.as_f64().ok_or_else(|| {
-                                        PhotometricError::BadGains(format!("gain of channel {c} must be a number, got {v}"))
+                                        PhotometricError::BadGains(format!(
+                                            "gain of channel {c} must be a number, got {v}"
+                                        ))
                                     })
                                 })
                                 .collect::<Result<_, _>>()?,
@@ -145,7 +164,9 @@ impl PhotometricOptions {
                 _ => {
                     return Err(PhotometricError::BadOption {
                         field: "params",
-                        message: format!("unknown parameter {key:?}; known: shadow_threshold, dark_threshold, gains"),
+                        message: format!(
+                            "unknown parameter {key:?}; known: shadow_threshold, dark_threshold, gains"
+                        ),
                     });
                 }
             }
@@ -191,7 +212,11 @@ pub enum PhotometricError {
     #[error("image size {width}x{height} is empty or too large")]
     BadSize { width: u32, height: u32 },
     #[error("channel {channel} has {got} values, expected width x height = {expected}")]
-    SizeMismatch { channel: usize, expected: usize, got: usize },
+    SizeMismatch {
+        channel: usize,
+        expected: usize,
+        got: usize,
+    },
     #[error("{got} directions for {expected} channels (one per channel)")]
     DirectionCount { expected: usize, got: usize },
     #[error("direction of channel {channel} is not a unit vector (norm {norm})")]
@@ -206,7 +231,10 @@ pub enum PhotometricError {
     #[error("gains cannot be estimated: {0}")]
     GainsUndetermined(String),
     #[error("{field}: {message}")]
-    BadOption { field: &'static str, message: String },
+    BadOption {
+        field: &'static str,
+        message: String,
+    },
 }
 
 impl PhotometricError {
@@ -243,14 +271,31 @@ pub fn photometric_stereo(
 
     // The reference brightness for "dark": the 99th percentile of the pixels' brightest channel.
     let brightest = |p: usize| {
-        (0..k).map(|c| images[c][p] as f64 * inv_gain[c]).filter(|v| v.is_finite()).fold(f64::NEG_INFINITY, f64::max)
+        (0..k)
+            .map(|c| images[c][p] as f64 * inv_gain[c])
+            .filter(|v| v.is_finite())
+            .fold(f64::NEG_INFINITY, f64::max)
     };
-    let finite_max: Vec<f64> = (0..pixels).into_par_iter().map(brightest).filter(|v| v.is_finite()).collect();
+    let finite_max: Vec<f64> = (0..pixels)
+        .into_par_iter()
+        .map(brightest)
+        .filter(|v| v.is_finite())
+        .collect();
     let reference = percentile(finite_max, 0.99);
-    let dark_level = if reference > 0.0 { options.dark_threshold * reference } else { f64::INFINITY };
+    let dark_level = if reference > 0.0 {
+        options.dark_threshold * reference
+    } else {
+        f64::INFINITY
+    };
 
     // Blocks of pixels over the rayon threads, each with its own cache of lit-set solvers.
-    let fitter = PixelFitter { images, dirs: &dirs, inv_gain: &inv_gain, shadow_threshold: options.shadow_threshold, dark_level };
+    let fitter = PixelFitter {
+        images,
+        dirs: &dirs,
+        inv_gain: &inv_gain,
+        shadow_threshold: options.shadow_threshold,
+        dark_level,
+    };
     let blocks: Vec<Block> = (0..pixels.div_ceil(BLOCK))
         .into_par_iter()
         .map(|b| fitter.fit(b * BLOCK..((b + 1) * BLOCK).min(pixels)))
@@ -263,7 +308,11 @@ pub fn photometric_stereo(
         residual: Vec::with_capacity(pixels),
         lit: Vec::with_capacity(pixels),
     };
-    let mut counts = Counts { dropped: vec![0; k], by_lit: vec![0; k + 1], ..Counts::default() };
+    let mut counts = Counts {
+        dropped: vec![0; k],
+        by_lit: vec![0; k + 1],
+        ..Counts::default()
+    };
     for block in blocks {
         map.normals.extend(block.normals);
         map.albedo.extend(block.albedo);
@@ -299,8 +348,14 @@ impl Counts {
         self.degenerate += other.degenerate;
         self.facing_away += other.facing_away;
         self.non_finite += other.non_finite;
-        self.dropped.iter_mut().zip(&other.dropped).for_each(|(a, b)| *a += b);
-        self.by_lit.iter_mut().zip(&other.by_lit).for_each(|(a, b)| *a += b);
+        self.dropped
+            .iter_mut()
+            .zip(&other.dropped)
+            .for_each(|(a, b)| *a += b);
+        self.by_lit
+            .iter_mut()
+            .zip(&other.by_lit)
+            .for_each(|(a, b)| *a += b);
     }
 }
 
@@ -338,7 +393,11 @@ impl PixelFitter<'_> {
             albedo: vec![f32::NAN; len],
             residual: vec![f32::NAN; len],
             lit: vec![0; len],
-            counts: Counts { dropped: vec![0; k], by_lit: vec![0; k + 1], ..Counts::default() },
+            counts: Counts {
+                dropped: vec![0; k],
+                by_lit: vec![0; k + 1],
+                ..Counts::default()
+            },
         };
         let mut solvers: HashMap<u64, Option<[[f64; 3]; 3]>> = HashMap::new();
         let mut last: Option<(u64, Option<[[f64; 3]; 3]>)> = None;
@@ -351,7 +410,11 @@ impl PixelFitter<'_> {
             if value.iter().any(|v| !v.is_finite()) {
                 counts.non_finite += 1;
             }
-            let top = value.iter().copied().filter(|v| v.is_finite()).fold(f64::NEG_INFINITY, f64::max);
+            let top = value
+                .iter()
+                .copied()
+                .filter(|v| v.is_finite())
+                .fold(f64::NEG_INFINITY, f64::max);
             if !(top.is_finite() && top > self.dark_level) {
                 counts.dark += 1;
                 continue;
@@ -375,7 +438,9 @@ impl PixelFitter<'_> {
             let inverse = match last {
                 Some((m, inverse)) if m == mask => inverse,
                 _ => {
-                    let inverse = *solvers.entry(mask).or_insert_with(|| lit_inverse(self.dirs, mask));
+                    let inverse = *solvers
+                        .entry(mask)
+                        .or_insert_with(|| lit_inverse(self.dirs, mask));
                     last = Some((mask, inverse));
                     inverse
                 }
@@ -440,7 +505,14 @@ impl PixelFitter<'_> {
             misfit += (v - predicted).powi(2);
             energy += v * v;
         }
-        Some((PixelFit { normal: n, albedo, residual: (misfit / energy).sqrt() }, clamped))
+        Some((
+            PixelFit {
+                normal: n,
+                albedo,
+                residual: (misfit / energy).sqrt(),
+            },
+            clamped,
+        ))
     }
 }
 
@@ -458,17 +530,26 @@ fn validate(
     if k > MAX_CHANNELS {
         return Err(PhotometricError::TooManyChannels { channels: k });
     }
-    let pixels = (width as usize).checked_mul(height as usize).filter(|&p| p > 0 && p <= isize::MAX as usize / 16);
+    let pixels = (width as usize)
+        .checked_mul(height as usize)
+        .filter(|&p| p > 0 && p <= isize::MAX as usize / 16);
     let Some(pixels) = pixels else {
         return Err(PhotometricError::BadSize { width, height });
     };
     for (channel, image) in images.iter().enumerate() {
         if image.len() != pixels {
-            return Err(PhotometricError::SizeMismatch { channel, expected: pixels, got: image.len() });
+            return Err(PhotometricError::SizeMismatch {
+                channel,
+                expected: pixels,
+                got: image.len(),
+            });
         }
     }
     if directions.len() != k {
-        return Err(PhotometricError::DirectionCount { expected: k, got: directions.len() });
+        return Err(PhotometricError::DirectionCount {
+            expected: k,
+            got: directions.len(),
+        });
     }
     let mut dirs = Vec::with_capacity(k);
     for (channel, d) in directions.iter().enumerate() {
@@ -482,18 +563,33 @@ fn validate(
     if condition.is_nan() || condition < MIN_DIRECTION_CONDITION {
         return Err(PhotometricError::CoplanarDirections { condition });
     }
-    for (field, v) in [("shadow_threshold", options.shadow_threshold), ("dark_threshold", options.dark_threshold)] {
+    for (field, v) in [
+        ("shadow_threshold", options.shadow_threshold),
+        ("dark_threshold", options.dark_threshold),
+    ] {
         if !(v.is_finite() && (0.0..1.0).contains(&v)) {
-            return Err(PhotometricError::BadOption { field, message: format!("must be in [0, 1), got {v}") });
+            return Err(PhotometricError::BadOption {
+                field,
+                message: format!("must be in [0, 1), got {v}"),
+            });
         }
     }
     match &options.gains {
         Gains::Given(g) if g.len() != k => {
-            return Err(PhotometricError::BadGains(format!("{} gains for {k} channels (one per channel)", g.len())));
+            return Err(PhotometricError::BadGains(format!(
+                "{} gains for {k} channels (one per channel)",
+                g.len()
+            )));
         }
         Gains::Given(g) => {
-            if let Some((c, v)) = g.iter().enumerate().find(|(_, v)| !(v.is_finite() && **v > 0.0)) {
-                return Err(PhotometricError::BadGains(format!("gain of channel {c} must be finite and > 0, got {v}")));
+            if let Some((c, v)) = g
+                .iter()
+                .enumerate()
+                .find(|(_, v)| !(v.is_finite() && **v > 0.0))
+            {
+                return Err(PhotometricError::BadGains(format!(
+                    "gain of channel {c} must be finite and > 0, got {v}"
+                )));
             }
         }
         Gains::Estimate if k < 4 => {
@@ -510,7 +606,11 @@ fn validate(
 /// `sigma_min / sigma_max` of the rows of `dirs` selected by `mask`.
 fn direction_condition(dirs: &[[f64; 3]], mask: u64) -> f64 {
     let (values, _) = symmetric_eigen(gram(dirs, mask).concat(), 3);
-    if values[2] > 0.0 { (values[0].max(0.0) / values[2]).sqrt() } else { 0.0 }
+    if values[2] > 0.0 {
+        (values[0].max(0.0) / values[2]).sqrt()
+    } else {
+        0.0
+    }
 }
 
 /// `L_S^T L_S` for the channels in `mask`.
@@ -535,7 +635,9 @@ fn lit_inverse(dirs: &[[f64; 3]], mask: u64) -> Option<[[f64; 3]; 3]> {
     let mut inverse = [[0f64; 3]; 3];
     for i in 0..3 {
         for j in 0..3 {
-            inverse[i][j] = (0..3).map(|e| vectors[i * 3 + e] * vectors[j * 3 + e] / values[e]).sum();
+            inverse[i][j] = (0..3)
+                .map(|e| vectors[i * 3 + e] * vectors[j * 3 + e] / values[e])
+                .sum();
         }
     }
     Some(inverse)
@@ -549,10 +651,14 @@ fn resolve_gains(
 ) -> Result<(Vec<f64>, Value), PhotometricError> {
     let k = images.len();
     match &options.gains {
-        Gains::Equal => Ok((vec![1.0; k], json!({"mode": "equal", "values": vec![1.0; k]}))),
+        Gains::Equal => Ok((
+            vec![1.0; k],
+            json!({"mode": "equal", "values": vec![1.0; k]}),
+        )),
         Gains::Given(g) => Ok((g.clone(), json!({"mode": "given", "values": g}))),
         Gains::Estimate => {
-            let e = estimate_gains(images, dirs, options.shadow_threshold).map_err(PhotometricError::GainsUndetermined)?;
+            let e = estimate_gains(images, dirs, options.shadow_threshold)
+                .map_err(PhotometricError::GainsUndetermined)?;
             Ok((e.gains.clone(), e.report("estimated")))
         }
         Gains::Auto if k < 4 => Ok((
@@ -601,7 +707,11 @@ const MAX_GAIN_EIGEN_RATIO: f64 = 0.1;
 const MIN_GAIN_SEPARATION: f64 = 1e-4;
 
 /// Gains from the Lambertian constraint at pixels lit by every detector (see the module docs).
-fn estimate_gains(images: &[&[f32]], dirs: &[[f64; 3]], shadow_threshold: f64) -> Result<GainEstimate, String> {
+fn estimate_gains(
+    images: &[&[f32]],
+    dirs: &[[f64; 3]],
+    shadow_threshold: f64,
+) -> Result<GainEstimate, String> {
     let k = images.len();
     let pixels = images[0].len();
     // P = I - L (L^T L)^-1 L^T: the projector onto the null space of L^T.
@@ -616,17 +726,30 @@ fn estimate_gains(images: &[&[f32]], dirs: &[[f64; 3]], shadow_threshold: f64) -
     let all_lit: Vec<usize> = (0..pixels)
         .into_par_iter()
         .filter(|&p| {
-            let top = (0..k).map(|c| images[c][p] as f64).fold(f64::NEG_INFINITY, f64::max);
-            top > 0.0 && (0..k).all(|c| images[c][p].is_finite() && images[c][p] as f64 > shadow_threshold * top)
+            let top = (0..k)
+                .map(|c| images[c][p] as f64)
+                .fold(f64::NEG_INFINITY, f64::max);
+            top > 0.0
+                && (0..k).all(|c| {
+                    images[c][p].is_finite() && images[c][p] as f64 > shadow_threshold * top
+                })
         })
         .collect();
     // Scale the images so the sums stay well inside f64 range whatever their units.
     let scale = all_lit
         .par_iter()
-        .map(|&p| (0..k).map(|c| images[c][p].abs() as f64).fold(0.0, f64::max))
+        .map(|&p| {
+            (0..k)
+                .map(|c| images[c][p].abs() as f64)
+                .fold(0.0, f64::max)
+        })
         .reduce(|| 0.0, f64::max);
     if all_lit.len() < 4 * k || !is_positive(scale) {
-        return Err(format!("only {} pixels are lit by all {k} detectors (need {})", all_lit.len(), 4 * k));
+        return Err(format!(
+            "only {} pixels are lit by all {k} detectors (need {})",
+            all_lit.len(),
+            4 * k
+        ));
     }
     let fit = |use_pixel: &(dyn Fn(usize) -> bool + Sync)| -> (Vec<f64>, [f64; 3]) {
         // M = P o sum_x I(x) I(x)^T; the gains' reciprocals are its null vector.
@@ -675,7 +798,14 @@ fn estimate_gains(images: &[&[f32]], dirs: &[[f64; 3]], shadow_threshold: f64) -
                 *w = h[c] * images[c][p] as f64;
             }
             let w = &w[..k];
-            let pw: f64 = (0..k).map(|a| (0..k).map(|b| projector[a * k + b] * w[b]).sum::<f64>().powi(2)).sum();
+            let pw: f64 = (0..k)
+                .map(|a| {
+                    (0..k)
+                        .map(|b| projector[a * k + b] * w[b])
+                        .sum::<f64>()
+                        .powi(2)
+                })
+                .sum();
             (pw / w.iter().map(|x| x * x).sum::<f64>()).sqrt()
         })
         .collect();
@@ -693,12 +823,19 @@ fn estimate_gains(images: &[&[f32]], dirs: &[[f64; 3]], shadow_threshold: f64) -
         h.iter_mut().for_each(|x| *x = -*x);
     }
     if !h.iter().all(|&x| is_positive(x)) {
-        return Err(format!("the fit gives a non-positive gain ({h:?} as 1/gain): the scene is not Lambertian enough or the directions are wrong"));
+        return Err(format!(
+            "the fit gives a non-positive gain ({h:?} as 1/gain): the scene is not Lambertian enough or the directions are wrong"
+        ));
     }
     let mut gains: Vec<f64> = h.iter().map(|x| 1.0 / x).collect();
     let mean = gains.iter().sum::<f64>() / k as f64;
     gains.iter_mut().for_each(|g| *g /= mean);
-    Ok(GainEstimate { gains, pixels_used: kept, eigen_ratio, separation })
+    Ok(GainEstimate {
+        gains,
+        pixels_used: kept,
+        eigen_ratio,
+        separation,
+    })
 }
 
 fn report(
@@ -710,7 +847,12 @@ fn report(
     options: &PhotometricOptions,
     dark_level: f64,
 ) -> Value {
-    let residuals: Vec<f64> = map.residual.iter().filter(|r| r.is_finite()).map(|&r| r as f64).collect();
+    let residuals: Vec<f64> = map
+        .residual
+        .iter()
+        .filter(|r| r.is_finite())
+        .map(|&r| r as f64)
+        .collect();
     let n = residuals.len();
     let residual = if n == 0 {
         Value::Null
@@ -793,7 +935,10 @@ fn symmetric_eigen(mut a: Vec<f64>, n: usize) -> (Vec<f64>, Vec<f64>) {
     }
     let total: f64 = a.iter().map(|x| x * x).sum();
     for _sweep in 0..64 {
-        let off: f64 = (0..n).flat_map(|p| (0..n).filter(move |&q| q != p).map(move |q| (p, q))).map(|(p, q)| a[p * n + q].powi(2)).sum();
+        let off: f64 = (0..n)
+            .flat_map(|p| (0..n).filter(move |&q| q != p).map(move |q| (p, q)))
+            .map(|(p, q)| a[p * n + q].powi(2))
+            .sum();
         if off <= 1e-30 * total || off == 0.0 {
             break;
         }

@@ -22,7 +22,8 @@ pub fn avx2() -> bool {
         1 => true,
         2 => false,
         _ => {
-            let wide = cpu_has_avx2() && std::env::var("HELMHOLTZ_SIMD").map_or(true, |v| v != "baseline");
+            let wide =
+                cpu_has_avx2() && std::env::var("HELMHOLTZ_SIMD").map_or(true, |v| v != "baseline");
             CHOICE.store(if wide { 1 } else { 2 }, Ordering::Relaxed);
             wide
         }

@@ -21,12 +21,20 @@ impl<'s, 'c> RowStream<'s, 'c> {
         total: u64,
     ) -> Result<Self, ReconError> {
         if channels == 0 {
-            return Err(ReconError::BadRows("a problem needs at least one channel".into()));
+            return Err(ReconError::BadRows(
+                "a problem needs at least one channel".into(),
+            ));
         }
         if total == 0 {
             return Err(ReconError::Unsolvable("no rows to reconstruct from".into()));
         }
-        Ok(RowStream { source, control, channels, total, next: 0 })
+        Ok(RowStream {
+            source,
+            control,
+            channels,
+            total,
+            next: 0,
+        })
     }
 
     /// The next checked block (`values.len()` a multiple of `channels`, `first_row` the next

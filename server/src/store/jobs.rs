@@ -111,23 +111,39 @@ impl Store {
         self.reconstruction(id).await
     }
 
-    pub async fn get_reconstruction(&self, id: i64) -> Result<Option<ReconstructionRow>, StoreError> {
-        let sql = format!("SELECT {RECON_COLUMNS} FROM reconstructions r JOIN jobs j ON j.id = r.id WHERE r.id = $1");
-        let row = sqlx::query(sqlx::AssertSqlSafe(sql)).bind(id).fetch_optional(&self.pool).await?;
+    pub async fn get_reconstruction(
+        &self,
+        id: i64,
+    ) -> Result<Option<ReconstructionRow>, StoreError> {
+        let sql = format!(
+            "SELECT {RECON_COLUMNS} FROM reconstructions r JOIN jobs j ON j.id = r.id WHERE r.id = $1"
+        );
+        let row = sqlx::query(sqlx::AssertSqlSafe(sql))
+            .bind(id)
+            .fetch_optional(&self.pool)
+            .await?;
         Ok(row.as_ref().map(recon_from_row))
     }
 
     pub async fn reconstruction(&self, id: i64) -> Result<ReconstructionRow, StoreError> {
-        self.get_reconstruction(id).await?.ok_or(StoreError::ReconstructionNotFound(id))
+        self.get_reconstruction(id)
+            .await?
+            .ok_or(StoreError::ReconstructionNotFound(id))
     }
 
     /// A session's reconstructions, newest first.
-    pub async fn session_reconstructions(&self, session_id: &str) -> Result<Vec<ReconstructionRow>, StoreError> {
+    pub async fn session_reconstructions(
+        &self,
+        session_id: &str,
+    ) -> Result<Vec<ReconstructionRow>, StoreError> {
         let sql = format!(
             "SELECT {RECON_COLUMNS} FROM reconstructions r JOIN jobs j ON j.id = r.id \
              WHERE r.session_id = $1 ORDER BY r.id DESC"
         );
-        let rows = sqlx::query(sqlx::AssertSqlSafe(sql)).bind(session_id).fetch_all(&self.pool).await?;
+        let rows = sqlx::query(sqlx::AssertSqlSafe(sql))
+            .bind(session_id)
+            .fetch_all(&self.pool)
+            .await?;
         Ok(rows.iter().map(recon_from_row).collect())
     }
 
@@ -149,7 +165,12 @@ impl Store {
     /// A lab already running `max_running_per_lab` jobs (0: no cap) is skipped. Running jobs
     /// whose lease expired are taken over while they have attempts left; those out of attempts
     /// are marked failed here.
-    pub async fn claim_job(&self, worker_id: &str, lease_ms: i64, max_running_per_lab: u32) -> Result<Option<ClaimedJob>, StoreError> {
+    pub async fn claim_job(
+        &self,
+        worker_id: &str,
+        lease_ms: i64,
+        max_running_per_lab: u32,
+    ) -> Result<Option<ClaimedJob>, StoreError> {
         let now = now_ms();
         let mut tx = self.pool.begin_with("BEGIN IMMEDIATE").await?;
         sqlx::query(
@@ -186,12 +207,22 @@ impl Store {
         let Some(row) = claimed else { return Ok(None) };
         let id: i64 = row.get("id");
         let attempt: i64 = row.get("attempt");
-        Ok(Some(ClaimedJob { id, attempt, reconstruction: self.reconstruction(id).await? }))
+        Ok(Some(ClaimedJob {
+            id,
+            attempt,
+            reconstruction: self.reconstruction(id).await?,
+        }))
     }
 
     /// Extends the lease and records progress. False means the job is no longer ours (fenced out
     /// or cancelled): stop computing.
-    pub async fn heartbeat(&self, id: i64, attempt: i64, lease_ms: i64, progress: f64) -> Result<bool, StoreError> {
+    pub async fn heartbeat(
+        &self,
+        id: i64,
+        attempt: i64,
+        lease_ms: i64,
+        progress: f64,
+    ) -> Result<bool, StoreError> {
         let now = now_ms();
         let changed = sqlx::query(
             "UPDATE jobs SET lease_until_ms = $3 + $4, progress = $5 \
@@ -253,13 +284,19 @@ impl Store {
             .execute(&mut *tx)
             .await?;
         }
-        for (part, data) in transport.unwrap_or_default().chunks(TRANSPORT_PART_BYTES).enumerate() {
-            sqlx::query("INSERT INTO transports (reconstruction_id, part, data) VALUES ($1, $2, $3)")
-                .bind(id)
-                .bind(part as i64)
-                .bind(data)
-                .execute(&mut *tx)
-                .await?;
+        for (part, data) in transport
+            .unwrap_or_default()
+            .chunks(TRANSPORT_PART_BYTES)
+            .enumerate()
+        {
+            sqlx::query(
+                "INSERT INTO transports (reconstruction_id, part, data) VALUES ($1, $2, $3)",
+            )
+            .bind(id)
+            .bind(part as i64)
+            .bind(data)
+            .execute(&mut *tx)
+            .await?;
         }
         tx.commit().await?;
         Ok(true)
@@ -267,10 +304,11 @@ impl Store {
 
     /// A camera reconstruction's encoded transport matrix (its parts joined), if it has one.
     pub async fn transport(&self, id: i64) -> Result<Option<Vec<u8>>, StoreError> {
-        let parts = sqlx::query("SELECT data FROM transports WHERE reconstruction_id = $1 ORDER BY part")
-            .bind(id)
-            .fetch_all(&self.pool)
-            .await?;
+        let parts =
+            sqlx::query("SELECT data FROM transports WHERE reconstruction_id = $1 ORDER BY part")
+                .bind(id)
+                .fetch_all(&self.pool)
+                .await?;
         if parts.is_empty() {
             return Ok(None);
         }
@@ -283,7 +321,13 @@ impl Store {
 
     /// Records a failed run. `retry` puts the job back in the queue if attempts are left
     /// (transient causes); otherwise it fails for good (the input cannot be solved).
-    pub async fn fail_job(&self, id: i64, attempt: i64, error: &str, retry: bool) -> Result<bool, StoreError> {
+    pub async fn fail_job(
+        &self,
+        id: i64,
+        attempt: i64,
+        error: &str,
+        retry: bool,
+    ) -> Result<bool, StoreError> {
         let now = now_ms();
         let changed = sqlx::query(
             "UPDATE jobs SET last_error = $3, lease_until_ms = NULL, \
@@ -333,11 +377,13 @@ impl Store {
 
     /// A lab's jobs waiting or running.
     pub async fn pending_jobs_for_lab(&self, lab: &str) -> Result<u64, StoreError> {
-        let n: i64 = sqlx::query("SELECT COUNT(*) FROM jobs WHERE lab = $1 AND state IN ('queued', 'running')")
-            .bind(lab)
-            .fetch_one(&self.pool)
-            .await?
-            .get(0);
+        let n: i64 = sqlx::query(
+            "SELECT COUNT(*) FROM jobs WHERE lab = $1 AND state IN ('queued', 'running')",
+        )
+        .bind(lab)
+        .fetch_one(&self.pool)
+        .await?
+        .get(0);
         Ok(n as u64)
     }
 
@@ -354,14 +400,19 @@ impl Store {
 
     /// Number of jobs waiting or running.
     pub async fn pending_jobs(&self) -> Result<i64, StoreError> {
-        Ok(sqlx::query("SELECT COUNT(*) FROM jobs WHERE state IN ('queued', 'running')")
-            .fetch_one(&self.pool)
-            .await?
-            .get(0))
+        Ok(
+            sqlx::query("SELECT COUNT(*) FROM jobs WHERE state IN ('queued', 'running')")
+                .fetch_one(&self.pool)
+                .await?
+                .get(0),
+        )
     }
 
     /// Dual images of a reconstruction, by channel.
-    pub async fn dual_images(&self, reconstruction_id: i64) -> Result<Vec<StoredImage>, StoreError> {
+    pub async fn dual_images(
+        &self,
+        reconstruction_id: i64,
+    ) -> Result<Vec<StoredImage>, StoreError> {
         let rows = sqlx::query(
             "SELECT channel_index, channel_name, width, height, data FROM dual_images \
              WHERE reconstruction_id = $1 ORDER BY channel_index",

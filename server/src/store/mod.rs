@@ -39,7 +39,11 @@ pub enum StoreError {
     #[error("session {0:?} is finished; it takes no more rows")]
     Finished(String),
     #[error("session {id:?} has {committed} of {expected} rows; upload the rest before finishing")]
-    Incomplete { id: String, committed: u64, expected: u64 },
+    Incomplete {
+        id: String,
+        committed: u64,
+        expected: u64,
+    },
     #[error("stored data is corrupt: {0}")]
     Corrupt(String),
     #[error(transparent)]
@@ -56,14 +60,20 @@ pub struct Store {
 }
 
 pub(crate) fn now_ms() -> i64 {
-    SystemTime::now().duration_since(UNIX_EPOCH).map(|d| d.as_millis() as i64).unwrap_or(0)
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map(|d| d.as_millis() as i64)
+        .unwrap_or(0)
 }
 
 impl Store {
     /// Opens (creating if needed) `data_dir/helmholtz.sqlite` and applies pending migrations.
     pub async fn open(data_dir: &Path) -> Result<Store, StoreError> {
         std::fs::create_dir_all(data_dir).map_err(|e| {
-            StoreError::Corrupt(format!("cannot create data directory {}: {e}", data_dir.display()))
+            StoreError::Corrupt(format!(
+                "cannot create data directory {}: {e}",
+                data_dir.display()
+            ))
         })?;
         let path = data_dir.join("helmholtz.sqlite");
         let options = SqliteConnectOptions::from_str(&format!("sqlite://{}", path.display()))?
@@ -72,7 +82,10 @@ impl Store {
             .synchronous(SqliteSynchronous::Full)
             .busy_timeout(Duration::from_secs(10))
             .foreign_keys(true);
-        let pool = SqlitePoolOptions::new().max_connections(8).connect_with(options).await?;
+        let pool = SqlitePoolOptions::new()
+            .max_connections(8)
+            .connect_with(options)
+            .await?;
         sqlx::migrate!("../migrations").run(&pool).await?;
         Ok(Store { pool, path })
     }
@@ -87,7 +100,11 @@ impl Store {
 
     /// True when the database answers (health checks).
     pub async fn ping(&self) -> bool {
-        sqlx::query("SELECT 1").fetch_one(&self.pool).await.map(|r| r.get::<i64, _>(0) == 1).unwrap_or(false)
+        sqlx::query("SELECT 1")
+            .fetch_one(&self.pool)
+            .await
+            .map(|r| r.get::<i64, _>(0) == 1)
+            .unwrap_or(false)
     }
 }
 
@@ -103,7 +120,10 @@ pub(crate) fn le_to_f32(bytes: &[u8]) -> Result<Vec<f32>, StoreError> {
     if !bytes.len().is_multiple_of(4) {
         return Err(StoreError::Corrupt("f32 blob of ragged length".into()));
     }
-    Ok(bytes.chunks_exact(4).map(|b| f32::from_le_bytes(b.try_into().expect("4"))).collect())
+    Ok(bytes
+        .chunks_exact(4)
+        .map(|b| f32::from_le_bytes(b.try_into().expect("4")))
+        .collect())
 }
 
 #[cfg(test)]

@@ -29,7 +29,8 @@ impl Store {
     ) -> Result<AppendOutcome, StoreError> {
         debug_assert!(channels > 0 && values.len().is_multiple_of(channels));
         let blob: Vec<u8> = values.iter().flat_map(|v| v.to_le_bytes()).collect();
-        self.append_raw(session_id, start_row, channels * 8, &blob).await
+        self.append_raw(session_id, start_row, channels * 8, &blob)
+            .await
     }
 
     /// Appends rows already encoded in the session's sample format (`row_bytes` bytes each,
@@ -45,23 +46,31 @@ impl Store {
         let rows = (payload.len() / row_bytes) as u64;
         // BEGIN IMMEDIATE takes the write lock up front: read-then-write without upgrade failures.
         let mut tx = self.pool.begin_with("BEGIN IMMEDIATE").await?;
-        let row = sqlx::query("SELECT committed_rows, expected_rows, state FROM sessions WHERE id = $1")
-            .bind(session_id)
-            .fetch_optional(&mut *tx)
-            .await?
-            .ok_or_else(|| StoreError::SessionNotFound(session_id.to_string()))?;
+        let row =
+            sqlx::query("SELECT committed_rows, expected_rows, state FROM sessions WHERE id = $1")
+                .bind(session_id)
+                .fetch_optional(&mut *tx)
+                .await?
+                .ok_or_else(|| StoreError::SessionNotFound(session_id.to_string()))?;
         let committed = row.get::<i64, _>("committed_rows") as u64;
         let expected = row.get::<i64, _>("expected_rows") as u64;
         let state: String = row.get("state");
         if start_row > committed {
-            return Err(StoreError::Gap { committed, start: start_row });
+            return Err(StoreError::Gap {
+                committed,
+                start: start_row,
+            });
         }
         let end = start_row + rows;
         if end > expected {
             return Err(StoreError::PastEnd { end, expected });
         }
         if end <= committed {
-            return Ok(AppendOutcome { committed_rows: committed, written: 0, skipped: rows });
+            return Ok(AppendOutcome {
+                committed_rows: committed,
+                written: 0,
+                skipped: rows,
+            });
         }
         if state == "finished" {
             return Err(StoreError::Finished(session_id.to_string()));
@@ -81,7 +90,11 @@ impl Store {
             .execute(&mut *tx)
             .await?;
         tx.commit().await?;
-        Ok(AppendOutcome { committed_rows: end, written: end - committed, skipped: skip })
+        Ok(AppendOutcome {
+            committed_rows: end,
+            written: end - committed,
+            skipped: skip,
+        })
     }
 
     /// Up to `max_chunks` stored chunks of the session whose rows start at or after `from_row`,
@@ -94,10 +107,19 @@ impl Store {
         from_row: u64,
         max_chunks: u32,
     ) -> Result<Vec<(u64, Vec<f64>)>, StoreError> {
-        let raw = self.read_raw_chunks(session_id, from_row, max_chunks, 8).await?;
+        let raw = self
+            .read_raw_chunks(session_id, from_row, max_chunks, 8)
+            .await?;
         Ok(raw
             .into_iter()
-            .map(|(start, _, data)| (start, data.chunks_exact(8).map(|b| f64::from_le_bytes(b.try_into().expect("8"))).collect()))
+            .map(|(start, _, data)| {
+                (
+                    start,
+                    data.chunks_exact(8)
+                        .map(|b| f64::from_le_bytes(b.try_into().expect("8")))
+                        .collect(),
+                )
+            })
             .collect())
     }
 
@@ -142,7 +164,12 @@ impl Store {
 
     /// Stored row `row` (`row_bytes` bytes in the session's format), or `None` past the
     /// committed rows.
-    pub async fn read_row(&self, session_id: &str, row: u64, row_bytes: usize) -> Result<Option<Vec<u8>>, StoreError> {
+    pub async fn read_row(
+        &self,
+        session_id: &str,
+        row: u64,
+        row_bytes: usize,
+    ) -> Result<Option<Vec<u8>>, StoreError> {
         let found = sqlx::query(
             "SELECT start_row, row_count, data FROM measurement_chunks \
              WHERE session_id = $1 AND start_row <= $2 ORDER BY start_row DESC LIMIT 1",
@@ -152,7 +179,10 @@ impl Store {
         .fetch_optional(&self.pool)
         .await?;
         let Some(found) = found else { return Ok(None) };
-        let (start, count) = (found.get::<i64, _>("start_row") as u64, found.get::<i64, _>("row_count") as u64);
+        let (start, count) = (
+            found.get::<i64, _>("start_row") as u64,
+            found.get::<i64, _>("row_count") as u64,
+        );
         if row >= start + count {
             return Ok(None);
         }
@@ -160,6 +190,10 @@ impl Store {
         let offset = (row - start) as usize * row_bytes;
         data.get(offset..offset + row_bytes)
             .map(|b| Some(b.to_vec()))
-            .ok_or_else(|| StoreError::Corrupt(format!("session {session_id}: chunk at row {start} is shorter than its rows")))
+            .ok_or_else(|| {
+                StoreError::Corrupt(format!(
+                    "session {session_id}: chunk at row {start} is shorter than its rows"
+                ))
+            })
     }
 }

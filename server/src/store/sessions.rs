@@ -37,15 +37,29 @@ impl SampleFormat {
             "f64" => Ok(SampleFormat::F64),
             "f32" => Ok(SampleFormat::F32),
             "u16" => Ok(SampleFormat::U16),
-            other => Err(StoreError::Corrupt(format!("unknown sample format {other:?}"))),
+            other => Err(StoreError::Corrupt(format!(
+                "unknown sample format {other:?}"
+            ))),
         }
     }
     /// Decodes little-endian samples (a whole number of them) to f32.
     pub fn decode_f32(self, bytes: &[u8], out: &mut Vec<f32>) {
         match self {
-            SampleFormat::F64 => out.extend(bytes.chunks_exact(8).map(|b| f64::from_le_bytes(b.try_into().expect("8")) as f32)),
-            SampleFormat::F32 => out.extend(bytes.chunks_exact(4).map(|b| f32::from_le_bytes(b.try_into().expect("4")))),
-            SampleFormat::U16 => out.extend(bytes.chunks_exact(2).map(|b| u16::from_le_bytes(b.try_into().expect("2")) as f32)),
+            SampleFormat::F64 => out.extend(
+                bytes
+                    .chunks_exact(8)
+                    .map(|b| f64::from_le_bytes(b.try_into().expect("8")) as f32),
+            ),
+            SampleFormat::F32 => out.extend(
+                bytes
+                    .chunks_exact(4)
+                    .map(|b| f32::from_le_bytes(b.try_into().expect("4"))),
+            ),
+            SampleFormat::U16 => out.extend(
+                bytes
+                    .chunks_exact(2)
+                    .map(|b| u16::from_le_bytes(b.try_into().expect("2")) as f32),
+            ),
         }
     }
 }
@@ -113,7 +127,9 @@ pub struct SessionRow {
 impl SessionRow {
     /// Values per row: the channel count, or a camera frame's pixel count.
     pub fn row_values(&self) -> usize {
-        self.camera.map(|c| c.pixels()).unwrap_or(self.channels.len())
+        self.camera
+            .map(|c| c.pixels())
+            .unwrap_or(self.channels.len())
     }
     pub fn sample_format(&self) -> SampleFormat {
         self.camera.map(|c| c.format).unwrap_or(SampleFormat::F64)
@@ -131,19 +147,29 @@ const SESSION_COLUMNS: &str = "id, lab, rig, spec_json, channels_json, metadata_
 fn session_from_row(row: &SqliteRow) -> Result<SessionRow, StoreError> {
     let corrupt = |what: &str, e: serde_json::Error| StoreError::Corrupt(format!("{what}: {e}"));
     let format = SampleFormat::parse(row.get("sample_format"))?;
-    let camera = match (row.get::<Option<i64>, _>("camera_width"), row.get::<Option<i64>, _>("camera_height")) {
-        (Some(w), Some(h)) => Some(CameraLayout { width: w as u32, height: h as u32, format }),
+    let camera = match (
+        row.get::<Option<i64>, _>("camera_width"),
+        row.get::<Option<i64>, _>("camera_height"),
+    ) {
+        (Some(w), Some(h)) => Some(CameraLayout {
+            width: w as u32,
+            height: h as u32,
+            format,
+        }),
         _ => None,
     };
     Ok(SessionRow {
-        directions: serde_json::from_str(row.get("directions_json")).map_err(|e| corrupt("directions", e))?,
+        directions: serde_json::from_str(row.get("directions_json"))
+            .map_err(|e| corrupt("directions", e))?,
         camera,
         id: row.get("id"),
         lab: row.get("lab"),
         rig: row.get("rig"),
         spec: parse_spec(row.get("spec_json"))?,
-        channels: serde_json::from_str(row.get("channels_json")).map_err(|e| corrupt("channels", e))?,
-        metadata: serde_json::from_str(row.get("metadata_json")).map_err(|e| corrupt("metadata", e))?,
+        channels: serde_json::from_str(row.get("channels_json"))
+            .map_err(|e| corrupt("channels", e))?,
+        metadata: serde_json::from_str(row.get("metadata_json"))
+            .map_err(|e| corrupt("metadata", e))?,
         expected_rows: row.get::<i64, _>("expected_rows") as u64,
         committed_rows: row.get::<i64, _>("committed_rows") as u64,
         state: if row.get::<String, _>("state") == "finished" {
@@ -190,7 +216,10 @@ impl Store {
         .await?
         .rows_affected()
             == 1;
-        let existing = self.get_session(&new.id).await?.ok_or_else(|| StoreError::SessionNotFound(new.id.clone()))?;
+        let existing = self
+            .get_session(&new.id)
+            .await?
+            .ok_or_else(|| StoreError::SessionNotFound(new.id.clone()))?;
         if !inserted {
             if existing.lab != new.lab {
                 // Ids are global; another lab's session is not described (not even that it differs).
@@ -200,7 +229,10 @@ impl Store {
                 Some("rig")
             } else if existing.spec != new.spec {
                 Some("patterns")
-            } else if existing.channels != new.channels || existing.camera != new.camera || existing.directions != new.directions {
+            } else if existing.channels != new.channels
+                || existing.camera != new.camera
+                || existing.directions != new.directions
+            {
                 Some("detector")
             } else if existing.metadata != new.metadata {
                 Some("metadata")
@@ -218,30 +250,51 @@ impl Store {
 
     pub async fn get_session(&self, id: &str) -> Result<Option<SessionRow>, StoreError> {
         let sql = format!("SELECT {SESSION_COLUMNS} FROM sessions WHERE id = $1");
-        let row = sqlx::query(sqlx::AssertSqlSafe(sql)).bind(id).fetch_optional(&self.pool).await?;
+        let row = sqlx::query(sqlx::AssertSqlSafe(sql))
+            .bind(id)
+            .fetch_optional(&self.pool)
+            .await?;
         row.as_ref().map(session_from_row).transpose()
     }
 
     pub async fn session(&self, id: &str) -> Result<SessionRow, StoreError> {
-        self.get_session(id).await?.ok_or_else(|| StoreError::SessionNotFound(id.to_string()))
+        self.get_session(id)
+            .await?
+            .ok_or_else(|| StoreError::SessionNotFound(id.to_string()))
     }
 
     /// A lab's sessions, newest first.
-    pub async fn list_sessions(&self, lab: &str, limit: u32) -> Result<Vec<SessionRow>, StoreError> {
-        let sql = format!("SELECT {SESSION_COLUMNS} FROM sessions WHERE lab = $2 ORDER BY created_ms DESC, id LIMIT $1");
-        let rows = sqlx::query(sqlx::AssertSqlSafe(sql)).bind(limit as i64).bind(lab).fetch_all(&self.pool).await?;
+    pub async fn list_sessions(
+        &self,
+        lab: &str,
+        limit: u32,
+    ) -> Result<Vec<SessionRow>, StoreError> {
+        let sql = format!(
+            "SELECT {SESSION_COLUMNS} FROM sessions WHERE lab = $2 ORDER BY created_ms DESC, id LIMIT $1"
+        );
+        let rows = sqlx::query(sqlx::AssertSqlSafe(sql))
+            .bind(limit as i64)
+            .bind(lab)
+            .fetch_all(&self.pool)
+            .await?;
         rows.iter().map(session_from_row).collect()
     }
 
     /// How many sessions a lab has.
     pub async fn count_sessions(&self, lab: &str) -> Result<u64, StoreError> {
-        let n: i64 = sqlx::query("SELECT COUNT(*) FROM sessions WHERE lab = $1").bind(lab).fetch_one(&self.pool).await?.get(0);
+        let n: i64 = sqlx::query("SELECT COUNT(*) FROM sessions WHERE lab = $1")
+            .bind(lab)
+            .fetch_one(&self.pool)
+            .await?
+            .get(0);
         Ok(n as u64)
     }
 
     /// Total rows stored in all sessions (for the operator's metrics).
     pub async fn count_all(&self) -> Result<(u64, u64), StoreError> {
-        let row = sqlx::query("SELECT COUNT(*), COALESCE(SUM(committed_rows), 0) FROM sessions").fetch_one(&self.pool).await?;
+        let row = sqlx::query("SELECT COUNT(*), COALESCE(SUM(committed_rows), 0) FROM sessions")
+            .fetch_one(&self.pool)
+            .await?;
         Ok((row.get::<i64, _>(0) as u64, row.get::<i64, _>(1) as u64))
     }
 
@@ -268,11 +321,14 @@ impl Store {
 
     /// The simulator's transport for a simulated session.
     pub async fn ground_truth(&self, id: &str) -> Result<Option<(u32, u32, Vec<f32>)>, StoreError> {
-        let row = sqlx::query("SELECT gt_width, gt_height, gt_transport FROM sessions WHERE id = $1")
-            .bind(id)
-            .fetch_optional(&self.pool)
-            .await?;
-        let Some(row) = row else { return Err(StoreError::SessionNotFound(id.to_string())) };
+        let row =
+            sqlx::query("SELECT gt_width, gt_height, gt_transport FROM sessions WHERE id = $1")
+                .bind(id)
+                .fetch_optional(&self.pool)
+                .await?;
+        let Some(row) = row else {
+            return Err(StoreError::SessionNotFound(id.to_string()));
+        };
         let blob: Option<Vec<u8>> = row.get("gt_transport");
         match blob {
             None => Ok(None),

@@ -25,7 +25,9 @@ fn new_session(id: &str, count: u64) -> NewSession {
 }
 
 fn rows(start: u64, n: u64) -> Vec<f64> {
-    (start..start + n).flat_map(|r| [r as f64, -(r as f64)]).collect()
+    (start..start + n)
+        .flat_map(|r| [r as f64, -(r as f64)])
+        .collect()
 }
 
 #[tokio::test]
@@ -37,10 +39,16 @@ async fn create_is_idempotent_and_conflicts_name_the_field() {
     assert!(!created);
     assert_eq!(a, b);
     let err = s.create_session(&new_session("s1", 11)).await.unwrap_err();
-    assert!(matches!(err, StoreError::SessionConflict(_, "patterns")), "{err}");
+    assert!(
+        matches!(err, StoreError::SessionConflict(_, "patterns")),
+        "{err}"
+    );
     let mut other_rig = new_session("s1", 10);
     other_rig.rig = "other".into();
-    assert!(matches!(s.create_session(&other_rig).await, Err(StoreError::SessionConflict(_, "rig"))));
+    assert!(matches!(
+        s.create_session(&other_rig).await,
+        Err(StoreError::SessionConflict(_, "rig"))
+    ));
 }
 
 #[tokio::test]
@@ -48,23 +56,62 @@ async fn appends_skip_overlap_reject_gaps_and_read_back_exactly() {
     let (_d, s) = store().await;
     s.create_session(&new_session("s", 10)).await.unwrap();
     let out = s.append_rows("s", 0, 2, &rows(0, 4)).await.unwrap();
-    assert_eq!(out, AppendOutcome { committed_rows: 4, written: 4, skipped: 0 });
+    assert_eq!(
+        out,
+        AppendOutcome {
+            committed_rows: 4,
+            written: 4,
+            skipped: 0
+        }
+    );
     // Overlap: rows 2..6, of which 2 and 3 are already there.
     let out = s.append_rows("s", 2, 2, &rows(2, 4)).await.unwrap();
-    assert_eq!(out, AppendOutcome { committed_rows: 6, written: 2, skipped: 2 });
+    assert_eq!(
+        out,
+        AppendOutcome {
+            committed_rows: 6,
+            written: 2,
+            skipped: 2
+        }
+    );
     // Entirely old.
     let out = s.append_rows("s", 0, 2, &rows(0, 3)).await.unwrap();
-    assert_eq!(out, AppendOutcome { committed_rows: 6, written: 0, skipped: 3 });
+    assert_eq!(
+        out,
+        AppendOutcome {
+            committed_rows: 6,
+            written: 0,
+            skipped: 3
+        }
+    );
     // Gap.
-    assert!(matches!(s.append_rows("s", 7, 2, &rows(7, 1)).await, Err(StoreError::Gap { committed: 6, start: 7 })));
+    assert!(matches!(
+        s.append_rows("s", 7, 2, &rows(7, 1)).await,
+        Err(StoreError::Gap {
+            committed: 6,
+            start: 7
+        })
+    ));
     // Past the spec's count.
-    assert!(matches!(s.append_rows("s", 6, 2, &rows(6, 5)).await, Err(StoreError::PastEnd { end: 11, expected: 10 })));
-    assert!(matches!(s.finish_session("s").await, Err(StoreError::Incomplete { committed: 6, .. })));
+    assert!(matches!(
+        s.append_rows("s", 6, 2, &rows(6, 5)).await,
+        Err(StoreError::PastEnd {
+            end: 11,
+            expected: 10
+        })
+    ));
+    assert!(matches!(
+        s.finish_session("s").await,
+        Err(StoreError::Incomplete { committed: 6, .. })
+    ));
     s.append_rows("s", 6, 2, &rows(6, 4)).await.unwrap();
     let chunks = s.read_chunks("s", 0, 100).await.unwrap();
     let all: Vec<f64> = chunks.iter().flat_map(|(_, v)| v.clone()).collect();
     assert_eq!(all, rows(0, 10));
-    assert_eq!(chunks.iter().map(|c| c.0).collect::<Vec<_>>(), vec![0, 4, 6]);
+    assert_eq!(
+        chunks.iter().map(|c| c.0).collect::<Vec<_>>(),
+        vec![0, 4, 6]
+    );
     // Paged reads continue at chunk boundaries.
     let page = s.read_chunks("s", 4, 1).await.unwrap();
     assert_eq!(page.len(), 1);
@@ -72,14 +119,20 @@ async fn appends_skip_overlap_reject_gaps_and_read_back_exactly() {
     let finished = s.finish_session("s").await.unwrap();
     assert_eq!(finished.state, SessionState::Finished);
     assert_eq!(s.finish_session("s").await.unwrap(), finished);
-    assert!(matches!(s.append_rows("nope", 0, 2, &rows(0, 1)).await, Err(StoreError::SessionNotFound(_))));
+    assert!(matches!(
+        s.append_rows("nope", 0, 2, &rows(0, 1)).await,
+        Err(StoreError::SessionNotFound(_))
+    ));
 }
 
 #[tokio::test]
 async fn leases_expire_and_fencing_stops_stale_workers() {
     let (_d, s) = store().await;
     s.create_session(&new_session("s", 10)).await.unwrap();
-    let r = s.enqueue_reconstruction("default", "s", "gi", "{}", 10, 3).await.unwrap();
+    let r = s
+        .enqueue_reconstruction("default", "s", "gi", "{}", 10, 3)
+        .await
+        .unwrap();
     assert_eq!(r.state, "queued");
     let first = s.claim_job("w1", 200, 0).await.unwrap().unwrap();
     assert_eq!((first.id, first.attempt), (r.id, 1));
@@ -91,10 +144,31 @@ async fn leases_expire_and_fencing_stops_stale_workers() {
     assert_eq!((second.id, second.attempt), (r.id, 2));
     // The stale worker can neither heartbeat nor complete.
     assert!(!s.heartbeat(r.id, 1, 60_000, 0.5).await.unwrap());
-    let image = StoredImage { channel_index: 0, channel_name: "a".into(), width: 1, height: 1, data: vec![1.0] };
-    assert!(!s.complete_reconstruction(r.id, 1, std::slice::from_ref(&image), None, "{}", 0.1).await.unwrap());
+    let image = StoredImage {
+        channel_index: 0,
+        channel_name: "a".into(),
+        width: 1,
+        height: 1,
+        data: vec![1.0],
+    };
+    assert!(
+        !s.complete_reconstruction(r.id, 1, std::slice::from_ref(&image), None, "{}", 0.1)
+            .await
+            .unwrap()
+    );
     assert!(s.heartbeat(r.id, 2, 60_000, 0.5).await.unwrap());
-    assert!(s.complete_reconstruction(r.id, 2, std::slice::from_ref(&image), None, "{\"ok\":1}", 0.1).await.unwrap());
+    assert!(
+        s.complete_reconstruction(
+            r.id,
+            2,
+            std::slice::from_ref(&image),
+            None,
+            "{\"ok\":1}",
+            0.1
+        )
+        .await
+        .unwrap()
+    );
     let done = s.reconstruction(r.id).await.unwrap();
     assert_eq!((done.state.as_str(), done.attempt), ("done", 2));
     assert_eq!(s.dual_images(r.id).await.unwrap(), vec![image]);
@@ -106,24 +180,44 @@ async fn leases_expire_and_fencing_stops_stale_workers() {
 async fn failures_retry_then_give_up() {
     let (_d, s) = store().await;
     s.create_session(&new_session("s", 10)).await.unwrap();
-    let r = s.enqueue_reconstruction("default", "s", "gi", "{}", 10, 2).await.unwrap();
+    let r = s
+        .enqueue_reconstruction("default", "s", "gi", "{}", 10, 2)
+        .await
+        .unwrap();
     let c = s.claim_job("w", 60_000, 0).await.unwrap().unwrap();
-    assert!(s.fail_job(r.id, c.attempt, "disk hiccup", true).await.unwrap());
+    assert!(
+        s.fail_job(r.id, c.attempt, "disk hiccup", true)
+            .await
+            .unwrap()
+    );
     assert_eq!(s.reconstruction(r.id).await.unwrap().state, "queued");
     // Retries wait a little (run_at in the future), so nothing is claimable right now.
     assert!(s.claim_job("w", 60_000, 0).await.unwrap().is_none());
-    let r2 = s.enqueue_reconstruction("default", "s", "dgi", "{}", 10, 1).await.unwrap();
+    let r2 = s
+        .enqueue_reconstruction("default", "s", "dgi", "{}", 10, 1)
+        .await
+        .unwrap();
     let c2 = s.claim_job("w", 60_000, 0).await.unwrap().unwrap();
     assert_eq!(c2.id, r2.id);
-    assert!(s.fail_job(r2.id, c2.attempt, "unsolvable", false).await.unwrap());
+    assert!(
+        s.fail_job(r2.id, c2.attempt, "unsolvable", false)
+            .await
+            .unwrap()
+    );
     let failed = s.reconstruction(r2.id).await.unwrap();
-    assert_eq!((failed.state.as_str(), failed.last_error.as_deref()), ("failed", Some("unsolvable")));
+    assert_eq!(
+        (failed.state.as_str(), failed.last_error.as_deref()),
+        ("failed", Some("unsolvable"))
+    );
     assert!(s.cancel_job(r.id).await.unwrap());
     assert_eq!(s.reconstruction(r.id).await.unwrap().state, "cancelled");
 }
 
 fn lab_session(lab: &str, id: &str) -> NewSession {
-    NewSession { lab: lab.into(), ..new_session(id, 10) }
+    NewSession {
+        lab: lab.into(),
+        ..new_session(id, 10)
+    }
 }
 
 #[tokio::test]
@@ -133,31 +227,71 @@ async fn claims_alternate_between_labs_and_respect_the_per_lab_cap() {
     s.create_session(&lab_session("b", "sb")).await.unwrap();
     let mut a_jobs = Vec::new();
     for _ in 0..5 {
-        a_jobs.push(s.enqueue_reconstruction("a", "sa", "gi", "{}", 10, 3).await.unwrap().id);
+        a_jobs.push(
+            s.enqueue_reconstruction("a", "sa", "gi", "{}", 10, 3)
+                .await
+                .unwrap()
+                .id,
+        );
         tokio::time::sleep(std::time::Duration::from_millis(2)).await;
     }
-    let b_job = s.enqueue_reconstruction("b", "sb", "gi", "{}", 10, 3).await.unwrap().id;
+    let b_job = s
+        .enqueue_reconstruction("b", "sb", "gi", "{}", 10, 3)
+        .await
+        .unwrap()
+        .id;
     // One worker, finishing each job before claiming the next: lab b's single job is the second
     // to run, not the sixth.
     let mut order = Vec::new();
     while let Some(job) = s.claim_job("w", 60_000, 0).await.unwrap() {
         order.push(job.id);
-        assert!(s.complete_reconstruction(job.id, job.attempt, &[], None, "{}", 0.0).await.unwrap());
+        assert!(
+            s.complete_reconstruction(job.id, job.attempt, &[], None, "{}", 0.0)
+                .await
+                .unwrap()
+        );
         tokio::time::sleep(std::time::Duration::from_millis(2)).await;
     }
     assert_eq!(order.len(), 6);
     assert_eq!(order[1], b_job, "order {order:?}");
-    assert_eq!(order.iter().filter(|&&id| id != b_job).copied().collect::<Vec<_>>(), a_jobs, "a's jobs keep their order");
+    assert_eq!(
+        order
+            .iter()
+            .filter(|&&id| id != b_job)
+            .copied()
+            .collect::<Vec<_>>(),
+        a_jobs,
+        "a's jobs keep their order"
+    );
 
     // Cap 1 per lab: with a's job running, a second of a's is not claimed, b's is.
-    let a1 = s.enqueue_reconstruction("a", "sa", "gi", "{}", 10, 3).await.unwrap().id;
-    let a2 = s.enqueue_reconstruction("a", "sa", "gi", "{}", 10, 3).await.unwrap().id;
-    let b1 = s.enqueue_reconstruction("b", "sb", "gi", "{}", 10, 3).await.unwrap().id;
+    let a1 = s
+        .enqueue_reconstruction("a", "sa", "gi", "{}", 10, 3)
+        .await
+        .unwrap()
+        .id;
+    let a2 = s
+        .enqueue_reconstruction("a", "sa", "gi", "{}", 10, 3)
+        .await
+        .unwrap()
+        .id;
+    let b1 = s
+        .enqueue_reconstruction("b", "sb", "gi", "{}", 10, 3)
+        .await
+        .unwrap()
+        .id;
     let first = s.claim_job("w1", 60_000, 1).await.unwrap().unwrap();
     let second = s.claim_job("w2", 60_000, 1).await.unwrap().unwrap();
-    assert_eq!((first.id, second.id), (b1, a1), "b was served least recently, then a's oldest");
+    assert_eq!(
+        (first.id, second.id),
+        (b1, a1),
+        "b was served least recently, then a's oldest"
+    );
     let _ = a2;
-    assert!(s.claim_job("w3", 60_000, 1).await.unwrap().is_none(), "a is at its cap");
+    assert!(
+        s.claim_job("w3", 60_000, 1).await.unwrap().is_none(),
+        "a is at its cap"
+    );
     assert_eq!(s.pending_jobs_for_lab("a").await.unwrap(), 2);
     assert_eq!(s.queue_depth().await.unwrap(), (1, 2));
 }
@@ -168,7 +302,10 @@ async fn sessions_belong_to_labs_and_ids_are_not_shared() {
     s.create_session(&lab_session("a", "x")).await.unwrap();
     let err = s.create_session(&lab_session("b", "x")).await.unwrap_err();
     assert!(matches!(err, StoreError::SessionIdTaken(_)), "{err}");
-    assert!(!err.to_string().contains("differ"), "says nothing about a's session: {err}");
+    assert!(
+        !err.to_string().contains("differ"),
+        "says nothing about a's session: {err}"
+    );
     assert_eq!(s.list_sessions("a", 10).await.unwrap().len(), 1);
     assert!(s.list_sessions("b", 10).await.unwrap().is_empty());
     assert_eq!(s.count_sessions("a").await.unwrap(), 1);
@@ -179,18 +316,40 @@ async fn sessions_belong_to_labs_and_ids_are_not_shared() {
 async fn tokens_are_stored_hashed_and_revocable() {
     use crate::auth::{Role, Roles};
     let (_d, s) = store().await;
-    let (info, secret) = s.create_token("optics", Roles::of(&[Role::Rig, Role::Reader]), "bench").await.unwrap();
+    let (info, secret) = s
+        .create_token("optics", Roles::of(&[Role::Rig, Role::Reader]), "bench")
+        .await
+        .unwrap();
     assert_eq!(info.roles, "rig,reader");
     let p = s.authenticate(&secret).await.unwrap().unwrap();
     assert_eq!((p.lab.as_str(), p.token_id), ("optics", info.id));
     assert!(p.roles.contains(Role::Rig) && !p.roles.contains(Role::Admin));
-    assert!(s.authenticate(&crate::auth::generate_token()).await.unwrap().is_none());
+    assert!(
+        s.authenticate(&crate::auth::generate_token())
+            .await
+            .unwrap()
+            .is_none()
+    );
     // The secret itself is nowhere in the database file's token table.
-    let stored: Vec<u8> = sqlx::query("SELECT sha256 FROM tokens").fetch_one(&s.pool).await.unwrap().get(0);
+    let stored: Vec<u8> = sqlx::query("SELECT sha256 FROM tokens")
+        .fetch_one(&s.pool)
+        .await
+        .unwrap()
+        .get(0);
     assert_eq!(stored, crate::auth::token_hash(&secret).to_vec());
-    assert!(s.revoke_token(info.id, Some("other")).await.unwrap().is_none(), "another lab cannot revoke it");
+    assert!(
+        s.revoke_token(info.id, Some("other"))
+            .await
+            .unwrap()
+            .is_none(),
+        "another lab cannot revoke it"
+    );
     assert!(s.authenticate(&secret).await.unwrap().is_some());
-    let revoked = s.revoke_token(info.id, Some("optics")).await.unwrap().unwrap();
+    let revoked = s
+        .revoke_token(info.id, Some("optics"))
+        .await
+        .unwrap()
+        .unwrap();
     assert!(revoked.revoked_unix_ms.is_some());
     assert!(s.authenticate(&secret).await.unwrap().is_none());
     assert_eq!(s.list_tokens(Some("optics")).await.unwrap().len(), 1);
@@ -205,14 +364,26 @@ async fn upgrading_a_database_keeps_its_sessions_and_jobs_in_the_default_lab() {
     // A database as the first schema left it.
     let first = dir.path().join("first-migration");
     std::fs::create_dir_all(&first).unwrap();
-    std::fs::write(first.join("0001_sessions_jobs.sql"), include_str!("../../../migrations/0001_sessions_jobs.sql")).unwrap();
+    std::fs::write(
+        first.join("0001_sessions_jobs.sql"),
+        include_str!("../../../migrations/0001_sessions_jobs.sql"),
+    )
+    .unwrap();
     let data = dir.path().join("data");
     std::fs::create_dir_all(&data).unwrap();
-    let options = SqliteConnectOptions::from_str(&format!("sqlite://{}", data.join("helmholtz.sqlite").display()))
-        .unwrap()
-        .create_if_missing(true);
+    let options = SqliteConnectOptions::from_str(&format!(
+        "sqlite://{}",
+        data.join("helmholtz.sqlite").display()
+    ))
+    .unwrap()
+    .create_if_missing(true);
     let pool = sqlx::SqlitePool::connect_with(options).await.unwrap();
-    sqlx::migrate::Migrator::new(first.as_path()).await.unwrap().run(&pool).await.unwrap();
+    sqlx::migrate::Migrator::new(first.as_path())
+        .await
+        .unwrap()
+        .run(&pool)
+        .await
+        .unwrap();
     for id in ["old-run", "demo-usaf-hadamard"] {
         sqlx::query(
             "INSERT INTO sessions (id, rig, spec_json, channels_json, metadata_json, expected_rows, committed_rows, created_ms) \
@@ -240,5 +411,8 @@ async fn upgrading_a_database_keeps_its_sessions_and_jobs_in_the_default_lab() {
     let r = s.reconstruction(1).await.unwrap();
     assert_eq!((r.lab.as_str(), r.state.as_str()), ("default", "queued"));
     assert_eq!(s.list_sessions("default", 10).await.unwrap().len(), 1);
-    assert!(s.claim_job("w", 60_000, 0).await.unwrap().is_some(), "the queued job still runs");
+    assert!(
+        s.claim_job("w", 60_000, 0).await.unwrap().is_some(),
+        "the queued job still runs"
+    );
 }

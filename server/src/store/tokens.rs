@@ -32,7 +32,12 @@ fn token_from_row(row: &SqliteRow) -> TokenInfo {
 
 impl Store {
     /// Creates a token for `lab` with `roles`; returns it and its secret (shown once).
-    pub async fn create_token(&self, lab: &str, roles: Roles, note: &str) -> Result<(TokenInfo, String), StoreError> {
+    pub async fn create_token(
+        &self,
+        lab: &str,
+        roles: Roles,
+        note: &str,
+    ) -> Result<(TokenInfo, String), StoreError> {
         let secret = auth::generate_token();
         let hash = auth::token_hash(&secret);
         let row = sqlx::query(
@@ -52,17 +57,24 @@ impl Store {
     /// The valid (unrevoked) token with this secret, if any.
     pub async fn authenticate(&self, secret: &str) -> Result<Option<Principal>, StoreError> {
         let hash = auth::token_hash(secret);
-        let row = sqlx::query("SELECT id, lab, roles, sha256 FROM tokens WHERE sha256 = $1 AND revoked_ms IS NULL")
-            .bind(&hash[..])
-            .fetch_optional(&self.pool)
-            .await?;
+        let row = sqlx::query(
+            "SELECT id, lab, roles, sha256 FROM tokens WHERE sha256 = $1 AND revoked_ms IS NULL",
+        )
+        .bind(&hash[..])
+        .fetch_optional(&self.pool)
+        .await?;
         let Some(row) = row else { return Ok(None) };
         let stored: Vec<u8> = row.get("sha256");
         if !bool::from(stored.as_slice().ct_eq(&hash[..])) {
             return Ok(None);
         }
-        let roles = Roles::parse(row.get("roles")).map_err(|e| StoreError::Corrupt(format!("token roles: {e}")))?;
-        Ok(Some(Principal { token_id: row.get("id"), lab: row.get("lab"), roles }))
+        let roles = Roles::parse(row.get("roles"))
+            .map_err(|e| StoreError::Corrupt(format!("token roles: {e}")))?;
+        Ok(Some(Principal {
+            token_id: row.get("id"),
+            lab: row.get("lab"),
+            roles,
+        }))
     }
 
     /// Tokens, oldest first; only `lab`'s when given.
@@ -79,7 +91,11 @@ impl Store {
 
     /// Revokes a token (of `lab` only, when given). Returns the token, or None if there is no
     /// such token (in that lab). Revoking twice keeps the first time.
-    pub async fn revoke_token(&self, id: i64, lab: Option<&str>) -> Result<Option<TokenInfo>, StoreError> {
+    pub async fn revoke_token(
+        &self,
+        id: i64,
+        lab: Option<&str>,
+    ) -> Result<Option<TokenInfo>, StoreError> {
         let row = sqlx::query(
             "UPDATE tokens SET revoked_ms = COALESCE(revoked_ms, $3) WHERE id = $1 AND ($2 IS NULL OR lab = $2) \
              RETURNING id, lab, roles, note, created_ms, revoked_ms",

@@ -210,8 +210,9 @@ async fn main() -> anyhow::Result<()> {
     let camera_rec = {
         let scene = helmholtz_scenes::Scene::demo(64, 64, 1);
         let view = scene.view(&helmholtz_scenes::Camera::tilted(32, 32, 25.0));
-        let s: PatternSpec =
-            serde_json::from_str(r#"{"family":"hadamard","width":64,"height":64,"count":8192,"seed":1}"#)?;
+        let s: PatternSpec = serde_json::from_str(
+            r#"{"family":"hadamard","width":64,"height":64,"count":8192,"seed":1}"#,
+        )?;
         let generator = helmholtz_proto::PatternGenerator::new(&s);
         let mut p = vec![0f32; s.pixels()];
         let mut frames = Vec::with_capacity(8192 * view.pixels());
@@ -221,7 +222,8 @@ async fn main() -> anyhow::Result<()> {
             frames.extend(view.render(&p64).into_iter().map(|v| v as f32));
         }
         let id = "ref-camera";
-        let session = NewSession::camera(id, s, 32, 32, helmholtz_client::upload::SampleFormat::F32);
+        let session =
+            NewSession::camera(id, s, 32, 32, helmholtz_client::upload::SampleFormat::F32);
         helmholtz_client::create_session(&base, &session).await?;
         helmholtz_client::upload_samples(
             &base,
@@ -232,9 +234,19 @@ async fn main() -> anyhow::Result<()> {
         )
         .await?;
         helmholtz_client::finish_session(&base, id).await?;
-        let rec = helmholtz_client::request_reconstruction(&base, id, "transport", &serde_json::json!({})).await?;
-        let rec = helmholtz_client::wait_reconstruction(&base, rec.id, Duration::from_secs(300)).await?;
-        anyhow::ensure!(rec.is_done(), "camera reference reconstruction failed: {rec:?}");
+        let rec = helmholtz_client::request_reconstruction(
+            &base,
+            id,
+            "transport",
+            &serde_json::json!({}),
+        )
+        .await?;
+        let rec =
+            helmholtz_client::wait_reconstruction(&base, rec.id, Duration::from_secs(300)).await?;
+        anyhow::ensure!(
+            rec.is_done(),
+            "camera reference reconstruction failed: {rec:?}"
+        );
         rec.id
     };
 
@@ -263,9 +275,22 @@ async fn main() -> anyhow::Result<()> {
         None => {
             let mut bases = Vec::with_capacity(args.rigs);
             for _ in 0..args.rigs {
-                bases.push(server.url_with(&create_token_with(&bin, &server.data_dir, helmholtz_tests::E2E_LAB, "rig")?));
+                bases.push(server.url_with(&create_token_with(
+                    &bin,
+                    &server.data_dir,
+                    helmholtz_tests::E2E_LAB,
+                    "rig",
+                )?));
             }
-            (bases, server.url_with(&create_token_with(&bin, &server.data_dir, helmholtz_tests::E2E_LAB, "reader")?))
+            (
+                bases,
+                server.url_with(&create_token_with(
+                    &bin,
+                    &server.data_dir,
+                    helmholtz_tests::E2E_LAB,
+                    "reader",
+                )?),
+            )
         }
     };
     let started = Instant::now();
@@ -347,10 +372,19 @@ async fn main() -> anyhow::Result<()> {
         // Relight lights change with every query (a disc wandering over the camera, weights
         // growing), so each is computed, not served from the response cache.
         let (url, body) = match kind {
-            0 => (format!("{query_base}/v1/reconstructions/{rec}/dual.png"), None),
-            1 => (format!("{query_base}/v1/reconstructions/{rec}/dual.npy"), None),
+            0 => (
+                format!("{query_base}/v1/reconstructions/{rec}/dual.png"),
+                None,
+            ),
+            1 => (
+                format!("{query_base}/v1/reconstructions/{rec}/dual.npy"),
+                None,
+            ),
             2 => (format!("{query_base}/v1/reconstructions/{rec}"), None),
-            3 => (format!("{query_base}/v1/sessions/{session}/dual.tiff"), None),
+            3 => (
+                format!("{query_base}/v1/sessions/{session}/dual.tiff"),
+                None,
+            ),
             4 => (
                 format!("{query_base}/v1/reconstructions/{camera_rec}/relight?format=npy"),
                 Some(format!(
@@ -361,7 +395,10 @@ async fn main() -> anyhow::Result<()> {
             ),
             _ => (
                 format!("{query_base}/v1/reconstructions/{rec}/relight"),
-                Some(format!(r#"{{"light": {{"weights": {{"bucket": {}}}}}}}"#, 1 + i)),
+                Some(format!(
+                    r#"{{"light": {{"weights": {{"bucket": {}}}}}}}"#,
+                    1 + i
+                )),
             ),
         };
         let (http, queries) = (http.clone(), queries.clone());
@@ -370,12 +407,12 @@ async fn main() -> anyhow::Result<()> {
             let result = async {
                 let request = match body {
                     None => http.get(&url),
-                    Some(body) => http.post(&url).header("content-type", "application/json").body(body),
+                    Some(body) => http
+                        .post(&url)
+                        .header("content-type", "application/json")
+                        .body(body),
                 };
-                let response = request
-                    .send()
-                    .await
-                    .map_err(|e| format!("{url}: {e}"))?;
+                let response = request.send().await.map_err(|e| format!("{url}: {e}"))?;
                 let status = response.status();
                 let body = response.bytes().await.map_err(|e| format!("{url}: {e}"))?;
                 if !status.is_success() || body.is_empty() {
@@ -482,7 +519,11 @@ async fn main() -> anyhow::Result<()> {
         &uploads,
     ));
     for (k, name) in kinds.iter().enumerate() {
-        let verb = if name.starts_with("relight") { "POST" } else { "GET" };
+        let verb = if name.starts_with("relight") {
+            "POST"
+        } else {
+            "GET"
+        };
         md.push_str(&row(&format!("{verb} {name}"), &queries[k].lock().unwrap()));
     }
     let mut first_errors: Vec<String> = Vec::new();

@@ -87,7 +87,8 @@ fn compute_ms(header: &str) -> Option<f64> {
 async fn main() -> anyhow::Result<()> {
     let args = Args::parse();
     anyhow::ensure!(args.calls >= 1, "--calls must be at least 1");
-    let params: serde_json::Value = serde_json::from_str(&args.params).context("--params is not JSON")?;
+    let params: serde_json::Value =
+        serde_json::from_str(&args.params).context("--params is not JSON")?;
     let (pw, cw) = (args.projector, args.camera);
     let load_start = load_average();
     let bin = helmholtz_tests::server_binary_beside(args.server_bin.as_deref())?;
@@ -95,7 +96,17 @@ async fn main() -> anyhow::Result<()> {
     let max_frame = (cw * cw).max(65_536).to_string();
     // Queries go one at a time, faster than the per-token rate limit (100/s by default) on a
     // quiet machine: the benchmark measures latency, not the limiter, so it lifts the limit.
-    let mut server = ServerProcess::start_binary(&bin, &dir.path().join("data"), 0, &["--max-frame-pixels", &max_frame, "--rate-per-second", "1000000"])?;
+    let mut server = ServerProcess::start_binary(
+        &bin,
+        &dir.path().join("data"),
+        0,
+        &[
+            "--max-frame-pixels",
+            &max_frame,
+            "--rate-per-second",
+            "1000000",
+        ],
+    )?;
     let base = server.base_url.clone();
     eprintln!("server {} at {}", bin.display(), server.address);
 
@@ -106,7 +117,10 @@ async fn main() -> anyhow::Result<()> {
     ))?;
     let scene = helmholtz_scenes::Scene::demo(pw, pw, 7);
     let view = scene.view(&helmholtz_scenes::Camera::tilted(cw, cw, 25.0));
-    eprintln!("rendering {} frames of {pw}x{pw} patterns on a {cw}x{cw} camera...", args.frames);
+    eprintln!(
+        "rendering {} frames of {pw}x{pw} patterns on a {cw}x{cw} camera...",
+        args.frames
+    );
     let started = Instant::now();
     let generator = helmholtz_proto::PatternGenerator::new(&spec);
     let mut p = vec![0f32; spec.pixels()];
@@ -118,17 +132,38 @@ async fn main() -> anyhow::Result<()> {
     }
     let render_seconds = started.elapsed().as_secs_f64();
     let id = "relight-bench";
-    helmholtz_client::create_session(&base, &NewSession::camera(id, spec.clone(), cw, cw, helmholtz_client::upload::SampleFormat::F32)).await?;
+    helmholtz_client::create_session(
+        &base,
+        &NewSession::camera(
+            id,
+            spec.clone(),
+            cw,
+            cw,
+            helmholtz_client::upload::SampleFormat::F32,
+        ),
+    )
+    .await?;
     let started = Instant::now();
-    helmholtz_client::upload_samples(&base, id, cw * cw, helmholtz_client::upload::Samples::F32(&frames), &UploadOptions::default()).await?;
+    helmholtz_client::upload_samples(
+        &base,
+        id,
+        cw * cw,
+        helmholtz_client::upload::Samples::F32(&frames),
+        &UploadOptions::default(),
+    )
+    .await?;
     helmholtz_client::finish_session(&base, id).await?;
     let upload_seconds = started.elapsed().as_secs_f64();
     let upload_mib = frames.len() as f64 * 4.0 / (1 << 20) as f64;
     drop(frames);
     eprintln!("uploaded {upload_mib:.0} MiB in {upload_seconds:.1} s; reconstructing T...");
     let rec = helmholtz_client::request_reconstruction(&base, id, "transport", &params).await?;
-    let rec = helmholtz_client::wait_reconstruction(&base, rec.id, Duration::from_secs(4 * 3600)).await?;
-    anyhow::ensure!(rec.is_done(), "the transport reconstruction failed: {rec:?}");
+    let rec =
+        helmholtz_client::wait_reconstruction(&base, rec.id, Duration::from_secs(4 * 3600)).await?;
+    anyhow::ensure!(
+        rec.is_done(),
+        "the transport reconstruction failed: {rec:?}"
+    );
     let details = &rec.report["details"];
     eprintln!("T in {:.1} s: {}", rec.seconds, details["transform"]);
 
@@ -148,7 +183,10 @@ async fn main() -> anyhow::Result<()> {
                     let format = if kind == 0 { "png" } else { "npy" };
                     (
                         format!("/v1/reconstructions/{}/relight?format={format}", rec.id),
-                        format!(r#"{{"light": {{"preset": "disc", "x": {x}, "y": {y}, "radius": {}}}}}"#, 2 + i % 5),
+                        format!(
+                            r#"{{"light": {{"preset": "disc", "x": {x}, "y": {y}, "radius": {}}}}}"#,
+                            2 + i % 5
+                        ),
                     )
                 }
                 _ => (
@@ -173,7 +211,11 @@ async fn main() -> anyhow::Result<()> {
                 .to_string();
             let bytes = response.bytes().await?;
             let rtt = t0.elapsed().as_secs_f64() * 1e3;
-            anyhow::ensure!(status.is_success(), "POST {path}: HTTP {status}: {}", String::from_utf8_lossy(&bytes));
+            anyhow::ensure!(
+                status.is_success(),
+                "POST {path}: HTTP {status}: {}",
+                String::from_utf8_lossy(&bytes)
+            );
             timings.1.round_trip_ms.push(rtt);
             timings.1.bytes = bytes.len();
             match compute_ms(&timing) {
@@ -207,7 +249,9 @@ async fn main() -> anyhow::Result<()> {
         details["stored_bytes"].as_f64().unwrap_or(0.0) / (1 << 20) as f64,
         details["dense_f32_bytes"].as_f64().unwrap_or(0.0) / (1 << 20) as f64,
         details["nonzeros_per_row"].as_f64().unwrap_or(0.0),
-        rec.report["held_out"]["relative_residual"].as_f64().unwrap_or(f64::NAN),
+        rec.report["held_out"]["relative_residual"]
+            .as_f64()
+            .unwrap_or(f64::NAN),
     ));
     md.push_str(&format!(
         "Queries: {} of each kind, one at a time; every disc light (a moving centre, radius 2-6 camera pixels) and every stored pattern index differs from the previous ones, so no answer comes from the response cache. \"Server\" is the compute time the server reports in `server-timing` (light parsed, `T^T c'` or `T p` on the decoded T, which is in the server's cache after the first query); \"round trip\" adds the database lookup of the reconstruction, the image encoding and HTTP on loopback.\n\n",

@@ -16,13 +16,25 @@ impl<'a> Binned<'a> {
     /// `inner` acts on `width x height` images (row-major); `factor >= 1`.
     pub fn new(inner: &'a dyn LinearOperator, width: usize, height: usize, factor: usize) -> Self {
         assert!(factor >= 1, "binning factor must be >= 1");
-        assert_eq!(inner.cols(), width * height, "operator columns vs image size");
-        Binned { inner, width, height, factor }
+        assert_eq!(
+            inner.cols(),
+            width * height,
+            "operator columns vs image size"
+        );
+        Binned {
+            inner,
+            width,
+            height,
+            factor,
+        }
     }
 
     /// The coarse grid's size.
     pub fn coarse_size(&self) -> (usize, usize) {
-        (self.width.div_ceil(self.factor), self.height.div_ceil(self.factor))
+        (
+            self.width.div_ceil(self.factor),
+            self.height.div_ceil(self.factor),
+        )
     }
 
     /// `U x`: the coarse image replicated onto the full grid.
@@ -107,6 +119,9 @@ mod tests {
         // The edge block (2, 0) holds 1 x 3 pixels: x = 6, y = 0..3.
         full[6] = 7.0;
         b.block_means(&full, &mut back);
-        assert!((back[2] - (3.0 + 3.0 + 7.0) / 3.0).abs() < 1e-12, "{back:?}");
+        assert!(
+            (back[2] - (3.0 + 3.0 + 7.0) / 3.0).abs() < 1e-12,
+            "{back:?}"
+        );
     }
 }

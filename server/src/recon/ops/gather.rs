@@ -79,13 +79,27 @@ pub struct GatherStats {
 impl<'a> Gather<'a> {
     /// Requests wait for each other at most one product's time (see the module docs).
     pub fn new(inner: &'a dyn LinearOperator) -> Self {
-        Gather { inner, state: Mutex::new(State { adaptive: true, ..State::default() }), changed: Condvar::new() }
+        Gather {
+            inner,
+            state: Mutex::new(State {
+                adaptive: true,
+                ..State::default()
+            }),
+            changed: Condvar::new(),
+        }
     }
 
     /// Requests wait for each other at most `patience` (`Duration::MAX`: until every member
     /// waits, lockstep).
     pub fn with_patience(inner: &'a dyn LinearOperator, patience: Duration) -> Self {
-        Gather { inner, state: Mutex::new(State { patience, ..State::default() }), changed: Condvar::new() }
+        Gather {
+            inner,
+            state: Mutex::new(State {
+                patience,
+                ..State::default()
+            }),
+            changed: Condvar::new(),
+        }
     }
 
     fn lock(&self) -> MutexGuard<'_, State> {
@@ -114,7 +128,10 @@ impl<'a> Gather<'a> {
                 .collect();
             handles
                 .into_iter()
-                .map(|h| h.join().unwrap_or_else(|panic| std::panic::resume_unwind(panic)))
+                .map(|h| {
+                    h.join()
+                        .unwrap_or_else(|panic| std::panic::resume_unwind(panic))
+                })
                 .collect()
         })
     }
@@ -126,7 +143,10 @@ impl<'a> Gather<'a> {
 
     pub fn stats(&self) -> GatherStats {
         let s = self.lock();
-        GatherStats { batches: s.batches, requests: s.requests }
+        GatherStats {
+            batches: s.batches,
+            requests: s.requests,
+        }
     }
 
     fn leave(&self) {
@@ -150,7 +170,11 @@ impl<'a> Gather<'a> {
         }
         let ticket = s.next_ticket;
         s.next_ticket += 1;
-        s.pending.push(Request { ticket, adjoint, input: input.to_vec() });
+        s.pending.push(Request {
+            ticket,
+            adjoint,
+            input: input.to_vec(),
+        });
         s.since.get_or_insert_with(Instant::now);
         s.waiting += 1;
         loop {
@@ -169,7 +193,10 @@ impl<'a> Gather<'a> {
                 s = if left > Duration::from_secs(3600) {
                     self.changed.wait(s).unwrap_or_else(|e| e.into_inner())
                 } else {
-                    self.changed.wait_timeout(s, left).unwrap_or_else(|e| e.into_inner()).0
+                    self.changed
+                        .wait_timeout(s, left)
+                        .unwrap_or_else(|e| e.into_inner())
+                        .0
                 };
                 continue;
             }
@@ -185,14 +212,19 @@ impl<'a> Gather<'a> {
         s.serving = true;
         drop(s);
         let start = Instant::now();
-        let results = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| self.compute(&requests)));
+        let results =
+            std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| self.compute(&requests)));
         let mut s = self.lock();
         s.serving = false;
         match results {
             Ok(results) => {
                 if s.adaptive {
                     let per_request = start.elapsed() / results.len().max(1) as u32;
-                    s.patience = if s.batches == 0 { per_request } else { s.patience.min(per_request) };
+                    s.patience = if s.batches == 0 {
+                        per_request
+                    } else {
+                        s.patience.min(per_request)
+                    };
                 }
                 s.batches += usize::from(requests.iter().any(|r| r.adjoint))
                     + usize::from(requests.iter().any(|r| !r.adjoint));
@@ -230,7 +262,12 @@ impl<'a> Gather<'a> {
             } else {
                 self.inner.apply_batch(&xs, &mut ys, group.len());
             }
-            results.extend(group.iter().zip(ys.chunks_exact(to)).map(|(r, y)| (r.ticket, y.to_vec())));
+            results.extend(
+                group
+                    .iter()
+                    .zip(ys.chunks_exact(to))
+                    .map(|(r, y)| (r.ticket, y.to_vec())),
+            );
         }
         results
     }
@@ -281,12 +318,30 @@ mod tests {
         // Every family, Bernoulli at sizes below, across and above the bit kernel's threading
         // threshold (rows x words = 148, 6,400 and 44,800 against 8,192).
         let hadamard = |side: u32, frames: u64| {
-            PatternSpec::new(Family::Hadamard { ordering: HadamardOrdering::RussianDoll }, side, side, frames, 0).unwrap()
+            PatternSpec::new(
+                Family::Hadamard {
+                    ordering: HadamardOrdering::RussianDoll,
+                },
+                side,
+                side,
+                frames,
+                0,
+            )
+            .unwrap()
         };
-        let bern = |side: u32, rows: u64| PatternSpec::new(Family::Bernoulli { fill: 0.5 }, side, side, rows, 3).unwrap();
+        let bern = |side: u32, rows: u64| {
+            PatternSpec::new(Family::Bernoulli { fill: 0.5 }, side, side, rows, 3).unwrap()
+        };
         let speckle = PatternSpec::new(Family::Speckle { grain: 2 }, 24, 24, 90, 5).unwrap();
         let raster = PatternSpec::new(Family::Raster { block: 1 }, 12, 12, 100, 0).unwrap();
-        let cases = [(bern(16, 37), 37), (bern(64, 100), 100), (bern(64, 700), 700), (hadamard(32, 600), 600), (speckle, 90), (raster, 100)];
+        let cases = [
+            (bern(16, 37), 37),
+            (bern(64, 100), 100),
+            (bern(64, 700), 700),
+            (hadamard(32, 600), 600),
+            (speckle, 90),
+            (raster, 100),
+        ];
         for (spec, rows) in cases {
             let op = measurement_operator(&spec, rows);
             let (m, k) = (op.rows(), op.cols());
@@ -300,10 +355,18 @@ mod tests {
                 for l in 0..batch {
                     let mut y = vec![0.0; m];
                     op.apply(&xs[l * k..(l + 1) * k], &mut y);
-                    assert!(y == ys[l * m..(l + 1) * m], "{:?} {m}x{k}, batch {batch}, vector {l}: apply", spec.family());
+                    assert!(
+                        y == ys[l * m..(l + 1) * m],
+                        "{:?} {m}x{k}, batch {batch}, vector {l}: apply",
+                        spec.family()
+                    );
                     let mut z = vec![0.0; k];
                     op.adjoint(&rs[l * m..(l + 1) * m], &mut z);
-                    assert!(z == zs[l * k..(l + 1) * k], "{:?} {m}x{k}, batch {batch}, vector {l}: adjoint", spec.family());
+                    assert!(
+                        z == zs[l * k..(l + 1) * k],
+                        "{:?} {m}x{k}, batch {batch}, vector {l}: adjoint",
+                        spec.family()
+                    );
                 }
             }
         }
@@ -311,7 +374,12 @@ mod tests {
 
     /// Three members with different numbers of products, mixing forward and adjoint; the third
     /// leaves early. Returns every member's (input, answer) pairs and the stats.
-    fn three_members(gather: &Gather, m: usize, k: usize, counts: [usize; 3]) -> (Vec<Vec<(bool, Vec<f64>, Vec<f64>)>>, GatherStats) {
+    fn three_members(
+        gather: &Gather,
+        m: usize,
+        k: usize,
+        counts: [usize; 3],
+    ) -> (Vec<Vec<(bool, Vec<f64>, Vec<f64>)>>, GatherStats) {
         let jobs: Vec<Box<dyn FnOnce() -> Vec<(bool, Vec<f64>, Vec<f64>)> + Send + '_>> = counts
             .iter()
             .enumerate()
@@ -321,7 +389,11 @@ mod tests {
                         .map(|i| {
                             let seed = (j * 1000 + i) as u64;
                             let adjoint = i % 3 == 2;
-                            let (input, mut out) = if adjoint { (test_vector(m, seed), vec![0.0; k]) } else { (test_vector(k, seed), vec![0.0; m]) };
+                            let (input, mut out) = if adjoint {
+                                (test_vector(m, seed), vec![0.0; k])
+                            } else {
+                                (test_vector(k, seed), vec![0.0; m])
+                            };
                             if adjoint {
                                 gather.adjoint(&input, &mut out)
                             } else {
@@ -330,7 +402,8 @@ mod tests {
                             (adjoint, input, out)
                         })
                         .collect()
-                }) as Box<dyn FnOnce() -> Vec<(bool, Vec<f64>, Vec<f64>)> + Send + '_>
+                })
+                    as Box<dyn FnOnce() -> Vec<(bool, Vec<f64>, Vec<f64>)> + Send + '_>
             })
             .collect();
         let answers = gather.run(jobs);
@@ -342,7 +415,10 @@ mod tests {
         let op = bernoulli(300, 32);
         let (m, k) = (op.rows(), op.cols());
         for gather in [Gather::new(&op), Gather::with_patience(&op, Duration::MAX)] {
-            assert!(adjoint_mismatch(&gather, 5) < 1e-12, "outside run: the inner operator's products");
+            assert!(
+                adjoint_mismatch(&gather, 5) < 1e-12,
+                "outside run: the inner operator's products"
+            );
             let counts = [40usize, 25, 3];
             let (answers, stats) = three_members(&gather, m, k, counts);
             for (j, member) in answers.iter().enumerate() {
@@ -367,7 +443,13 @@ mod tests {
         let (_, stats) = three_members(&gather, m, k, [40, 25, 3]);
         // Serve i answers every running member's product i, all of one kind: one batch each,
         // 40 in all for 68 requests (3 serves of 3, 22 of 2, 15 of 1).
-        assert_eq!(stats, GatherStats { batches: 40, requests: 68 });
+        assert_eq!(
+            stats,
+            GatherStats {
+                batches: 40,
+                requests: 68
+            }
+        );
     }
 
     #[test]
@@ -395,7 +477,11 @@ mod tests {
             }),
         ];
         let done = gather.run(jobs);
-        assert!(done[1] < Duration::from_millis(200), "the fast member took {:?}", done[1]);
+        assert!(
+            done[1] < Duration::from_millis(200),
+            "the fast member took {:?}",
+            done[1]
+        );
         assert!(done[0] >= Duration::from_millis(400));
     }
 
@@ -413,7 +499,9 @@ mod tests {
             self.inner.cols()
         }
         fn apply(&self, x: &[f64], y: &mut [f64]) {
-            std::thread::sleep(Duration::from_millis(self.delay_ms.load(std::sync::atomic::Ordering::Relaxed)));
+            std::thread::sleep(Duration::from_millis(
+                self.delay_ms.load(std::sync::atomic::Ordering::Relaxed),
+            ));
             self.inner.apply(x, y)
         }
         fn adjoint(&self, y: &[f64], x: &mut [f64]) {
@@ -423,7 +511,10 @@ mod tests {
 
     #[test]
     fn patience_is_the_fastest_product_seen_not_the_last() {
-        let op = Slow { inner: bernoulli(20, 4), delay_ms: 2.into() };
+        let op = Slow {
+            inner: bernoulli(20, 4),
+            delay_ms: 2.into(),
+        };
         let gather = Gather::new(&op);
         let jobs: Vec<Box<dyn FnOnce() + Send + '_>> = vec![
             Box::new(|| {
@@ -436,7 +527,10 @@ mod tests {
         ];
         gather.run(jobs);
         let p = gather.patience();
-        assert!(p >= Duration::from_millis(2) && p < Duration::from_millis(60), "patience {p:?}");
+        assert!(
+            p >= Duration::from_millis(2) && p < Duration::from_millis(60),
+            "patience {p:?}"
+        );
     }
 
     #[test]

@@ -122,7 +122,13 @@ impl HadamardOperator {
     /// A subset of rows measures nothing finer than the largest of these.
     pub fn finest_resolution(&self) -> (usize, usize) {
         let (w, h) = (self.width as usize, self.height as usize);
-        let resolve = |bits: usize, side: usize| if bits == 0 { 1 } else { side >> bits.trailing_zeros() };
+        let resolve = |bits: usize, side: usize| {
+            if bits == 0 {
+                1
+            } else {
+                side >> bits.trailing_zeros()
+            }
+        };
         self.natural.iter().fold((1, 1), |(rx, ry), &n| {
             let (u, v) = (n / w, n % w);
             (rx.max(resolve(v, w)), ry.max(resolve(u, h)))

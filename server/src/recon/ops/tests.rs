@@ -569,15 +569,31 @@ fn hadamard_finest_resolution_bounds_every_row() {
                 // Constant on bx x by blocks...
                 for y in 0..h {
                     for x in 0..w {
-                        assert_eq!(p[y * w + x], p[(y / by * by) * w + x / bx * bx], "{ordering:?} {pairs} row {r}");
+                        assert_eq!(
+                            p[y * w + x],
+                            p[(y / by * by) * w + x / bx * bx],
+                            "{ordering:?} {pairs} row {r}"
+                        );
                     }
                 }
                 // ...and the bound is attained by some row: track each row's own finest block.
-                let own_x = (1..=w).filter(|b| w % b == 0).rev().find(|&b| (0..w * h).all(|i| p[i] == p[(i / w) * w + (i % w) / b * b])).unwrap();
-                let own_y = (1..=h).filter(|b| h % b == 0).rev().find(|&b| (0..w * h).all(|i| p[i] == p[((i / w) / b * b) * w + i % w])).unwrap();
+                let own_x = (1..=w)
+                    .filter(|b| w % b == 0)
+                    .rev()
+                    .find(|&b| (0..w * h).all(|i| p[i] == p[(i / w) * w + (i % w) / b * b]))
+                    .unwrap();
+                let own_y = (1..=h)
+                    .filter(|b| h % b == 0)
+                    .rev()
+                    .find(|&b| (0..w * h).all(|i| p[i] == p[((i / w) / b * b) * w + i % w]))
+                    .unwrap();
                 finest = (finest.0.min(own_x), finest.1.min(own_y));
             }
-            assert_eq!((w / finest.0, h / finest.1), (rx, ry), "{ordering:?} {pairs}: the bound is tight");
+            assert_eq!(
+                (w / finest.0, h / finest.1),
+                (rx, ry),
+                "{ordering:?} {pairs}: the bound is tight"
+            );
         }
     }
     let full = HadamardOperator::new(w as u32, h as u32, HadamardOrdering::Natural, w * h);

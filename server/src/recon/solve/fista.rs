@@ -43,8 +43,8 @@ use super::{
     check_problem, count_nonzeros, half_wsq, is_zero_data, lambda_without_solve, lipschitz_of,
     non_finite, relative_residual, zero_solution,
 };
-use crate::recon::simd::avx2_dispatch;
 use crate::recon::linop::{LinearOperator, dot, norm};
+use crate::recon::simd::avx2_dispatch;
 use crate::recon::{Control, ReconError};
 
 /// `||A z - (A y)_recurrence||^2` below this fraction of `||A z||^2 + ||A y||^2` is rounding
@@ -212,7 +212,10 @@ impl<'a> Prox<'a> {
             }
             Reg::Ortho(psi, free) if !self.nonneg => {
                 psi.apply(v, &mut self.s);
-                self.s.iter_mut().skip(free).for_each(|c| *c = soft(*c, gamma));
+                self.s
+                    .iter_mut()
+                    .skip(free)
+                    .for_each(|c| *c = soft(*c, gamma));
                 psi.adjoint(&self.s, out);
                 self.s.iter().skip(free).map(|v| v.abs()).sum()
             }
@@ -220,7 +223,9 @@ impl<'a> Prox<'a> {
                 // Free coefficients have the dual box [0, 0].
                 let free = free.min(self.u.len());
                 self.u[..free].fill(0.0);
-                self.u[free..].iter_mut().for_each(|u| *u = u.clamp(-gamma, gamma));
+                self.u[free..]
+                    .iter_mut()
+                    .for_each(|u| *u = u.clamp(-gamma, gamma));
                 let mut j = 0;
                 loop {
                     psi.adjoint(&self.u, &mut self.tmp);
@@ -285,7 +290,14 @@ fn band_rows(grid: Grid) -> usize {
 /// before the pass, so every band sees the old `u` there. Same operations in the same order as
 /// two separate passes (`primal_from_dual`, then `tv_dual_ascent`, kept as the tests'
 /// reference): the same bits (tested), one parallel section and one sweep instead of two.
-fn tv_prox_pass(u: &mut [f64], v: &[f64], grid: Grid, nonneg: bool, gamma: f64, out: &mut [f64]) -> (f64, f64, f64) {
+fn tv_prox_pass(
+    u: &mut [f64],
+    v: &[f64],
+    grid: Grid,
+    nonneg: bool,
+    gamma: f64,
+    out: &mut [f64],
+) -> (f64, f64, f64) {
     let (w, h) = (grid.width, grid.height);
     let k = grid.pixels();
     let rows = band_rows(grid);
@@ -295,8 +307,16 @@ fn tv_prox_pass(u: &mut [f64], v: &[f64], grid: Grid, nonneg: bool, gamma: f64, 
     let edges: Vec<(Vec<f64>, Vec<f64>)> = (0..h.div_ceil(rows))
         .map(|i| {
             let (y0, y1) = (i * rows, ((i + 1) * rows).min(h));
-            let above = if y0 > 0 { uy[(y0 - 1) * w..y0 * w].to_vec() } else { Vec::new() };
-            let below = if y1 < h { [&ux[y1 * w..(y1 + 1) * w], &uy[y1 * w..(y1 + 1) * w]].concat() } else { Vec::new() };
+            let above = if y0 > 0 {
+                uy[(y0 - 1) * w..y0 * w].to_vec()
+            } else {
+                Vec::new()
+            };
+            let below = if y1 < h {
+                [&ux[y1 * w..(y1 + 1) * w], &uy[y1 * w..(y1 + 1) * w]].concat()
+            } else {
+                Vec::new()
+            };
             (above, below)
         })
         .collect();
@@ -310,18 +330,34 @@ fn tv_prox_pass(u: &mut [f64], v: &[f64], grid: Grid, nonneg: bool, gamma: f64, 
             tv_prox_band(ux, uy, v, grid, i * rows, nonneg, gamma, above, below, out)
         })
         .collect();
-    sums.iter().fold((0.0, 0.0, 0.0), |acc, s| (acc.0 + s[0], acc.1 + s[1], acc.2 + s[2]))
+    sums.iter().fold((0.0, 0.0, 0.0), |acc, s| {
+        (acc.0 + s[0], acc.1 + s[1], acc.2 + s[2])
+    })
 }
 
 /// `o = v_row - (D^T u)_row` (clipped at 0 if `nonneg`) for one row: `uxr` its ux row,
 /// `uy_this` its uy row (`None` on the last grid row), `uy_prev` the uy row above (`None` on the
 /// first grid row).
 #[inline(always)]
-fn primal_row(vr: &[f64], uxr: &[f64], uy_this: Option<&[f64]>, uy_prev: Option<&[f64]>, nonneg: bool, o: &mut [f64]) {
+fn primal_row(
+    vr: &[f64],
+    uxr: &[f64],
+    uy_this: Option<&[f64]>,
+    uy_prev: Option<&[f64]>,
+    nonneg: bool,
+    o: &mut [f64],
+) {
     let w = vr.len();
-    o[..w - 1].iter_mut().zip(&vr[..w - 1]).zip(&uxr[..w - 1]).for_each(|((o, &v), &u)| *o = v + u);
+    o[..w - 1]
+        .iter_mut()
+        .zip(&vr[..w - 1])
+        .zip(&uxr[..w - 1])
+        .for_each(|((o, &v), &u)| *o = v + u);
     o[w - 1] = vr[w - 1];
-    o[1..].iter_mut().zip(&uxr[..w - 1]).for_each(|(o, &u)| *o -= u);
+    o[1..]
+        .iter_mut()
+        .zip(&uxr[..w - 1])
+        .for_each(|(o, &u)| *o -= u);
     if let Some(uy) = uy_this {
         o.iter_mut().zip(uy).for_each(|(o, &u)| *o += u);
     }
@@ -361,9 +397,25 @@ fn ascent_row(
     let n = w - 1;
     let (right, left) = (&row[1..], &row[..n]);
     for x in 0..n {
-        step(right[x] - left[x], next[x] - left[x], &mut uxr[x], &mut uyr[x], gamma, &mut mags[x], &mut dots[x]);
+        step(
+            right[x] - left[x],
+            next[x] - left[x],
+            &mut uxr[x],
+            &mut uyr[x],
+            gamma,
+            &mut mags[x],
+            &mut dots[x],
+        );
     }
-    step(0.0, next[n] - row[n], &mut uxr[n], &mut uyr[n], gamma, &mut mags[n], &mut dots[n]);
+    step(
+        0.0,
+        next[n] - row[n],
+        &mut uxr[n],
+        &mut uyr[n],
+        gamma,
+        &mut mags[n],
+        &mut dots[n],
+    );
     for (m, d) in mags.chunks_exact(4).zip(dots.chunks_exact(4)) {
         for l in 0..4 {
             lanes[0][l] += m[l];
@@ -433,7 +485,9 @@ fn tv_dual_ascent(u: &mut [f64], t: &[f64], grid: Grid, gamma: f64) -> (f64, f64
         .enumerate()
         .map(|(i, (ux, uy))| tv_dual_ascent_band(ux, uy, t, grid, i * band / w, gamma))
         .collect();
-    sums.iter().fold((0.0, 0.0, 0.0), |acc, s| (acc.0 + s[0], acc.1 + s[1], acc.2 + s[2]))
+    sums.iter().fold((0.0, 0.0, 0.0), |acc, s| {
+        (acc.0 + s[0], acc.1 + s[1], acc.2 + s[2])
+    })
 }
 
 avx2_dispatch! {
@@ -594,7 +648,11 @@ pub fn fista(
             prep.b(),
             prep.weights(),
             opts.nonnegative,
-            if psi.is_some() { opts.free_coefficients } else { 0 },
+            if psi.is_some() {
+                opts.free_coefficients
+            } else {
+                0
+            },
         )),
     };
     with_polish(&prep, a, b, reg, opts, control, lambda_max, "fista", start)
@@ -1032,7 +1090,17 @@ mod simd_tests {
     #[test]
     fn fused_prox_pass_matches_the_separate_passes_bit_for_bit() {
         let mut rng = Rng::new(11);
-        for (w, h) in [(1usize, 1usize), (1, 9), (7, 1), (13, 7), (64, 64), (37, 130), (130, 70), (64, 200), (2048, 5)] {
+        for (w, h) in [
+            (1usize, 1usize),
+            (1, 9),
+            (7, 1),
+            (13, 7),
+            (64, 64),
+            (37, 130),
+            (130, 70),
+            (64, 200),
+            (2048, 5),
+        ] {
             let grid = Grid::new(w, h);
             let k = w * h;
             let v: Vec<f64> = (0..k).map(|_| rng.normal()).collect();
@@ -1046,10 +1114,20 @@ mod simd_tests {
                     primal_from_dual(&u1, &v, grid, nonneg, &mut o1);
                     let s1 = tv_dual_ascent(&mut u1, &o1, grid, 0.07);
                     let s2 = tv_prox_pass(&mut u2, &v, grid, nonneg, 0.07, &mut o2);
-                    assert!(bits(&u1) == bits(&u2) && bits(&o1) == bits(&o2), "{w}x{h} nonneg {nonneg} pass {pass}: fused pass differs");
-                    assert_eq!([s1.0, s1.1, s1.2].map(f64::to_bits), [s2.0, s2.1, s2.2].map(f64::to_bits), "{w}x{h}: sums");
+                    assert!(
+                        bits(&u1) == bits(&u2) && bits(&o1) == bits(&o2),
+                        "{w}x{h} nonneg {nonneg} pass {pass}: fused pass differs"
+                    );
+                    assert_eq!(
+                        [s1.0, s1.1, s1.2].map(f64::to_bits),
+                        [s2.0, s2.1, s2.2].map(f64::to_bits),
+                        "{w}x{h}: sums"
+                    );
                 }
-                assert!(bits(&u1) != bits(&u0) || k == 1, "{w}x{h}: the passes moved the dual");
+                assert!(
+                    bits(&u1) != bits(&u0) || k == 1,
+                    "{w}x{h}: the passes moved the dual"
+                );
             }
         }
     }
@@ -1077,14 +1155,24 @@ mod simd_tests {
                 let mut f = t.clone();
                 f.resize(k.next_power_of_two(), 0.25);
                 crate::recon::fwht::fwht(&mut f);
-                (bits(&u), bits(&out), [sums.0.to_bits(), sums.1.to_bits(), sums.2.to_bits()], bits(&f))
+                (
+                    bits(&u),
+                    bits(&out),
+                    [sums.0.to_bits(), sums.1.to_bits(), sums.2.to_bits()],
+                    bits(&f),
+                )
             };
             let (wide, base) = (run(false), run(true));
-            assert!(wide == base, "{w}x{h}: the AVX2 and baseline kernels differ");
+            assert!(
+                wide == base,
+                "{w}x{h}: the AVX2 and baseline kernels differ"
+            );
         }
         // A whole solve: TV on a 32x32 Hadamard subset.
         let spec = helmholtz_proto::PatternSpec::new(
-            helmholtz_proto::Family::Hadamard { ordering: helmholtz_proto::HadamardOrdering::RussianDoll },
+            helmholtz_proto::Family::Hadamard {
+                ordering: helmholtz_proto::HadamardOrdering::RussianDoll,
+            },
             32,
             32,
             410,
@@ -1092,16 +1180,35 @@ mod simd_tests {
         )
         .unwrap();
         let op = HadamardOperator::from_spec(&spec, 410).unwrap();
-        let truth: Vec<f64> = (0..1024).map(|i| if (i % 32) > 10 && (i / 32) < 20 { 1.0 } else { 0.2 }).collect();
+        let truth: Vec<f64> = (0..1024)
+            .map(|i| {
+                if (i % 32) > 10 && (i / 32) < 20 {
+                    1.0
+                } else {
+                    0.2
+                }
+            })
+            .collect();
         let mut b = vec![0.0; op.rows()];
         op.apply(&truth, &mut b);
-        let opts = SolveOptions { lambda: Lambda::Relative(1e-3), max_iter: 60, ..SolveOptions::default() };
+        let opts = SolveOptions {
+            lambda: Lambda::Relative(1e-3),
+            max_iter: 60,
+            ..SolveOptions::default()
+        };
         let solve = |baseline: bool| {
             force_baseline(baseline);
-            bits(&tv_fista(&op, Grid::new(32, 32), &b, &opts, &Control::new()).unwrap().t)
+            bits(
+                &tv_fista(&op, Grid::new(32, 32), &b, &opts, &Control::new())
+                    .unwrap()
+                    .t,
+            )
         };
         let (wide, base) = (solve(false), solve(true));
         force_baseline(false);
-        assert!(wide == base, "a TV solve differs between the AVX2 and baseline copies");
+        assert!(
+            wide == base,
+            "a TV solve differs between the AVX2 and baseline copies"
+        );
     }
 }

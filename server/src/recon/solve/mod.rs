@@ -53,7 +53,10 @@ mod tests;
 pub use cgls::cgls;
 pub use condition::MeanDeflated;
 pub use fista::{fista, lambda_max_l1, lambda_max_l1_free, tv_fista};
-pub use path::{PathPoint, PathRunner, Penalty, RegPath, geometric_fractions, lambda_max, solve_path, solve_path_until};
+pub use path::{
+    PathPoint, PathRunner, Penalty, RegPath, geometric_fractions, lambda_max, solve_path,
+    solve_path_until,
+};
 pub use poisson::{poisson_irls, poisson_weights};
 pub use tv::{Grid, gradient_magnitudes, lambda_max_tv, tv, tv_value};
 

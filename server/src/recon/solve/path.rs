@@ -8,8 +8,8 @@ use std::time::Instant;
 use super::condition::Prepared;
 use super::tv::Grid;
 use super::{
-    Lambda, Solution, SolveOptions, SolveReport, check_problem, fista, is_zero_data, lambda_max_l1, lambda_max_l1_free,
-    lambda_max_tv, lipschitz_of, tv, tv_fista, zero_solution,
+    Lambda, Solution, SolveOptions, SolveReport, check_problem, fista, is_zero_data, lambda_max_l1,
+    lambda_max_l1_free, lambda_max_tv, lipschitz_of, tv, tv_fista, zero_solution,
 };
 use crate::recon::linop::LinearOperator;
 use crate::recon::{Control, ReconError};
@@ -56,7 +56,9 @@ pub fn lambda_max(
     free: usize,
 ) -> f64 {
     match penalty {
-        Penalty::L1 { psi: Some(psi) } => lambda_max_l1_free(a, Some(psi), b, weights, nonnegative, free),
+        Penalty::L1 { psi: Some(psi) } => {
+            lambda_max_l1_free(a, Some(psi), b, weights, nonnegative, free)
+        }
         Penalty::L1 { psi: None } => lambda_max_l1(a, None, b, weights, nonnegative),
         Penalty::Tv { grid } | Penalty::TvPrimalDual { grid } => lambda_max_tv(a, grid, b, weights),
     }
@@ -107,7 +109,10 @@ pub fn solve_path_until(
     let m = fractions.len().max(1) as f64;
     let mut points: Vec<PathPoint> = Vec::with_capacity(fractions.len());
     for (i, &fraction) in fractions.iter().enumerate() {
-        let progress = (lo + (hi - lo) * i as f64 / m, lo + (hi - lo) * (i + 1) as f64 / m);
+        let progress = (
+            lo + (hi - lo) * i as f64 / m,
+            lo + (hi - lo) * (i + 1) as f64 / m,
+        );
         let point = runner.solve(fraction, progress, control)?;
         let more = keep_going(&point);
         points.push(point);
@@ -152,14 +157,34 @@ impl<'a> PathRunner<'a> {
         let (_, k) = check_problem(a, b, opts)?;
         let mut o = opts.clone();
         if is_zero_data(b, opts.weights.as_deref()) {
-            return Ok(PathRunner { a, penalty, b, opts: o, lmax: 0.0, deflated: false, zero: true, k, last: None });
+            return Ok(PathRunner {
+                a,
+                penalty,
+                b,
+                opts: o,
+                lmax: 0.0,
+                deflated: false,
+                zero: true,
+                k,
+                last: None,
+            });
         }
         let prep = Prepared::new(a, b, opts.weights.as_deref(), opts.deflate_mean);
         let (op, bb, w) = (prep.op(), prep.b(), prep.weights());
         let lmax = lambda_max(op, penalty, bb, w, opts.nonnegative, opts.free_coefficients);
         o.lipschitz = Some(lipschitz_of(op, w, opts.lipschitz)?);
         let last = opts.warm_start.clone();
-        Ok(PathRunner { a, penalty, b, opts: o, lmax, deflated: prep.is_deflated(), zero: false, k, last })
+        Ok(PathRunner {
+            a,
+            penalty,
+            b,
+            opts: o,
+            lmax,
+            deflated: prep.is_deflated(),
+            zero: false,
+            k,
+            last,
+        })
     }
 
     /// Of the problem actually solved (after deflation, if any); 0 for all-zero data.
@@ -173,13 +198,26 @@ impl<'a> PathRunner<'a> {
     }
 
     /// Solves at `lambda = fraction * lambda_max`, warm-started from the previous point.
-    pub fn solve(&mut self, fraction: f64, progress: (f64, f64), control: &Control) -> Result<PathPoint, ReconError> {
+    pub fn solve(
+        &mut self,
+        fraction: f64,
+        progress: (f64, f64),
+        control: &Control,
+    ) -> Result<PathPoint, ReconError> {
         if !(fraction.is_finite() && fraction >= 0.0) {
-            return Err(ReconError::Unsolvable(format!("path fraction {fraction} is not finite and >= 0")));
+            return Err(ReconError::Unsolvable(format!(
+                "path fraction {fraction} is not finite and >= 0"
+            )));
         }
         if self.zero {
-            let Solution { t, report } = zero_solution("path", self.k, 0.0, Some(0.0), 0.0, Instant::now());
-            return Ok(PathPoint { fraction, lambda: 0.0, t, report });
+            let Solution { t, report } =
+                zero_solution("path", self.k, 0.0, Some(0.0), 0.0, Instant::now());
+            return Ok(PathPoint {
+                fraction,
+                lambda: 0.0,
+                t,
+                report,
+            });
         }
         let lambda = fraction * self.lmax;
         let mut o = self.opts.clone();
@@ -194,6 +232,11 @@ impl<'a> PathRunner<'a> {
         };
         report.lambda_max = Some(self.lmax);
         self.last = Some(t.clone());
-        Ok(PathPoint { fraction, lambda, t, report })
+        Ok(PathPoint {
+            fraction,
+            lambda,
+            t,
+            report,
+        })
     }
 }

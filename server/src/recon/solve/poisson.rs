@@ -73,7 +73,14 @@ pub fn poisson_irls(
     o.weights = Some(vec![1.0 / mean.max(floor); n]);
     o.lipschitz = None;
     if let Lambda::Relative(f) = opts.lambda {
-        let lmax = lambda_max(a, penalty, b, o.weights.as_deref(), opts.nonnegative, opts.free_coefficients);
+        let lmax = lambda_max(
+            a,
+            penalty,
+            b,
+            o.weights.as_deref(),
+            opts.nonnegative,
+            opts.free_coefficients,
+        );
         o.lambda = Lambda::Absolute(f * lmax);
     }
     let rounds = rounds.max(1);

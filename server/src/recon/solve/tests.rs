@@ -1060,15 +1060,27 @@ fn tv_path_points_reach_their_minimum_after_failed_inexact_steps() {
         .collect();
     let op = HadamardOperator::new(side, side, HadamardOrdering::RussianDoll, truth.len() / 20);
     let b = measure(&op, &truth);
-    let grid = Grid { width: side as usize, height: side as usize };
+    let grid = Grid {
+        width: side as usize,
+        height: side as usize,
+    };
     let control = Control::new();
-    let o = SolveOptions { max_iter: 100, tol: 1e-3, ..SolveOptions::default() };
+    let o = SolveOptions {
+        max_iter: 100,
+        tol: 1e-3,
+        ..SolveOptions::default()
+    };
     let mut runner = PathRunner::new(&op, Penalty::Tv { grid }, &b, &o).unwrap();
     let mut previous: Option<Vec<f64>> = None;
     for f in [0.3, 0.1, 0.03, 0.01] {
         let p = runner.solve(f, (0.0, 1.0), &control).unwrap();
         // The same point solved cold to a tight tolerance: its objective is F*.
-        let tight = SolveOptions { max_iter: 5000, tol: 1e-9, lambda: Lambda::Absolute(p.lambda), ..SolveOptions::default() };
+        let tight = SolveOptions {
+            max_iter: 5000,
+            tol: 1e-9,
+            lambda: Lambda::Absolute(p.lambda),
+            ..SolveOptions::default()
+        };
         let exact = tv_fista(&op, grid, &b, &tight, &control).unwrap();
         let (f_path, f_star) = (p.report.objective, exact.report.objective);
         // A point that says it stopped at its minimum (converged, or stalled at working
@@ -1076,9 +1088,17 @@ fn tv_path_points_reach_their_minimum_after_failed_inexact_steps() {
         // 1.8 % at f = 0.1 here, the stall left 18 %. A point cut by the path's iteration cap
         // (f = 0.3: 3.9 % above F* after 100 iterations) only has to have moved.
         let done = !matches!(p.report.stop, StopReason::MaxIter);
-        assert!(!done || f_path <= f_star * 1.05, "f = {f}: path objective {f_path:.6e} vs minimum {f_star:.6e} ({:?} after {} iterations)", p.report.stop, p.report.iterations);
+        assert!(
+            !done || f_path <= f_star * 1.05,
+            "f = {f}: path objective {f_path:.6e} vs minimum {f_star:.6e} ({:?} after {} iterations)",
+            p.report.stop,
+            p.report.iterations
+        );
         if let Some(q) = &previous {
-            assert!(rel_err(&p.t, q) > 1e-3, "f = {f}: the image did not move from the previous point");
+            assert!(
+                rel_err(&p.t, q) > 1e-3,
+                "f = {f}: the image did not move from the previous point"
+            );
         }
         previous = Some(p.t);
     }

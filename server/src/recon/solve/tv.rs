@@ -177,9 +177,18 @@ pub fn lambda_max_tv(
     let dct = crate::recon::transforms::Dct2d::new(w, h);
     let mut coef = vec![0.0; k];
     dct.apply(&g, &mut coef);
-    let ex: Vec<f64> = (0..w).map(|u| 4.0 * (std::f64::consts::PI * u as f64 / (2 * w) as f64).sin().powi(2)).collect();
+    let ex: Vec<f64> = (0..w)
+        .map(|u| {
+            4.0 * (std::f64::consts::PI * u as f64 / (2 * w) as f64)
+                .sin()
+                .powi(2)
+        })
+        .collect();
     for v in 0..h {
-        let ey = 4.0 * (std::f64::consts::PI * v as f64 / (2 * h) as f64).sin().powi(2);
+        let ey = 4.0
+            * (std::f64::consts::PI * v as f64 / (2 * h) as f64)
+                .sin()
+                .powi(2);
         for u in 0..w {
             let lam = ex[u] + ey;
             let c = &mut coef[v * w + u];

@@ -77,22 +77,31 @@ pub(crate) fn lambda_max(sh: &Shared, bs: &[f64], chunk: usize) -> Vec<f64> {
     if n == 0 {
         return out;
     }
-    bs.par_chunks(chunk * n).zip(out.par_chunks_mut(chunk)).for_each(|(b, o)| {
-        let c = o.len();
-        let mut g = vec![0.0; c * k];
-        let mut s = vec![0.0; c * k];
-        sh.op.adjoint_batch(b, &mut g, c);
-        sh.forward(&g, &mut s);
-        for (v, row) in o.iter_mut().zip(s.chunks_exact(k)) {
-            *v = row.iter().skip(sh.free).fold(0.0f64, |m, x| m.max(x.abs()));
-        }
-    });
+    bs.par_chunks(chunk * n)
+        .zip(out.par_chunks_mut(chunk))
+        .for_each(|(b, o)| {
+            let c = o.len();
+            let mut g = vec![0.0; c * k];
+            let mut s = vec![0.0; c * k];
+            sh.op.adjoint_batch(b, &mut g, c);
+            sh.forward(&g, &mut s);
+            for (v, row) in o.iter_mut().zip(s.chunks_exact(k)) {
+                *v = row.iter().skip(sh.free).fold(0.0f64, |m, x| m.max(x.abs()));
+            }
+        });
     out
 }
 
 /// Solves every row (`bs`: rows x n data, `lams`: rows weights, `s`: rows x k warm start in,
 /// solution out) in chunks of `chunk` rows over the threads. Returns each row's iterations.
-pub(crate) fn solve_rows(sh: &Shared, bs: &[f64], lams: &[f64], s: &mut [f64], chunk: usize, control: &Control) -> Result<Vec<usize>, ReconError> {
+pub(crate) fn solve_rows(
+    sh: &Shared,
+    bs: &[f64],
+    lams: &[f64],
+    s: &mut [f64],
+    chunk: usize,
+    control: &Control,
+) -> Result<Vec<usize>, ReconError> {
     in_chunks(sh, bs, lams, s, chunk, false, control)
 }
 
@@ -101,13 +110,27 @@ pub(crate) fn solve_rows(sh: &Shared, bs: &[f64], lams: &[f64], s: &mut [f64], c
 /// plus the free ones), no penalty, the rest held at zero; `s` in, refitted out. The soft
 /// threshold shrinks every kept coefficient by `lambda`; at a weight large enough to keep only
 /// the coefficients the data support, the refit removes that bias. Returns each row's iterations.
-pub(crate) fn refit_rows(sh: &Shared, bs: &[f64], s: &mut [f64], chunk: usize, control: &Control) -> Result<Vec<usize>, ReconError> {
+pub(crate) fn refit_rows(
+    sh: &Shared,
+    bs: &[f64],
+    s: &mut [f64],
+    chunk: usize,
+    control: &Control,
+) -> Result<Vec<usize>, ReconError> {
     let lams = vec![0.0; s.len() / sh.k().max(1)];
     in_chunks(sh, bs, &lams, s, chunk, true, control)
 }
 
 /// [`fista_chunk`] over chunks of `chunk` rows, in parallel.
-fn in_chunks(sh: &Shared, bs: &[f64], lams: &[f64], s: &mut [f64], chunk: usize, refit: bool, control: &Control) -> Result<Vec<usize>, ReconError> {
+fn in_chunks(
+    sh: &Shared,
+    bs: &[f64],
+    lams: &[f64],
+    s: &mut [f64],
+    chunk: usize,
+    refit: bool,
+    control: &Control,
+) -> Result<Vec<usize>, ReconError> {
     let (k, n) = (sh.k(), sh.n());
     let rows = lams.len();
     assert_eq!(bs.len(), rows * n);
@@ -138,7 +161,15 @@ fn soft(v: f64, t: f64) -> f64 {
 /// One chunk of rows (module docs). `out` holds the warm start and receives the solutions.
 /// With `refit`, the coefficients that are zero in the warm start stay zero ([`refit_rows`]).
 #[allow(clippy::too_many_arguments)]
-fn fista_chunk(sh: &Shared, bs: &[f64], lams: &[f64], out: &mut [f64], iterations: &mut [usize], refit: bool, control: &Control) -> Result<(), ReconError> {
+fn fista_chunk(
+    sh: &Shared,
+    bs: &[f64],
+    lams: &[f64],
+    out: &mut [f64],
+    iterations: &mut [usize],
+    refit: bool,
+    control: &Control,
+) -> Result<(), ReconError> {
     let (k, n) = (sh.k(), sh.n());
     let rows = lams.len();
     if rows == 0 {
@@ -150,7 +181,13 @@ fn fista_chunk(sh: &Shared, bs: &[f64], lams: &[f64], out: &mut [f64], iteration
     let mut y = out.to_vec();
     // The support each row keeps (refit only).
     let mut keep: Vec<bool> = if refit {
-        out.chunks_exact(k).flat_map(|row| row.iter().enumerate().map(|(i, v)| i < sh.free || *v != 0.0)).collect()
+        out.chunks_exact(k)
+            .flat_map(|row| {
+                row.iter()
+                    .enumerate()
+                    .map(|(i, v)| i < sh.free || *v != 0.0)
+            })
+            .collect()
     } else {
         Vec::new()
     };

@@ -28,9 +28,13 @@ pub enum TransportDecodeError {
     TooShort(usize),
     #[error("transport matrix: bad magic (not a Helmholtz transport matrix)")]
     BadMagic,
-    #[error("transport matrix: format version {0} is not supported (this build reads version {VERSION})")]
+    #[error(
+        "transport matrix: format version {0} is not supported (this build reads version {VERSION})"
+    )]
     UnsupportedVersion(u16),
-    #[error("transport matrix: checksum mismatch (stored crc32c {stored:08x}, computed {computed:08x}): the bytes are corrupt")]
+    #[error(
+        "transport matrix: checksum mismatch (stored crc32c {stored:08x}, computed {computed:08x}): the bytes are corrupt"
+    )]
     Checksum { stored: u32, computed: u32 },
     #[error("transport matrix: bad header: {0}")]
     BadHeader(String),
@@ -67,7 +71,11 @@ impl PartialEq for TransportMatrix {
             && self.transform == other.transform
             && self.row_ptr == other.row_ptr
             && self.index == other.index
-            && self.value.iter().map(|v| v.to_bits()).eq(other.value.iter().map(|v| v.to_bits()))
+            && self
+                .value
+                .iter()
+                .map(|v| v.to_bits())
+                .eq(other.value.iter().map(|v| v.to_bits()))
     }
 }
 
@@ -80,7 +88,9 @@ impl Clone for TransportMatrix {
             row_ptr: self.row_ptr.clone(),
             index: self.index.clone(),
             value: self.value.clone(),
-            psi: self.transform.build(self.projector.0 as usize, self.projector.1 as usize),
+            psi: self
+                .transform
+                .build(self.projector.0 as usize, self.projector.1 as usize),
         }
     }
 }
@@ -100,7 +110,14 @@ impl Builder {
         let m = camera.0 as usize * camera.1 as usize;
         let mut row_ptr = Vec::with_capacity(m + 1);
         row_ptr.push(0);
-        Builder { projector, camera, transform, row_ptr, index: Vec::new(), value: Vec::new() }
+        Builder {
+            projector,
+            camera,
+            transform,
+            row_ptr,
+            index: Vec::new(),
+            value: Vec::new(),
+        }
     }
 
     /// Appends the next row from its coefficients, keeping those with `|s| > threshold` that
@@ -123,7 +140,14 @@ impl Builder {
     pub fn finish(self) -> TransportMatrix {
         let m = self.camera.0 as usize * self.camera.1 as usize;
         assert_eq!(self.rows(), m, "every camera pixel needs a row");
-        TransportMatrix::from_parts(self.projector, self.camera, self.transform, self.row_ptr, self.index, self.value)
+        TransportMatrix::from_parts(
+            self.projector,
+            self.camera,
+            self.transform,
+            self.row_ptr,
+            self.index,
+            self.value,
+        )
     }
 }
 
@@ -137,12 +161,26 @@ impl TransportMatrix {
         value: Vec<f32>,
     ) -> Self {
         let psi = transform.build(projector.0 as usize, projector.1 as usize);
-        TransportMatrix { projector, camera, transform, row_ptr, index, value, psi }
+        TransportMatrix {
+            projector,
+            camera,
+            transform,
+            row_ptr,
+            index,
+            value,
+            psi,
+        }
     }
 
     /// A dense `m x k` matrix (row-major) stored sparse in `transform`, keeping every
     /// coefficient with `|s| > threshold` (tests, benchmarks).
-    pub fn from_dense(projector: (u32, u32), camera: (u32, u32), transform: TransformKind, dense: &[f32], threshold: f64) -> Self {
+    pub fn from_dense(
+        projector: (u32, u32),
+        camera: (u32, u32),
+        transform: TransformKind,
+        dense: &[f32],
+        threshold: f64,
+    ) -> Self {
         let k = projector.0 as usize * projector.1 as usize;
         let m = camera.0 as usize * camera.1 as usize;
         assert_eq!(dense.len(), m * k, "dense T must be m x k");
@@ -160,7 +198,13 @@ impl TransportMatrix {
     /// Rows given one at a time (f64, k values each, `m` of them), stored sparse in `transform`,
     /// keeping in each row the coefficients with `|s| > relative * max |s|` (benchmarks: a
     /// reference matrix from a scene's exact rows).
-    pub fn from_rows(projector: (u32, u32), camera: (u32, u32), transform: TransformKind, rows: impl Iterator<Item = Vec<f64>>, relative: f64) -> Self {
+    pub fn from_rows(
+        projector: (u32, u32),
+        camera: (u32, u32),
+        transform: TransformKind,
+        rows: impl Iterator<Item = Vec<f64>>,
+        relative: f64,
+    ) -> Self {
         let k = projector.0 as usize * projector.1 as usize;
         let psi = transform.build(projector.0 as usize, projector.1 as usize);
         let mut b = Builder::new(projector, camera, transform);
@@ -211,7 +255,11 @@ impl TransportMatrix {
     /// dual image when `c'` is a camera pixel's indicator). Returns k values.
     pub fn relight(&self, light: &[f32]) -> Vec<f32> {
         let (m, k) = (self.m(), self.k());
-        assert_eq!(light.len(), m, "relight takes one value per camera pixel ({m})");
+        assert_eq!(
+            light.len(),
+            m,
+            "relight takes one value per camera pixel ({m})"
+        );
         let threads = rayon::current_num_threads().max(1);
         let min_len = m.div_ceil(threads).max(64);
         let acc = (0..m)
@@ -252,7 +300,11 @@ impl TransportMatrix {
     /// `c = T p`: the camera frame a projector pattern `p` (k values) gives. Returns m values.
     pub fn primal(&self, pattern: &[f32]) -> Vec<f32> {
         let k = self.k();
-        assert_eq!(pattern.len(), k, "primal takes one value per projector pixel ({k})");
+        assert_eq!(
+            pattern.len(),
+            k,
+            "primal takes one value per projector pixel ({k})"
+        );
         let sp: Vec<f32> = if self.transform == TransformKind::Identity {
             pattern.to_vec()
         } else {
@@ -264,10 +316,17 @@ impl TransportMatrix {
         let m = self.m();
         let threads = rayon::current_num_threads().max(1);
         let mut out = vec![0f32; m];
-        out.par_iter_mut().with_min_len(m.div_ceil(threads).max(64)).enumerate().for_each(|(j, o)| {
-            let r = self.row_range(j);
-            *o = self.index[r.clone()].iter().zip(&self.value[r]).map(|(&i, &v)| v * sp[i as usize]).sum();
-        });
+        out.par_iter_mut()
+            .with_min_len(m.div_ceil(threads).max(64))
+            .enumerate()
+            .for_each(|(j, o)| {
+                let r = self.row_range(j);
+                *o = self.index[r.clone()]
+                    .iter()
+                    .zip(&self.value[r])
+                    .map(|(&i, &v)| v * sp[i as usize])
+                    .sum();
+            });
         out
     }
 
@@ -347,11 +406,23 @@ impl TransportMatrix {
             return Err(E::UnsupportedVersion(version));
         }
         let header_len = u32::from_le_bytes(body[10..14].try_into().expect("4 bytes")) as usize;
-        let header_end = 14usize.checked_add(header_len).filter(|&e| e <= body.len()).ok_or_else(|| E::BadHeader(format!("header length {header_len} runs past the end")))?;
-        let header: serde_json::Value = serde_json::from_slice(&body[14..header_end]).map_err(|e| E::BadHeader(e.to_string()))?;
+        let header_end = 14usize
+            .checked_add(header_len)
+            .filter(|&e| e <= body.len())
+            .ok_or_else(|| E::BadHeader(format!("header length {header_len} runs past the end")))?;
+        let header: serde_json::Value = serde_json::from_slice(&body[14..header_end])
+            .map_err(|e| E::BadHeader(e.to_string()))?;
         let pair = |key: &str| -> Result<(u32, u32), E> {
-            let a = header.get(key).and_then(|v| v.as_array()).filter(|a| a.len() == 2).ok_or_else(|| E::BadHeader(format!("{key} must be [width, height]")))?;
-            let side = |v: &serde_json::Value| v.as_u64().filter(|&s| (1..=u32::MAX as u64).contains(&s)).map(|s| s as u32);
+            let a = header
+                .get(key)
+                .and_then(|v| v.as_array())
+                .filter(|a| a.len() == 2)
+                .ok_or_else(|| E::BadHeader(format!("{key} must be [width, height]")))?;
+            let side = |v: &serde_json::Value| {
+                v.as_u64()
+                    .filter(|&s| (1..=u32::MAX as u64).contains(&s))
+                    .map(|s| s as u32)
+            };
             match (side(&a[0]), side(&a[1])) {
                 (Some(w), Some(h)) => Ok((w, h)),
                 _ => Err(E::BadHeader(format!("{key} must be two positive integers"))),
@@ -359,33 +430,65 @@ impl TransportMatrix {
         };
         let projector = pair("projector")?;
         let camera = pair("camera")?;
-        let name = header.get("transform").and_then(|v| v.as_str()).ok_or_else(|| E::BadHeader("transform missing".into()))?;
-        let transform = TransformKind::ALL.into_iter().find(|t| t.name() == name).ok_or_else(|| E::BadHeader(format!("unknown transform {name:?}")))?;
+        let name = header
+            .get("transform")
+            .and_then(|v| v.as_str())
+            .ok_or_else(|| E::BadHeader("transform missing".into()))?;
+        let transform = TransformKind::ALL
+            .into_iter()
+            .find(|t| t.name() == name)
+            .ok_or_else(|| E::BadHeader(format!("unknown transform {name:?}")))?;
         let m = camera.0 as u64 * camera.1 as u64;
         let k = projector.0 as u64 * projector.1 as u64;
         if header.get("rows").and_then(|v| v.as_u64()) != Some(m) {
-            return Err(E::BadHeader(format!("rows must equal the camera's {m} pixels")));
+            return Err(E::BadHeader(format!(
+                "rows must equal the camera's {m} pixels"
+            )));
         }
-        let nnz = header.get("nonzeros").and_then(|v| v.as_u64()).ok_or_else(|| E::BadHeader("nonzeros missing".into()))?;
+        let nnz = header
+            .get("nonzeros")
+            .and_then(|v| v.as_u64())
+            .ok_or_else(|| E::BadHeader("nonzeros missing".into()))?;
         let payload = &body[header_end..];
-        let want = (m + 1).checked_mul(8).and_then(|a| nnz.checked_mul(8).and_then(|b| a.checked_add(b)));
+        let want = (m + 1)
+            .checked_mul(8)
+            .and_then(|a| nnz.checked_mul(8).and_then(|b| a.checked_add(b)));
         if want != Some(payload.len() as u64) {
-            return Err(E::Inconsistent(format!("{} payload bytes for {m} rows and {nnz} nonzeros", payload.len())));
+            return Err(E::Inconsistent(format!(
+                "{} payload bytes for {m} rows and {nnz} nonzeros",
+                payload.len()
+            )));
         }
         let (ptr_bytes, rest) = payload.split_at((m as usize + 1) * 8);
         let (idx_bytes, val_bytes) = rest.split_at(nnz as usize * 4);
-        let row_ptr: Vec<u64> = ptr_bytes.chunks_exact(8).map(|c| u64::from_le_bytes(c.try_into().expect("8"))).collect();
-        let index: Vec<u32> = idx_bytes.chunks_exact(4).map(|c| u32::from_le_bytes(c.try_into().expect("4"))).collect();
-        let value: Vec<f32> = val_bytes.chunks_exact(4).map(|c| f32::from_le_bytes(c.try_into().expect("4"))).collect();
-        if row_ptr[0] != 0 || row_ptr[m as usize] != nnz || row_ptr.windows(2).any(|w| w[0] > w[1]) {
-            return Err(E::Inconsistent("row offsets must rise from 0 to the nonzero count".into()));
+        let row_ptr: Vec<u64> = ptr_bytes
+            .chunks_exact(8)
+            .map(|c| u64::from_le_bytes(c.try_into().expect("8")))
+            .collect();
+        let index: Vec<u32> = idx_bytes
+            .chunks_exact(4)
+            .map(|c| u32::from_le_bytes(c.try_into().expect("4")))
+            .collect();
+        let value: Vec<f32> = val_bytes
+            .chunks_exact(4)
+            .map(|c| f32::from_le_bytes(c.try_into().expect("4")))
+            .collect();
+        if row_ptr[0] != 0 || row_ptr[m as usize] != nnz || row_ptr.windows(2).any(|w| w[0] > w[1])
+        {
+            return Err(E::Inconsistent(
+                "row offsets must rise from 0 to the nonzero count".into(),
+            ));
         }
         if let Some(i) = index.iter().find(|&&i| i as u64 >= k) {
-            return Err(E::Inconsistent(format!("coefficient index {i} outside the {k} projector pixels")));
+            return Err(E::Inconsistent(format!(
+                "coefficient index {i} outside the {k} projector pixels"
+            )));
         }
         if value.iter().any(|v| !v.is_finite()) {
             return Err(E::Inconsistent("non-finite coefficient".into()));
         }
-        Ok(TransportMatrix::from_parts(projector, camera, transform, row_ptr, index, value))
+        Ok(TransportMatrix::from_parts(
+            projector, camera, transform, row_ptr, index, value,
+        ))
     }
 }

@@ -61,12 +61,15 @@ use helmholtz_proto::{Family, PatternSpec};
 use serde_json::{Value, json};
 
 pub use config::{CANDIDATE_TRANSFORMS, DEFAULT_MEMORY_BUDGET, LAMBDA_PATH, TransportConfig};
-pub use matrix::{TransportDecodeError, TransportMatrix};
 use matrix::Builder;
+pub use matrix::{TransportDecodeError, TransportMatrix};
 
 use super::holdout::{self, Score};
 use super::linop::{LinearOperator, spectral_norm};
-use super::ops::{BernoulliOperator, CentredOperator, HadamardOperator, RasterOperator, RowSubset, SpeckleOperator};
+use super::ops::{
+    BernoulliOperator, CentredOperator, HadamardOperator, RasterOperator, RowSubset,
+    SpeckleOperator,
+};
 use super::transforms::TransformKind;
 use super::{Control, ReconError, Report, SourceError};
 use batch::Shared;
@@ -104,15 +107,26 @@ pub struct SliceFrames<'a> {
 
 impl<'a> SliceFrames<'a> {
     pub fn new(frames: &'a [f32], pixels: usize) -> Self {
-        assert!(pixels > 0 && frames.len().is_multiple_of(pixels), "frames must be rows x pixels");
-        SliceFrames { frames, pixels, reads: Vec::new(), largest_read_bytes: 0 }
+        assert!(
+            pixels > 0 && frames.len().is_multiple_of(pixels),
+            "frames must be rows x pixels"
+        );
+        SliceFrames {
+            frames,
+            pixels,
+            reads: Vec::new(),
+            largest_read_bytes: 0,
+        }
     }
 }
 
 impl FrameSource for SliceFrames<'_> {
     fn read_pixels(&mut self, pixels: Range<usize>) -> Result<Vec<f32>, SourceError> {
         if pixels.end > self.pixels || pixels.start > pixels.end {
-            return Err(SourceError(format!("camera pixels {pixels:?} outside 0..{}", self.pixels)));
+            return Err(SourceError(format!(
+                "camera pixels {pixels:?} outside 0..{}",
+                self.pixels
+            )));
         }
         let rows = self.frames.len() / self.pixels;
         let mut out = Vec::with_capacity(rows * pixels.len());
@@ -174,11 +188,21 @@ impl<'a> Plan<'a> {
             Family::Hadamard { .. } => {
                 let frames = rows - rows % 2;
                 if frames == 0 {
-                    return Err(ReconError::Unsolvable("Hadamard needs at least one P+/P- pair of frames; the session has 1 frame".into()));
+                    return Err(ReconError::Unsolvable(
+                        "Hadamard needs at least one P+/P- pair of frames; the session has 1 frame"
+                            .into(),
+                    ));
                 }
                 let op = HadamardOperator::from_spec(spec, frames as u64).map_err(unsolvable)?;
                 let exact = op.rows() >= k;
-                Plan { spec, rows_read: rows, frames, raw: Raw::Hadamard(op), exact, raster_counts: None }
+                Plan {
+                    spec,
+                    rows_read: rows,
+                    frames,
+                    raw: Raw::Hadamard(op),
+                    exact,
+                    raster_counts: None,
+                }
             }
             Family::Raster { block } => {
                 let op = RasterOperator::from_spec(spec, rows as u64).map_err(unsolvable)?;
@@ -188,15 +212,36 @@ impl<'a> Plan<'a> {
                     op.adjoint(&vec![1.0; rows], &mut c);
                     c
                 });
-                Plan { spec, rows_read: rows, frames: rows, raw: Raw::Raster(op), exact, raster_counts }
+                Plan {
+                    spec,
+                    rows_read: rows,
+                    frames: rows,
+                    raw: Raw::Raster(op),
+                    exact,
+                    raster_counts,
+                }
             }
             Family::Bernoulli { .. } => {
                 let op = BernoulliOperator::from_spec(spec, rows as u64).map_err(unsolvable)?;
-                Plan { spec, rows_read: rows, frames: rows, raw: Raw::Bernoulli(CentredOperator::augmented(Box::new(op))), exact: false, raster_counts: None }
+                Plan {
+                    spec,
+                    rows_read: rows,
+                    frames: rows,
+                    raw: Raw::Bernoulli(CentredOperator::augmented(Box::new(op))),
+                    exact: false,
+                    raster_counts: None,
+                }
             }
             Family::Speckle { .. } => {
                 let op = SpeckleOperator::from_spec(spec, rows as u64).map_err(unsolvable)?;
-                Plan { spec, rows_read: rows, frames: rows, raw: Raw::Speckle(CentredOperator::augmented(Box::new(op))), exact: false, raster_counts: None }
+                Plan {
+                    spec,
+                    rows_read: rows,
+                    frames: rows,
+                    raw: Raw::Speckle(CentredOperator::augmented(Box::new(op))),
+                    exact: false,
+                    raster_counts: None,
+                }
             }
         })
     }
@@ -229,7 +274,9 @@ impl<'a> Plan<'a> {
         match &self.raw {
             Raw::Hadamard(op) => {
                 let scale = 1.0 / (self.k() as f64).sqrt();
-                (0..op.rows()).map(|r| (at(2 * r) - at(2 * r + 1)) * scale).collect()
+                (0..op.rows())
+                    .map(|r| (at(2 * r) - at(2 * r + 1)) * scale)
+                    .collect()
             }
             _ => (0..self.frames).map(at).collect(),
         }
@@ -268,22 +315,51 @@ impl<'a> Plan<'a> {
     }
 
     /// Fitting operator on the `train` raw rows and the plain operator of the `test` rows.
-    fn holdout_ops(&self, split: &holdout::Split) -> Result<(Fitting, Box<dyn LinearOperator>), ReconError> {
+    fn holdout_ops(
+        &self,
+        split: &holdout::Split,
+    ) -> Result<(Fitting, Box<dyn LinearOperator>), ReconError> {
         let unsolvable = |e: super::ops::OpError| ReconError::Unsolvable(e.to_string());
         Ok(match &self.raw {
-            Raw::Hadamard(op) => (Fitting::Plain(Box::new(op.select_rows(&split.train))), Box::new(op.select_rows(&split.test))),
+            Raw::Hadamard(op) => (
+                Fitting::Plain(Box::new(op.select_rows(&split.train))),
+                Box::new(op.select_rows(&split.test)),
+            ),
             Raw::Bernoulli(op) => (
-                Fitting::Centred(CentredOperator::augmented(Box::new(op.inner().select_rows(&split.train)))),
+                Fitting::Centred(CentredOperator::augmented(Box::new(
+                    op.inner().select_rows(&split.train),
+                ))),
                 Box::new(op.inner().select_rows(&split.test)),
             ),
             Raw::Raster(_) => {
-                let full = || RasterOperator::from_spec(self.spec, self.frames as u64).map_err(unsolvable);
-                (Fitting::Plain(Box::new(RowSubset::new(Box::new(full()?) as Box<dyn LinearOperator>, split.train.clone()))), Box::new(RowSubset::new(Box::new(full()?) as Box<dyn LinearOperator>, split.test.clone())))
+                let full =
+                    || RasterOperator::from_spec(self.spec, self.frames as u64).map_err(unsolvable);
+                (
+                    Fitting::Plain(Box::new(RowSubset::new(
+                        Box::new(full()?) as Box<dyn LinearOperator>,
+                        split.train.clone(),
+                    ))),
+                    Box::new(RowSubset::new(
+                        Box::new(full()?) as Box<dyn LinearOperator>,
+                        split.test.clone(),
+                    )),
+                )
             }
             Raw::Speckle(_) => {
-                let full = || SpeckleOperator::from_spec(self.spec, self.frames as u64).map_err(unsolvable);
-                let train: Box<dyn LinearOperator> = Box::new(RowSubset::new(Box::new(full()?) as Box<dyn LinearOperator>, split.train.clone()));
-                (Fitting::Centred(CentredOperator::augmented(train)), Box::new(RowSubset::new(Box::new(full()?) as Box<dyn LinearOperator>, split.test.clone())))
+                let full = || {
+                    SpeckleOperator::from_spec(self.spec, self.frames as u64).map_err(unsolvable)
+                };
+                let train: Box<dyn LinearOperator> = Box::new(RowSubset::new(
+                    Box::new(full()?) as Box<dyn LinearOperator>,
+                    split.train.clone(),
+                ));
+                (
+                    Fitting::Centred(CentredOperator::augmented(train)),
+                    Box::new(RowSubset::new(
+                        Box::new(full()?) as Box<dyn LinearOperator>,
+                        split.test.clone(),
+                    )),
+                )
             }
         })
     }
@@ -320,7 +396,13 @@ impl MemoryPlan {
 /// rows; transform and per-thread operator scratch), the solver scratch of every thread
 /// (`threads x chunk` rows iterating at once) and the per-camera-pixel part of a block (its
 /// frames as f32, raw and fitted data, solution, coarse-to-fine parent share).
-fn plan_memory(plan: &Plan, budget: usize, m: usize, selecting: bool, coarse: bool) -> Result<MemoryPlan, ReconError> {
+fn plan_memory(
+    plan: &Plan,
+    budget: usize,
+    m: usize,
+    selecting: bool,
+    coarse: bool,
+) -> Result<MemoryPlan, ReconError> {
     let (k, n, raw_rows) = (plan.k(), plan.op().rows(), plan.raw_rows());
     let threads = rayon::current_num_threads().max(1);
     let fixed = plan.op_bytes() * if selecting { 2 } else { 1 } + 8 * k * (threads + 2);
@@ -331,7 +413,11 @@ fn plan_memory(plan: &Plan, budget: usize, m: usize, selecting: bool, coarse: bo
     if coarse {
         per_pixel += (8 * n + 8 * k).div_ceil(4);
     }
-    let scratch_row = if plan.exact { 16 * k } else { Shared::scratch_bytes_per_row(k, n) };
+    let scratch_row = if plan.exact {
+        16 * k
+    } else {
+        Shared::scratch_bytes_per_row(k, n)
+    };
     let mut chunk = 16usize;
     while chunk > 1 && fixed + threads * chunk * scratch_row + per_pixel > budget {
         chunk /= 2;
@@ -348,11 +434,23 @@ fn plan_memory(plan: &Plan, budget: usize, m: usize, selecting: bool, coarse: bo
     }
     let block_pixels = ((budget - fixed - scratch) / per_pixel).min(m).max(1);
     let chunk = chunk.min(block_pixels.div_ceil(threads)).max(1);
-    Ok(MemoryPlan { budget, fixed, per_pixel, scratch, block_pixels, chunk })
+    Ok(MemoryPlan {
+        budget,
+        fixed,
+        per_pixel,
+        scratch,
+        block_pixels,
+        chunk,
+    })
 }
 
 /// Reads camera pixels `range`, checking the length.
-fn read(source: &mut dyn FrameSource, range: Range<usize>, rows: usize, largest: &mut usize) -> Result<Vec<f32>, ReconError> {
+fn read(
+    source: &mut dyn FrameSource,
+    range: Range<usize>,
+    rows: usize,
+    largest: &mut usize,
+) -> Result<Vec<f32>, ReconError> {
     let len = range.len();
     let values = source.read_pixels(range.clone())?;
     if values.len() != rows * len {
@@ -364,7 +462,11 @@ fn read(source: &mut dyn FrameSource, range: Range<usize>, rows: usize, largest:
         )));
     }
     if let Some(i) = values.iter().position(|v| !v.is_finite()) {
-        return Err(ReconError::BadRows(format!("frame {} has a non-finite value at camera pixel {}", i / len, range.start + i % len)));
+        return Err(ReconError::BadRows(format!(
+            "frame {} has a non-finite value at camera pixel {}",
+            i / len,
+            range.start + i % len
+        )));
     }
     *largest = (*largest).max(values.len() * 4);
     Ok(values)
@@ -392,7 +494,12 @@ fn noise_sigma(t: &[f64], w: usize, h: usize) -> f64 {
     let mut d = Vec::with_capacity((w / 2) * (h / 2));
     for y in (0..h - h % 2).step_by(2) {
         for x in (0..w - w % 2).step_by(2) {
-            let (a, b, c, e) = (t[y * w + x], t[y * w + x + 1], t[(y + 1) * w + x], t[(y + 1) * w + x + 1]);
+            let (a, b, c, e) = (
+                t[y * w + x],
+                t[y * w + x + 1],
+                t[(y + 1) * w + x],
+                t[(y + 1) * w + x + 1],
+            );
             d.push(((a - b - c + e) * 0.5).abs());
         }
     }
@@ -496,13 +603,19 @@ pub fn reconstruct_transport(
     let k = spec.pixels();
     let (pw, ph) = (spec.width() as usize, spec.height() as usize);
     if m == 0 {
-        return Err(ReconError::Unsolvable(format!("the camera grid {}x{} has no pixels", camera.width, camera.height)));
+        return Err(ReconError::Unsolvable(format!(
+            "the camera grid {}x{} has no pixels",
+            camera.width, camera.height
+        )));
     }
     if rows == 0 {
         return Err(ReconError::Unsolvable("the session has no frames".into()));
     }
     if rows > spec.count() {
-        return Err(ReconError::Unsolvable(format!("{rows} frames requested but the spec declares {}", spec.count())));
+        return Err(ReconError::Unsolvable(format!(
+            "{rows} frames requested but the spec declares {}",
+            spec.count()
+        )));
     }
     let plan = Plan::new(spec, rows as usize)?;
     let n_read = rows as usize;
@@ -521,7 +634,10 @@ pub fn reconstruct_transport(
     let mut largest = 0usize;
     // At most half a block: the model choice also holds each sample pixel's image and
     // predictions besides what a block pixel needs.
-    let sample = config.sample_pixels.min((mem.block_pixels / 2).max(1)).min(m);
+    let sample = config
+        .sample_pixels
+        .min((mem.block_pixels / 2).max(1))
+        .min(m);
     let mut details = serde_json::Map::new();
     let mut held_out = None;
     let mut held_out_unavailable = None;
@@ -571,7 +687,19 @@ pub fn reconstruct_transport(
         (transform, None, false)
     } else {
         control.set_progress(0.0);
-        let (transform, lambda, refit) = choose_model(&plan, config, source, m, sample, &mem, &mut largest, &mut details, &mut held_out, &mut held_out_unavailable, control)?;
+        let (transform, lambda, refit) = choose_model(
+            &plan,
+            config,
+            source,
+            m,
+            sample,
+            &mem,
+            &mut largest,
+            &mut details,
+            &mut held_out,
+            &mut held_out_unavailable,
+            control,
+        )?;
         (transform, Some(lambda), refit)
     };
     if control.is_cancelled() {
@@ -581,7 +709,11 @@ pub fn reconstruct_transport(
     control.set_progress(progress0);
 
     let psi = transform.build(pw, ph);
-    let lipschitz = if plan.exact { 1.0 } else { plan.lipschitz(plan.op()) };
+    let lipschitz = if plan.exact {
+        1.0
+    } else {
+        plan.lipschitz(plan.op())
+    };
     let shared = Shared {
         op: plan.op(),
         psi: psi.as_ref(),
@@ -591,7 +723,11 @@ pub fn reconstruct_transport(
         max_iter: config.max_iter,
         tol: config.tol,
     };
-    let mut builder = Builder::new((spec.width(), spec.height()), (camera.width, camera.height), transform);
+    let mut builder = Builder::new(
+        (spec.width(), spec.height()),
+        (camera.width, camera.height),
+        transform,
+    );
     let block_list = blocks(m, mem.block_pixels, coarse.then_some(camera.width as usize));
     let largest_block = block_list.iter().map(|b| b.len()).max().unwrap_or(0);
     let mut sigmas = Vec::new();
@@ -617,7 +753,15 @@ pub fn reconstruct_transport(
                 bs.extend(plan.fit_data(&plan.raw_column(&frames, len, c)));
             }
             drop(frames);
-            let mut s = solve_block(&shared, &bs, lambda.expect("iterative"), coarse.then_some(camera.width as usize), mem.chunk, &mut tally, control)?;
+            let mut s = solve_block(
+                &shared,
+                &bs,
+                lambda.expect("iterative"),
+                coarse.then_some(camera.width as usize),
+                mem.chunk,
+                &mut tally,
+                control,
+            )?;
             if refit {
                 let it = batch::refit_rows(&shared, &bs, &mut s, mem.chunk, control)?;
                 tally.refit_iterations += it.iter().sum::<usize>() as u64;
@@ -626,7 +770,9 @@ pub fn reconstruct_transport(
                 builder.push_row(row, 0.0);
             }
         }
-        control.set_progress(progress0 + (1.0 - progress0) * (bi + 1) as f64 / block_list.len() as f64);
+        control.set_progress(
+            progress0 + (1.0 - progress0) * (bi + 1) as f64 / block_list.len() as f64,
+        );
     }
     let matrix = builder.finish();
     control.set_progress(1.0);
@@ -648,15 +794,27 @@ pub fn reconstruct_transport(
     details.insert("stored_bytes".into(), json!(stored));
     details.insert("dense_f32_bytes".into(), json!(m * k * 4));
     details.insert("nonzeros".into(), json!(matrix.nonzeros()));
-    details.insert("nonzeros_per_row".into(), json!(matrix.nonzeros() as f64 / m as f64));
+    details.insert(
+        "nonzeros_per_row".into(),
+        json!(matrix.nonzeros() as f64 / m as f64),
+    );
     details.insert("seconds".into(), json!(start.elapsed().as_secs_f64()));
     if plan.exact {
         sigmas.sort_by(|a, b| a.total_cmp(b));
-        details.insert("noise_sigma_median".into(), json!(sigmas.get(sigmas.len() / 2).copied().unwrap_or(0.0)));
+        details.insert(
+            "noise_sigma_median".into(),
+            json!(sigmas.get(sigmas.len() / 2).copied().unwrap_or(0.0)),
+        );
     } else {
-        details.insert("iterations_mean".into(), json!(tally.iterations as f64 / m as f64));
+        details.insert(
+            "iterations_mean".into(),
+            json!(tally.iterations as f64 / m as f64),
+        );
         details.insert("iterations_max".into(), json!(tally.iterations_max));
-        details.insert("refit_iterations_mean".into(), json!(tally.refit_iterations as f64 / m as f64));
+        details.insert(
+            "refit_iterations_mean".into(),
+            json!(tally.refit_iterations as f64 / m as f64),
+        );
         details.insert("lipschitz".into(), json!(lipschitz));
     }
     details.insert(
@@ -668,7 +826,10 @@ pub fn reconstruct_transport(
             "parent_iterations": tally.parent_iterations,
         }),
     );
-    let working = MemoryPlan { block_pixels: largest_block, ..mem.clone() };
+    let working = MemoryPlan {
+        block_pixels: largest_block,
+        ..mem.clone()
+    };
     details.insert(
         "memory".into(),
         json!({
@@ -700,14 +861,25 @@ pub fn reconstruct_transport(
 /// The continuation path down to `lambda`: the larger fractions of [`LAMBDA_PATH`], then
 /// `lambda` itself (each solve warm-starts the next; a cold solve at a small weight is slow).
 fn continuation(lambda: f64) -> Vec<f64> {
-    let mut path: Vec<f64> = LAMBDA_PATH.iter().copied().filter(|&l| l > lambda * 1.0001).collect();
+    let mut path: Vec<f64> = LAMBDA_PATH
+        .iter()
+        .copied()
+        .filter(|&l| l > lambda * 1.0001)
+        .collect();
     path.push(lambda);
     path
 }
 
 /// Solves rows along `path` (fractions of each row's `lambda_max`), warm-starting `s`.
 /// Returns the iterations of every row summed over the path.
-fn solve_path(sh: &Shared, bs: &[f64], path: &[f64], s: &mut [f64], chunk: usize, control: &Control) -> Result<Vec<usize>, ReconError> {
+fn solve_path(
+    sh: &Shared,
+    bs: &[f64],
+    path: &[f64],
+    s: &mut [f64],
+    chunk: usize,
+    control: &Control,
+) -> Result<Vec<usize>, ReconError> {
     let lam_max = batch::lambda_max(sh, bs, chunk);
     let mut total = vec![0usize; lam_max.len()];
     for &frac in path {
@@ -721,7 +893,15 @@ fn solve_path(sh: &Shared, bs: &[f64], path: &[f64], s: &mut [f64], chunk: usize
 /// Solves one block's rows (`bs`: pixels x n) along the continuation path; with `coarse` (the
 /// camera width), the 2x2 parents go down the path first and every pixel then starts from its
 /// parent's solution at the final weight. Returns the coefficients (pixels x k).
-fn solve_block(sh: &Shared, bs: &[f64], lambda: f64, coarse: Option<usize>, chunk: usize, tally: &mut Tally, control: &Control) -> Result<Vec<f64>, ReconError> {
+fn solve_block(
+    sh: &Shared,
+    bs: &[f64],
+    lambda: f64,
+    coarse: Option<usize>,
+    chunk: usize,
+    tally: &mut Tally,
+    control: &Control,
+) -> Result<Vec<f64>, ReconError> {
     let (k, n) = (sh.op.cols(), sh.op.rows());
     let pixels = bs.len() / n.max(1);
     let mut s = vec![0.0; pixels * k];
@@ -733,7 +913,9 @@ fn solve_block(sh: &Shared, bs: &[f64], lambda: f64, coarse: Option<usize>, chun
             for (g, children) in groups.iter().enumerate() {
                 let row = &mut pb[g * n..(g + 1) * n];
                 for &c in children {
-                    row.iter_mut().zip(&bs[c * n..(c + 1) * n]).for_each(|(a, b)| *a += b);
+                    row.iter_mut()
+                        .zip(&bs[c * n..(c + 1) * n])
+                        .for_each(|(a, b)| *a += b);
                 }
                 let inv = 1.0 / children.len() as f64;
                 row.iter_mut().for_each(|v| *v *= inv);
@@ -752,7 +934,9 @@ fn solve_block(sh: &Shared, bs: &[f64], lambda: f64, coarse: Option<usize>, chun
     };
     let it = solve_path(sh, bs, &path, &mut s, chunk, control)?;
     tally.iterations += it.iter().sum::<usize>() as u64;
-    tally.iterations_max = tally.iterations_max.max(it.iter().copied().max().unwrap_or(0));
+    tally.iterations_max = tally
+        .iterations_max
+        .max(it.iter().copied().max().unwrap_or(0));
     Ok(s)
 }
 
@@ -774,16 +958,25 @@ fn choose_model(
 ) -> Result<(TransformKind, f64, bool), ReconError> {
     let (pw, ph) = (plan.spec.width() as usize, plan.spec.height() as usize);
     let k = plan.k();
-    let fraction = config.holdout.unwrap_or_else(|| holdout::default_fraction(plan.raw_rows()));
+    let fraction = config
+        .holdout
+        .unwrap_or_else(|| holdout::default_fraction(plan.raw_rows()));
     // Hadamard subsets are ordered (coarse patterns first): hold out the last measured pairs.
     let ordered = matches!(plan.raw, Raw::Hadamard(_));
-    let split = match if ordered { holdout::tail(plan.raw_rows(), fraction) } else { holdout::split(plan.raw_rows(), fraction) } {
+    let split = match if ordered {
+        holdout::tail(plan.raw_rows(), fraction)
+    } else {
+        holdout::split(plan.raw_rows(), fraction)
+    } {
         Ok(s) => s,
         Err(why) => {
             let transform = config.transform.unwrap_or(TransformKind::Haar);
             let lambda = config.lambda.unwrap_or(1e-3);
             *held_out_unavailable = Some(why.clone());
-            details.insert("selection".into(), json!({"rule": format!("defaults (no held-out rows: {why})")}));
+            details.insert(
+                "selection".into(),
+                json!({"rule": format!("defaults (no held-out rows: {why})")}),
+            );
             return Ok((transform, lambda, false));
         }
     };
@@ -806,9 +999,14 @@ fn choose_model(
     }
     drop(raws);
     let lipschitz = plan.lipschitz(train.op());
-    let transforms: Vec<TransformKind> = config.transform.map_or(CANDIDATE_TRANSFORMS.to_vec(), |t| vec![t]);
+    let transforms: Vec<TransformKind> = config
+        .transform
+        .map_or(CANDIDATE_TRANSFORMS.to_vec(), |t| vec![t]);
     let lambdas: Vec<f64> = config.lambda.map_or(LAMBDA_PATH.to_vec(), |l| vec![l]);
-    let chunk = mem.chunk.min(rows.div_ceil(rayon::current_num_threads().max(1))).max(1);
+    let chunk = mem
+        .chunk
+        .min(rows.div_ceil(rayon::current_num_threads().max(1)))
+        .max(1);
     let mut candidates = Vec::new();
     // Every point scored: (transform, fraction, refitted, held-out score, its standard error,
     // mean nonzeros, score).
@@ -842,7 +1040,9 @@ fn choose_model(
             let refit_it = batch::refit_rows(&sh, &bs, &mut refitted, chunk, control)?;
             let nnz = s.iter().filter(|v| **v != 0.0).count() as f64 / rows as f64;
             let mut value = f64::INFINITY;
-            for (refit, coefficients, iterations) in [(false, &s, &it), (true, &refitted, &refit_it)] {
+            for (refit, coefficients, iterations) in
+                [(false, &s, &it), (true, &refitted, &refit_it)]
+            {
                 sh.inverse(coefficients, &mut t);
                 test.apply_batch(&t, &mut pred, rows);
                 let mut score = Score::new(rows);
@@ -852,7 +1052,10 @@ fn choose_model(
                 for (j, obs) in observed.iter().enumerate() {
                     let p = &pred[j * h..(j + 1) * h];
                     score.add_channel(j, obs, p);
-                    per_row.iter_mut().zip(obs.iter().zip(p)).for_each(|(e, (o, p))| *e += (o - p) * (o - p));
+                    per_row
+                        .iter_mut()
+                        .zip(obs.iter().zip(p))
+                        .for_each(|(e, (o, p))| *e += (o - p) * (o - p));
                 }
                 let rho = score.finish(split.fraction).relative_residual;
                 let se = rho.map(|r| r * relative_standard_error(&per_row));
@@ -884,7 +1087,10 @@ fn choose_model(
         }
     }
     let identifiable = super::auto::identifiable_coefficients(plan.op().rows(), k);
-    let best = scored.iter().min_by(|a, b| a.3.total_cmp(&b.3)).expect("at least one candidate");
+    let best = scored
+        .iter()
+        .min_by(|a, b| a.3.total_cmp(&b.3))
+        .expect("at least one candidate");
     let (best_value, best_se) = (best.3, best.4);
     // The sparsest model within one standard error of the best held-out score (ties: the
     // larger weight, which comes first along each path, then the lower score: a lasso point
@@ -893,7 +1099,11 @@ fn choose_model(
     let chosen = scored
         .iter()
         .filter(|c| c.3 <= within)
-        .min_by(|a, b| a.5.total_cmp(&b.5).then(b.1.total_cmp(&a.1)).then(a.3.total_cmp(&b.3)))
+        .min_by(|a, b| {
+            a.5.total_cmp(&b.5)
+                .then(b.1.total_cmp(&a.1))
+                .then(a.3.total_cmp(&b.3))
+        })
         .expect("the best is within");
     let (transform, lambda, refit) = (chosen.0, chosen.1, chosen.2);
     *held_out = Some(chosen.6.finish(split.fraction));

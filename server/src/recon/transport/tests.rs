@@ -58,7 +58,9 @@ fn zero_filled(spec: &PatternSpec, f: &[f32], m: usize) -> Vec<f32> {
     let mut out = Vec::with_capacity(m * k);
     let mut t = vec![0.0; k];
     for j in 0..m {
-        let d: Vec<f64> = (0..op.rows()).map(|r| (f[2 * r * m + j] as f64 - f[(2 * r + 1) * m + j] as f64) * scale).collect();
+        let d: Vec<f64> = (0..op.rows())
+            .map(|r| (f[2 * r * m + j] as f64 - f[(2 * r + 1) * m + j] as f64) * scale)
+            .collect();
         op.adjoint(&d, &mut t);
         out.extend(t.iter().map(|&v| v as f32));
     }
@@ -70,29 +72,66 @@ fn dense(t: &TransportMatrix) -> Vec<f32> {
     (0..(cw * ch) as usize).flat_map(|j| t.row(j)).collect()
 }
 
-fn run(spec: &PatternSpec, camera: CameraGrid, f: &[f32], config: &TransportConfig) -> (TransportMatrix, Report, SliceFrames<'static>) {
+fn run(
+    spec: &PatternSpec,
+    camera: CameraGrid,
+    f: &[f32],
+    config: &TransportConfig,
+) -> (TransportMatrix, Report, SliceFrames<'static>) {
     let leaked: &'static [f32] = Box::leak(f.to_vec().into_boxed_slice());
     let mut source = SliceFrames::new(leaked, camera.pixels());
-    let (t, r) = reconstruct_transport(spec, camera, spec.count(), config, &mut source, &Control::new()).unwrap();
+    let (t, r) = reconstruct_transport(
+        spec,
+        camera,
+        spec.count(),
+        config,
+        &mut source,
+        &Control::new(),
+    )
+    .unwrap();
     (t, r, source)
 }
 
-const CAM: CameraGrid = CameraGrid { width: 8, height: 8 };
+const CAM: CameraGrid = CameraGrid {
+    width: 8,
+    height: 8,
+};
 
 #[test]
 fn a_complete_hadamard_set_reconstructs_to_f32_precision_and_stores_sparse() {
-    let spec = PatternSpec::new(Family::Hadamard { ordering: HadamardOrdering::Sequency }, 32, 32, 2048, 0).unwrap();
+    let spec = PatternSpec::new(
+        Family::Hadamard {
+            ordering: HadamardOrdering::Sequency,
+        },
+        32,
+        32,
+        2048,
+        0,
+    )
+    .unwrap();
     let truth = synthetic_t(CAM, 32, 32);
     let f = frames(&spec, &truth, CAM.pixels(), 0.0);
     let (t, report, _) = run(&spec, CAM, &f, &TransportConfig::default());
     let err = relative_error(&dense(&t), &truth);
-    println!("complete hadamard: rel err {err:e}, nnz {}, stored {} B, details {}", t.nonzeros(), t.stored_bytes(), json!(report.details));
+    println!(
+        "complete hadamard: rel err {err:e}, nnz {}, stored {} B, details {}",
+        t.nonzeros(),
+        t.stored_bytes(),
+        json!(report.details)
+    );
     assert!(err < 1e-5, "relative Frobenius error {err:e}");
     assert!(report.held_out.is_none() && report.held_out_unavailable.is_some());
     // Sparse: far fewer coefficients than m x k (each row is a blob in a 49-pixel halo).
-    assert!(t.nonzeros() < CAM.pixels() * 200, "{} nonzeros", t.nonzeros());
+    assert!(
+        t.nonzeros() < CAM.pixels() * 200,
+        "{} nonzeros",
+        t.nonzeros()
+    );
     assert_eq!(t.stored_bytes(), t.encode().len());
-    assert_eq!(report.details["transform"], "identity", "the data should choose the pixel basis here");
+    assert_eq!(
+        report.details["transform"], "identity",
+        "the data should choose the pixel basis here"
+    );
 }
 
 #[test]
@@ -104,13 +143,28 @@ fn a_complete_raster_set_with_noise_drops_what_is_below_the_noise() {
     let (t, report, _) = run(&spec, CAM, &f, &TransportConfig::default());
     let err = relative_error(&dense(&t), &truth);
     let estimated = report.details["noise_sigma_median"].as_f64().unwrap();
-    println!("raster + noise: rel err {err:e}, nnz {}, sigma {estimated:e}", t.nonzeros());
-    assert!((estimated / sigma - 1.0).abs() < 0.2, "noise estimate {estimated:e} vs {sigma:e}");
+    println!(
+        "raster + noise: rel err {err:e}, nnz {}, sigma {estimated:e}",
+        t.nonzeros()
+    );
+    assert!(
+        (estimated / sigma - 1.0).abs() < 0.2,
+        "noise estimate {estimated:e} vs {sigma:e}"
+    );
     // The noise alone is ||n|| / ||T|| = 1e-3 sqrt(k m) / ||T||; thresholding keeps the error
     // below the raw noise and drops nearly all pure-noise coefficients.
-    let raw_noise = sigma * ((CAM.pixels() * 1024) as f64).sqrt() / truth.iter().map(|v| (*v as f64).powi(2)).sum::<f64>().sqrt();
+    let raw_noise = sigma * ((CAM.pixels() * 1024) as f64).sqrt()
+        / truth
+            .iter()
+            .map(|v| (*v as f64).powi(2))
+            .sum::<f64>()
+            .sqrt();
     assert!(err < raw_noise, "error {err:e} vs raw noise {raw_noise:e}");
-    assert!(t.nonzeros() < CAM.pixels() * 150, "{} nonzeros", t.nonzeros());
+    assert!(
+        t.nonzeros() < CAM.pixels() * 150,
+        "{} nonzeros",
+        t.nonzeros()
+    );
 }
 
 #[test]
@@ -120,8 +174,20 @@ fn partial_hadamard_and_bernoulli_match_within_tolerance_with_held_out_error() {
         // Measured (noise-free): Hadamard 50 % 0.140 (zero-filled 0.201), 25 % 0.514 (the
         // complete 16x16 level: zero-filled 0.514, nothing finer is measured); Bernoulli 50 %
         // 0.0013, 25 % 0.0017.
-        (Family::Hadamard { ordering: HadamardOrdering::RussianDoll }, 1024u64, 0.16),
-        (Family::Hadamard { ordering: HadamardOrdering::RussianDoll }, 512, 0.53),
+        (
+            Family::Hadamard {
+                ordering: HadamardOrdering::RussianDoll,
+            },
+            1024u64,
+            0.16,
+        ),
+        (
+            Family::Hadamard {
+                ordering: HadamardOrdering::RussianDoll,
+            },
+            512,
+            0.53,
+        ),
         (Family::Bernoulli { fill: 0.5 }, 512, 0.005),
         (Family::Bernoulli { fill: 0.5 }, 256, 0.005),
     ];
@@ -139,7 +205,11 @@ fn partial_hadamard_and_bernoulli_match_within_tolerance_with_held_out_error() {
                 assert!(err < 0.8 * zf, "{count}: {err} vs zero-filled {zf}");
             }
         }
-        let held = report.held_out.as_ref().and_then(|h| h.relative_residual).expect("held-out error reported");
+        let held = report
+            .held_out
+            .as_ref()
+            .and_then(|h| h.relative_residual)
+            .expect("held-out error reported");
         println!(
             "{} {count}: rel err {err:.4}, held-out {held:.4}, transform {}, lambda {}, nnz/row {:.1}, iterations/row {}",
             family.name(),
@@ -148,7 +218,11 @@ fn partial_hadamard_and_bernoulli_match_within_tolerance_with_held_out_error() {
             t.nonzeros() as f64 / CAM.pixels() as f64,
             report.details["iterations_mean"]
         );
-        assert!(err < tolerance, "{} {count}: relative error {err} over {tolerance}", family.name());
+        assert!(
+            err < tolerance,
+            "{} {count}: relative error {err} over {tolerance}",
+            family.name()
+        );
         if family.name() == "bernoulli" {
             assert!(held < 0.01, "held-out {held}");
         }
@@ -158,16 +232,31 @@ fn partial_hadamard_and_bernoulli_match_within_tolerance_with_held_out_error() {
 #[test]
 fn relight_is_the_adjoint_of_primal_and_rows_are_relights_of_one_pixel() {
     let truth = synthetic_t(CAM, 32, 32);
-    for kind in [TransformKind::Identity, TransformKind::Haar, TransformKind::Db4, TransformKind::Dct] {
+    for kind in [
+        TransformKind::Identity,
+        TransformKind::Haar,
+        TransformKind::Db4,
+        TransformKind::Dct,
+    ] {
         let t = TransportMatrix::from_dense((32, 32), (8, 8), kind, &truth, 1e-3);
-        let p: Vec<f32> = crate::recon::linop::test_vector(1024, 1).iter().map(|&v| v as f32).collect();
-        let c: Vec<f32> = crate::recon::linop::test_vector(64, 2).iter().map(|&v| v as f32).collect();
+        let p: Vec<f32> = crate::recon::linop::test_vector(1024, 1)
+            .iter()
+            .map(|&v| v as f32)
+            .collect();
+        let c: Vec<f32> = crate::recon::linop::test_vector(64, 2)
+            .iter()
+            .map(|&v| v as f32)
+            .collect();
         let tp = t.primal(&p);
         let tc = t.relight(&c);
         let l: f64 = tp.iter().zip(&c).map(|(a, b)| *a as f64 * *b as f64).sum();
         let r: f64 = p.iter().zip(&tc).map(|(a, b)| *a as f64 * *b as f64).sum();
         let mismatch = (l - r).abs() / (l.abs() + r.abs());
-        assert!(mismatch < 1e-5, "{}: <Tp, c> = {l}, <p, T^T c> = {r}", kind.name());
+        assert!(
+            mismatch < 1e-5,
+            "{}: <Tp, c> = {l}, <p, T^T c> = {r}",
+            kind.name()
+        );
         let mut e = vec![0f32; 64];
         e[13] = 1.0;
         let relit = t.relight(&e);
@@ -192,20 +281,42 @@ fn encode_decode_round_trips_and_corrupt_bytes_are_refused() {
         let mut bad = bytes.clone();
         bad[pos] ^= 0x10;
         let e = TransportMatrix::decode(&bad).unwrap_err();
-        assert!(matches!(e, TransportDecodeError::Checksum { .. } | TransportDecodeError::BadMagic), "byte {pos}: {e}");
+        assert!(
+            matches!(
+                e,
+                TransportDecodeError::Checksum { .. } | TransportDecodeError::BadMagic
+            ),
+            "byte {pos}: {e}"
+        );
     }
-    assert!(matches!(TransportMatrix::decode(&bytes[..bytes.len() - 10]), Err(TransportDecodeError::Checksum { .. })));
-    assert!(matches!(TransportMatrix::decode(&bytes[..5]), Err(TransportDecodeError::TooShort(5))));
+    assert!(matches!(
+        TransportMatrix::decode(&bytes[..bytes.len() - 10]),
+        Err(TransportDecodeError::Checksum { .. })
+    ));
+    assert!(matches!(
+        TransportMatrix::decode(&bytes[..5]),
+        Err(TransportDecodeError::TooShort(5))
+    ));
     // A well-checksummed body with inconsistent counts is refused too.
     let mut forged = bytes[..bytes.len() - 4 - 8].to_vec();
     let crc = crc32c::crc32c(&forged);
     forged.extend_from_slice(&crc.to_le_bytes());
-    assert!(matches!(TransportMatrix::decode(&forged), Err(TransportDecodeError::Inconsistent(_))), "{:?}", TransportMatrix::decode(&forged));
+    assert!(
+        matches!(
+            TransportMatrix::decode(&forged),
+            Err(TransportDecodeError::Inconsistent(_))
+        ),
+        "{:?}",
+        TransportMatrix::decode(&forged)
+    );
 }
 
 /// A 16x16 camera over a 16x16 projector, Bernoulli 50 %: 128 frames x 256 pixels = 128 KiB.
 fn small_session() -> (PatternSpec, CameraGrid, Vec<f32>, Vec<f32>) {
-    let camera = CameraGrid { width: 16, height: 16 };
+    let camera = CameraGrid {
+        width: 16,
+        height: 16,
+    };
     let spec = PatternSpec::new(Family::Bernoulli { fill: 0.5 }, 16, 16, 128, 5).unwrap();
     let truth = synthetic_t(camera, 16, 16);
     let f = frames(&spec, &truth, camera.pixels(), 0.0);
@@ -217,36 +328,105 @@ fn blocked_equals_unblocked_and_reads_stay_within_the_budget() {
     let (spec, camera, truth, f) = small_session();
     let frame_bytes = f.len() * 4;
     let budget = 100_000;
-    assert!(frame_bytes > budget, "the session's frames ({frame_bytes} B) must exceed the budget");
-    let config = TransportConfig { sample_pixels: 2, ..TransportConfig::default() };
-    let (whole, r1, s1) = run(&spec, camera, &f, &config.clone().with_memory_budget(64 << 20));
-    let (blocked, r2, s2) = run(&spec, camera, &f, &config.clone().with_memory_budget(budget));
-    println!("unblocked: {}; blocked: {}", r1.details["memory"], r2.details["memory"]);
+    assert!(
+        frame_bytes > budget,
+        "the session's frames ({frame_bytes} B) must exceed the budget"
+    );
+    let config = TransportConfig {
+        sample_pixels: 2,
+        ..TransportConfig::default()
+    };
+    let (whole, r1, s1) = run(
+        &spec,
+        camera,
+        &f,
+        &config.clone().with_memory_budget(64 << 20),
+    );
+    let (blocked, r2, s2) = run(
+        &spec,
+        camera,
+        &f,
+        &config.clone().with_memory_budget(budget),
+    );
+    println!(
+        "unblocked: {}; blocked: {}",
+        r1.details["memory"], r2.details["memory"]
+    );
     assert_eq!(r1.details["memory"]["blocks"], 1);
     let blocks = r2.details["memory"]["blocks"].as_u64().unwrap();
     assert!(blocks >= 4, "{blocks} blocks");
-    assert!(s2.largest_read_bytes <= budget, "a read of {} B over the {budget} B budget", s2.largest_read_bytes);
+    assert!(
+        s2.largest_read_bytes <= budget,
+        "a read of {} B over the {budget} B budget",
+        s2.largest_read_bytes
+    );
     assert!(r2.details["memory"]["working_set_bytes"].as_u64().unwrap() as usize <= budget);
-    assert!(s2.reads.len() as u64 > blocks, "every block read separately (plus the sample)");
+    assert!(
+        s2.reads.len() as u64 > blocks,
+        "every block read separately (plus the sample)"
+    );
     assert!(s1.largest_read_bytes > budget);
     assert_eq!(r1.details["transform"], r2.details["transform"]);
     assert_eq!(r1.details["lambda"], r2.details["lambda"]);
-    assert!(whole == blocked, "blocked and unblocked differ: {} vs {}", relative_error(&dense(&whole), &dense(&blocked)), 0);
+    assert!(
+        whole == blocked,
+        "blocked and unblocked differ: {} vs {}",
+        relative_error(&dense(&whole), &dense(&blocked)),
+        0
+    );
     assert!(relative_error(&dense(&whole), &truth) < 0.1);
     // A budget that cannot hold one camera pixel is a clear error.
     let mut source = SliceFrames::new(&f, camera.pixels());
-    let e = reconstruct_transport(&spec, camera, 128, &config.clone().with_memory_budget(10_000), &mut source, &Control::new()).unwrap_err();
-    assert!(e.to_string().contains("memory budget of 10000 bytes is too small"), "{e}");
+    let e = reconstruct_transport(
+        &spec,
+        camera,
+        128,
+        &config.clone().with_memory_budget(10_000),
+        &mut source,
+        &Control::new(),
+    )
+    .unwrap_err();
+    assert!(
+        e.to_string()
+            .contains("memory budget of 10000 bytes is too small"),
+        "{e}"
+    );
 }
 
 #[test]
 fn coarse_to_fine_solves_the_parents_first_and_stays_close() {
     let (spec, camera, truth, f) = small_session();
-    let base = TransportConfig { transform: Some(TransformKind::Haar), lambda: Some(1e-3), ..TransportConfig::default() };
-    let (plain, rp, _) = run(&spec, camera, &f, &TransportConfig { coarse_to_fine: false, ..base.clone() });
-    let (c2f, rc, _) = run(&spec, camera, &f, &TransportConfig { coarse_to_fine: true, ..base });
-    let (ep, ec) = (relative_error(&dense(&plain), &truth), relative_error(&dense(&c2f), &truth));
-    println!("plain: err {ep:.4}, {} iterations; coarse-to-fine: err {ec:.4}, {} iterations ({})", rp.iterations, rc.iterations, rc.details["coarse_to_fine"]);
+    let base = TransportConfig {
+        transform: Some(TransformKind::Haar),
+        lambda: Some(1e-3),
+        ..TransportConfig::default()
+    };
+    let (plain, rp, _) = run(
+        &spec,
+        camera,
+        &f,
+        &TransportConfig {
+            coarse_to_fine: false,
+            ..base.clone()
+        },
+    );
+    let (c2f, rc, _) = run(
+        &spec,
+        camera,
+        &f,
+        &TransportConfig {
+            coarse_to_fine: true,
+            ..base
+        },
+    );
+    let (ep, ec) = (
+        relative_error(&dense(&plain), &truth),
+        relative_error(&dense(&c2f), &truth),
+    );
+    println!(
+        "plain: err {ep:.4}, {} iterations; coarse-to-fine: err {ec:.4}, {} iterations ({})",
+        rp.iterations, rc.iterations, rc.details["coarse_to_fine"]
+    );
     assert_eq!(rc.details["coarse_to_fine"]["used"], true);
     assert_eq!(rc.details["coarse_to_fine"]["parent_rows"], 64);
     // Measured: plain 0.102 (91,079 iterations), coarse-to-fine 0.174 (80,275 including 24,354
@@ -275,11 +455,23 @@ impl FrameSource for CancelAfter<'_> {
 fn cancellation_stops_between_blocks() {
     let (spec, camera, _, f) = small_session();
     let control = Control::new();
-    let config = TransportConfig { sample_pixels: 4, ..TransportConfig::default() }.with_memory_budget(100_000);
-    let mut source = CancelAfter { inner: SliceFrames::new(&f, camera.pixels()), control: &control, reads: 0 };
+    let config = TransportConfig {
+        sample_pixels: 4,
+        ..TransportConfig::default()
+    }
+    .with_memory_budget(100_000);
+    let mut source = CancelAfter {
+        inner: SliceFrames::new(&f, camera.pixels()),
+        control: &control,
+        reads: 0,
+    };
     let e = reconstruct_transport(&spec, camera, 128, &config, &mut source, &control).unwrap_err();
     assert!(matches!(e, ReconError::Cancelled), "{e}");
-    assert!(source.reads <= 7, "{} reads after cancelling at the 6th", source.reads);
+    assert!(
+        source.reads <= 7,
+        "{} reads after cancelling at the 6th",
+        source.reads
+    );
 }
 
 struct WrongLength;
@@ -293,24 +485,71 @@ impl FrameSource for WrongLength {
 #[test]
 fn bad_sizes_are_clear_errors() {
     let spec = PatternSpec::new(Family::Bernoulli { fill: 0.5 }, 16, 16, 128, 5).unwrap();
-    let camera = CameraGrid { width: 4, height: 4 };
-    let e = reconstruct_transport(&spec, camera, 128, &TransportConfig::default(), &mut WrongLength, &Control::new()).unwrap_err();
+    let camera = CameraGrid {
+        width: 4,
+        height: 4,
+    };
+    let e = reconstruct_transport(
+        &spec,
+        camera,
+        128,
+        &TransportConfig::default(),
+        &mut WrongLength,
+        &Control::new(),
+    )
+    .unwrap_err();
     let text = e.to_string();
-    assert!(matches!(e, ReconError::BadRows(_)) && text.contains("expected 128 frames x"), "{text}");
-    let e = reconstruct_transport(&spec, camera, 129, &TransportConfig::default(), &mut WrongLength, &Control::new()).unwrap_err();
+    assert!(
+        matches!(e, ReconError::BadRows(_)) && text.contains("expected 128 frames x"),
+        "{text}"
+    );
+    let e = reconstruct_transport(
+        &spec,
+        camera,
+        129,
+        &TransportConfig::default(),
+        &mut WrongLength,
+        &Control::new(),
+    )
+    .unwrap_err();
     assert!(e.to_string().contains("129 frames requested"), "{e}");
-    let e = reconstruct_transport(&spec, CameraGrid { width: 0, height: 4 }, 128, &TransportConfig::default(), &mut WrongLength, &Control::new()).unwrap_err();
+    let e = reconstruct_transport(
+        &spec,
+        CameraGrid {
+            width: 0,
+            height: 4,
+        },
+        128,
+        &TransportConfig::default(),
+        &mut WrongLength,
+        &Control::new(),
+    )
+    .unwrap_err();
     assert!(e.to_string().contains("no pixels"), "{e}");
     // Frames from a source with a different camera width: the lengths disagree.
     let f = vec![0f32; 128 * 20];
     let mut source = SliceFrames::new(&f, 20);
-    let e = reconstruct_transport(&spec, CameraGrid { width: 5, height: 5 }, 128, &TransportConfig::default(), &mut source, &Control::new()).unwrap_err();
+    let e = reconstruct_transport(
+        &spec,
+        CameraGrid {
+            width: 5,
+            height: 5,
+        },
+        128,
+        &TransportConfig::default(),
+        &mut source,
+        &Control::new(),
+    )
+    .unwrap_err();
     assert!(e.to_string().contains("outside 0..20"), "{e}");
 }
 
 #[test]
 fn params_parse_refuse_unknown_keys_and_round_trip() {
-    let c = TransportConfig::parse(&json!({"transform": "db4", "lambda": 0.001, "max_iter": 50, "coarse_to_fine": true})).unwrap();
+    let c = TransportConfig::parse(
+        &json!({"transform": "db4", "lambda": 0.001, "max_iter": 50, "coarse_to_fine": true}),
+    )
+    .unwrap();
     assert_eq!(c.transform, Some(TransformKind::Db4));
     assert_eq!(c.max_iter, 50);
     assert!(c.coarse_to_fine);
@@ -327,7 +566,10 @@ fn params_parse_refuse_unknown_keys_and_round_trip() {
         (json!({"max_iter": "ten"}), "params.max_iter"),
         (json!({"holdout": 0.9}), "params.holdout"),
         (json!({"coarse_to_fine": 1}), "params.coarse_to_fine"),
-        (json!({"memory_budget_bytes": 5}), "params.memory_budget_bytes"),
+        (
+            json!({"memory_budget_bytes": 5}),
+            "params.memory_budget_bytes",
+        ),
         (json!([1]), "params"),
     ] {
         let e = TransportConfig::parse(&params).unwrap_err();
@@ -392,8 +634,24 @@ fn study_model_choice() {
             let full_l = plan.lipschitz(plan.op());
             for kind in CANDIDATE_TRANSFORMS {
                 let psi = kind.build(pw as usize, ph as usize);
-                let sh = Shared { op: train.op(), psi: psi.as_ref(), identity: kind == TransformKind::Identity, lipschitz, free: free_coefficients(kind), max_iter: 300, tol: 1e-4 };
-                let shf = Shared { op: plan.op(), psi: psi.as_ref(), identity: kind == TransformKind::Identity, lipschitz: full_l, free: free_coefficients(kind), max_iter: 300, tol: 1e-4 };
+                let sh = Shared {
+                    op: train.op(),
+                    psi: psi.as_ref(),
+                    identity: kind == TransformKind::Identity,
+                    lipschitz,
+                    free: free_coefficients(kind),
+                    max_iter: 300,
+                    tol: 1e-4,
+                };
+                let shf = Shared {
+                    op: plan.op(),
+                    psi: psi.as_ref(),
+                    identity: kind == TransformKind::Identity,
+                    lipschitz: full_l,
+                    free: free_coefficients(kind),
+                    max_iter: 300,
+                    tol: 1e-4,
+                };
                 let lam_max = batch::lambda_max(&sh, &bs, 8);
                 let lam_full = batch::lambda_max(&shf, &full_bs, 8);
                 let mut s = vec![0.0; rows * k];
@@ -410,18 +668,33 @@ fn study_model_choice() {
                     for (j, obs) in observed.iter().enumerate() {
                         let pr = &pred[j * test.rows()..(j + 1) * test.rows()];
                         score.add_channel(j, obs, pr);
-                        per_row.push(obs.iter().zip(pr).map(|(a, b)| (a - b).powi(2)).sum::<f64>());
+                        per_row.push(
+                            obs.iter()
+                                .zip(pr)
+                                .map(|(a, b)| (a - b).powi(2))
+                                .sum::<f64>(),
+                        );
                     }
                     let rho = score.finish(0.1).relative_residual.unwrap_or(f64::NAN);
                     let nnz = s.iter().filter(|v| **v != 0.0).count() as f64 / rows as f64;
                     let lams_f: Vec<f64> = lam_full.iter().map(|l| l * frac).collect();
-                    batch::solve_rows(&shf, &full_bs, &lams_f, &mut sf, 8, &Control::new()).unwrap();
+                    batch::solve_rows(&shf, &full_bs, &lams_f, &mut sf, 8, &Control::new())
+                        .unwrap();
                     let mut tf = vec![0.0; rows * k];
                     shf.inverse(&sf, &mut tf);
                     let nnz_f = sf.iter().filter(|v| **v != 0.0).count() as f64 / rows as f64;
-                    let err_train = crate::recon::metrics::relative_error(&t.iter().map(|&v| v as f32).collect::<Vec<_>>(), &truth.iter().map(|&v| v as f32).collect::<Vec<_>>());
-                    let err_full = crate::recon::metrics::relative_error(&tf.iter().map(|&v| v as f32).collect::<Vec<_>>(), &truth.iter().map(|&v| v as f32).collect::<Vec<_>>());
-                    println!("{name} {sname:<6} {:<8} f={frac:<6} held-out {rho:.5} nnz {nnz:7.1} true(train) {err_train:.4} | full: true {err_full:.4} nnz {nnz_f:7.1}", kind.name());
+                    let err_train = crate::recon::metrics::relative_error(
+                        &t.iter().map(|&v| v as f32).collect::<Vec<_>>(),
+                        &truth.iter().map(|&v| v as f32).collect::<Vec<_>>(),
+                    );
+                    let err_full = crate::recon::metrics::relative_error(
+                        &tf.iter().map(|&v| v as f32).collect::<Vec<_>>(),
+                        &truth.iter().map(|&v| v as f32).collect::<Vec<_>>(),
+                    );
+                    println!(
+                        "{name} {sname:<6} {:<8} f={frac:<6} held-out {rho:.5} nnz {nnz:7.1} true(train) {err_train:.4} | full: true {err_full:.4} nnz {nnz_f:7.1}",
+                        kind.name()
+                    );
                 }
             }
         }
@@ -441,7 +714,11 @@ fn choice_against_fixed(family: Family, count: u64) -> (f64, f64, String, f64, f
     let mut best = (f64::INFINITY, String::new());
     for kind in CANDIDATE_TRANSFORMS {
         for lambda in LAMBDA_PATH {
-            let config = TransportConfig { transform: Some(kind), lambda: Some(lambda), ..TransportConfig::default() };
+            let config = TransportConfig {
+                transform: Some(kind),
+                lambda: Some(lambda),
+                ..TransportConfig::default()
+            };
             let (tf, _, _) = run(&spec, CAM, &f, &config);
             let e = relative_error(&dense(&tf), &truth);
             if e < best.0 {
@@ -449,7 +726,11 @@ fn choice_against_fixed(family: Family, count: u64) -> (f64, f64, String, f64, f
             }
         }
     }
-    let rows = if family.name() == "hadamard" { count as usize / 2 } else { count as usize };
+    let rows = if family.name() == "hadamard" {
+        count as usize / 2
+    } else {
+        count as usize
+    };
     let identifiable = crate::recon::auto::identifiable_coefficients(rows, 1024);
     println!(
         "{} {count}: chosen {} f={} error {chosen:.4}, {nnz:.1} nonzeros/row (identifiable {identifiable:.0}); best fixed {} error {:.4}\n  selection best {} chosen {}",
@@ -469,10 +750,21 @@ fn choice_against_fixed(family: Family, count: u64) -> (f64, f64, String, f64, f
 /// fixed model's.
 #[test]
 fn the_chosen_model_is_near_the_best_fixed_one_by_ground_truth() {
-    for (family, count) in [(Family::Bernoulli { fill: 0.5 }, 256u64), (Family::Hadamard { ordering: HadamardOrdering::RussianDoll }, 768)] {
+    for (family, count) in [
+        (Family::Bernoulli { fill: 0.5 }, 256u64),
+        (
+            Family::Hadamard {
+                ordering: HadamardOrdering::RussianDoll,
+            },
+            768,
+        ),
+    ] {
         let name = format!("{} {count}", family.name());
         let (chosen, best, best_name, nnz, identifiable) = choice_against_fixed(family, count);
-        assert!(chosen <= 1.25 * best, "{name}: chosen error {chosen} vs best fixed {best} ({best_name}); {nnz:.0} nonzeros per row ({identifiable:.0} identifiable)");
+        assert!(
+            chosen <= 1.25 * best,
+            "{name}: chosen error {chosen} vs best fixed {best} ({best_name}); {nnz:.0} nonzeros per row ({identifiable:.0} identifiable)"
+        );
     }
 }
 
@@ -487,8 +779,16 @@ fn the_chosen_model_is_near_the_best_fixed_one_by_ground_truth() {
 #[test]
 #[ignore = "known limitation: the held-out model choice on Hadamard subsets of smooth rows"]
 fn the_chosen_model_on_half_a_hadamard_set_of_smooth_rows() {
-    let (chosen, best, best_name, _, _) = choice_against_fixed(Family::Hadamard { ordering: HadamardOrdering::RussianDoll }, 1024);
-    assert!(chosen <= 1.25 * best, "chosen error {chosen} vs best fixed {best} ({best_name})");
+    let (chosen, best, best_name, _, _) = choice_against_fixed(
+        Family::Hadamard {
+            ordering: HadamardOrdering::RussianDoll,
+        },
+        1024,
+    );
+    assert!(
+        chosen <= 1.25 * best,
+        "chosen error {chosen} vs best fixed {best} ({best_name})"
+    );
 }
 
 /// The refit is the least-squares solution on the warm start's support (a known answer): with
@@ -504,7 +804,15 @@ fn the_refit_is_least_squares_on_the_lasso_support() {
     let a = gaussian(n, k, 11);
     let psi = TransformKind::Identity.build(k, 1);
     let l = spectral_norm(&a, 500, 1e-9).powi(2) * 1.02;
-    let sh = Shared { op: &a, psi: psi.as_ref(), identity: true, lipschitz: l, free: 0, max_iter: 20_000, tol: 1e-12 };
+    let sh = Shared {
+        op: &a,
+        psi: psi.as_ref(),
+        identity: true,
+        lipschitz: l,
+        free: 0,
+        max_iter: 20_000,
+        tol: 1e-12,
+    };
     // Row r: 8 spikes of height 1..2 (rows 0 and 1), row 2 also one small spike of 1e-3 the
     // lasso drops.
     let mut truth = vec![0.0; rows * k];
@@ -523,21 +831,41 @@ fn the_refit_is_least_squares_on_the_lasso_support() {
     let lams: Vec<f64> = lam_max.iter().map(|m| 0.05 * m).collect();
     let mut s = vec![0.0; rows * k];
     batch::solve_rows(&sh, &bs, &lams, &mut s, 2, &Control::new()).unwrap();
-    let lasso_err = relative_error(&s.iter().map(|&v| v as f32).collect::<Vec<_>>(), &truth.iter().map(|&v| v as f32).collect::<Vec<_>>());
+    let lasso_err = relative_error(
+        &s.iter().map(|&v| v as f32).collect::<Vec<_>>(),
+        &truth.iter().map(|&v| v as f32).collect::<Vec<_>>(),
+    );
     let support: Vec<bool> = s.iter().map(|v| *v != 0.0).collect();
-    assert!(!support[2 * k + 100], "the lasso at 5 % of lambda_max keeps the 1e-3 spike; pick a larger weight");
+    assert!(
+        !support[2 * k + 100],
+        "the lasso at 5 % of lambda_max keeps the 1e-3 spike; pick a larger weight"
+    );
     batch::refit_rows(&sh, &bs, &mut s, 2, &Control::new()).unwrap();
     for (i, (&v, &kept)) in s.iter().zip(&support).enumerate() {
-        assert!(kept || v == 0.0, "coefficient {i} outside the support moved to {v}");
+        assert!(
+            kept || v == 0.0,
+            "coefficient {i} outside the support moved to {v}"
+        );
     }
     for r in 0..rows {
         let row = r * k..(r + 1) * k;
-        let err: f64 = s[row.clone()].iter().zip(&truth[row.clone()]).map(|(a, b)| (a - b) * (a - b)).sum::<f64>().sqrt();
+        let err: f64 = s[row.clone()]
+            .iter()
+            .zip(&truth[row.clone()])
+            .map(|(a, b)| (a - b) * (a - b))
+            .sum::<f64>()
+            .sqrt();
         // Rows 0, 1: the truth lies on the support, so least squares recovers it (to the
         // iterative solve's tolerance); row 2: off by the dropped spike's 1e-3 (its least-squares
         // shadow on the support adds a little more).
         let bound = if r == 2 { 2e-3 } else { 1e-6 };
-        assert!(err < bound, "row {r}: refit error {err:e}, lasso relative error {lasso_err:e}");
+        assert!(
+            err < bound,
+            "row {r}: refit error {err:e}, lasso relative error {lasso_err:e}"
+        );
     }
-    assert!(lasso_err > 1e-2, "the lasso is shrunk: relative error {lasso_err:e}");
+    assert!(
+        lasso_err > 1e-2,
+        "the lasso is shrunk: relative error {lasso_err:e}"
+    );
 }
