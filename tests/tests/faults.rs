@@ -1,5 +1,6 @@
 //! Faults, all with the real server binary and the real client: the server is killed (SIGKILL)
-//! at random moments during 20 spooled uploads and restarted; the client process is killed
+//! at random moments during 20 spooled uploads (plus one long one that the first kill cuts
+//! mid-stream) and restarted; the client process is killed
 //! mid-spool and mid-upload and rerun; the server is killed mid-reconstruction. No measured row
 //! is lost, none is stored twice, and every job finishes exactly once.
 
@@ -102,14 +103,68 @@ async fn twenty_spooled_uploads_survive_the_server_killed_at_random_moments() {
         }));
     }
 
-    // SIGKILL the server at random moments while rigs are uploading; restart it on the same port
-    // with the same data directory.
+    // One more rig spools a long run of rows in one go and uploads it in small chunks: its first
+    // pass is a single stream, so while the server's committed count for it lies strictly
+    // between 0 and its total, that stream is open. The first kill lands at a random point of
+    // it, so at least one kill cuts a stream mid-flight however fast or slow the machine is
+    // (the other rigs' streams are short bursts that random kills may all miss).
+    const BIG_ROWS: u64 = 40_000;
+    let big_id = "rig-big".to_string();
+    {
+        let values: Vec<f64> = (0..BIG_ROWS).map(|r| rig_value(99, r, 0)).collect();
+        let spec: PatternSpec = serde_json::from_str(&format!(
+            r#"{{"family":"bernoulli","width":16,"height":16,"count":{BIG_ROWS},"seed":99}}"#
+        ))
+        .unwrap();
+        let session = NewSession::new(big_id.clone(), spec, vec!["ch0".to_string()]);
+        let spool = Arc::new(spools.create_or_open(&session, true).unwrap());
+        spool.append(&values).unwrap();
+        spool.seal().unwrap();
+        sent.push((big_id.clone(), 1, values));
+        let options = UploadOptions {
+            chunk_rows: Some(10),
+            ..options.clone()
+        };
+        let (base, done) = (base.clone(), done.clone());
+        rigs.push(tokio::spawn(async move {
+            let report = spool::drain(&base, spool, &options, true).await;
+            done.fetch_add(1, Ordering::SeqCst);
+            report
+        }));
+    }
+    let uploads = rigs.len();
+    let first_kill_at = rng.range(BIG_ROWS / 10, BIG_ROWS * 6 / 10);
+    let big_committed = |server: &ServerProcess| {
+        let url = server.url(&format!("/v1/sessions/{big_id}"));
+        async move {
+            let response = reqwest::get(url).await.ok()?;
+            let session: serde_json::Value = response.json().await.ok()?;
+            session["committed_rows"].as_u64()
+        }
+    };
+    let wait_until = Instant::now() + Duration::from_secs(60);
+    let committed_at_first_kill = loop {
+        match big_committed(&server).await {
+            Some(c) if c >= first_kill_at => break c,
+            _ => {}
+        }
+        assert!(
+            Instant::now() < wait_until,
+            "{big_id} did not reach {first_kill_at} committed rows within 60 s; seed {seed}"
+        );
+        tokio::time::sleep(Duration::from_millis(1)).await;
+    };
+
+    // SIGKILL the server at random moments while rigs are uploading (the first one mid-stream,
+    // above); restart it on the same port with the same data directory.
     let mut kills = 0;
     let deadline = Instant::now() + Duration::from_secs(120);
-    while done.load(Ordering::SeqCst) < 20 && kills < 10 {
-        tokio::time::sleep(Duration::from_millis(rng.range(100, 600))).await;
-        if done.load(Ordering::SeqCst) == 20 {
-            break;
+    while done.load(Ordering::SeqCst) < uploads && kills < 10 {
+        if kills > 0 {
+            tokio::time::sleep(Duration::from_millis(rng.range(100, 600))).await;
+            if done.load(Ordering::SeqCst) == uploads {
+                break;
+            }
         }
         server.kill();
         kills += 1;
@@ -121,7 +176,13 @@ async fn twenty_spooled_uploads_survive_the_server_killed_at_random_moments() {
             "the uploads did not finish within 120 s"
         );
     }
-    println!("killed the server {kills} times");
+    println!(
+        "killed the server {kills} times, the first with {committed_at_first_kill} of {BIG_ROWS} rows of {big_id} committed"
+    );
+    assert!(
+        committed_at_first_kill < BIG_ROWS,
+        "{big_id} finished before the first kill, which was to land mid-stream; seed {seed}"
+    );
     assert!(
         kills >= MIN_KILLS,
         "the server must die several times mid-upload (only {kills}); seed {seed}"
@@ -135,13 +196,15 @@ async fn twenty_spooled_uploads_survive_the_server_killed_at_random_moments() {
             .unwrap_or_else(|e| panic!("seed {seed}: {e:#}"));
         assert!(report.finished && report.removed, "seed {seed}: {report:?}");
         assert_eq!(report.committed_rows, report.expected_rows);
+        if report.session_id == big_id {
+            assert!(
+                report.resumes > 0,
+                "the kill mid-stream of {big_id} went unnoticed: {report:?}; seed {seed}"
+            );
+        }
         interrupted += (report.resumes > 0) as usize;
     }
-    println!("{interrupted} of 20 uploads were interrupted and resumed");
-    assert!(
-        interrupted >= 1,
-        "no upload was interrupted by the kills; seed {seed}"
-    );
+    println!("{interrupted} of {uploads} uploads were interrupted and resumed");
     let mut resumed = 0;
     for (id, channels, values) in &sent {
         let (shape, rows) = stored(&server, id).await;
@@ -163,7 +226,7 @@ async fn twenty_spooled_uploads_survive_the_server_killed_at_random_moments() {
         assert_eq!(session["state"], "finished", "{id}: {session}");
         resumed += 1;
     }
-    assert_eq!(resumed, 20);
+    assert_eq!(resumed, uploads);
     assert!(
         spools.sessions().unwrap().is_empty(),
         "every spool is cleared once its rows are committed"
