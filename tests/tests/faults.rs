@@ -1,8 +1,8 @@
 //! Faults, all with the real server binary and the real client: the server is killed (SIGKILL)
 //! at random moments during 20 spooled uploads (plus one long one that the first kill cuts
-//! mid-stream) and restarted; the client process is killed
-//! mid-spool and mid-upload and rerun; the server is killed mid-reconstruction. No measured row
-//! is lost, none is stored twice, and every job finishes exactly once.
+//! mid-stream) and restarted; the client process is killed mid-spool and mid-upload and rerun;
+//! the server is killed mid-reconstruction. No measured row is lost, none is stored twice, and
+//! every job finishes exactly once.
 
 use std::process::{Child, Command, Stdio};
 use std::sync::Arc;
