@@ -15,6 +15,10 @@ use helmholtz_client::spool::{self, SpoolDir};
 use helmholtz_client::{Backoff, NewSession, PatternSpec, UploadOptions};
 use helmholtz_tests::{FaultyProxy, ServerProcess, SplitMix64, binary, fault_seed, parse_npy};
 
+/// Server flags of the tests that poll the API to time their faults: no per-token rate limit
+/// (it is tested on its own), which would refuse the polls and the uploads sharing the token.
+const UNLIMITED: &[&str] = &["--rate-per-second", "0"];
+
 /// The rows a session stored, as the server serves them back.
 async fn stored(server: &ServerProcess, id: &str) -> (Vec<usize>, Vec<f64>) {
     let response = reqwest::get(server.url(&format!("/v1/sessions/{id}/measurements.npy")))
@@ -22,6 +26,29 @@ async fn stored(server: &ServerProcess, id: &str) -> (Vec<usize>, Vec<f64>) {
         .unwrap();
     assert_eq!(response.status(), 200, "measurements of {id}");
     parse_npy(&response.bytes().await.unwrap()).unwrap()
+}
+
+/// The committed count of a session the server knows (`None` before it is created).
+async fn committed_rows(server: &ServerProcess, id: &str) -> Option<u64> {
+    let response = reqwest::get(server.url(&format!("/v1/sessions/{id}")))
+        .await
+        .ok()?;
+    let session: serde_json::Value = response.json().await.ok()?;
+    session["committed_rows"].as_u64()
+}
+
+/// The committed count of every session the server knows (empty if it does not answer).
+async fn all_committed_rows(server: &ServerProcess) -> std::collections::HashMap<String, u64> {
+    let Ok(response) = reqwest::get(server.url("/v1/sessions?limit=1000")).await else {
+        return Default::default();
+    };
+    let list: serde_json::Value = response.json().await.unwrap_or_default();
+    list["sessions"]
+        .as_array()
+        .into_iter()
+        .flatten()
+        .filter_map(|s| Some((s["id"].as_str()?.to_string(), s["committed_rows"].as_u64()?)))
+        .collect()
 }
 
 /// Row `r`, channel `c` of rig `k`: distinct everywhere, so a row stored twice or out of place
@@ -37,7 +64,7 @@ async fn twenty_spooled_uploads_survive_the_server_killed_at_random_moments() {
     let mut rng = SplitMix64(seed);
     let dir = tempfile::tempdir().unwrap();
     let data = dir.path().join("data");
-    let mut server = ServerProcess::start(&data, 0, &[]).unwrap();
+    let mut server = ServerProcess::start(&data, 0, UNLIMITED).unwrap();
     let base = server.base_url.clone();
     let port = server.port;
     let spools = SpoolDir::new(dir.path().join("spool"));
@@ -134,17 +161,9 @@ async fn twenty_spooled_uploads_survive_the_server_killed_at_random_moments() {
     }
     let uploads = rigs.len();
     let first_kill_at = rng.range(BIG_ROWS / 10, BIG_ROWS * 6 / 10);
-    let big_committed = |server: &ServerProcess| {
-        let url = server.url(&format!("/v1/sessions/{big_id}"));
-        async move {
-            let response = reqwest::get(url).await.ok()?;
-            let session: serde_json::Value = response.json().await.ok()?;
-            session["committed_rows"].as_u64()
-        }
-    };
     let wait_until = Instant::now() + Duration::from_secs(60);
     let committed_at_first_kill = loop {
-        match big_committed(&server).await {
+        match committed_rows(&server, &big_id).await {
             Some(c) if c >= first_kill_at => break c,
             _ => {}
         }
@@ -152,7 +171,7 @@ async fn twenty_spooled_uploads_survive_the_server_killed_at_random_moments() {
             Instant::now() < wait_until,
             "{big_id} did not reach {first_kill_at} committed rows within 60 s; seed {seed}"
         );
-        tokio::time::sleep(Duration::from_millis(1)).await;
+        tokio::time::sleep(Duration::from_millis(2)).await;
     };
 
     // SIGKILL the server at random moments while rigs are uploading (the first one mid-stream,
@@ -170,7 +189,7 @@ async fn twenty_spooled_uploads_survive_the_server_killed_at_random_moments() {
         kills += 1;
         kills_seen.store(kills, Ordering::SeqCst);
         tokio::time::sleep(Duration::from_millis(rng.range(0, 300))).await;
-        server = ServerProcess::start(&data, port, &[]).unwrap();
+        server = ServerProcess::start(&data, port, UNLIMITED).unwrap();
         assert!(
             Instant::now() < deadline,
             "the uploads did not finish within 120 s"
@@ -239,13 +258,13 @@ async fn uploads_through_a_proxy_that_cuts_connections_store_every_row_once() {
     println!("fault seed {seed} (rerun with HELMHOLTZ_FAULT_SEED={seed})");
     let mut rng = SplitMix64(seed);
     let dir = tempfile::tempdir().unwrap();
-    let server = ServerProcess::start(&dir.path().join("data"), 0, &[]).unwrap();
+    let server = ServerProcess::start(&dir.path().join("data"), 0, UNLIMITED).unwrap();
     let proxy = FaultyProxy::start(format!("127.0.0.1:{}", server.port))
         .await
         .unwrap();
     let spools = SpoolDir::new(dir.path().join("spool"));
     let options = UploadOptions {
-        chunk_rows: Some(50),
+        chunk_rows: Some(10),
         backoff: Backoff {
             initial: Duration::from_millis(10),
             max: Duration::from_millis(200),
@@ -281,15 +300,34 @@ async fn uploads_through_a_proxy_that_cuts_connections_store_every_row_once() {
             spool::drain(&url, spool, &options, false).await
         }));
     }
-    let mut cuts = 0;
+    // Each rig's rows are spooled before its drain starts, so a pass is one stream to the end:
+    // a committed count that grew since the last look and is still 10 chunks short of the total
+    // means that rig's stream is open now. Cut every connection at such moments (found by
+    // polling the server directly at random intervals), so the cuts land mid-stream however
+    // fast the machine is; a rig is only cut again after it made progress.
+    let mut seen = vec![0u64; sent.len()];
+    let (mut cuts, mut mid_stream_cuts) = (0, 0);
     while !rigs.iter().all(|r| r.is_finished()) {
-        tokio::time::sleep(Duration::from_millis(rng.range(20, 120))).await;
-        cuts += proxy.cut_all();
+        tokio::time::sleep(Duration::from_millis(rng.range(5, 40))).await;
+        let committed = all_committed_rows(&server).await;
+        let mut streaming = false;
+        for (i, (id, values)) in sent.iter().enumerate() {
+            let Some(&c) = committed.get(id) else {
+                continue;
+            };
+            streaming |= c > seen[i] && c + 500 <= values.len() as u64;
+            seen[i] = seen[i].max(c);
+        }
+        if streaming {
+            let n = proxy.cut_all();
+            cuts += n;
+            mid_stream_cuts += (n > 0) as usize;
+        }
     }
-    println!("cut {cuts} connections");
+    println!("cut {cuts} connections at {mid_stream_cuts} moments mid-stream");
     assert!(
-        cuts >= 3,
-        "the proxy must have cut connections mid-upload (only {cuts}); seed {seed}"
+        mid_stream_cuts >= 3,
+        "the proxy must have cut connections mid-upload (only {mid_stream_cuts} times); seed {seed}"
     );
     let mut resumed = 0;
     for rig in rigs {
