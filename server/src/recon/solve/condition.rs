@@ -82,6 +82,24 @@ impl<'a> MeanDeflated<'a> {
         })
     }
 
+    /// The deflated operator with values [`MeanDeflated::detect`] measured before for the same
+    /// operator and weights ([`Deflation::On`]).
+    fn known(
+        a: &'a dyn LinearOperator,
+        weights: Option<&[f64]>,
+        alpha: f64,
+        mu_norm: f64,
+        dominance: f64,
+    ) -> Self {
+        MeanDeflated {
+            a,
+            sqrt_w: weights.map(|w| w.iter().map(|v| v.sqrt()).collect()),
+            alpha,
+            mu_norm,
+            dominance,
+        }
+    }
+
     /// The right-hand side `[P W^1/2 b; alpha mean(W^1/2 b)]`.
     pub fn rhs(&self, b: &[f64]) -> Vec<f64> {
         let n = b.len();
@@ -143,6 +161,21 @@ impl LinearOperator for MeanDeflated<'_> {
     }
 }
 
+/// What [`MeanDeflated::detect`] decided for an operator and its weights. Detection costs one
+/// adjoint and four products; a path passes the decision to its points (same operator, same
+/// weights) through [`super::SolveOptions::deflation`] instead of measuring it again per point.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Deflation {
+    /// The mean does not dominate (or deflation was not asked for): solve as given.
+    Off,
+    /// Deflate with these measured values.
+    On {
+        alpha: f64,
+        mu_norm: f64,
+        dominance: f64,
+    },
+}
+
 /// The problem a solver iterates on: the caller's `(A, b, W)`, or its deflated form.
 pub(crate) struct Prepared<'a> {
     a: &'a dyn LinearOperator,
@@ -158,10 +191,30 @@ impl<'a> Prepared<'a> {
         weights: Option<&'a [f64]>,
         deflate: bool,
     ) -> Self {
-        let deflated = if deflate {
-            MeanDeflated::detect(a, weights)
-        } else {
-            None
+        Self::with_decision(a, b, weights, deflate, None)
+    }
+
+    /// [`Prepared::new`] with the deflation decision already made for this operator and these
+    /// weights (`known`, from [`Prepared::decision`]); `None` detects. `deflate == false` never
+    /// deflates.
+    pub fn with_decision(
+        a: &'a dyn LinearOperator,
+        b: &[f64],
+        weights: Option<&'a [f64]>,
+        deflate: bool,
+        known: Option<Deflation>,
+    ) -> Self {
+        let deflated = match (deflate, known) {
+            (false, _) | (true, Some(Deflation::Off)) => None,
+            (true, None) => MeanDeflated::detect(a, weights),
+            (
+                true,
+                Some(Deflation::On {
+                    alpha,
+                    mu_norm,
+                    dominance,
+                }),
+            ) => Some(MeanDeflated::known(a, weights, alpha, mu_norm, dominance)),
         };
         match deflated {
             Some(d) => Prepared {
@@ -195,6 +248,17 @@ impl<'a> Prepared<'a> {
     }
     pub fn deflation(&self) -> Option<&MeanDeflated<'a>> {
         self.deflated.as_ref()
+    }
+    /// The deflation decision, to pass to later solves on the same operator and weights.
+    pub fn decision(&self) -> Deflation {
+        match &self.deflated {
+            None => Deflation::Off,
+            Some(d) => Deflation::On {
+                alpha: d.alpha,
+                mu_norm: d.mu_norm,
+                dominance: d.dominance,
+            },
+        }
     }
 }
 

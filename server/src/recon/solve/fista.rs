@@ -639,7 +639,13 @@ pub fn fista(
             start,
         ));
     }
-    let prep = Prepared::new(a, b, opts.weights.as_deref(), opts.deflate_mean);
+    let prep = Prepared::with_decision(
+        a,
+        b,
+        opts.weights.as_deref(),
+        opts.deflate_mean,
+        opts.deflation,
+    );
     let lambda_max = match opts.lambda {
         Lambda::Absolute(_) => None,
         Lambda::Relative(_) => Some(lambda_max_l1_free(
@@ -681,7 +687,13 @@ pub fn tv_fista(
             start,
         ));
     }
-    let prep = Prepared::new(a, b, opts.weights.as_deref(), opts.deflate_mean);
+    let prep = Prepared::with_decision(
+        a,
+        b,
+        opts.weights.as_deref(),
+        opts.deflate_mean,
+        opts.deflation,
+    );
     let lambda_max = match opts.lambda {
         Lambda::Absolute(_) => None,
         Lambda::Relative(_) => Some(lambda_max_tv(prep.op(), grid, prep.b(), prep.weights())),

@@ -51,7 +51,7 @@ pub(crate) mod testkit;
 mod tests;
 
 pub use cgls::cgls;
-pub use condition::MeanDeflated;
+pub use condition::{Deflation, MeanDeflated};
 pub use fista::{fista, lambda_max_l1, lambda_max_l1_free, tv_fista};
 pub use path::{
     PathPoint, PathRunner, Penalty, RegPath, geometric_fractions, lambda_max, solve_path,
@@ -100,6 +100,10 @@ pub struct SolveOptions {
     /// ([`condition::MeanDeflated`]; a no-op for centred operators). CGLS iterates on the exact
     /// problem and uses the deflated problem only as its stopping yardstick. Default `true`.
     pub deflate_mean: bool,
+    /// The deflation decision for this operator and these weights if already made
+    /// ([`solve_path`] passes its own to every point); `None` = detect it (when
+    /// `deflate_mean`). Must come from the same operator and weights.
+    pub deflation: Option<condition::Deflation>,
     /// FISTA with `Psi`: the first this many coefficients of `Psi t` are left out of the l1
     /// penalty and of `lambda_max`. 1 for a full wavelet or DCT decomposition leaves the DC term
     /// (the image mean) unshrunk: it dwarfs every detail coefficient of a natural scene, so
@@ -120,6 +124,7 @@ impl Default for SolveOptions {
             history: 256,
             progress: (0.0, 1.0),
             deflate_mean: true,
+            deflation: None,
             free_coefficients: 0,
         }
     }

@@ -169,10 +169,18 @@ impl<'a> PathRunner<'a> {
                 last: None,
             });
         }
-        let prep = Prepared::new(a, b, opts.weights.as_deref(), opts.deflate_mean);
+        let prep = Prepared::with_decision(
+            a,
+            b,
+            opts.weights.as_deref(),
+            opts.deflate_mean,
+            opts.deflation,
+        );
         let (op, bb, w) = (prep.op(), prep.b(), prep.weights());
         let lmax = lambda_max(op, penalty, bb, w, opts.nonnegative, opts.free_coefficients);
         o.lipschitz = Some(lipschitz_of(op, w, opts.lipschitz)?);
+        // Every point solves the same operator with the same weights: detect once.
+        o.deflation = Some(prep.decision());
         let last = opts.warm_start.clone();
         Ok(PathRunner {
             a,

@@ -1103,3 +1103,74 @@ fn tv_path_points_reach_their_minimum_after_failed_inexact_steps() {
         previous = Some(p.t);
     }
 }
+
+/// Counts the four-probe batches [`MeanDeflated::detect`] makes (nothing else here applies
+/// batches of four) and delegates every product.
+struct CountsDetections<'a> {
+    inner: &'a dyn LinearOperator,
+    probe_batches: std::sync::atomic::AtomicUsize,
+}
+
+impl LinearOperator for CountsDetections<'_> {
+    fn rows(&self) -> usize {
+        self.inner.rows()
+    }
+    fn cols(&self) -> usize {
+        self.inner.cols()
+    }
+    fn apply(&self, x: &[f64], y: &mut [f64]) {
+        self.inner.apply(x, y)
+    }
+    fn adjoint(&self, y: &[f64], x: &mut [f64]) {
+        self.inner.adjoint(y, x)
+    }
+    fn apply_batch(&self, xs: &[f64], ys: &mut [f64], batch: usize) {
+        if batch == 4 {
+            self.probe_batches
+                .fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        }
+        self.inner.apply_batch(xs, ys, batch)
+    }
+}
+
+/// A path detects the common mode once, not once per point, and its points are exactly those
+/// of independent warm-started solves that detect it themselves.
+#[test]
+fn a_path_detects_deflation_once_and_solves_as_if_each_point_did() {
+    let side = 16;
+    let k = side * side;
+    let a = FastBinary::new(k / 3, k, 7);
+    let mut rng = Rng::new(5);
+    let x0: Vec<f64> = (0..k).map(|_| rng.uniform()).collect();
+    let b = measure(&a, &x0);
+    let grid = Grid::new(side, side);
+    let fractions = [0.1, 0.03, 0.01, 3e-3];
+    let counted = CountsDetections {
+        inner: &a,
+        probe_batches: Default::default(),
+    };
+    let control = Control::new();
+    let o = opts(Lambda::Relative(0.0), 1e-5, 60);
+    let path = solve_path(&counted, Penalty::Tv { grid }, &b, &o, &fractions, &control).unwrap();
+    assert!(path.deflated, "0/1 patterns are deflated");
+    assert_eq!(
+        counted
+            .probe_batches
+            .load(std::sync::atomic::Ordering::Relaxed),
+        1,
+        "one detection for the whole path"
+    );
+    // The same points solved one by one, each detecting for itself.
+    // (The path estimates the step constant once, on the deflated operator.)
+    let lipschitz = step_constant(&a, None, true).unwrap();
+    let mut warm: Option<Vec<f64>> = None;
+    for p in &path.points {
+        let mut oi = o.clone();
+        oi.lambda = Lambda::Absolute(p.lambda);
+        oi.lipschitz = Some(lipschitz);
+        oi.warm_start = warm.take();
+        let alone = tv_fista(&a, grid, &b, &oi, &control).unwrap();
+        assert_eq!(alone.t, p.t, "point f = {}", p.fraction);
+        warm = Some(alone.t);
+    }
+}

@@ -241,7 +241,13 @@ pub fn tv(
         ));
     }
     let (original, original_b) = (a, b);
-    let prep = Prepared::new(a, b, opts.weights.as_deref(), opts.deflate_mean);
+    let prep = Prepared::with_decision(
+        a,
+        b,
+        opts.weights.as_deref(),
+        opts.deflate_mean,
+        opts.deflation,
+    );
     let (a, b, w) = (prep.op(), prep.b(), prep.weights());
     let n = a.rows();
     let (lambda, lambda_max) = match opts.lambda {
