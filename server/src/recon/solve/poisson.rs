@@ -71,7 +71,9 @@ pub fn poisson_irls(
     let mean = b.iter().sum::<f64>() / n as f64;
     let mut o = opts.clone();
     o.weights = Some(vec![1.0 / mean.max(floor); n]);
+    // Both belong to an operator and its weights, and the weights change every round.
     o.lipschitz = None;
+    o.deflation = None;
     if let Lambda::Relative(f) = opts.lambda {
         let lmax = lambda_max(
             a,

@@ -1174,3 +1174,29 @@ fn a_path_detects_deflation_once_and_solves_as_if_each_point_did() {
         warm = Some(alone.t);
     }
 }
+
+/// The IRLS changes its weights every round, so a deflation decision handed in (made for the
+/// operator without those weights) must not be used: the answer is the same as without it.
+#[test]
+fn poisson_irls_ignores_a_deflation_decision_made_for_other_weights() {
+    let side = 12;
+    let k = side * side;
+    let x0 = blocks_scene(side);
+    let a = bernoulli(3 * k, k, 0.5, 83);
+    let b = measure(&a, &x0);
+    let grid = Grid::new(side, side);
+    let control = Control::new();
+    let o = opts(Lambda::Relative(3e-2), 1e-5, 200);
+    let wrong = SolveOptions {
+        deflation: Some(Deflation::On {
+            alpha: 1e3,
+            mu_norm: 1.0,
+            dominance: 10.0,
+        }),
+        ..o.clone()
+    };
+    let floor = 1e-3;
+    let plain = poisson_irls(&a, Penalty::Tv { grid }, &b, floor, 3, &o, &control).unwrap();
+    let handed = poisson_irls(&a, Penalty::Tv { grid }, &b, floor, 3, &wrong, &control).unwrap();
+    assert_eq!(plain.t, handed.t);
+}
