@@ -28,15 +28,6 @@ async fn stored(server: &ServerProcess, id: &str) -> (Vec<usize>, Vec<f64>) {
     parse_npy(&response.bytes().await.unwrap()).unwrap()
 }
 
-/// The committed count of a session the server knows (`None` before it is created).
-async fn committed_rows(server: &ServerProcess, id: &str) -> Option<u64> {
-    let response = reqwest::get(server.url(&format!("/v1/sessions/{id}")))
-        .await
-        .ok()?;
-    let session: serde_json::Value = response.json().await.ok()?;
-    session["committed_rows"].as_u64()
-}
-
 /// The committed count of every session the server knows (empty if it does not answer).
 async fn all_committed_rows(server: &ServerProcess) -> std::collections::HashMap<String, u64> {
     let Ok(response) = reqwest::get(server.url("/v1/sessions?limit=1000")).await else {
@@ -163,7 +154,7 @@ async fn twenty_spooled_uploads_survive_the_server_killed_at_random_moments() {
     let first_kill_at = rng.range(BIG_ROWS / 10, BIG_ROWS * 6 / 10);
     let wait_until = Instant::now() + Duration::from_secs(60);
     let committed_at_first_kill = loop {
-        match committed_rows(&server, &big_id).await {
+        match committed(&base, &big_id).await {
             Some(c) if c >= first_kill_at => break c,
             _ => {}
         }
