@@ -1,7 +1,7 @@
 //! Reconstructs one simulated acquisition and prints time, PSNR and the report's solver figures:
 //! a profiling aid for the numerics (the bench runs whole grids).
 //!
-//! `cargo run --release -p helmholtz-server --example one -- hadamard 128 0.1 camera tv '{"max_iter":100}' [repeat]`
+//! `cargo run --release -p helmholtz-server --example one -- hadamard 128 0.1 camera tv '{"max_iter":100}' [repeat] [none|snr30|poisson]`
 
 use std::time::Instant;
 
@@ -20,17 +20,23 @@ fn main() {
     let method = arg(5, "tv");
     let params: serde_json::Value = serde_json::from_str(&arg(6, "null")).expect("params JSON");
     let repeat: usize = arg(7, "1").parse().expect("repeat");
+    let noise = match arg(8, "none").as_str() {
+        "none" => Noise::None,
+        "snr30" => Noise::Snr30,
+        "poisson" => Noise::Poisson,
+        other => panic!("noise {other:?}: none, snr30 or poisson"),
+    };
     let case = Case {
         scene: scene.clone(),
         size: (n, n),
         ratio,
         family,
-        noise: Noise::None,
+        noise,
         method: method.clone(),
     };
     let spec = case.spec();
     let truth = Scene::builtin(&scene, n, n).expect("scene").transport(1.0);
-    let sim = simulate::simulate(&spec, &[&truth], &Noise::None.model(), None);
+    let sim = simulate::simulate(&spec, &[&truth], &noise.model(), None);
     let config = MethodConfig::parse(&method, &params).expect("method");
     let problem = Problem {
         spec: &spec,

@@ -269,7 +269,7 @@ pub fn repo_root() -> PathBuf {
 }
 
 pub fn run(opts: &Options) -> anyhow::Result<()> {
-    let load_at_start = load_average();
+    let contention = super::machine::Contention::start();
     let problems_dir = opts.work.join("problems");
     let results_dir = opts.work.join("results");
     std::fs::create_dir_all(&results_dir)?;
@@ -386,7 +386,7 @@ pub fn run(opts: &Options) -> anyhow::Result<()> {
         &opts.out,
         opts.repeat,
         opts.problems.as_deref(),
-        &load_at_start,
+        &contention,
         &tools,
         &results,
     )
@@ -651,18 +651,11 @@ fn fmt_params(v: &Value) -> String {
     }
 }
 
-/// `/proc/loadavg` (1, 5 and 15 minute load averages), if readable: whether the machine was shared.
-fn load_average() -> String {
-    std::fs::read_to_string("/proc/loadavg")
-        .map(|s| s.split_whitespace().take(3).collect::<Vec<_>>().join(" "))
-        .unwrap_or_else(|_| "?".into())
-}
-
 fn write_report(
     dir: &Path,
     repeat: u32,
     problems: Option<&[String]>,
-    load_at_start: &str,
+    contention: &super::machine::Contention,
     environment: &Value,
     results: &[ProblemResult],
 ) -> anyhow::Result<()> {
@@ -679,13 +672,15 @@ fn write_report(
         "cargo run --release -p helmholtz-server --bin helmholtz-bench -- --preset compare{repeat_arg}{problems_arg} --out {}",
         dir.display()
     );
-    let machine = json!({
+    let mut machine = json!({
         "cores": std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1),
         "rayon_threads": rayon::current_num_threads(),
         "profile": if cfg!(debug_assertions) { "debug" } else { "release" },
-        "load_average_at_start": load_at_start,
-        "load_average_at_end": load_average(),
     });
+    if let (Some(m), serde_json::Value::Object(c)) = (machine.as_object_mut(), contention.finish())
+    {
+        m.extend(c);
+    }
     let raw = json!({ "command": command, "machine": machine, "python": environment, "problems": results });
     std::fs::write(
         dir.join("comparison.json"),
@@ -699,11 +694,10 @@ fn write_report(
     );
     let _ = writeln!(
         md,
-        "Produced by `{command}` ({} cores, {} build; load average (1, 5, 15 min) {} at the start and {} at the end of the run; the Python side: {}). Raw figures, every sweep point included: [`comparison.json`](comparison.json).\n",
+        "Produced by `{command}` ({} cores, {} build; {}; the Python side: {}). Raw figures, every sweep point included: [`comparison.json`](comparison.json).\n",
         machine["cores"],
         machine["profile"].as_str().unwrap_or("?"),
-        load_at_start,
-        machine["load_average_at_end"].as_str().unwrap_or("?"),
+        super::machine::sentence(&machine),
         env_line(environment)
     );
     let _ = write!(md, "{}", METHOD_TEXT);

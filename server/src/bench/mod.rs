@@ -9,6 +9,7 @@
 
 pub mod compare;
 mod grid;
+pub mod machine;
 mod plot;
 mod report;
 mod transport;
@@ -159,6 +160,7 @@ pub fn main() {
         args.preset,
         rayon::current_num_threads()
     );
+    let contention = machine::Contention::start();
     let results = run_cases_repeated(&cases, args.repeat as usize, |i, m| {
         eprintln!(
             "[{}/{}] {:<48} {:>9.4} s  {:>6.2} dB  SSIM {:.3}{}",
@@ -174,7 +176,13 @@ pub fn main() {
                 .unwrap_or_default()
         )
     });
-    if let Err(e) = report::write_with(&args.out, &args.preset, args.repeat, &results) {
+    if let Err(e) = report::write_with(
+        &args.out,
+        &args.preset,
+        args.repeat,
+        &contention.finish(),
+        &results,
+    ) {
         eprintln!("helmholtz-bench: writing the report: {e:#}");
         std::process::exit(1);
     }

@@ -16,6 +16,7 @@ pub fn write_with(
     dir: &Path,
     preset: &str,
     repeat: u32,
+    contention: &serde_json::Value,
     results: &[Measurement],
 ) -> anyhow::Result<()> {
     std::fs::create_dir_all(dir.join("bench"))
@@ -39,6 +40,10 @@ pub fn write_with(
         "os": std::env::consts::OS,
         "arch": std::env::consts::ARCH,
         "profile": if cfg!(debug_assertions) { "debug" } else { "release" },
+        "load_average_at_start": contention["load_average_at_start"],
+        "load_average_at_end": contention["load_average_at_end"],
+        "steal_share": contention["steal_share"],
+        "busy_share": contention["busy_share"],
     });
     let raw =
         json!({ "command": command, "preset": preset, "machine": machine, "results": results });
@@ -57,8 +62,10 @@ pub fn write_with(
     let _ = writeln!(md, "# Speed against error\n");
     let _ = writeln!(
         md,
-        "Produced by `{command}` ({} cores, {} build).",
-        machine["cores"], machine["profile"]
+        "Produced by `{command}` ({} cores, {} build; {}).",
+        machine["cores"],
+        machine["profile"].as_str().unwrap_or("?"),
+        super::machine::sentence(&machine)
     );
     let _ = writeln!(
         md,

@@ -19,9 +19,16 @@ fn smoke_grid_runs_and_writes_the_report() {
     let direct = results.iter().find(|m| m.case.method == "direct").unwrap();
     assert!(direct.psnr_db > 80.0, "direct: {} dB", direct.psnr_db);
     let dir = tempfile::tempdir().unwrap();
-    report::write_with(dir.path(), "smoke", 1, &results).unwrap();
+    let contention = super::machine::Contention::start().finish();
+    report::write_with(dir.path(), "smoke", 1, &contention, &results).unwrap();
     let md = std::fs::read_to_string(dir.path().join("benchmarks-smoke.md")).unwrap();
     assert!(md.contains("| shapes |") && md.contains(".svg"));
+    // The header says how busy the machine was (steal share from /proc/stat where it exists).
+    assert!(md.contains("load average (1, 5, 15 min)"), "{md}");
+    assert!(
+        md.contains("taken by the hypervisor") || md.contains("steal time unknown"),
+        "{md}"
+    );
     let json: serde_json::Value = serde_json::from_str(
         &std::fs::read_to_string(dir.path().join("benchmarks-smoke.json")).unwrap(),
     )

@@ -105,6 +105,7 @@ pub fn run(
     latency_only: bool,
     only: Option<&[String]>,
 ) -> anyhow::Result<()> {
+    let contention = super::machine::Contention::start();
     let (pw, ph, cw, chh) = (64u32, 64u32, 32u32, 32u32);
     let scene = Scene::demo(pw, ph, 7);
     let view = scene.view(&Camera::tilted(cw, chh, 25.0));
@@ -320,12 +321,17 @@ pub fn run(
         );
         latencies.push(l);
     }
-    write(out, &rows, &latencies)
+    write(out, &rows, &latencies, &contention.finish())
 }
 
-fn write(out: &Path, rows: &[Row], latencies: &[Latency]) -> anyhow::Result<()> {
+fn write(
+    out: &Path,
+    rows: &[Row],
+    latencies: &[Latency],
+    machine: &serde_json::Value,
+) -> anyhow::Result<()> {
     std::fs::create_dir_all(out)?;
-    let json = json!({"reconstructions": rows, "latency": latencies, "threads": rayon::current_num_threads()});
+    let json = json!({"reconstructions": rows, "latency": latencies, "threads": rayon::current_num_threads(), "machine": machine});
     std::fs::write(
         out.join("benchmarks-transport.json"),
         serde_json::to_string_pretty(&json)?,
@@ -335,7 +341,7 @@ fn write(out: &Path, rows: &[Row], latencies: &[Latency]) -> anyhow::Result<()> 
     md.push_str(
         "`cargo run -p helmholtz-server --bin helmholtz-bench -- --preset transport --out docs` ",
     );
-    md.push_str(&format!("({} threads). Scene: `helmholtz_scenes::Scene::demo(64, 64, 7)`, camera `Camera::tilted(32, 32, 25)`; noise-free frames `c_i = T p_i`. ", rayon::current_num_threads()));
+    md.push_str(&format!("({} threads; {}). Scene: `helmholtz_scenes::Scene::demo(64, 64, 7)`, camera `Camera::tilted(32, 32, 25)`; noise-free frames `c_i = T p_i`. ", rayon::current_num_threads(), super::machine::sentence(machine)));
     md.push_str("Error: relative Frobenius error of T; relit PSNR over three camera-side lights (uniform, checkerboard, random) against the scene's own relight.\n\n");
     md.push_str("| case | frames | coarse-to-fine | seconds | peak heap MiB | transform | lambda | stored KiB (dense KiB) | nnz/row | rel. error T | relit PSNR dB | held-out | iterations/row |\n");
     md.push_str("|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
