@@ -89,7 +89,9 @@ pub fn shares(a: CpuTicks, b: CpuTicks) -> Option<(f64, f64)> {
     Some((steal, busy))
 }
 
-/// One sentence for a report's header from [`Contention::finish`]'s JSON.
+/// One sentence for a report's header from [`Contention::finish`]'s JSON. Low steal does not
+/// make a run quiet: other guests also compete for the host's caches and memory unseen (a
+/// re-run of the targets at 1 % steal was 10-30 % slower than a run two hours earlier).
 pub fn sentence(machine: &Value) -> String {
     let load = format!(
         "load average (1, 5, 15 min) {} at the start and {} at the end of the run",
@@ -101,7 +103,7 @@ pub fn sentence(machine: &Value) -> String {
             "{load}; {:.0} % of the CPU time during the run was taken by the hypervisor for other guests (steal, from /proc/stat){}",
             100.0 * s,
             if s > 0.05 {
-                ": the times are inflated by about that share or more; compare figures within this run, not with other runs"
+                ": the times are inflated by about that share or more"
             } else {
                 ""
             }
