@@ -291,7 +291,7 @@ async fn f32_frames_must_be_finite_and_detector_directions_unit_vectors() {
     ))
     .await
     .unwrap();
-    let mut values = vec![0.5f32; 8];
+    let mut values = [0.5f32; 8];
     values[6] = f32::NAN;
     let bytes: Vec<u8> = values.iter().flat_map(|v| v.to_le_bytes()).collect();
     let crc = crc32c::crc32c(&bytes);

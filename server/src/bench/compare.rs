@@ -1025,7 +1025,7 @@ mod tests {
             let n = natural[r] as usize;
             let row_dot: f64 = (0..k)
                 .map(|p| {
-                    if (n & p).count_ones() % 2 == 0 {
+                    if (n & p).count_ones().is_multiple_of(2) {
                         t[p]
                     } else {
                         -t[p]

@@ -372,15 +372,18 @@ mod tests {
         }
     }
 
+    /// One product a member asked for: (adjoint?, input, answer).
+    type Asked = (bool, Vec<f64>, Vec<f64>);
+
     /// Three members with different numbers of products, mixing forward and adjoint; the third
-    /// leaves early. Returns every member's (input, answer) pairs and the stats.
+    /// leaves early. Returns every member's products and the stats.
     fn three_members(
         gather: &Gather,
         m: usize,
         k: usize,
         counts: [usize; 3],
-    ) -> (Vec<Vec<(bool, Vec<f64>, Vec<f64>)>>, GatherStats) {
-        let jobs: Vec<Box<dyn FnOnce() -> Vec<(bool, Vec<f64>, Vec<f64>)> + Send + '_>> = counts
+    ) -> (Vec<Vec<Asked>>, GatherStats) {
+        let jobs: Vec<Box<dyn FnOnce() -> Vec<Asked> + Send + '_>> = counts
             .iter()
             .enumerate()
             .map(|(j, &count)| {
@@ -538,7 +541,7 @@ mod tests {
         let op = bernoulli(50, 8);
         let gather = Gather::new(&op);
         let result = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-            let jobs: Vec<Box<dyn FnOnce() -> () + Send + '_>> = vec![
+            let jobs: Vec<Box<dyn FnOnce() + Send + '_>> = vec![
                 Box::new(|| {
                     let mut y = vec![0.0; 50];
                     for _ in 0..20 {
