@@ -677,10 +677,7 @@ fn write_report(
         "rayon_threads": rayon::current_num_threads(),
         "profile": if cfg!(debug_assertions) { "debug" } else { "release" },
     });
-    if let (Some(m), serde_json::Value::Object(c)) = (machine.as_object_mut(), contention.finish())
-    {
-        m.extend(c);
-    }
+    super::machine::merge(&mut machine, &contention.finish());
     let raw = json!({ "command": command, "machine": machine, "python": environment, "problems": results });
     std::fs::write(
         dir.join("comparison.json"),

@@ -78,6 +78,13 @@ impl Contention {
     }
 }
 
+/// Adds [`Contention::finish`]'s fields to a report's `machine` object.
+pub fn merge(machine: &mut Value, contention: &Value) {
+    if let (Some(m), Some(c)) = (machine.as_object_mut(), contention.as_object()) {
+        m.extend(c.iter().map(|(k, v)| (k.clone(), v.clone())));
+    }
+}
+
 /// `(steal, busy)` as shares of the CPU ticks between `a` and `b`; `None` if none passed.
 pub fn shares(a: CpuTicks, b: CpuTicks) -> Option<(f64, f64)> {
     let total = b.total.checked_sub(a.total)?;

@@ -34,17 +34,14 @@ pub fn write_with(
     let command = format!(
         "cargo run {release}-p helmholtz-server --bin helmholtz-bench -- --preset {preset}{repeat_arg}"
     );
-    let machine = json!({
+    let mut machine = json!({
         "cores": std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1),
         "rayon_threads": rayon::current_num_threads(),
         "os": std::env::consts::OS,
         "arch": std::env::consts::ARCH,
         "profile": if cfg!(debug_assertions) { "debug" } else { "release" },
-        "load_average_at_start": contention["load_average_at_start"],
-        "load_average_at_end": contention["load_average_at_end"],
-        "steal_share": contention["steal_share"],
-        "busy_share": contention["busy_share"],
     });
+    super::machine::merge(&mut machine, contention);
     let raw =
         json!({ "command": command, "preset": preset, "machine": machine, "results": results });
     // The full grid is docs/benchmarks.{md,json}; the smaller presets get a suffix.
