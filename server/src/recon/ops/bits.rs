@@ -4,7 +4,7 @@
 //!
 //! A [`BitMatrix`] is built from row-major packed rows: column `c` of a row is bit `c % 64` of
 //! word `c / 64` (the pattern generator's layout, so a pattern is a row). Internally the words
-//! are stored in column blocks of [`BLOCK_WORDS`] words (256 columns): block `b` holds, for every
+//! are stored in column blocks of [`BLOCK_WORDS`] words (128 columns): block `b` holds, for every
 //! row in turn, that row's `BLOCK_WORDS` words of the block, so the product kernel streams each
 //! block as one contiguous run of memory. (Measured: 2.5-4x faster than row-major rows, where
 //! every row's slice of a block is a separate cache line and page.)
@@ -15,20 +15,25 @@
 //! table of the 256 subset sums of those 8 entries of `v` (255 additions; an entry is `[f64; L]`,
 //! so one look-up serves all `L` vectors), then each row adds one table entry per byte of its
 //! bits: `rows * cols / 8` look-ups instead of `rows * cols` multiply-adds. Table building costs
-//! `32 * cols * L` additions, negligible once `rows` is more than a few hundred. A block's 32
-//! tables (64 KiB for one vector) stay in L1/L2 while its rows stream through. About 0.4 ns per
-//! look-up and thread here (0.2 ns per look-up and vector in batches of four).
+//! `32 * cols * L` additions, negligible once `rows` is more than a few hundred. A block's 16
+//! tables (32 KiB for one vector) stay in L1 (48 KiB per core here) while its rows stream
+//! through. About 0.2-0.3 ns per look-up and thread here, 0.15 ns per look-up and vector in
+//! batches of four. Measured with `ops::bench::bench_bits_kernel`, 1638 x 16384 bits, best of 5,
+//! three interleaved runs: blocks of 2 words take 0.35-0.52 ms per apply and 0.40-0.53 ms per
+//! adjoint, blocks of 4 words (64 KiB tables, spilling to L2) 0.51-0.77 and 0.62-0.84 ms;
+//! blocks of 1 word are no faster than 2, and neither are tables of 2 blocks per pass.
 //!
 //! Threads (rayon) take disjoint ranges of column blocks, each with its own tables and output
-//! partial, summed at the end (`rows * L` additions per thread); splitting rows instead would
-//! make each thread rebuild every table. Small products run on the calling thread.
+//! partial, summed at the end (`rows * L` additions per thread). Splitting rows instead makes
+//! each thread build every table; measured on the 16384 x 1638 adjoint (13 blocks), it was no
+//! faster. Small products run on the calling thread.
 
 use rayon::prelude::*;
 
 use super::scratch::Pool;
 
-/// Words (of 64 columns) per column block.
-pub const BLOCK_WORDS: usize = 4;
+/// Words (of 64 columns) per column block: 2, so that one vector's tables (32 KiB) fit L1.
+pub const BLOCK_WORDS: usize = 2;
 
 /// A packed 0/1 matrix (see the module docs for the layout).
 #[derive(Clone, Debug, PartialEq, Eq)]
