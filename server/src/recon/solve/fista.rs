@@ -868,20 +868,25 @@ fn fista_core(
     let mut eps_factor = 1.0;
     let mut tightened = 0;
     let mut small_changes = 0;
+    let mut retry = false;
     let mut iterations = 0usize;
     let mut stop = StopReason::MaxIter;
 
     for it in 1..=opts.max_iter {
         ticker.tick(it)?;
         iterations = it;
-        // Gradient at y: A^T W (A y - b).
-        r.iter_mut()
-            .zip(ay.iter().zip(b))
-            .for_each(|(r, (a, b))| *r = a - b);
-        if let Some(w) = w {
-            r.iter_mut().zip(w).for_each(|(r, w)| *r *= w);
+        // Gradient at y: A^T W (A y - b), unless y is the point of the previous iteration,
+        // whose step was retried with a tighter prox (`grad` still holds its gradient).
+        if !retry {
+            r.iter_mut()
+                .zip(ay.iter().zip(b))
+                .for_each(|(r, (a, b))| *r = a - b);
+            if let Some(w) = w {
+                r.iter_mut().zip(w).for_each(|(r, w)| *r *= w);
+            }
+            a.adjoint(&r, &mut grad);
         }
-        a.adjoint(&r, &mut grad);
+        retry = false;
 
         // Proximal step with backtracking on L.
         let mut backtracks = 0;
@@ -953,6 +958,7 @@ fn fista_core(
                 tightened += 1;
                 eps_factor *= 1e-2;
                 prox.tighten();
+                retry = true;
                 history.record(it, fx);
                 continue;
             }
