@@ -16,8 +16,8 @@
 //!   `||t(u) - prox(v)||^2 <= 2 gap`. The inner loop stops once the gap is below
 //!   `min(1e-6 ||v||^2 / 2, 1e-2 ||t_k - t_{k-1}||^2)` (the prox error shrinks with the outer
 //!   steps: inexact accelerated proximal gradient, Schmidt-Le Roux-Bach 2011) or after
-//!   `MAX_INNER` iterations (4x more after each step the inexact prox failed, see
-//!   [`Prox::tighten`]). With `Psi = I` the prox is exact and closed-form: `max(v - gamma, 0)`.
+//!   `MAX_INNER` iterations for TV, `MAX_INNER_ORTHO` in a transform (4x more after each
+//!   step the inexact prox failed, see [`Prox::tighten`]). With `Psi = I` the prox is exact and closed-form: `max(v - gamma, 0)`.
 //! * Step size: `L` starts at the power-iteration estimate of `||W^1/2 A||^2` (or the given
 //!   one) and backtracks (Beck-Teboulle, `L <- 1.2 max(L, Rayleigh quotient)`) whenever the
 //!   quadratic upper bound fails. For a quadratic data term the test is exact and needs no extra
@@ -52,11 +52,22 @@ use crate::recon::{Control, ReconError};
 /// evidence that the step-size constant `L` is too small.
 const ROUNDING_SLACK: f64 = 1e-20;
 
-/// Upper bound on the inner (dual) iterations of one prox. The dual state is kept between
+/// Upper bound on the inner (dual) iterations of one TV prox. The dual state is kept between
 /// outer iterations, so capped inner work still accumulates; measured (128x128 photo, TV): 1-3
 /// inner iterations per outer one while the outer iterate moves, the cap binds near
 /// convergence; 5 halves the time of 10 at the same PSNR (25.2 dB).
 const MAX_INNER: usize = 5;
+
+/// The same bound for the non-negative l1 prox in an orthonormal transform, whose inner
+/// iteration costs two transforms (a Daubechies-4 pair on 128x128 takes ~0.24 ms, a DCT pair
+/// ~0.35 ms, against ~1 ms for the two operator products of an outer iteration). Measured with
+/// `examples/one` against a cap of 5, same code otherwise: `auto` on 128x128 Bernoulli rows at
+/// 5 % (Poisson noise, where db4 wins) race 2.14 -> 1.27 s at 9.61 -> 9.63 dB; on the sparse
+/// 256x256 target 8.3 -> 5.3 s at the same 30.34 dB; `cs` with the DCT on 128x128 Hadamard
+/// rows 1.63 -> 0.49 s at the same 22.34 dB; the l1 candidates in the 128x128 Bernoulli photo's
+/// race (which TV wins) 0.84 -> 0.65 s. A cap of 3 sat in between; 1 needed twice the outer
+/// iterations. A step that fails still raises the cap ([`Prox::tighten`]).
+const MAX_INNER_ORTHO: usize = 2;
 
 /// `lambda_max` for the l1 problem: `|| Psi A^T W b ||_inf` — the smallest `lambda` for which
 /// `t = 0` solves the problem without the non-negativity constraint. With `t >= 0` and
@@ -151,7 +162,8 @@ pub(crate) struct Prox<'a> {
     tmp: Vec<f64>,
     pub(crate) inner: usize,
     pub(crate) last_gap: f64,
-    /// Inner-iteration cap per call: [`MAX_INNER`], raised by [`Prox::tighten`].
+    /// Inner-iteration cap per call: [`MAX_INNER`] (TV) or [`MAX_INNER_ORTHO`], raised by
+    /// [`Prox::tighten`].
     cap: usize,
 }
 
@@ -166,7 +178,15 @@ impl<'a> Prox<'a> {
             tmp: vec![0.0; k],
             inner: 0,
             last_gap: 0.0,
-            cap: MAX_INNER,
+            cap: Self::base_cap(reg),
+        }
+    }
+
+    /// The inner-iteration cap outside a retried step.
+    fn base_cap(reg: Reg) -> usize {
+        match reg {
+            Reg::Tv(_) => MAX_INNER,
+            _ => MAX_INNER_ORTHO,
         }
     }
 
@@ -179,10 +199,11 @@ impl<'a> Prox<'a> {
         self.cap *= 4;
     }
 
-    /// Back to [`MAX_INNER`] once a step is accepted: a raised cap kept for the whole solve
-    /// made the path's first points ~30x slower (the cap binds on almost every call there).
+    /// Back to the base cap ([`MAX_INNER`], [`MAX_INNER_ORTHO`]) once a step is accepted: a
+    /// raised cap kept for the whole solve made the path's first points ~30x slower (the cap
+    /// binds on almost every call there).
     pub(crate) fn relax(&mut self) {
-        self.cap = MAX_INNER;
+        self.cap = Self::base_cap(self.reg);
     }
 
     /// Whether the prox is computed iteratively (inexactly).
