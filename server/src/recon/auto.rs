@@ -65,11 +65,12 @@ const ELIMINATE: f64 = 1.25;
 /// the second round; measured).
 const ELIMINATE_FROM: usize = 2;
 /// After the second round a candidate trailing the leader by this factor is already dropped.
-/// In the bench's full grid (261 `auto` runs, docs/benchmarks.json) the eventual winner never
-/// trailed by more than 1.49x after two points, and no candidate that ended within 5 % of the
-/// winner trailed by more than 2x; on 256x256 Hadamard rows the DCT, 2.5x behind after two
-/// points, spent 10 s of a 12 s `auto` on its third point (its non-negative proximal map is
-/// iterative and slow there) before the 1.25x rule dropped it.
+/// In the bench's full grid (261 `auto` runs with a race, docs/benchmarks.json) the eventual
+/// winner never trailed by more than 1.49x after two points (2026-11-22) or 1.70x (2026-11-23,
+/// after the l1 prox's inner cap changed), and no candidate that ended within 5 % of the
+/// winner trailed by more than 2x (1.70x on 11-23); on 256x256 Hadamard rows the DCT, 2.5x
+/// behind after two points, spent 10 s of a 12 s `auto` on its third point (its non-negative
+/// proximal map is iterative and slow there) before the 1.25x rule dropped it.
 const ELIMINATE_EARLY: f64 = 2.0;
 /// A coarser grid must beat the finer one's held-out score by this much to be preferred.
 const COARSER_MARGIN: f64 = 0.01;
