@@ -247,7 +247,7 @@ impl<'a> Gather<'a> {
                     + usize::from(requests.iter().any(|r| !r.adjoint));
                 s.requests += requests.len();
                 s.waiting -= results.len();
-                // Requests left pending (or come meanwhile) wait from now: the served members
+                // Requests left pending (or that came meanwhile) wait from now: the served members
                 // need their step's time to come back with requests of the same kind.
                 if !s.pending.is_empty() {
                     s.since = Some(Instant::now());

@@ -17,7 +17,8 @@
 //!   `min(1e-6 ||v||^2 / 2, 1e-2 ||t_k - t_{k-1}||^2)` (the prox error shrinks with the outer
 //!   steps: inexact accelerated proximal gradient, Schmidt-Le Roux-Bach 2011) or after
 //!   `MAX_INNER` iterations for TV, `MAX_INNER_ORTHO` in a transform (4x more after each
-//!   step the inexact prox failed, see [`Prox::tighten`]). With `Psi = I` the prox is exact and closed-form: `max(v - gamma, 0)`.
+//!   step the inexact prox failed, see [`Prox::tighten`]). With `Psi = I` the prox is exact
+//!   and closed-form: `max(v - gamma, 0)`.
 //! * Step size: `L` starts at the power-iteration estimate of `||W^1/2 A||^2` (or the given
 //!   one) and backtracks (Beck-Teboulle, `L <- 1.2 max(L, Rayleigh quotient)`) whenever the
 //!   quadratic upper bound fails. For a quadratic data term the test is exact and needs no extra
