@@ -11,6 +11,7 @@ use helmholtz_server::bench::{Case, Noise};
 use helmholtz_server::recon::{self, Control, MethodConfig, Problem, SliceSource, metrics};
 
 fn main() {
+    helmholtz_server::alloc::retain_freed_memory();
     let a: Vec<String> = std::env::args().collect();
     let arg = |i: usize, d: &str| a.get(i).cloned().unwrap_or_else(|| d.to_string());
     let family = arg(1, "hadamard");
