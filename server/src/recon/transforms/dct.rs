@@ -8,22 +8,26 @@
 //!
 //! Per axis, two paths:
 //! - length a power of two: O(N log N) through a complex FFT of length N (Makhoul 1980: even
-//!   samples forward, odd samples backward, one FFT, a twiddle), two rows per FFT (one as the
-//!   real, one as the imaginary part);
+//!   samples forward, odd samples backward, one FFT, a twiddle). The FFT runs down the columns
+//!   of the image, all of them at once ([`Fft::forward_lanes`]): every butterfly combines two
+//!   whole rows, a vector operation however short the span; the left half of the columns are
+//!   the real parts and the right half the imaginary parts of one complex transform per pair.
+//!   The horizontal axis is transformed the same way between two transposes;
 //! - any other length: the cached `N x N` cosine matrix, applied to all rows as one matrix
 //!   product (O(N^2) per row).
 //!
-//! Measured (`transforms::bench`, one thread, per transform): 128 x 128 0.21 ms fast against
-//! 0.84 ms matrix; 256 x 256 1.1 ms against 6.9 ms; 512 x 512 6.2 ms against 72 ms; 158 x 210
-//! (matrix on both axes) 2.1 ms.
-//! Rows are spread over threads from 2^15 pixels up.
+//! Measured (`transforms::bench`, best of 5, forward and inverse): 128 x 128 0.066-0.088 ms
+//! against 0.125-0.145 ms with the FFT run one row pair at a time (its early stages, spans of 1
+//! to 4, do not vectorise) and 0.48-0.60 ms for the matrix; 512 x 512 5.8-5.9 ms against
+//! 7.5-7.9 ms (two threads); 158 x 210 (matrix on both axes) 0.9-1.1 ms.
+//! Images from 2^15 pixels up split the columns into stripes over threads.
 
 use rayon::prelude::*;
 
 use super::Transform;
 use super::fft::Fft;
 use crate::recon::linop::LinearOperator;
-use crate::recon::ops::scratch::Pool;
+use crate::recon::ops::scratch::{Pool, Scratch};
 
 /// Orthonormal DCT-II matrix, row-major `n x n`.
 pub fn dct_matrix(n: usize) -> Vec<f64> {
@@ -46,6 +50,8 @@ pub fn dct_matrix(n: usize) -> Vec<f64> {
 
 /// Rows per parallel task.
 const ROWS_PER_TASK: usize = 16;
+/// Lanes (column pairs) per parallel task of the column-wise fast path.
+const LANES_PER_TASK: usize = 32;
 /// Blocks smaller than this (values) run on one thread.
 const PARALLEL_MIN: usize = 1 << 15;
 
@@ -125,6 +131,203 @@ impl Axis {
         } else {
             task(data);
         }
+    }
+
+    /// Transforms every column of `data` (`n` rows of `width` values) in place; only for the
+    /// fast path ([`Axis::is_fast`]). The columns are the FFT's lanes
+    /// ([`Fft::forward_lanes`]): the first `ceil(width / 2)` columns are the real parts, the
+    /// others the imaginary parts of one complex transform per lane (Makhoul's reordering, the
+    /// FFT and the twiddle as in [`dct_pair`] / [`idct_pair`], on whole rows). Large images split
+    /// the lanes into stripes, one per task.
+    fn columns(&self, data: &mut [f64], width: usize, forward: bool, pool: &Pool) {
+        let Axis::Fast { n, fft, .. } = self else {
+            unreachable!("columns() runs on the fast path only")
+        };
+        let n = *n;
+        debug_assert_eq!(data.len(), n * width);
+        let p = width.div_ceil(2);
+        let stripes = if data.len() >= PARALLEL_MIN && rayon::current_num_threads() > 1 {
+            p.div_ceil(LANES_PER_TASK)
+        } else {
+            1
+        };
+        let bounds = |i: usize| (i * p / stripes, (i + 1) * p / stripes);
+        // Phase 1, per stripe of lanes: read the columns into bit-reversed rows of (re, im), FFT.
+        let mut buffers: Vec<_> = (0..stripes)
+            .map(|i| {
+                let (l0, l1) = bounds(i);
+                (pool.take(n * (l1 - l0)), pool.take(n * (l1 - l0)))
+            })
+            .collect();
+        let src: &[f64] = data;
+        let phase1 = |i: usize, (re, im): &mut (Scratch, Scratch)| {
+            let (l0, l1) = bounds(i);
+            self.load_lanes(fft, src, width, l0, l1, forward, re, im);
+            if forward {
+                fft.forward_lanes(re, im, l1 - l0);
+            } else {
+                fft.forward_lanes(im, re, l1 - l0);
+            }
+        };
+        if stripes > 1 {
+            buffers
+                .par_iter_mut()
+                .enumerate()
+                .for_each(|(i, b)| phase1(i, b));
+        } else {
+            phase1(0, &mut buffers[0]);
+        }
+        // Phase 2, per row: write the transformed columns back.
+        let store = |k: usize, row: &mut [f64]| {
+            for (i, (re, im)) in buffers.iter().enumerate() {
+                let (l0, l1) = bounds(i);
+                self.store_lanes(row, k, width, l0, l1, forward, re, im);
+            }
+        };
+        if stripes > 1 {
+            data.par_chunks_mut(width)
+                .enumerate()
+                .for_each(|(k, row)| store(k, row));
+        } else {
+            data.chunks_mut(width)
+                .enumerate()
+                .for_each(|(k, row)| store(k, row));
+        }
+    }
+
+    /// Phase 1 of [`Axis::columns`] for lanes `l0..l1`: lane `l` pairs column `l` (real part)
+    /// with column `p + l` (imaginary part, 0 past the last column), `p = ceil(width / 2)`.
+    /// Forward: Makhoul's reordering (`v[j] = x[2j]`, `v[n-1-j] = x[2j+1]`); inverse: the
+    /// pre-twiddle of [`idct_pair`]. Rows land in bit-reversed order.
+    #[allow(clippy::too_many_arguments)]
+    fn load_lanes(
+        &self,
+        fft: &Fft,
+        src: &[f64],
+        width: usize,
+        l0: usize,
+        l1: usize,
+        forward: bool,
+        re: &mut [f64],
+        im: &mut [f64],
+    ) {
+        let Axis::Fast {
+            n, cos, sin, inv_a, ..
+        } = self
+        else {
+            unreachable!()
+        };
+        let n = *n;
+        let p = width.div_ceil(2);
+        let lanes = l1 - l0;
+        // Columns p + l0 .. p + l1 that exist (the last lane has no partner when width is odd).
+        let q = (width - p).min(l1).saturating_sub(l0);
+        let part = |row: usize| {
+            let r = &src[row * width..(row + 1) * width];
+            (&r[l0..l1], &r[p + l0..p + l0 + q])
+        };
+        if forward {
+            for j in 0..n {
+                // Sample j of v is x[2j] for j < n/2, x[2(n-1-j)+1] otherwise.
+                let from = if j < n / 2 {
+                    2 * j
+                } else {
+                    2 * (n - 1 - j) + 1
+                };
+                let (a, b) = part(from);
+                let at = fft.reversed(j) * lanes;
+                re[at..at + lanes].copy_from_slice(a);
+                im[at..at + q].copy_from_slice(b);
+                im[at + q..at + lanes].fill(0.0);
+            }
+        } else {
+            for k in 0..n {
+                let (ia, c, s) = (inv_a[k], cos[k], sin[k]);
+                let (x1, x2) = part(k);
+                let at = fft.reversed(k) * lanes;
+                let (re, im) = (&mut re[at..at + lanes], &mut im[at..at + lanes]);
+                if k == 0 {
+                    // U[n] = 0: V[0] = U[0].
+                    for l in 0..lanes {
+                        let a1 = x1[l] * ia;
+                        let a2 = if l < q { x2[l] * ia } else { 0.0 };
+                        let (rv1, iv1) = (c * a1 + s * 0.0, s * a1 - c * 0.0);
+                        let (rv2, iv2) = (c * a2 + s * 0.0, s * a2 - c * 0.0);
+                        re[l] = rv1 - iv2;
+                        im[l] = iv1 + rv2;
+                    }
+                    continue;
+                }
+                let ib = inv_a[n - k];
+                let (y1, y2) = part(n - k);
+                for l in 0..q {
+                    let (a1, a2) = (x1[l] * ia, x2[l] * ia);
+                    let (b1, b2) = (y1[l] * ib, y2[l] * ib);
+                    let (rv1, iv1) = (c * a1 + s * b1, s * a1 - c * b1);
+                    let (rv2, iv2) = (c * a2 + s * b2, s * a2 - c * b2);
+                    re[l] = rv1 - iv2;
+                    im[l] = iv1 + rv2;
+                }
+                for l in q..lanes {
+                    let (a1, b1) = (x1[l] * ia, y1[l] * ib);
+                    let (rv1, iv1) = (c * a1 + s * b1, s * a1 - c * b1);
+                    re[l] = rv1;
+                    im[l] = iv1;
+                }
+            }
+        }
+    }
+
+    /// Phase 2 of [`Axis::columns`]: row `k` of the result, lanes `l0..l1`, from the transformed
+    /// (re, im) rows (forward: the twiddle of [`dct_pair`]; inverse: the reordering undone).
+    #[allow(clippy::too_many_arguments)]
+    fn store_lanes(
+        &self,
+        row: &mut [f64],
+        k: usize,
+        width: usize,
+        l0: usize,
+        l1: usize,
+        forward: bool,
+        re: &[f64],
+        im: &[f64],
+    ) {
+        let Axis::Fast { n, fc, fs, .. } = self else {
+            unreachable!()
+        };
+        let n = *n;
+        let p = width.div_ceil(2);
+        let lanes = l1 - l0;
+        let q = (width - p).min(l1).saturating_sub(l0);
+        let (lo, hi) = row.split_at_mut(p);
+        let (x1, x2) = (&mut lo[l0..l1], &mut hi[l0..l0 + q]);
+        let r = |j: usize| {
+            (
+                &re[j * lanes..(j + 1) * lanes],
+                &im[j * lanes..(j + 1) * lanes],
+            )
+        };
+        if forward {
+            let m = if k == 0 { 0 } else { n - k };
+            let ((a, b), (c, d)) = (r(k), r(m));
+            let (f, g) = (fc[k], fs[k]);
+            for l in 0..lanes {
+                x1[l] = f * (a[l] + c[l]) + g * (b[l] - d[l]);
+            }
+            for l in 0..q {
+                x2[l] = f * (b[l] + d[l]) + g * (c[l] - a[l]);
+            }
+        } else {
+            // x[2j] = v[j], x[2j+1] = v[n-1-j].
+            let j = if k.is_multiple_of(2) { k / 2 } else { n - 1 - k / 2 };
+            let (a, b) = r(j);
+            x1.copy_from_slice(a);
+            x2.copy_from_slice(&b[..q]);
+        }
+    }
+
+    fn is_fast(&self) -> bool {
+        matches!(self, Axis::Fast { .. })
     }
 
     fn rows_serial(&self, data: &mut [f64], forward: bool, scratch: &mut [f64]) {
@@ -318,8 +521,22 @@ impl Dct2d {
         assert_eq!(input.len(), w * h);
         assert_eq!(out.len(), w * h);
         out.copy_from_slice(input);
-        self.x.rows(out, forward, &self.pool);
-        if h > 1 {
+        // A fast axis runs on columns (vectorised over them), a matrix axis on rows: the
+        // horizontal axis needs a transpose there and back when fast, the vertical one when not.
+        if self.y.is_fast() {
+            self.y.columns(out, w, forward, &self.pool);
+        }
+        if w > 1 {
+            if self.x.is_fast() && h > 1 {
+                let mut t = self.pool.take(w * h);
+                transpose(out, w, h, &mut t);
+                self.x.columns(&mut t, h, forward, &self.pool);
+                transpose(&t, h, w, out);
+            } else {
+                self.x.rows(out, forward, &self.pool);
+            }
+        }
+        if h > 1 && !self.y.is_fast() {
             let mut t = self.pool.take(w * h);
             transpose(out, w, h, &mut t);
             self.y.rows(&mut t, forward, &self.pool);

@@ -242,6 +242,14 @@ fn fast_dct_equals_the_matrix_dct() {
         (256, 256),
         (2, 1),
         (1, 4),
+        // Odd lane counts on either fast axis (a lane without an imaginary partner), and large
+        // images whose lanes split into stripes on threads, with an odd width on the fast axis.
+        (3, 16),
+        (16, 3),
+        (128, 128),
+        (255, 256),
+        (256, 255),
+        (1, 2),
     ] {
         let (fast, slow) = (Dct2d::new(w, h), Dct2d::with_matrices(w, h));
         let x = test_vector(w * h, 9);
