@@ -36,6 +36,15 @@ pub trait LinearOperator: Send + Sync {
             self.adjoint(y, x);
         }
     }
+
+    /// Whether a batched product costs less per vector than products one at a time (one pass
+    /// over the patterns serving several vectors, or vectors run in parallel), so that
+    /// several solvers gain by waiting for each other to batch their products
+    /// ([`Gather`](super::ops::Gather)). `false` for the one-at-a-time default above; wrappers
+    /// that pass batches through answer for the operator they wrap.
+    fn batching_pays(&self) -> bool {
+        false
+    }
 }
 
 /// A dense row-major matrix: the reference every fast operator is checked against, and the
@@ -103,6 +112,9 @@ impl<T: LinearOperator + ?Sized> LinearOperator for &T {
     }
     fn adjoint_batch(&self, ys: &[f64], xs: &mut [f64], batch: usize) {
         (**self).adjoint_batch(ys, xs, batch)
+    }
+    fn batching_pays(&self) -> bool {
+        (**self).batching_pays()
     }
 }
 

@@ -8,6 +8,10 @@
 //! `HELMHOLTZ_SIMD=baseline` forces the baseline copies, to measure one against the other).
 //! Results are bit-for-bit those of the baseline copy: without fast-math LLVM neither fuses
 //! multiply-adds nor reorders sums, so only the vector width changes.
+//!
+//! The packed-bit product has a kernel of its own for AVX-512F ([`avx512`]; written with
+//! intrinsics, it adds in another order than the portable kernel, so its results differ by
+//! rounding); `HELMHOLTZ_SIMD=avx2` or `baseline` turns it off.
 
 use std::sync::atomic::{AtomicU8, Ordering};
 
@@ -37,6 +41,38 @@ pub fn avx2() -> bool {
 pub(crate) fn force_baseline(baseline: bool) {
     let wide = !baseline && cpu_has_avx2();
     CHOICE.store(if wide { 1 } else { 2 }, Ordering::Relaxed);
+}
+
+/// 0: not decided yet; 1: AVX-512 kernels; 2: not.
+static CHOICE512: AtomicU8 = AtomicU8::new(0);
+
+/// Whether the AVX-512 kernels run (the packed-bit products, [`crate::recon::ops::BitMatrix`]):
+/// the CPU has AVX-512F and `HELMHOLTZ_SIMD` is neither `baseline` nor `avx2` (read once).
+/// Unlike the AVX2 copies, these kernels add in another order than the portable ones: their
+/// results differ by rounding.
+#[inline]
+pub fn avx512() -> bool {
+    match CHOICE512.load(Ordering::Relaxed) {
+        1 => true,
+        2 => false,
+        _ => {
+            let wide = cpu_has_avx512()
+                && std::env::var("HELMHOLTZ_SIMD").map_or(true, |v| v != "baseline" && v != "avx2");
+            CHOICE512.store(if wide { 1 } else { 2 }, Ordering::Relaxed);
+            wide
+        }
+    }
+}
+
+fn cpu_has_avx512() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        std::arch::is_x86_feature_detected!("avx512f")
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
 }
 
 fn cpu_has_avx2() -> bool {

@@ -115,4 +115,9 @@ impl LinearOperator for BernoulliOperator {
     fn adjoint_batch(&self, ys: &[f64], xs: &mut [f64], batch: usize) {
         self.pixels.matvec_batch(ys, xs, batch, &self.pool);
     }
+    /// The portable kernel serves up to 4 vectors per pass; the AVX-512 one takes a pass per
+    /// vector ([`Kernel`](super::bits::Kernel)).
+    fn batching_pays(&self) -> bool {
+        super::bits::Kernel::best() == super::bits::Kernel::Bytes
+    }
 }

@@ -243,4 +243,7 @@ impl<A: LinearOperator + ?Sized> LinearOperator for CentredOperator<A> {
             }
         }
     }
+    fn batching_pays(&self) -> bool {
+        self.inner.batching_pays()
+    }
 }

@@ -284,4 +284,8 @@ impl LinearOperator for HadamardOperator {
             }
         }
     }
+    /// A batch runs its vectors on threads where one transform runs on one.
+    fn batching_pays(&self) -> bool {
+        self.parallel_batch(2)
+    }
 }

@@ -274,4 +274,8 @@ impl LinearOperator for SpeckleOperator {
     fn adjoint_batch(&self, ys: &[f64], xs: &mut [f64], batch: usize) {
         self.batched(ys, xs, batch, false);
     }
+    /// Up to 4 vectors share a pass over the patterns.
+    fn batching_pays(&self) -> bool {
+        true
+    }
 }

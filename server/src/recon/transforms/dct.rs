@@ -319,7 +319,11 @@ impl Axis {
             }
         } else {
             // x[2j] = v[j], x[2j+1] = v[n-1-j].
-            let j = if k.is_multiple_of(2) { k / 2 } else { n - 1 - k / 2 };
+            let j = if k.is_multiple_of(2) {
+                k / 2
+            } else {
+                n - 1 - k / 2
+            };
             let (a, b) = r(j);
             x1.copy_from_slice(a);
             x2.copy_from_slice(&b[..q]);
