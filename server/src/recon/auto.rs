@@ -8,7 +8,7 @@
 //!    improve the best score by 0.2 % (the minimum is behind, or the curve is flat): the noise
 //!    level, not a hand-set lambda, decides where the path ends. The paths run side by side,
 //!    one point per round, on threads of their own whose operator products are served together
-//!    ([`Gather`]). After the second round a candidate trailing the leader by more than 2x in
+//!    where batching pays ([`Gather`]). After the second round a candidate trailing the leader by more than 2x in
 //!    held-out score is dropped, and from the third round on one trailing by more than 25 %
 //!    (reported as eliminated), so clearly wrong models cost a few points.
 //! 3. The resolution the rows support: when there are fewer rows than pixels, the winning model
@@ -301,7 +301,8 @@ fn race(
         })
         .collect();
     // The candidates of a round run on threads of their own, their operator products served
-    // together in batches ([`Gather`]; bit for bit the products they would get alone).
+    // together in batches where batching pays ([`Gather`]; bit for bit the products they would
+    // get alone).
     let gather = Gather::new(op_train);
     let mut running = models
         .iter()
