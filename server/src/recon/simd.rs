@@ -22,14 +22,21 @@ static CHOICE: AtomicU8 = AtomicU8::new(0);
 /// `baseline` (read once; for measuring one build against the other).
 #[inline]
 pub fn avx2() -> bool {
-    match CHOICE.load(Ordering::Relaxed) {
+    cached(&CHOICE, || {
+        cpu_has_avx2() && std::env::var("HELMHOLTZ_SIMD").map_or(true, |v| v != "baseline")
+    })
+}
+
+/// A run-time choice decided once: `decide` on the first call, the stored answer after.
+#[inline]
+fn cached(choice: &AtomicU8, decide: impl FnOnce() -> bool) -> bool {
+    match choice.load(Ordering::Relaxed) {
         1 => true,
         2 => false,
         _ => {
-            let wide =
-                cpu_has_avx2() && std::env::var("HELMHOLTZ_SIMD").map_or(true, |v| v != "baseline");
-            CHOICE.store(if wide { 1 } else { 2 }, Ordering::Relaxed);
-            wide
+            let yes = decide();
+            choice.store(if yes { 1 } else { 2 }, Ordering::Relaxed);
+            yes
         }
     }
 }
@@ -52,16 +59,10 @@ static CHOICE512: AtomicU8 = AtomicU8::new(0);
 /// results differ by rounding.
 #[inline]
 pub fn avx512() -> bool {
-    match CHOICE512.load(Ordering::Relaxed) {
-        1 => true,
-        2 => false,
-        _ => {
-            let wide = cpu_has_avx512()
-                && std::env::var("HELMHOLTZ_SIMD").map_or(true, |v| v != "baseline" && v != "avx2");
-            CHOICE512.store(if wide { 1 } else { 2 }, Ordering::Relaxed);
-            wide
-        }
-    }
+    cached(&CHOICE512, || {
+        cpu_has_avx512()
+            && std::env::var("HELMHOLTZ_SIMD").map_or(true, |v| v != "baseline" && v != "avx2")
+    })
 }
 
 fn cpu_has_avx512() -> bool {

@@ -117,33 +117,10 @@ impl Fft {
                     let (ra, rb) = (&mut rlo[a..a + lanes], &mut rhi[..lanes]);
                     let (ia, ib) = (&mut ilo[a..a + lanes], &mut ihi[..lanes]);
                     if half == 1 {
-                        // Twiddle 1.
-                        for (((ra, rb), ia), ib) in ra
-                            .iter_mut()
-                            .zip(rb.iter_mut())
-                            .zip(ia.iter_mut())
-                            .zip(ib.iter_mut())
-                        {
-                            let (tr, ti) = (*rb, *ib);
-                            *rb = *ra - tr;
-                            *ib = *ia - ti;
-                            *ra += tr;
-                            *ia += ti;
-                        }
+                        // Twiddle 1 (as in `forward`: no multiplications).
+                        butterflies::<false>(ra, rb, ia, ib, 1.0, 0.0);
                     } else {
-                        for (((ra, rb), ia), ib) in ra
-                            .iter_mut()
-                            .zip(rb.iter_mut())
-                            .zip(ia.iter_mut())
-                            .zip(ib.iter_mut())
-                        {
-                            let (xr, xi) = (*rb, *ib);
-                            let (tr, ti) = (xr * c - xi * s, xr * s + xi * c);
-                            *rb = *ra - tr;
-                            *ib = *ia - ti;
-                            *ra += tr;
-                            *ia += ti;
-                        }
+                        butterflies::<true>(ra, rb, ia, ib, c, s);
                     }
                 }
             }
@@ -155,6 +132,36 @@ impl Fft {
     /// by the swap trick.
     pub(crate) fn backward(&self, re: &mut [f64], im: &mut [f64]) {
         self.forward(im, re);
+    }
+}
+
+/// Radix-2 butterflies on whole rows: `(a, b) <- (a + w b, a - w b)` lane by lane, with the
+/// twiddle `w = c + i s` (`TWIDDLE`) or `w = 1`.
+#[inline(always)]
+fn butterflies<const TWIDDLE: bool>(
+    ra: &mut [f64],
+    rb: &mut [f64],
+    ia: &mut [f64],
+    ib: &mut [f64],
+    c: f64,
+    s: f64,
+) {
+    for (((ra, rb), ia), ib) in ra
+        .iter_mut()
+        .zip(rb.iter_mut())
+        .zip(ia.iter_mut())
+        .zip(ib.iter_mut())
+    {
+        let (xr, xi) = (*rb, *ib);
+        let (tr, ti) = if TWIDDLE {
+            (xr * c - xi * s, xr * s + xi * c)
+        } else {
+            (xr, xi)
+        };
+        *rb = *ra - tr;
+        *ib = *ia - ti;
+        *ra += tr;
+        *ia += ti;
     }
 }
 
