@@ -230,11 +230,6 @@ mod tests {
             }
         }
     }
-}
-
-#[cfg(test)]
-mod russian_doll_order {
-    use super::*;
 
     #[test]
     fn generated_pairs_are_the_sorted_order() {
