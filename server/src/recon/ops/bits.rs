@@ -258,14 +258,14 @@ impl BitMatrix {
     }
 
     /// `batch` products at once: `vs` holds `batch` vectors of length `cols` back to back, `out`
-    /// receives `batch` vectors of length `rows`. Groups of 4 (then 2, 1) vectors share one pass
-    /// over the bits.
+    /// receives `batch` vectors of length `rows`. With the byte kernel groups of 4 (then 2, 1)
+    /// vectors share one pass over the bits; the nibble kernel takes one pass per vector.
     pub fn matvec_batch(&self, vs: &[f64], out: &mut [f64], batch: usize, pool: &Pool) {
         self.matvec_batch_with(vs, out, batch, pool, Kernel::best());
     }
 
-    /// [`BitMatrix::matvec_batch`] with the given kernel. [`Kernel::Nibbles`] panics on a CPU
-    /// without AVX-512F.
+    /// [`BitMatrix::matvec_batch`] with the given kernel. [`Kernel::Nibbles`] panics unless the
+    /// AVX-512 kernels are on (the CPU has AVX-512F and `HELMHOLTZ_SIMD` allows them).
     pub fn matvec_batch_with(
         &self,
         vs: &[f64],
