@@ -8,9 +8,9 @@
 //!    improve the best score by 0.2 % (the minimum is behind, or the curve is flat): the noise
 //!    level, not a hand-set lambda, decides where the path ends. The paths run side by side,
 //!    one point per round, on threads of their own whose operator products are served together
-//!    where batching pays ([`Gather`]). After the second round a candidate trailing the leader by more than 2x in
-//!    held-out score is dropped, and from the third round on one trailing by more than 25 %
-//!    (reported as eliminated), so clearly wrong models cost a few points.
+//!    where batching pays ([`Gather`]). After the second round a candidate trailing the leader
+//!    by more than 2x in held-out score is dropped, and from the third round on one trailing by
+//!    more than 25 % (reported as eliminated), so clearly wrong models cost a few points.
 //! 3. The resolution the rows support: when there are fewer rows than pixels, the winning model
 //!    is also fitted on 2x2- (then 4x4-, ...) binned images (`A U`, [`ops::Binned`]) at the
 //!    winning `f`, started from the winner's block means (a cold start does not converge

@@ -35,9 +35,9 @@
 //! Outside [`Gather::run`] a product is passed straight to the inner operator, and so is every
 //! product when batching does not pay for it ([`LinearOperator::batching_pays`]): the packed-bit
 //! products with the AVX-512 kernel take one pass per vector (at less than half the cost of the
-//! portable kernel's batches of four per vector), so waiting for a partner would only cost. Measured on the
-//! 128x128 Bernoulli photo's `auto`, 8 interleaved runs: 0.76 s median with products straight
-//! through against 0.87 s gathered.
+//! portable kernel's batches of four per vector), so waiting for a partner would only cost.
+//! Measured on the 128x128 Bernoulli photo's `auto`, 8 interleaved runs: 0.76 s median with
+//! products straight through against 0.87 s gathered.
 
 use std::collections::HashMap;
 use std::sync::{Condvar, Mutex, MutexGuard};
