@@ -142,9 +142,9 @@ pub enum SpoolCommand {
     /// Per spooled session: rows spooled, rows the server has committed (if reachable), rows
     /// pending, whether the producer finished, and the last upload error.
     Status(SpoolStatusArgs),
-    /// Upload what is pending (every spooled session, or those named), resuming from the
-    /// server's committed count, then exit. Fully uploaded (and finished) sessions leave the
-    /// spool.
+    /// Upload what is pending (every spooled session, or those named): rows not yet confirmed
+    /// are sent and the server compares any it already holds byte for byte; then exit. Fully
+    /// uploaded (and finished) sessions leave the spool; refused rows stay in it.
     Upload(SpoolUploadArgs),
 }
 
@@ -563,6 +563,13 @@ pub struct AcquireArgs {
     /// Spool the rows read so far once the first of them has waited this long.
     #[arg(long, default_value_t = 200)]
     pub flush_ms: u64,
+    /// The pattern index of the first row on stdin [default: where the session continues: the
+    /// end of this session's spool, else the server's committed count]. Given, it must agree
+    /// with the spool (a spool holding unsent rows fixes where the next row goes) and must not
+    /// leave a gap after the server's rows; rows before the server's count are compared with
+    /// the stored ones.
+    #[arg(long)]
+    pub start_row: Option<u64>,
     #[command(flatten)]
     pub transfer: TransferArgs,
 }
@@ -1769,7 +1776,8 @@ async fn acquire_cmd(server: &str, spools: &SpoolDir, a: &AcquireArgs) -> anyhow
     session.metadata = parse_metadata(&a.metadata)?;
     let ch = a.channels.len();
     let spool = Arc::new(spools.create_or_open(&session, a.finish)?);
-    let spooled_before = spool.rows();
+    let first_row = acquire_start_row(server, &spool, a.start_row).await?;
+    let spooled_before = spool.rows() - spool.base_row();
     spool.unseal()?;
     let drainer = tokio::spawn({
         let (spool, server, opts) = (spool.clone(), server.to_string(), opts.clone());
@@ -1842,7 +1850,7 @@ async fn acquire_cmd(server: &str, spools: &SpoolDir, a: &AcquireArgs) -> anyhow
     }
     let report = drainer.await.context("upload task panicked")??;
     let mut text = format!(
-        "session {} ({}; channels {})\n",
+        "session {} ({}; channels {}); rows on stdin from row {first_row}\n",
         a.session_id,
         spec_summary(&spec),
         a.channels.join(",")
@@ -1867,11 +1875,77 @@ async fn acquire_cmd(server: &str, spools: &SpoolDir, a: &AcquireArgs) -> anyhow
             "spec": spec_json(&spec),
             "channels": a.channels,
             "spooled_before": spooled_before,
+            "first_row": first_row,
             "upload": report,
             "finished": report.finished,
         }),
         text,
     })
+}
+
+/// Where the rows `acquire` reads on stdin go: the pattern index of the first one. Rows are
+/// never renumbered silently: a spool holding rows continues after them; an empty one continues
+/// at the server's committed count (or `--start-row`). Refused when stdin's rows cannot be
+/// aligned with what the spool and the server hold.
+async fn acquire_start_row(
+    server: &str,
+    spool: &spool::Spool,
+    given: Option<u64>,
+) -> anyhow::Result<u64> {
+    let id = spool.session_id();
+    let server_rows = match spool::probe_status(server, id).await {
+        Ok(Some(s)) if s.state == helmholtz_proto::v1::SessionState::Finished as i32 => bail!(
+            "session {id} is finished with {} rows: it takes no more rows, so nothing was read from stdin \
+             (acquire into a new --session-id){}",
+            s.committed_rows,
+            if spool.is_empty() {
+                String::new()
+            } else {
+                format!(
+                    "; the spool {} still holds {} unsent row(s), kept",
+                    spool.dir().display(),
+                    spool.rows() - spool.base_row()
+                )
+            }
+        ),
+        Ok(s) => Ok(s.map_or(0, |s| s.committed_rows)),
+        Err(e) => Err(e),
+    };
+    if !spool.is_empty() {
+        let next = spool.rows();
+        if let Some(g) = given.filter(|g| *g != next) {
+            bail!(
+                "--start-row {g}: the spool {} holds unsent rows of session {id} up to row {next}, so the next \
+                 row on stdin is row {next}; upload them first (`helmholtz spool upload {id}`) or give --start-row {next}",
+                spool.dir().display()
+            );
+        }
+        if let Ok(c) = server_rows
+            && c > next
+        {
+            bail!(
+                "session {id}: the server holds {c} rows but the spool {} ends at row {next}; the rows on stdin \
+                 cannot be aligned (another writer added rows?). Upload the spool first (`helmholtz spool upload {id}`)",
+                spool.dir().display()
+            );
+        }
+        return Ok(next);
+    }
+    let row = match (given, &server_rows) {
+        (Some(g), Ok(c)) if g > *c => bail!(
+            "--start-row {g}: session {id} holds {c} rows on the server, so row {g} would leave a gap; \
+             stdin must continue at row {c} or earlier (rows before {c} are compared with the stored ones)"
+        ),
+        (Some(g), _) => g,
+        (None, Ok(c)) => *c,
+        (None, Err(e)) => bail!(
+            "session {id}: cannot ask the server where the session's rows continue ({e}); nothing was read \
+             from stdin. Start again when the server is reachable, or give --start-row N (the pattern index \
+             of stdin's first row; 0 for a new session)"
+        ),
+    };
+    spool.start_at(row)?;
+    Ok(row)
 }
 
 /// One session's line of `helmholtz spool status`.
@@ -1882,7 +1956,7 @@ struct SpoolEntry {
     info: Option<spool::SpoolInfo>,
     /// The server's committed count now (None if unreachable).
     committed_rows: Option<u64>,
-    /// Spooled rows the server does not have (by its count now, else by the last known one).
+    /// Spooled rows not yet confirmed stored on the server with the spool's bytes.
     pending_rows: Option<u64>,
     /// spooling (another process is writing or uploading it), pending, incomplete (its producer
     /// stopped before every row was measured), uploaded (every spooled row committed).
@@ -1922,12 +1996,15 @@ async fn spool_status_cmd(
                     Ok(c) => entry.committed_rows = Some(c),
                     Err(e) => entry.server_error = Some(e),
                 }
-                let known = entry
-                    .committed_rows
-                    .or(info.state.committed_rows)
+                // Only rows the server confirmed with the spool's bytes count as uploaded; its
+                // committed count alone proves nothing about whose rows it holds.
+                let confirmed = info
+                    .state
+                    .confirmed_rows
                     .unwrap_or(0)
+                    .min(info.spooled_rows)
                     .max(info.base_row);
-                let pending = info.spooled_rows.saturating_sub(known);
+                let pending = info.spooled_rows.saturating_sub(confirmed);
                 entry.pending_rows = Some(pending);
                 entry.status = if info.busy {
                     "spooling"

@@ -35,11 +35,13 @@
 //! match its version), and files a person can inspect and delete.
 //!
 //! [`drain`] uploads a spool in the background: it creates the session (idempotent on its id),
-//! asks the server's committed count (GetUploadStatus), streams rows from there and repeats as
-//! rows arrive, with jittered exponential backoff after failures. Rows the server already has
-//! are not sent again (and the server skips any overlap of a resumed stream). Segments wholly
-//! below the committed count are deleted; once every row is committed (and the session is
-//! finished, if asked), the session's directory is removed.
+//! streams the rows not yet confirmed and repeats as rows arrive, with jittered exponential
+//! backoff after failures. The server's count is never taken as proof that it holds *our* rows:
+//! rows count as confirmed only when a stream that carried them ends OK (the server stored them
+//! or compared them byte for byte equal to what it holds). Segments wholly below the confirmed
+//! count are deleted; once every row is confirmed (and the session is finished, if asked), the
+//! session's directory is removed. Rows the server refuses (another writer's data under the same
+//! id, a finished session) stay in the spool, and the drain says so.
 
 use std::borrow::Cow;
 use std::fs::{File, OpenOptions};
@@ -125,6 +127,11 @@ impl Manifest {
 pub struct UploadState {
     /// The server's committed count when last asked.
     pub committed_rows: Option<u64>,
+    /// Rows below this were confirmed stored on the server with this spool's bytes (a stream
+    /// that carried them ended OK). Written only after the confirmation, so a stale or lost
+    /// file only makes the next upload re-send (and the server re-compare) more.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub confirmed_rows: Option<u64>,
     pub last_error: Option<String>,
     pub last_attempt_unix_ms: Option<u64>,
     pub finished: bool,
@@ -849,6 +856,49 @@ impl Spool {
         Ok(())
     }
 
+    /// Makes an empty spool continue at row `row`: its next appended row is row `row` of the
+    /// session (the server holds the rows before it, e.g. from an earlier `acquire` whose spool
+    /// was uploaded and cleared). Refused when the spool holds rows (they fix where it
+    /// continues) or `row` is past the spec's count. Durable (an empty segment named for `row`).
+    pub fn start_at(&self, row: u64) -> anyhow::Result<()> {
+        let mut inner = self.inner();
+        if inner.rows == row {
+            return Ok(());
+        }
+        anyhow::ensure!(
+            inner.frames.is_empty(),
+            "the spool {} holds rows {}..{} of session {}, so its next row is {}, not {row}",
+            self.dir.display(),
+            inner.base_row,
+            inner.rows,
+            self.session_id(),
+            inner.rows
+        );
+        anyhow::ensure!(
+            row <= self.manifest.expected_rows,
+            "row {row} is past the {} rows session {} declares",
+            self.manifest.expected_rows,
+            self.session_id()
+        );
+        inner.active = None;
+        for seg in std::mem::take(&mut inner.segments) {
+            std::fs::remove_file(&seg.path)
+                .with_context(|| format!("deleting {}", seg.path.display()))?;
+        }
+        self.start_segment(&mut inner, row)?;
+        inner.base_row = row;
+        inner.rows = row;
+        let sealed = inner.sealed;
+        drop(inner);
+        self.progress.send_replace((row, sealed));
+        Ok(())
+    }
+
+    /// True when the spool holds no rows (any rows before [`Spool::rows`] are on the server).
+    pub fn is_empty(&self) -> bool {
+        self.inner().frames.is_empty()
+    }
+
     /// Marks the producer done: no more rows will be appended. Durable.
     pub fn seal(&self) -> anyhow::Result<()> {
         let mut inner = self.inner();
@@ -963,12 +1013,23 @@ impl Spool {
         Ok(out)
     }
 
-    /// Deletes the segments whose rows all lie below `committed` (the server has them), except
-    /// the last one (still appended to). Returns how many were deleted.
-    pub fn compact(&self, committed: u64) -> anyhow::Result<usize> {
+    /// Rows below this are confirmed stored on the server with this spool's bytes: the rows
+    /// deleted from the spool, and those the last upload's streams confirmed (`state.json`).
+    pub fn confirmed_rows(&self) -> u64 {
+        let (base, rows) = {
+            let inner = self.inner();
+            (inner.base_row, inner.rows)
+        };
+        base.max(self.state().confirmed_rows.unwrap_or(0).min(rows))
+    }
+
+    /// Deletes the segments whose rows all lie below `confirmed` (the server confirmed it
+    /// stores them with these bytes), except the last one (still appended to). Returns how
+    /// many were deleted.
+    pub fn compact(&self, confirmed: u64) -> anyhow::Result<usize> {
         let mut inner = self.inner();
         let mut deleted = 0;
-        while inner.segments.len() > 1 && inner.segments[0].end_row <= committed {
+        while inner.segments.len() > 1 && inner.segments[0].end_row <= confirmed {
             let seg = inner.segments.remove(0);
             std::fs::remove_file(&seg.path)
                 .with_context(|| format!("deleting {}", seg.path.display()))?;
@@ -1048,6 +1109,8 @@ pub struct DrainReport {
     pub spooled_rows: u64,
     /// The server's committed count at the end.
     pub committed_rows: u64,
+    /// Rows confirmed stored on the server with the spool's bytes.
+    pub confirmed_rows: u64,
     pub expected_rows: u64,
     /// Rows put on the wire (re-sends after a resume included).
     pub rows_sent: u64,
@@ -1066,16 +1129,21 @@ pub struct DrainReport {
     pub last_error: Option<String>,
 }
 
-fn retryable(e: &anyhow::Error) -> bool {
+fn rpc_code(e: &anyhow::Error) -> Option<tonic::Code> {
     e.chain()
         .find_map(|c| c.downcast_ref::<RpcError>())
-        .is_some_and(|r| upload::disposition(r.code) == Disposition::Retry)
+        .map(|r| r.code)
 }
 
-/// Uploads a spool: creates the session (idempotent), then streams the rows the server lacks
-/// (from its committed count) as they are spooled, until the spool is sealed and every spooled
-/// row is committed. Then finishes the session if the manifest asks and the spec is complete,
-/// and removes the spool directory when nothing is left to do.
+fn retryable(e: &anyhow::Error) -> bool {
+    rpc_code(e).is_some_and(|c| upload::disposition(c) == Disposition::Retry)
+}
+
+/// Uploads a spool: creates the session (idempotent), then streams the spooled rows not yet
+/// confirmed (the server compares any it already holds, byte for byte) as they are spooled, until
+/// the spool is sealed and every spooled row is confirmed. Then finishes the session if the
+/// manifest asks and the spec is complete, and removes the spool directory when nothing is left
+/// to do. Segments are deleted only for rows the server confirmed with the same bytes.
 ///
 /// `follow`: a producer in this process is still appending; wait for its rows until it seals the
 /// spool. Without `follow` (`helmholtz spool upload`), send what is spooled and stop; a spool
@@ -1084,8 +1152,10 @@ fn retryable(e: &anyhow::Error) -> bool {
 ///
 /// While following an unsealed spool, transient failures are retried without limit, with
 /// jittered exponential backoff: the rows are safe in the spool. Otherwise a pass gives up after
-/// `opts.retry_for` without progress. Fatal refusals (INVALID_ARGUMENT, ALREADY_EXISTS, ...) end
-/// the drain at once. The error is recorded in `state.json`.
+/// `opts.retry_for` without progress. Fatal refusals (INVALID_ARGUMENT, ALREADY_EXISTS: the
+/// server holds other rows under this id, FAILED_PRECONDITION: finished, ...) and another writer
+/// holding the session past `retry_for` (ABORTED) end the drain; the rows stay in the spool. The
+/// error is recorded in `state.json`.
 pub async fn drain(
     server: &str,
     spool: Arc<Spool>,
@@ -1103,6 +1173,7 @@ pub async fn drain(
     let mut state = spool.state();
     let mut watch = spool.watch();
     let mut created = false;
+    let mut confirmed = spool.confirmed_rows();
     let mut committed: Option<u64> = None;
     let mut failures = 0u32;
     let opts = UploadOptions {
@@ -1111,7 +1182,7 @@ pub async fn drain(
     };
     loop {
         let (spooled, sealed) = *watch.borrow_and_update();
-        if committed.is_some_and(|c| c >= spooled) {
+        if committed.is_some() && confirmed >= spooled {
             if sealed || !follow {
                 break;
             }
@@ -1123,7 +1194,7 @@ pub async fn drain(
             if !created {
                 upload::create_session_request(server, spool.request(), &opts.policy()).await?;
             }
-            upload::upload_rows(
+            upload::upload_rows_from(
                 server,
                 &id,
                 channels,
@@ -1131,6 +1202,7 @@ pub async fn drain(
                     spool: &spool,
                     upto: spooled,
                 },
+                confirmed,
                 &opts,
             )
             .await
@@ -1143,10 +1215,12 @@ pub async fn drain(
                 failures = 0;
                 absorb(&mut report, &r);
                 committed = Some(r.committed_rows);
+                confirmed = confirmed.max(r.confirmed_rows);
                 state.committed_rows = Some(r.committed_rows);
+                state.confirmed_rows = Some(confirmed);
                 state.last_error = r.last_error.clone();
                 spool.save_state(&state);
-                report.segments_deleted += spool.compact(r.committed_rows)?;
+                report.segments_deleted += spool.compact(confirmed)?;
             }
             Err(e) => {
                 let message = format!("{e:#}");
@@ -1154,18 +1228,32 @@ pub async fn drain(
                 spool.save_state(&state);
                 report.last_error = Some(message);
                 let sealed_now = spool.is_sealed();
-                if sealed_now || !follow || !retryable(&e) {
-                    let next = if retryable(&e) {
-                        format!("`helmholtz spool upload {id}` resumes")
-                    } else {
-                        format!(
+                let code = rpc_code(&e);
+                let busy = code == Some(tonic::Code::Aborted);
+                if sealed_now || !follow || !retryable(&e) || busy {
+                    let next = match code {
+                        Some(tonic::Code::Aborted) => format!(
+                            "another upload holds the session; `helmholtz spool upload {id}` resumes once it has ended"
+                        ),
+                        Some(tonic::Code::AlreadyExists) => format!(
+                            "the server holds other rows under this session id, so these are not ours to add; \
+                             keep the spool and upload it under a new --session-id, or delete it once you know \
+                             which data is right (`helmholtz spool status {id}`)"
+                        ),
+                        Some(tonic::Code::FailedPrecondition) => format!(
+                            "the session takes no more rows; the unsent rows stay in the spool until you delete it \
+                             or upload them under a new --session-id"
+                        ),
+                        _ if retryable(&e) => format!("`helmholtz spool upload {id}` resumes"),
+                        _ => format!(
                             "retrying cannot help until the cause is fixed; then `helmholtz spool upload {id}`"
-                        )
+                        ),
                     };
                     return Err(e.context(format!(
-                        "session {id}: {} rows are safe in the spool {}; {next}",
+                        "session {id}: {} rows are safe in the spool {} ({} of them confirmed stored on the server); {next}",
                         spool.rows(),
-                        spool.dir().display()
+                        spool.dir().display(),
+                        confirmed
                     )));
                 }
                 report.resumes += 1;
@@ -1180,7 +1268,8 @@ pub async fn drain(
     }
     report.spooled_rows = spool.rows();
     report.committed_rows = committed;
-    if spool.manifest().finish && committed >= spool.manifest().expected_rows {
+    report.confirmed_rows = confirmed;
+    if spool.manifest().finish && confirmed >= spool.manifest().expected_rows {
         match upload::finish_session(server, &id).await {
             Ok(_) => {
                 report.finished = true;
@@ -1196,9 +1285,11 @@ pub async fn drain(
             }
         }
     }
-    // Sealed and every spooled row committed; with `finish`, only a finished session is done
+    // Sealed and every spooled row confirmed; with `finish`, only a finished session is done
     // (a sealed but incomplete one waits for a producer to add the missing rows).
-    let done = spool.is_sealed() && (!spool.manifest().finish || report.finished);
+    let done = spool.is_sealed()
+        && confirmed >= spool.rows()
+        && (!spool.manifest().finish || report.finished);
     if done {
         spool.remove()?;
         report.removed = true;
@@ -1213,6 +1304,27 @@ fn absorb(report: &mut DrainReport, r: &UploadReport) {
     report.resumes += r.resumes;
     if r.last_error.is_some() {
         report.last_error = r.last_error.clone();
+    }
+}
+
+/// A quick, single look at a session's upload status (no retries; a short deadline): `None`
+/// when the server does not know the session yet.
+pub async fn probe_status(
+    server: &str,
+    session_id: &str,
+) -> Result<Option<v1::UploadStatus>, String> {
+    let policy = RetryPolicy {
+        retry_for: Duration::ZERO,
+        rpc_timeout: Duration::from_secs(3),
+        connect_timeout: Duration::from_secs(2),
+        ..RetryPolicy::default()
+    };
+    match upload::upload_status_with(server, session_id, &policy).await {
+        Ok(s) => Ok(Some(s)),
+        Err(e) => match e.downcast_ref::<RpcError>() {
+            Some(r) if r.code == tonic::Code::NotFound => Ok(None),
+            _ => Err(format!("{e:#}")),
+        },
     }
 }
 

@@ -1,12 +1,16 @@
 //! The gRPC side: create a session, stream its bucket rows with resume, finish it, and request a
 //! reconstruction.
 //!
-//! Resumable upload (service.md, "Resumable, idempotent upload"): the server's committed row
-//! count is authoritative. [`upload`] asks for it, streams chunks from there, and after a
-//! retryable failure (the server restarting, a dropped connection, UNAVAILABLE, ...) asks again
-//! and resumes from the new count, with jittered exponential backoff, for as long as
-//! [`UploadOptions::retry_for`] allows without progress. Every call opens its own lazily
-//! connected channel, so a server killed and restarted on the same port is simply reconnected.
+//! Resumable upload: a row's identity is (session, index), and a row counts as stored only once
+//! the server has confirmed it with our bytes. [`upload`] streams rows from the first one not yet
+//! confirmed (streams of at most [`STREAM_BYTES`]); the server compares any rows it already holds
+//! byte for byte and refuses the chunk (ALREADY_EXISTS, naming the row) when they differ, so
+//! another writer's rows are never taken for ours. After a retryable failure (the server
+//! restarting, a dropped connection, UNAVAILABLE, another writer holding the session (ABORTED),
+//! ...) it asks the server's count again and resumes from the last confirmed row, with jittered
+//! exponential backoff, for as long as [`UploadOptions::retry_for`] allows without progress.
+//! Every call opens its own lazily connected channel, so a server killed and restarted on the
+//! same port is simply reconnected.
 
 use std::borrow::Cow;
 use std::collections::BTreeMap;
@@ -317,13 +321,15 @@ pub struct UploadReport {
     pub rows: u64,
     /// Rows put on the wire, re-sends after a resume included.
     pub rows_sent: u64,
-    /// Rows not sent because the server had already committed them when the upload started
-    /// (a previous, interrupted run).
-    pub rows_skipped: u64,
     /// Rows the server reported as newly written, over the streams that completed.
     pub rows_written: u64,
-    /// Rows the server reported as already committed within streams (overlap after a resume).
-    pub overlap_rows: u64,
+    /// Rows the server already held and compared byte for byte equal to ours (a resumed or
+    /// repeated upload), over the streams that completed.
+    pub rows_matched: u64,
+    /// Rows `0..confirmed_rows` of the source are stored on the server with exactly our bytes
+    /// (each was written or compared equal by a stream that ended OK). Only these may be
+    /// deleted from a spool.
+    pub confirmed_rows: u64,
     /// Times the upload re-asked the server's count and resumed after a failure.
     pub resumes: u32,
     /// The server's committed count at the end (authoritative).
@@ -368,7 +374,10 @@ fn message_or_description(message: &str, code: Code) -> String {
 fn hint(code: Code) -> &'static str {
     match code {
         Code::Unavailable => "; is the server running at that address?",
-        Code::AlreadyExists => "; pick another --session-id or repeat the original declaration",
+        Code::AlreadyExists => {
+            "; the server holds other data under this id: pick another --session-id (or repeat the original declaration)"
+        }
+        Code::Aborted => "; another upload holds the session: wait for it to end, then retry",
         _ => "",
     }
 }
@@ -944,8 +953,7 @@ impl RowSource for SliceRows<'_> {
     }
 }
 
-/// [`upload`] from any [`RowSource`]: streams rows `committed..source.rows()` with the same
-/// resume and retry rules. The source's values must be finite (the server refuses others).
+/// [`upload`] from any [`RowSource`], from row 0; see [`upload_rows_from`].
 pub async fn upload_rows(
     server: &str,
     session_id: &str,
@@ -953,19 +961,49 @@ pub async fn upload_rows(
     source: &dyn RowSource,
     opts: &UploadOptions,
 ) -> anyhow::Result<UploadReport> {
+    upload_rows_from(server, session_id, channels, source, 0, opts).await
+}
+
+/// The most payload one upload stream carries before it ends and a new one starts: a stream
+/// that ends OK confirms its rows, so a failure re-sends at most this much.
+pub const STREAM_BYTES: usize = 64 << 20;
+
+/// Uploads rows `confirmed..source.rows()` of `source`, where rows below `confirmed` are
+/// already known to be stored with the same bytes (a spool's confirmed prefix).
+///
+/// Nothing is skipped on the server's word: every row is sent at least once, and the server
+/// compares rows it already holds byte for byte (a resumed upload re-sends the last unconfirmed
+/// stream, at most [`STREAM_BYTES`]). So rows of another writer or another file under the same
+/// session id are refused (ALREADY_EXISTS naming the first differing row), never taken for
+/// ours. Streams of at most [`STREAM_BYTES`] each confirm their rows when they end OK
+/// ([`UploadReport::confirmed_rows`]). The source's values must be finite.
+pub async fn upload_rows_from(
+    server: &str,
+    session_id: &str,
+    channels: u32,
+    source: &dyn RowSource,
+    confirmed: u64,
+    opts: &UploadOptions,
+) -> anyhow::Result<UploadReport> {
     anyhow::ensure!(channels > 0, "channels must be at least 1");
     let total = source.rows();
     let chunk_rows = opts.rows_per_chunk_of(channels as usize, source.format());
+    let row_bytes = channels as usize * source.format().bytes();
+    let rows_a_stream = ((STREAM_BYTES / row_bytes.max(1)).max(chunk_rows) / chunk_rows).max(1)
+        as u64
+        * chunk_rows as u64;
     let policy = opts.policy();
     let started = Instant::now();
     let bar = progress_bar(total, opts.progress);
     let mut report = UploadReport {
         session_id: session_id.to_string(),
         rows: total,
+        confirmed_rows: confirmed.min(total),
         ..Default::default()
     };
+    let mut confirmed = confirmed.min(total);
 
-    let mut best_committed: Option<u64> = None;
+    let mut asked = false;
     let mut failing_since: Option<Instant> = None;
     let mut attempt = 0u32;
     let mut resync_used = false;
@@ -978,9 +1016,8 @@ pub async fn upload_rows(
             if since.elapsed() >= policy.retry_for {
                 bar.abandon();
                 return Err(anyhow::Error::new(err).context(format!(
-                    "upload of session {session_id} gave up after {:.0?} without progress; {} of {total} rows committed",
+                    "upload of session {session_id} gave up after {:.0?} without progress; {confirmed} of {total} rows confirmed stored",
                     policy.retry_for,
-                    best_committed.unwrap_or(0)
                 )));
             }
             report.last_error = Some(err.to_string());
@@ -994,13 +1031,12 @@ pub async fn upload_rows(
         ($err:expr) => {{
             bar.abandon();
             return Err(anyhow::Error::new($err).context(format!(
-                "upload of session {session_id} failed; {} of {total} rows committed",
-                best_committed.unwrap_or(0)
+                "upload of session {session_id} failed; {confirmed} of {total} rows confirmed stored"
             )));
         }};
     }
 
-    loop {
+    while confirmed < total || !asked {
         // 1. Where does the server stand?
         let status_policy = RetryPolicy {
             retry_for: Duration::ZERO,
@@ -1020,7 +1056,8 @@ pub async fn upload_rows(
             }
         };
         let committed = status.committed_rows;
-        if best_committed.is_none() {
+        if !asked {
+            asked = true;
             report.expected_rows = status.expected_rows;
             if status.expected_rows > 0 && total > status.expected_rows {
                 bar.abandon();
@@ -1029,35 +1066,32 @@ pub async fn upload_rows(
                     status.expected_rows
                 );
             }
-            report.rows_skipped = committed.min(total);
-        }
-        if best_committed.is_none_or(|b| committed > b) {
-            best_committed = Some(committed);
-            failing_since = None;
-            attempt = 0;
-            resync_used = false;
         }
         report.committed_rows = committed;
-        bar.set_position(committed.min(total));
-        if committed >= total {
+        if confirmed >= total {
             break;
         }
-        if status.state == v1::SessionState::Finished as i32 {
+        if status.state == v1::SessionState::Finished as i32 && total > committed {
             fatal!(RpcError {
                 operation: format!("uploading to session {session_id}"),
                 code: Code::FailedPrecondition,
-                message: format!("the session is finished with {committed} rows"),
+                message: format!(
+                    "the session is finished with {committed} rows; rows {committed}..{total} were never stored and never will be (kept where they are)"
+                ),
             });
         }
 
-        // 2. Stream from there.
+        // 2. Stream from the first unconfirmed row (the server compares what it already has);
+        // below the server's count only if it lost rows we confirmed (the source says so).
+        let from = confirmed.min(committed);
+        let to = (from + rows_a_stream).min(total);
         let outcome = stream_rows(
             server,
             session_id,
             channels,
             source,
-            total,
-            committed,
+            to,
+            from,
             chunk_rows,
             opts,
             &bar,
@@ -1067,29 +1101,21 @@ pub async fn upload_rows(
         match outcome {
             Ok(response) => {
                 report.rows_written += response.rows_written;
-                report.overlap_rows += response.rows_skipped;
+                report.rows_matched += response.rows_skipped;
                 report.committed_rows = response.committed_rows;
-                if response.committed_rows >= total {
-                    break;
+                if to > confirmed {
+                    confirmed = to;
+                    report.confirmed_rows = confirmed;
+                    failing_since = None;
+                    attempt = 0;
+                    resync_used = false;
                 }
-                if best_committed.is_some_and(|b| response.committed_rows <= b) {
-                    // The stream ended without progress: treat as a transient failure.
-                    back_off_or_fail!(RpcError {
-                        operation: format!("uploading to session {session_id}"),
-                        code: Code::Unknown,
-                        message: format!(
-                            "stream ended at {} committed rows without progress",
-                            response.committed_rows
-                        ),
-                    });
-                }
-                report.resumes += 1;
+                bar.set_position(confirmed);
             }
             Err(StreamFailure::Local(e)) => {
                 bar.abandon();
                 return Err(e.context(format!(
-                    "upload of session {session_id} stopped: cannot read its rows; {} of {total} rows committed",
-                    best_committed.unwrap_or(0)
+                    "upload of session {session_id} stopped: cannot read its rows; {confirmed} of {total} rows confirmed stored"
                 )));
             }
             Err(StreamFailure::Rpc(status)) => {

@@ -32,7 +32,8 @@ struct ServeArgs {
     /// Directory of the SQLite database (created if missing).
     #[arg(long, env = "HELMHOLTZ_DATA_DIR", default_value = "helmholtz-data")]
     data_dir: PathBuf,
-    /// Reconstruction worker threads (default: the number of CPU cores).
+    /// Reconstruction worker threads (default: the number of CPU cores). 0: none (API only:
+    /// requests queue in the database for the workers of other server processes sharing it).
     #[arg(long, env = "HELMHOLTZ_WORKERS")]
     workers: Option<usize>,
     /// Job lease in seconds: a job whose worker stops heart-beating for this long is taken up again.
@@ -93,6 +94,14 @@ struct LimitArgs {
     /// Burst of requests per token above the sustained rate.
     #[arg(long, default_value_t = Limits::default().rate_burst)]
     rate_burst: f64,
+    /// Seconds an upload stream's hold on its session (one writer per session) lasts without
+    /// renewal: after a server dies mid-upload, its sessions take new writers after this long.
+    #[arg(long, default_value_t = Limits::default().upload_lease.as_secs(), value_parser = clap::value_parser!(u64).range(1..))]
+    upload_lease_secs: u64,
+    /// Seconds an upload stream may stay silent (no chunk) before the server closes it; the
+    /// rows it committed stay.
+    #[arg(long, default_value_t = Limits::default().upload_idle.as_secs(), value_parser = clap::value_parser!(u64).range(1..))]
+    upload_idle_secs: u64,
 }
 
 impl LimitArgs {
@@ -110,6 +119,8 @@ impl LimitArgs {
             max_running_jobs_per_lab: self.max_running_jobs_per_lab,
             rate_per_second: self.rate_per_second,
             rate_burst: self.rate_burst,
+            upload_lease: Duration::from_secs(self.upload_lease_secs),
+            upload_idle: Duration::from_secs(self.upload_idle_secs),
         }
     }
 }
@@ -186,7 +197,7 @@ impl ServeArgs {
             ..Config::default()
         };
         if let Some(w) = self.workers {
-            config.workers = w.max(1);
+            config.workers = w;
         }
         config
     }

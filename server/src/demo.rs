@@ -126,7 +126,7 @@ async fn run_rigs(base: &str, rig: &str, reader: &str) -> anyhow::Result<()> {
         helmholtz_client::finish_session(rig_url, rig.session_id).await?;
         println!(
             "   uploaded {} rows ({} already stored) in {:.2} s",
-            upload.rows, upload.rows_skipped, upload.seconds
+            upload.rows, upload.rows_matched, upload.seconds
         );
         let rec = helmholtz_client::request_reconstruction(
             reader,
@@ -215,7 +215,7 @@ async fn camera_rig(base: &str, rig: &str, reader: &str) -> anyhow::Result<()> {
     helmholtz_client::finish_session(rig, ID).await?;
     println!(
         "   uploaded {} frames ({} already stored) in {:.2} s",
-        upload.rows, upload.rows_skipped, upload.seconds
+        upload.rows, upload.rows_matched, upload.seconds
     );
     let rec =
         helmholtz_client::request_reconstruction(reader, ID, "transport", &serde_json::json!({}))

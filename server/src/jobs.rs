@@ -84,7 +84,7 @@ impl WorkerPool {
         let stop = Arc::new(AtomicBool::new(false));
         let wake = Arc::new(Notify::new());
         let running: Running = Arc::default();
-        let threads = (0..config.workers.max(1))
+        let threads = (0..config.workers)
             .map(|n| {
                 let worker = Worker {
                     id: format!("{}-{n}", std::process::id()),

@@ -32,6 +32,11 @@ pub struct Limits {
     pub rate_per_second: f64,
     /// Requests a token may make in a burst above the sustained rate.
     pub rate_burst: f64,
+    /// An upload stream's hold on its session (one writer per session): renewed while the
+    /// stream is open; a holder that dies frees the session after this long.
+    pub upload_lease: Duration,
+    /// An upload stream that sends no chunk for this long is closed (its committed rows stay).
+    pub upload_idle: Duration,
 }
 
 impl Default for Limits {
@@ -49,6 +54,8 @@ impl Default for Limits {
             max_running_jobs_per_lab: 0,
             rate_per_second: 100.0,
             rate_burst: 200.0,
+            upload_lease: Duration::from_secs(10),
+            upload_idle: Duration::from_secs(60),
         }
     }
 }

@@ -363,6 +363,8 @@ fn upload_chunks() {
     };
     h.rt.block_on(c.create_session(create)).unwrap();
     let committed = Mutex::new(0u64);
+    // Every acknowledged row's bytes, in order: the model the server must agree with.
+    let stored: Mutex<Vec<u8>> = Mutex::new(Vec::new());
     let tally = Tally::default();
     let strategy = (
         prop_oneof![3 => Just("target".to_string()), 1 => id_strategy()],
@@ -375,15 +377,37 @@ fn upload_chunks() {
         ],
         prop_oneof![3 => Just(true), 1 => Just(false)],
         any::<u32>(),
+        // Overlapping rows: 0 = as drawn (they differ from the stored ones), 1 = the stored
+        // bytes (a faithful resume), 2 = the stored bytes with one byte flipped at `flip`.
+        0u8..3,
+        any::<usize>(),
     );
     runner()
         .run(
             &strategy,
-            |(session_id, start_offset, channels, bytes, good_crc, crc)| {
+            |(session_id, start_offset, channels, mut bytes, good_crc, crc, overlap, flip)| {
                 tally.case();
                 let mut c = h.grpc.clone();
                 let before = *committed.lock().unwrap();
                 let start = (before as i64 + start_offset).max(0) as u64;
+                // The overlap with the stored rows, in bytes of this chunk.
+                let overlap_bytes = ((before.saturating_sub(start)) as usize * 16).min(bytes.len());
+                if overlap > 0 && overlap_bytes > 0 {
+                    let model = stored.lock().unwrap();
+                    let at = start as usize * 16;
+                    bytes[..overlap_bytes].copy_from_slice(&model[at..at + overlap_bytes]);
+                    if overlap == 2 {
+                        bytes[flip % overlap_bytes] ^= 0x01;
+                    }
+                }
+                // The first overlapping row whose bytes differ from the stored ones, if any.
+                let differs = {
+                    let model = stored.lock().unwrap();
+                    let at = start as usize * 16;
+                    (0..overlap_bytes)
+                        .find(|&i| model.get(at + i) != bytes.get(i))
+                        .map(|i| start + (i / 16) as u64)
+                };
                 let crc32c = if good_crc {
                     crc32c::crc32c(&bytes)
                 } else {
@@ -419,8 +443,14 @@ fn upload_chunks() {
                         );
                         let rows = bytes.len() as u64 / 16;
                         prop_assert!(start <= before);
+                        prop_assert_eq!(differs, None, "an overlap that differs was accepted");
                         prop_assert_eq!(now, before.max(start + rows));
                         prop_assert_eq!(r.committed_rows, now);
+                        prop_assert_eq!(r.rows_skipped, (overlap_bytes / 16) as u64);
+                        stored
+                            .lock()
+                            .unwrap()
+                            .extend_from_slice(&bytes[overlap_bytes..]);
                         *committed.lock().unwrap() = now;
                         tally.accepted();
                     }
@@ -433,8 +463,18 @@ fn upload_chunks() {
                                 Code::OutOfRange,
                                 Code::DataLoss,
                                 Code::ResourceExhausted,
+                                Code::AlreadyExists,
                             ],
                         )?;
+                        if status.code() == Code::AlreadyExists {
+                            // Only a differing overlap, and the message names its first row.
+                            let row = differs.expect("refused as different, yet equal");
+                            prop_assert!(
+                                status.message().contains(&format!("row {row} of session")),
+                                "{}",
+                                status.message()
+                            );
+                        }
                         prop_assert_eq!(now, before, "a refused chunk changed the committed count");
                     }
                 }
@@ -456,7 +496,17 @@ fn upload_chunks() {
     });
     let (shape, values) = helmholtz_tests::parse_npy(&bytes).unwrap();
     assert_eq!(shape, vec![*committed.lock().unwrap() as usize, 2]);
-    assert!(values.iter().all(|v| v.is_finite()));
+    let model: Vec<f64> = stored
+        .lock()
+        .unwrap()
+        .chunks_exact(8)
+        .map(|b| f64::from_le_bytes(b.try_into().unwrap()))
+        .collect();
+    assert_eq!(
+        values.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+        model.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+        "stored rows are byte for byte the acknowledged ones"
+    );
     h.server.kill();
 }
 

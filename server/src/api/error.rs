@@ -109,9 +109,15 @@ impl From<StoreError> for ApiError {
             StoreError::SessionNotFound(_) | StoreError::ReconstructionNotFound(_) => {
                 ApiError::NotFound(e.to_string())
             }
-            StoreError::SessionConflict(..) | StoreError::SessionIdTaken(_) => {
-                ApiError::AlreadyExists(e.to_string())
-            }
+            StoreError::SessionConflict(..)
+            | StoreError::SessionIdTaken(_)
+            | StoreError::RowMismatch { .. } => ApiError::AlreadyExists(e.to_string()),
+            StoreError::WriterLost(_) => ApiError::Aborted(e.to_string()),
+            StoreError::Cap { limit, message } => ApiError::ResourceExhausted {
+                limit,
+                message,
+                retry_after: None,
+            },
             StoreError::Gap { .. } | StoreError::PastEnd { .. } => {
                 ApiError::OutOfRange(e.to_string())
             }

@@ -6,7 +6,7 @@ use tonic::{Request, Response, Status, Streaming};
 
 use super::{ApiError, AppState, validate};
 use crate::auth::{Principal, Role};
-use crate::store::{ReconstructionRow, SampleFormat, SessionRow, SessionState};
+use crate::store::{ReconstructionRow, SampleFormat, SessionRow, SessionState, StoreError};
 
 #[derive(Clone, Debug)]
 pub struct AcquisitionService {
@@ -37,6 +37,96 @@ impl AcquisitionService {
         let caller = self.state.authenticate(authorization).await?;
         caller.require_any(roles)?;
         Ok(caller)
+    }
+
+    /// The chunks of one upload stream, each validated and committed before the next is read;
+    /// `session` holds the stream's session and writer lease from its first chunk on (the
+    /// caller gives the lease back however this ends).
+    async fn receive_chunks(
+        &self,
+        caller: &Principal,
+        stream: &mut Streaming<v1::MeasurementChunk>,
+        session: &mut Option<(SessionRow, super::WriterGuard)>,
+    ) -> Result<v1::UploadResponse, Status> {
+        let (mut written, mut matched, mut committed) = (0u64, 0u64, 0u64);
+        let max_chunk = self.state.limits.max_chunk_bytes;
+        let idle = self.state.limits.upload_idle;
+        // Each chunk is validated and committed before the next is read: nothing is buffered,
+        // and an error leaves every earlier chunk durable.
+        loop {
+            let next = tokio::time::timeout(idle, stream.message()).await.map_err(|_| {
+                ApiError::Aborted(format!(
+                    "no chunk for {} s: the upload stream is closed (the rows it committed stay; resume from the committed count)",
+                    idle.as_secs()
+                ))
+            })?;
+            let Some(chunk) = next? else { break };
+            if session.is_none() {
+                validate::session_id(&chunk.session_id, "session_id")?;
+                let row = self.state.own_session(caller, &chunk.session_id).await?;
+                let guard = self.state.lock_writer(&row.id).await?;
+                if chunk.start_row > 0 || row.committed_rows > 0 {
+                    metrics::counter!("helmholtz_upload_resumed_total").increment(1);
+                }
+                *session = Some((row, guard));
+            }
+            let (row, guard) = session.as_ref().expect("set above");
+            if chunk.session_id != row.id {
+                return Err(ApiError::invalid(
+                    "session_id",
+                    "every chunk of a stream must name the same session",
+                )
+                .into());
+            }
+            let channels = row.row_values();
+            if chunk.channels as usize != channels {
+                let what = if row.camera.is_some() {
+                    "pixels per frame"
+                } else {
+                    "channels"
+                };
+                return Err(ApiError::invalid(
+                    "channels",
+                    format!(
+                        "session {:?} has {channels} {what}, chunk says {}",
+                        row.id, chunk.channels
+                    ),
+                )
+                .into());
+            }
+            let payload = checked_payload(&chunk, row, max_chunk)?;
+            let outcome = self
+                .state
+                .store
+                .append_raw(
+                    &row.id,
+                    Some(&guard.lease),
+                    chunk.start_row,
+                    row.row_bytes(),
+                    payload,
+                )
+                .await
+                .map_err(|e| {
+                    if matches!(e, StoreError::RowMismatch { .. }) {
+                        metrics::counter!("helmholtz_upload_row_mismatches_total").increment(1);
+                    }
+                    ApiError::from(e)
+                })?;
+            written += outcome.written;
+            matched += outcome.matched;
+            metrics::counter!("helmholtz_upload_rows_total").increment(outcome.written);
+            metrics::counter!("helmholtz_upload_bytes_total")
+                .increment(outcome.written * row.row_bytes() as u64);
+            committed = outcome.committed_rows;
+        }
+        if let Some((row, _)) = &session {
+            tracing::debug!(session = %row.id, written, matched, committed, "upload stream ended");
+        }
+        Ok(v1::UploadResponse {
+            committed_rows: committed,
+            rows_written: written,
+            rows_skipped: matched,
+        })
     }
 }
 
@@ -209,35 +299,10 @@ impl Acquisition for AcquisitionService {
     ) -> Result<Response<v1::CreateSessionResponse>, Status> {
         let caller = self.caller(&request, &[Role::Rig]).await?;
         let new = validate::new_session(request.get_ref(), &caller.lab, &self.state.limits)?;
-        let existing = self
-            .state
-            .store
-            .get_session(&new.id)
-            .await
-            .map_err(ApiError::from)?;
-        if existing.is_none() {
-            let held = self
-                .state
-                .store
-                .count_sessions(&caller.lab)
-                .await
-                .map_err(ApiError::from)?;
-            if held >= self.state.limits.max_sessions_per_lab {
-                return Err(ApiError::ResourceExhausted {
-                    limit: "max_sessions_per_lab",
-                    message: format!(
-                        "lab {:?} holds {held} sessions (limit {}); no new session was created",
-                        caller.lab, self.state.limits.max_sessions_per_lab
-                    ),
-                    retry_after: None,
-                }
-                .into());
-            }
-        }
         let (session, created) = self
             .state
             .store
-            .create_session(&new)
+            .create_session_capped(&new, self.state.limits.max_sessions_per_lab)
             .await
             .map_err(ApiError::from)?;
         if created {
@@ -256,66 +321,13 @@ impl Acquisition for AcquisitionService {
         let caller = self.caller(&request, &[Role::Rig]).await?;
         let mut stream = request.into_inner();
         let mut session: Option<(SessionRow, super::WriterGuard)> = None;
-        let (mut written, mut skipped, mut committed) = (0u64, 0u64, 0u64);
-        let max_chunk = self.state.limits.max_chunk_bytes;
-        // Each chunk is validated and committed before the next is read: nothing is buffered,
-        // and an error leaves every earlier chunk durable.
-        while let Some(chunk) = stream.message().await? {
-            if session.is_none() {
-                validate::session_id(&chunk.session_id, "session_id")?;
-                let row = self.state.own_session(&caller, &chunk.session_id).await?;
-                let guard = self.state.lock_writer(&row.id)?;
-                if chunk.start_row > 0 || row.committed_rows > 0 {
-                    metrics::counter!("helmholtz_upload_resumed_total").increment(1);
-                }
-                session = Some((row, guard));
-            }
-            let (row, _) = session.as_ref().expect("set above");
-            if chunk.session_id != row.id {
-                return Err(ApiError::invalid(
-                    "session_id",
-                    "every chunk of a stream must name the same session",
-                )
-                .into());
-            }
-            let channels = row.row_values();
-            if chunk.channels as usize != channels {
-                let what = if row.camera.is_some() {
-                    "pixels per frame"
-                } else {
-                    "channels"
-                };
-                return Err(ApiError::invalid(
-                    "channels",
-                    format!(
-                        "session {:?} has {channels} {what}, chunk says {}",
-                        row.id, chunk.channels
-                    ),
-                )
-                .into());
-            }
-            let payload = checked_payload(&chunk, row, max_chunk)?;
-            let outcome = self
-                .state
-                .store
-                .append_raw(&row.id, chunk.start_row, row.row_bytes(), payload)
-                .await
-                .map_err(ApiError::from)?;
-            written += outcome.written;
-            skipped += outcome.skipped;
-            metrics::counter!("helmholtz_upload_rows_total").increment(outcome.written);
-            metrics::counter!("helmholtz_upload_bytes_total")
-                .increment(outcome.written * row.row_bytes() as u64);
-            committed = outcome.committed_rows;
+        let result = self
+            .receive_chunks(&caller, &mut stream, &mut session)
+            .await;
+        if let Some((_, guard)) = session {
+            guard.release().await;
         }
-        if let Some((row, _)) = &session {
-            tracing::debug!(session = %row.id, written, skipped, committed, "upload stream ended");
-        }
-        Ok(Response::new(v1::UploadResponse {
-            committed_rows: committed,
-            rows_written: written,
-            rows_skipped: skipped,
-        }))
+        result.map(Response::new)
     }
 
     async fn get_upload_status(

@@ -8,8 +8,7 @@ pub mod relight;
 pub mod rest;
 pub mod validate;
 
-use std::collections::HashSet;
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 
 use serde_json::Value;
 
@@ -20,7 +19,7 @@ use crate::jobs::JobNotifier;
 use crate::limits::{Limits, RateLimiter};
 use crate::recon::transport::TransportConfig;
 use crate::recon::{MethodConfig, Problem};
-use crate::store::{ReconstructionRow, SessionRow, Store, StoreError};
+use crate::store::{ReconstructionRow, SessionRow, Store, StoreError, WriterLease};
 
 /// Shared by every handler.
 #[derive(Clone, Debug)]
@@ -29,25 +28,49 @@ pub struct AppState {
     pub jobs: JobNotifier,
     pub limits: Arc<Limits>,
     rate: Arc<RateLimiter>,
-    writers: Arc<Mutex<HashSet<String>>>,
     /// Decoded transport matrices of camera reconstructions, for relighting.
     pub transports: Arc<relight::TransportCache>,
     /// Relight and primal responses by ETag.
     pub responses: Arc<relight::ResponseCache>,
 }
 
-/// Holds a session's single-writer slot until dropped.
+/// Holds a session's upload lease (one writer per session, across every server process that
+/// shares the database) until dropped: a heartbeat renews it while the stream is open, every
+/// append checks it, and dropping the guard gives it back.
 pub struct WriterGuard {
-    writers: Arc<Mutex<HashSet<String>>>,
-    session_id: String,
+    pub lease: WriterLease,
+    store: Store,
+    heartbeat: tokio::task::JoinHandle<()>,
+    released: bool,
+}
+
+impl WriterGuard {
+    /// Gives the lease back before returning, so the writer's next stream (or another writer)
+    /// finds the session free at once. (Dropping the guard also gives it back, a moment later.)
+    pub async fn release(mut self) {
+        self.heartbeat.abort();
+        self.released = true;
+        if let Err(e) = self.store.release_writer(&self.lease).await {
+            tracing::warn!(session = %self.lease.session_id, error = %e, "could not release an upload lease");
+        }
+    }
 }
 
 impl Drop for WriterGuard {
     fn drop(&mut self) {
-        self.writers
-            .lock()
-            .expect("writers lock")
-            .remove(&self.session_id);
+        self.heartbeat.abort();
+        if self.released {
+            return;
+        }
+        let (store, lease) = (self.store.clone(), self.lease.clone());
+        if let Ok(rt) = tokio::runtime::Handle::try_current() {
+            rt.spawn(async move {
+                if let Err(e) = store.release_writer(&lease).await {
+                    // It expires on its own after its ttl.
+                    tracing::warn!(session = %lease.session_id, error = %e, "could not release an upload lease");
+                }
+            });
+        }
     }
 }
 
@@ -86,7 +109,6 @@ impl AppState {
             jobs,
             limits: Arc::new(limits),
             rate: Arc::default(),
-            writers: Arc::default(),
             transports: Arc::new(relight::TransportCache::new(2 << 30)),
             responses: Arc::new(relight::ResponseCache::new(64 << 20)),
         }
@@ -154,17 +176,48 @@ impl AppState {
         }
     }
 
-    /// One uploader per session at a time: a second concurrent stream is ABORTED.
-    pub fn lock_writer(&self, session_id: &str) -> Result<WriterGuard, ApiError> {
-        let mut writers = self.writers.lock().expect("writers lock");
-        if !writers.insert(session_id.to_string()) {
+    /// One uploader per session at a time, enforced in the database (so across server
+    /// processes): a second concurrent stream is ABORTED naming the session.
+    pub async fn lock_writer(&self, session_id: &str) -> Result<WriterGuard, ApiError> {
+        let lease = WriterLease {
+            session_id: session_id.to_string(),
+            holder: WriterLease::new_holder(),
+            ttl: self.limits.upload_lease,
+        };
+        if !self
+            .store
+            .acquire_writer(session_id, &lease.holder, lease.ttl)
+            .await?
+        {
+            metrics::counter!("helmholtz_upload_writer_conflicts_total").increment(1);
             return Err(ApiError::Aborted(format!(
-                "another upload to session {session_id:?} is in progress; retry after it ends"
+                "session {session_id:?} has another writer: another upload to it is in progress (from another \
+                 client or through another server process); one writer per session at a time. Nothing \
+                 of this stream was stored; retry after that upload ends"
             )));
         }
+        let heartbeat = tokio::spawn({
+            let (store, lease) = (self.store.clone(), lease.clone());
+            async move {
+                let every = (lease.ttl / 3).max(std::time::Duration::from_millis(100));
+                loop {
+                    tokio::time::sleep(every).await;
+                    match store.renew_writer(&lease).await {
+                        Ok(true) => {}
+                        // Lost (it expired and another writer took it): appends are refused.
+                        Ok(false) => break,
+                        Err(e) => {
+                            tracing::warn!(session = %lease.session_id, error = %e, "upload lease renewal failed")
+                        }
+                    }
+                }
+            }
+        });
         Ok(WriterGuard {
-            writers: self.writers.clone(),
-            session_id: session_id.to_string(),
+            lease,
+            store: self.store.clone(),
+            heartbeat,
+            released: false,
         })
     }
 
@@ -211,26 +264,16 @@ impl AppState {
             (config.name(), config.params_json())
         };
         let session = self.own_session(caller, session_id).await?;
-        let pending = self.store.pending_jobs_for_lab(&caller.lab).await?;
-        if pending >= self.limits.max_pending_jobs_per_lab {
-            return Err(ApiError::ResourceExhausted {
-                limit: "max_pending_jobs_per_lab",
-                message: format!(
-                    "lab {:?} has {pending} reconstructions queued or running (limit {}); wait for some to finish or cancel them",
-                    caller.lab, self.limits.max_pending_jobs_per_lab
-                ),
-                retry_after: None,
-            });
-        }
         let row = self
             .store
-            .enqueue_reconstruction(
+            .enqueue_reconstruction_capped(
                 &caller.lab,
                 session_id,
                 name,
                 &params_json.to_string(),
                 session.committed_rows,
                 3,
+                self.limits.max_pending_jobs_per_lab,
             )
             .await?;
         self.jobs.job_queued();

@@ -85,8 +85,49 @@ impl Store {
         rows_used: u64,
         max_attempts: u32,
     ) -> Result<ReconstructionRow, StoreError> {
+        self.enqueue_reconstruction_capped(
+            lab,
+            session_id,
+            method,
+            params_json,
+            rows_used,
+            max_attempts,
+            u64::MAX,
+        )
+        .await
+    }
+
+    /// [`Store::enqueue_reconstruction`] unless the lab already has `max_pending` jobs queued or
+    /// running ([`StoreError::Cap`]): the count and the insert are one transaction, so
+    /// concurrent requests never pass the cap together.
+    #[allow(clippy::too_many_arguments)]
+    pub async fn enqueue_reconstruction_capped(
+        &self,
+        lab: &str,
+        session_id: &str,
+        method: &str,
+        params_json: &str,
+        rows_used: u64,
+        max_attempts: u32,
+        max_pending: u64,
+    ) -> Result<ReconstructionRow, StoreError> {
         let now = now_ms();
         let mut tx = self.pool.begin_with("BEGIN IMMEDIATE").await?;
+        let pending: i64 = sqlx::query(
+            "SELECT COUNT(*) FROM jobs WHERE lab = $1 AND state IN ('queued', 'running')",
+        )
+        .bind(lab)
+        .fetch_one(&mut *tx)
+        .await?
+        .get(0);
+        if pending as u64 >= max_pending {
+            return Err(StoreError::Cap {
+                limit: "max_pending_jobs_per_lab",
+                message: format!(
+                    "lab {lab:?} has {pending} reconstructions queued or running (limit {max_pending}); wait for some to finish or cancel them"
+                ),
+            });
+        }
         let id: i64 = sqlx::query(
             "INSERT INTO jobs (kind, state, run_at_ms, max_attempts, created_ms, lab) \
              VALUES ('reconstruction', 'queued', $1, $2, $1, $3) RETURNING id",

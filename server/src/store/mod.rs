@@ -17,7 +17,7 @@ mod sessions;
 mod tokens;
 
 pub use jobs::{ClaimedJob, ReconstructionRow, StoredImage};
-pub use rows::AppendOutcome;
+pub use rows::{AppendOutcome, WriterLease};
 pub use sessions::{CameraLayout, NewSession, SampleFormat, SessionRow, SessionState};
 pub use tokens::TokenInfo;
 
@@ -38,6 +38,30 @@ pub enum StoreError {
     PastEnd { end: u64, expected: u64 },
     #[error("session {0:?} is finished; it takes no more rows")]
     Finished(String),
+    #[error(
+        "row {row} of session {session:?} is already stored with different values (first \
+         difference at byte {byte} of the row); nothing of this chunk (rows {start}..{end}) was \
+         stored. A row's identity is its session and index: this is another measurement than the \
+         stored one (another writer's, or another file under the same session id)"
+    )]
+    RowMismatch {
+        session: String,
+        row: u64,
+        byte: usize,
+        start: u64,
+        end: u64,
+    },
+    #[error(
+        "this upload no longer holds session {0:?}'s writer lease (another writer took it after \
+         this stream fell silent); nothing of this chunk was stored"
+    )]
+    WriterLost(String),
+    /// A per-lab cap (checked and applied in one transaction).
+    #[error("{limit}: {message}")]
+    Cap {
+        limit: &'static str,
+        message: String,
+    },
     #[error("session {id:?} has {committed} of {expected} rows; upload the rest before finishing")]
     Incomplete {
         id: String,

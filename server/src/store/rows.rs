@@ -1,8 +1,12 @@
-//! Bucket rows: append with resume semantics, read back in order.
+//! Measured rows: append under a writer lease, overlap compared byte for byte, read back in
+//! order.
+
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
 use sqlx::Row;
 
-use super::{Store, StoreError};
+use super::{Store, StoreError, now_ms};
 
 /// What one append did.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -11,15 +15,97 @@ pub struct AppendOutcome {
     pub committed_rows: u64,
     /// Rows of the chunk that were new and are now durable.
     pub written: u64,
-    /// Rows of the chunk that were already committed (overlap).
-    pub skipped: u64,
+    /// Rows of the chunk that were already committed and compared byte for byte equal to the
+    /// stored ones (overlap after a resume).
+    pub matched: u64,
+}
+
+/// The upload lease a writer holds (see [`Store::acquire_writer`]): every append under it
+/// checks, in the append's own transaction, that the lease is still this writer's.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct WriterLease {
+    pub session_id: String,
+    /// This stream's id (unique across processes: see [`WriterLease::new_holder`]).
+    pub holder: String,
+    /// How long the lease lasts without a renewal.
+    pub ttl: Duration,
+}
+
+impl WriterLease {
+    /// A holder id unique across processes and machines sharing a database: the process id,
+    /// the start time in nanoseconds, a random number and a per-process counter.
+    pub fn new_holder() -> String {
+        static NEXT: AtomicU64 = AtomicU64::new(0);
+        let nanos = SystemTime::now()
+            .duration_since(UNIX_EPOCH)
+            .map(|d| d.as_nanos())
+            .unwrap_or(0);
+        format!(
+            "{}-{nanos:x}-{:016x}-{}",
+            std::process::id(),
+            rand::random::<u64>(),
+            NEXT.fetch_add(1, Ordering::Relaxed)
+        )
+    }
+}
+
+/// Where a chunk's overlap first differs from the stored rows.
+fn first_difference(stored: &[u8], sent: &[u8], row_bytes: usize) -> Option<(u64, usize)> {
+    let i = stored.iter().zip(sent).position(|(a, b)| a != b)?;
+    Some(((i / row_bytes) as u64, i % row_bytes))
 }
 
 impl Store {
-    /// Appends `values` (rows x `channels`, already validated as finite) starting at `start_row`.
-    ///
-    /// The committed count is authoritative: rows below it are skipped, a start above it is a gap
-    /// and writes nothing. The new rows and the new count commit in one transaction.
+    /// Takes session `session_id`'s upload lease for `holder` unless another live holder has
+    /// it: true when taken (or already held by `holder`, then renewed).
+    pub async fn acquire_writer(
+        &self,
+        session_id: &str,
+        holder: &str,
+        ttl: Duration,
+    ) -> Result<bool, StoreError> {
+        let now = now_ms();
+        let taken = sqlx::query(
+            "INSERT INTO upload_leases (session_id, holder, expires_ms) VALUES ($1, $2, $3) \
+             ON CONFLICT (session_id) DO UPDATE SET holder = excluded.holder, expires_ms = excluded.expires_ms \
+             WHERE upload_leases.expires_ms <= $4 OR upload_leases.holder = excluded.holder",
+        )
+        .bind(session_id)
+        .bind(holder)
+        .bind(now + ttl.as_millis() as i64)
+        .bind(now)
+        .execute(&self.pool)
+        .await?
+        .rows_affected();
+        Ok(taken == 1)
+    }
+
+    /// Extends `lease` by its ttl from now; false when it is no longer this holder's.
+    pub async fn renew_writer(&self, lease: &WriterLease) -> Result<bool, StoreError> {
+        let n = sqlx::query(
+            "UPDATE upload_leases SET expires_ms = $3 WHERE session_id = $1 AND holder = $2",
+        )
+        .bind(&lease.session_id)
+        .bind(&lease.holder)
+        .bind(now_ms() + lease.ttl.as_millis() as i64)
+        .execute(&self.pool)
+        .await?
+        .rows_affected();
+        Ok(n == 1)
+    }
+
+    /// Gives the lease back (if it is still this holder's).
+    pub async fn release_writer(&self, lease: &WriterLease) -> Result<(), StoreError> {
+        sqlx::query("DELETE FROM upload_leases WHERE session_id = $1 AND holder = $2")
+            .bind(&lease.session_id)
+            .bind(&lease.holder)
+            .execute(&self.pool)
+            .await?;
+        Ok(())
+    }
+
+    /// Appends `values` (rows x `channels`, already validated as finite) starting at `start_row`
+    /// without a writer lease (tests and the demo's own sessions); see [`Store::append_raw`].
     pub async fn append_rows(
         &self,
         session_id: &str,
@@ -29,15 +115,27 @@ impl Store {
     ) -> Result<AppendOutcome, StoreError> {
         debug_assert!(channels > 0 && values.len().is_multiple_of(channels));
         let blob: Vec<u8> = values.iter().flat_map(|v| v.to_le_bytes()).collect();
-        self.append_raw(session_id, start_row, channels * 8, &blob)
+        self.append_raw(session_id, None, start_row, channels * 8, &blob)
             .await
     }
 
     /// Appends rows already encoded in the session's sample format (`row_bytes` bytes each,
-    /// validated by the caller), with the resume semantics of [`Store::append_rows`].
+    /// validated by the caller) starting at `start_row`. A row's identity is (session, index):
+    ///
+    /// - rows below the committed count must be byte for byte the stored ones, else the chunk
+    ///   is refused ([`StoreError::RowMismatch`], naming the first differing row) and nothing
+    ///   of it is stored;
+    /// - a start above the committed count is a gap and writes nothing;
+    /// - new rows into a finished session are refused;
+    /// - with a `lease`, the append is refused unless the lease is still this writer's
+    ///   (checked and renewed in the same transaction: a writer that lost its lease to another
+    ///   cannot write after it).
+    ///
+    /// The new rows and the new count commit in one transaction.
     pub async fn append_raw(
         &self,
         session_id: &str,
+        lease: Option<&WriterLease>,
         start_row: u64,
         row_bytes: usize,
         payload: &[u8],
@@ -52,6 +150,20 @@ impl Store {
                 .fetch_optional(&mut *tx)
                 .await?
                 .ok_or_else(|| StoreError::SessionNotFound(session_id.to_string()))?;
+        if let Some(lease) = lease {
+            let held = sqlx::query(
+                "UPDATE upload_leases SET expires_ms = $3 WHERE session_id = $1 AND holder = $2",
+            )
+            .bind(session_id)
+            .bind(&lease.holder)
+            .bind(now_ms() + lease.ttl.as_millis() as i64)
+            .execute(&mut *tx)
+            .await?
+            .rows_affected();
+            if held != 1 {
+                return Err(StoreError::WriterLost(session_id.to_string()));
+            }
+        }
         let committed = row.get::<i64, _>("committed_rows") as u64;
         let expected = row.get::<i64, _>("expected_rows") as u64;
         let state: String = row.get("state");
@@ -65,11 +177,56 @@ impl Store {
         if end > expected {
             return Err(StoreError::PastEnd { end, expected });
         }
+        // The overlap: rows start_row..min(end, committed), compared with what is stored.
+        let overlap_end = end.min(committed);
+        if overlap_end > start_row {
+            let chunks = sqlx::query(
+                "SELECT start_row, row_count, data FROM measurement_chunks \
+                 WHERE session_id = $1 AND start_row < $3 AND start_row + row_count > $2 ORDER BY start_row",
+            )
+            .bind(session_id)
+            .bind(start_row as i64)
+            .bind(overlap_end as i64)
+            .fetch_all(&mut *tx)
+            .await?;
+            let mut next = start_row;
+            for chunk in chunks {
+                let c_start = chunk.get::<i64, _>("start_row") as u64;
+                let c_rows = chunk.get::<i64, _>("row_count") as u64;
+                let data: Vec<u8> = chunk.get("data");
+                if c_start > next || data.len() as u64 != c_rows * row_bytes as u64 {
+                    return Err(StoreError::Corrupt(format!(
+                        "session {session_id}: stored chunk at row {c_start} does not continue row {next}"
+                    )));
+                }
+                let hi = overlap_end.min(c_start + c_rows);
+                let stored = &data
+                    [(next - c_start) as usize * row_bytes..(hi - c_start) as usize * row_bytes];
+                let sent = &payload[(next - start_row) as usize * row_bytes
+                    ..(hi - start_row) as usize * row_bytes];
+                if let Some((row, byte)) = first_difference(stored, sent, row_bytes) {
+                    return Err(StoreError::RowMismatch {
+                        session: session_id.to_string(),
+                        row: next + row,
+                        byte,
+                        start: start_row,
+                        end,
+                    });
+                }
+                next = hi;
+            }
+            if next != overlap_end {
+                return Err(StoreError::Corrupt(format!(
+                    "session {session_id}: stored chunks end at row {next}, not at the committed count {committed}"
+                )));
+            }
+        }
         if end <= committed {
+            tx.commit().await?; // the lease renewal
             return Ok(AppendOutcome {
                 committed_rows: committed,
                 written: 0,
-                skipped: rows,
+                matched: rows,
             });
         }
         if state == "finished" {
@@ -93,7 +250,7 @@ impl Store {
         Ok(AppendOutcome {
             committed_rows: end,
             written: end - committed,
-            skipped: skip,
+            matched: skip,
         })
     }
 

@@ -187,10 +187,43 @@ impl Store {
     /// Creates the session, or returns the existing one if `new` declares the same thing.
     /// Returns `(session, created)`.
     pub async fn create_session(&self, new: &NewSession) -> Result<(SessionRow, bool), StoreError> {
+        self.create_session_capped(new, u64::MAX).await
+    }
+
+    /// [`Store::create_session`], refusing a new session when its lab already holds
+    /// `max_per_lab` ([`StoreError::Cap`]). The count and the insert are one transaction (the
+    /// write lock is taken first), so concurrent creations never pass the cap together.
+    pub async fn create_session_capped(
+        &self,
+        new: &NewSession,
+        max_per_lab: u64,
+    ) -> Result<(SessionRow, bool), StoreError> {
         let (gt_w, gt_h, gt_blob) = match &new.ground_truth {
             Some((w, h, data)) => (Some(*w as i64), Some(*h as i64), Some(f32_to_le(data))),
             None => (None, None, None),
         };
+        let mut tx = self.pool.begin_with("BEGIN IMMEDIATE").await?;
+        let exists = sqlx::query("SELECT 1 FROM sessions WHERE id = $1")
+            .bind(&new.id)
+            .fetch_optional(&mut *tx)
+            .await?
+            .is_some();
+        if !exists {
+            let held: i64 = sqlx::query("SELECT COUNT(*) FROM sessions WHERE lab = $1")
+                .bind(&new.lab)
+                .fetch_one(&mut *tx)
+                .await?
+                .get(0);
+            if held as u64 >= max_per_lab {
+                return Err(StoreError::Cap {
+                    limit: "max_sessions_per_lab",
+                    message: format!(
+                        "lab {:?} holds {held} sessions (limit {max_per_lab}); no new session was created",
+                        new.lab
+                    ),
+                });
+            }
+        }
         let inserted = sqlx::query(
             "INSERT INTO sessions (id, rig, spec_json, channels_json, metadata_json, expected_rows, \
              gt_width, gt_height, gt_transport, created_ms, lab, camera_width, camera_height, sample_format, directions_json) \
@@ -212,10 +245,11 @@ impl Store {
         .bind(new.camera.map(|c| c.height as i64))
         .bind(new.camera.map(|c| c.format).unwrap_or(SampleFormat::F64).name())
         .bind(serde_json::to_string(&new.directions).expect("json"))
-        .execute(&self.pool)
+        .execute(&mut *tx)
         .await?
         .rows_affected()
             == 1;
+        tx.commit().await?;
         let existing = self
             .get_session(&new.id)
             .await?

@@ -52,7 +52,7 @@ async fn create_is_idempotent_and_conflicts_name_the_field() {
 }
 
 #[tokio::test]
-async fn appends_skip_overlap_reject_gaps_and_read_back_exactly() {
+async fn appends_compare_overlap_reject_gaps_and_read_back_exactly() {
     let (_d, s) = store().await;
     s.create_session(&new_session("s", 10)).await.unwrap();
     let out = s.append_rows("s", 0, 2, &rows(0, 4)).await.unwrap();
@@ -61,7 +61,7 @@ async fn appends_skip_overlap_reject_gaps_and_read_back_exactly() {
         AppendOutcome {
             committed_rows: 4,
             written: 4,
-            skipped: 0
+            matched: 0
         }
     );
     // Overlap: rows 2..6, of which 2 and 3 are already there.
@@ -71,7 +71,7 @@ async fn appends_skip_overlap_reject_gaps_and_read_back_exactly() {
         AppendOutcome {
             committed_rows: 6,
             written: 2,
-            skipped: 2
+            matched: 2
         }
     );
     // Entirely old.
@@ -81,7 +81,7 @@ async fn appends_skip_overlap_reject_gaps_and_read_back_exactly() {
         AppendOutcome {
             committed_rows: 6,
             written: 0,
-            skipped: 3
+            matched: 3
         }
     );
     // Gap.
@@ -415,4 +415,186 @@ async fn upgrading_a_database_keeps_its_sessions_and_jobs_in_the_default_lab() {
         s.claim_job("w", 60_000, 0).await.unwrap().is_some(),
         "the queued job still runs"
     );
+}
+
+#[tokio::test]
+async fn an_overlap_that_differs_is_refused_and_stores_nothing() {
+    let (_d, s) = store().await;
+    s.create_session(&new_session("s", 10)).await.unwrap();
+    s.append_rows("s", 0, 2, &rows(0, 6)).await.unwrap();
+    // Rows 4..8: row 5 differs in its second value; rows 6 and 7 would be new.
+    let mut sent = rows(4, 4);
+    sent[3] = 99.0;
+    let err = s.append_rows("s", 4, 2, &sent).await.unwrap_err();
+    match &err {
+        StoreError::RowMismatch {
+            row,
+            byte,
+            start,
+            end,
+            ..
+        } => assert_eq!((*row, *byte / 8, *start, *end), (5, 1, 4, 8), "{err}"),
+        other => panic!("expected a mismatch, got {other}"),
+    }
+    assert!(err.to_string().contains("row 5 of session"), "{err}");
+    // Nothing of the chunk was stored: the count and the bytes are the earlier ones.
+    assert_eq!(s.session("s").await.unwrap().committed_rows, 6);
+    let all: Vec<f64> = s
+        .read_chunks("s", 0, 100)
+        .await
+        .unwrap()
+        .into_iter()
+        .flat_map(|(_, v)| v)
+        .collect();
+    assert_eq!(all, rows(0, 6));
+    // The same rows, equal, spanning two stored chunks and past the end: matched, then written.
+    s.append_rows("s", 6, 2, &rows(6, 1)).await.unwrap();
+    let out = s.append_rows("s", 3, 2, &rows(3, 6)).await.unwrap();
+    assert_eq!(
+        out,
+        AppendOutcome {
+            committed_rows: 9,
+            written: 2,
+            matched: 4
+        }
+    );
+    // -0.0 and 0.0 compare equal as numbers but not as bytes: a row is its bytes.
+    let mut signed = rows(0, 1);
+    signed[0] = -0.0;
+    assert!(matches!(
+        s.append_rows("s", 0, 2, &signed).await,
+        Err(StoreError::RowMismatch { row: 0, .. })
+    ));
+}
+
+#[tokio::test]
+async fn a_finished_session_refuses_new_rows_but_confirms_equal_ones() {
+    let (_d, s) = store().await;
+    s.create_session(&new_session("s", 4)).await.unwrap();
+    s.append_rows("s", 0, 2, &rows(0, 4)).await.unwrap();
+    s.finish_session("s").await.unwrap();
+    let out = s.append_rows("s", 1, 2, &rows(1, 3)).await.unwrap();
+    assert_eq!((out.written, out.matched), (0, 3));
+    let mut other = rows(1, 3);
+    other[0] = 7.0;
+    assert!(matches!(
+        s.append_rows("s", 1, 2, &other).await,
+        Err(StoreError::RowMismatch { row: 1, .. })
+    ));
+    // One row past the spec's end (the spec is complete).
+    assert!(matches!(
+        s.append_rows("s", 4, 2, &rows(4, 1)).await,
+        Err(StoreError::PastEnd { .. })
+    ));
+    let mut longer = new_session("t", 10);
+    longer.id = "t".into();
+    s.create_session(&longer).await.unwrap();
+    s.append_rows("t", 0, 2, &rows(0, 10)).await.unwrap();
+    s.finish_session("t").await.unwrap();
+    assert_eq!(s.session("t").await.unwrap().committed_rows, 10);
+}
+
+#[tokio::test]
+async fn one_writer_lease_per_session_with_fencing() {
+    use std::time::Duration;
+    let (_d, s) = store().await;
+    s.create_session(&new_session("s", 10)).await.unwrap();
+    let ttl = Duration::from_millis(300);
+    let lease = |holder: &str| WriterLease {
+        session_id: "s".into(),
+        holder: holder.into(),
+        ttl,
+    };
+    let (a, b) = (lease("a"), lease("b"));
+    assert!(s.acquire_writer("s", "a", ttl).await.unwrap());
+    assert!(!s.acquire_writer("s", "b", ttl).await.unwrap(), "held by a");
+    assert!(
+        s.acquire_writer("s", "a", ttl).await.unwrap(),
+        "a renews its own"
+    );
+    let blob =
+        |r: u64, n: u64| -> Vec<u8> { rows(r, n).iter().flat_map(|v| v.to_le_bytes()).collect() };
+    s.append_raw("s", Some(&a), 0, 16, &blob(0, 2))
+        .await
+        .unwrap();
+    // b holds no lease: fenced off.
+    assert!(matches!(
+        s.append_raw("s", Some(&b), 2, 16, &blob(2, 2)).await,
+        Err(StoreError::WriterLost(_))
+    ));
+    // a falls silent past its ttl; b takes the session; a's next append is refused.
+    tokio::time::sleep(ttl + Duration::from_millis(100)).await;
+    assert!(
+        s.acquire_writer("s", "b", ttl).await.unwrap(),
+        "a's lease expired"
+    );
+    assert!(!s.renew_writer(&a).await.unwrap());
+    assert!(matches!(
+        s.append_raw("s", Some(&a), 2, 16, &blob(2, 2)).await,
+        Err(StoreError::WriterLost(_))
+    ));
+    s.append_raw("s", Some(&b), 2, 16, &blob(2, 2))
+        .await
+        .unwrap();
+    // Releasing is the holder's only: a's release leaves b's lease.
+    s.release_writer(&a).await.unwrap();
+    assert!(!s.acquire_writer("s", "c", ttl).await.unwrap());
+    s.release_writer(&b).await.unwrap();
+    assert!(s.acquire_writer("s", "c", ttl).await.unwrap());
+    assert_eq!(s.session("s").await.unwrap().committed_rows, 4);
+}
+
+#[tokio::test]
+async fn lab_caps_hold_under_concurrent_callers() {
+    let (_d, s) = store().await;
+    let creates: Vec<_> = (0..30)
+        .map(|i| {
+            let s = s.clone();
+            tokio::spawn(async move {
+                s.create_session_capped(&lab_session("a", &format!("s{i}")), 3)
+                    .await
+            })
+        })
+        .collect();
+    let mut created = 0;
+    for t in creates {
+        match t.await.unwrap() {
+            Ok((_, true)) => created += 1,
+            Ok((_, false)) => panic!("every id is new"),
+            Err(StoreError::Cap { limit, message }) => {
+                assert_eq!(limit, "max_sessions_per_lab");
+                assert!(message.contains("limit 3"), "{message}");
+            }
+            Err(e) => panic!("{e}"),
+        }
+    }
+    assert_eq!(created, 3);
+    assert_eq!(s.count_sessions("a").await.unwrap(), 3);
+    // An existing id is still returned at the cap (creation is idempotent).
+    let first = s.list_sessions("a", 10).await.unwrap()[0].id.clone();
+    let (_, created_again) = s
+        .create_session_capped(&lab_session("a", &first), 3)
+        .await
+        .unwrap();
+    assert!(!created_again);
+
+    let requests: Vec<_> = (0..50)
+        .map(|_| {
+            let (s, id) = (s.clone(), first.clone());
+            tokio::spawn(async move {
+                s.enqueue_reconstruction_capped("a", &id, "gi", "{}", 0, 3, 5)
+                    .await
+            })
+        })
+        .collect();
+    let mut accepted = 0;
+    for t in requests {
+        match t.await.unwrap() {
+            Ok(_) => accepted += 1,
+            Err(StoreError::Cap { limit, .. }) => assert_eq!(limit, "max_pending_jobs_per_lab"),
+            Err(e) => panic!("{e}"),
+        }
+    }
+    assert_eq!(accepted, 5);
+    assert_eq!(s.pending_jobs_for_lab("a").await.unwrap(), 5);
 }
