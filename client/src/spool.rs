@@ -161,11 +161,34 @@ fn fsync_dir(dir: &Path) -> anyhow::Result<()> {
         .with_context(|| format!("fsync of directory {}", dir.display()))
 }
 
+/// Opens `path` for writing, created readable and writable by its owner only (0600): the spool
+/// holds a lab's measurements.
+fn private_file(path: &Path, truncate: bool) -> std::io::Result<File> {
+    let mut options = OpenOptions::new();
+    options.write(true).create(true).truncate(truncate);
+    #[cfg(unix)]
+    std::os::unix::fs::OpenOptionsExt::mode(&mut options, 0o600);
+    options.open(path)
+}
+
+/// Creates `dir` (and its parents) if missing and makes it its owner's only (0700), whatever it
+/// was before.
+fn private_dir(dir: &Path) -> anyhow::Result<()> {
+    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        std::fs::set_permissions(dir, std::fs::Permissions::from_mode(0o700))
+            .with_context(|| format!("making {} private (0700)", dir.display()))?;
+    }
+    Ok(())
+}
+
 /// Writes `bytes` to `dir/name` atomically and durably: temp file, fsync, rename, fsync of `dir`.
 fn write_durably(dir: &Path, name: &str, bytes: &[u8]) -> anyhow::Result<()> {
     let tmp = dir.join(format!(".{name}.tmp"));
     let path = dir.join(name);
-    let mut f = File::create(&tmp).with_context(|| format!("creating {}", tmp.display()))?;
+    let mut f = private_file(&tmp, true).with_context(|| format!("creating {}", tmp.display()))?;
     f.write_all(bytes)
         .and_then(|_| f.sync_all())
         .with_context(|| format!("writing {}", tmp.display()))?;
@@ -436,13 +459,13 @@ impl SpoolDir {
         session.validate()?;
         let request = session.to_request();
         let dir = self.session_dir(&session.session_id);
-        std::fs::create_dir_all(&self.root)
-            .with_context(|| format!("creating spool {}", self.root.display()))?;
+        private_dir(&self.root)?;
         match std::fs::create_dir(&dir) {
             Ok(()) => fsync_dir(&self.root)?,
             Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {}
             Err(e) => return Err(e).with_context(|| format!("creating {}", dir.display())),
         }
+        private_dir(&dir)?;
         let lock = lock_exclusive(&dir)?;
         if !dir.join(MANIFEST).is_file() {
             let pb = request.encode_to_vec();
@@ -548,11 +571,11 @@ pub struct SpoolInfo {
 
 fn lock_exclusive(dir: &Path) -> anyhow::Result<File> {
     let path = dir.join(LOCK);
-    let file = OpenOptions::new()
-        .create(true)
-        .truncate(false)
-        .read(true)
-        .write(true)
+    let mut options = OpenOptions::new();
+    options.create(true).truncate(false).read(true).write(true);
+    #[cfg(unix)]
+    std::os::unix::fs::OpenOptionsExt::mode(&mut options, 0o600);
+    let file = options
         .open(&path)
         .with_context(|| format!("opening {}", path.display()))?;
     let started = Instant::now();
@@ -834,12 +857,8 @@ impl Spool {
 
     fn start_segment(&self, inner: &mut Inner, first_row: u64) -> anyhow::Result<()> {
         let path = self.dir.join(segment_name(first_row));
-        let file = OpenOptions::new()
-            .create(true)
-            .truncate(true)
-            .write(true)
-            .open(&path)
-            .with_context(|| format!("creating {}", path.display()))?;
+        let file =
+            private_file(&path, true).with_context(|| format!("creating {}", path.display()))?;
         file.sync_all()
             .with_context(|| format!("fsync of {}", path.display()))?;
         fsync_dir(&self.dir)?;
@@ -1054,7 +1073,11 @@ impl Spool {
         let tmp = self.dir.join(format!(".{STATE}.tmp"));
         let ok = serde_json::to_vec_pretty(state)
             .ok()
-            .and_then(|b| std::fs::write(&tmp, b).ok())
+            .and_then(|b| {
+                private_file(&tmp, true)
+                    .and_then(|mut f| f.write_all(&b))
+                    .ok()
+            })
             .and_then(|_| std::fs::rename(&tmp, &path).ok());
         if ok.is_none() {
             tracing::warn!(path = %path.display(), "could not record the upload state");

@@ -610,3 +610,69 @@ fn frame_damage_before_the_last_segment_is_an_error() {
         );
     }
 }
+
+#[cfg(unix)]
+#[test]
+fn the_spool_is_its_owners_only() {
+    use std::os::unix::fs::PermissionsExt;
+    let dir = tempfile::tempdir().unwrap();
+    let root = dir.path().join("spool");
+    // An existing root with wide permissions is narrowed.
+    std::fs::create_dir_all(&root).unwrap();
+    std::fs::set_permissions(&root, std::fs::Permissions::from_mode(0o755)).unwrap();
+    let spools = SpoolDir::new(&root);
+    let spool = spools
+        .create_or_open(&session("perm", 10, 3), false)
+        .unwrap();
+    spool.append(&[1.0, 2.0, 3.0]).unwrap();
+    spool.save_state(&UploadState::default());
+    let mode = |p: &std::path::Path| std::fs::metadata(p).unwrap().permissions().mode() & 0o777;
+    assert_eq!(mode(&root), 0o700);
+    assert_eq!(mode(spool.dir()), 0o700);
+    let mut files = 0;
+    for entry in std::fs::read_dir(spool.dir()).unwrap() {
+        let path = entry.unwrap().path();
+        assert_eq!(mode(&path), 0o600, "{}", path.display());
+        files += 1;
+    }
+    assert!(
+        files >= 5,
+        "manifest, session.pb, lock, a segment, state.json: {files}"
+    );
+}
+
+#[test]
+fn an_empty_spool_starts_where_the_session_continues() {
+    let dir = tempfile::tempdir().unwrap();
+    let spools = SpoolDir::new(dir.path());
+    let spool = spools
+        .create_or_open(&session("cont", 10, 2), false)
+        .unwrap();
+    assert!(spool.is_empty());
+    spool.start_at(6).unwrap();
+    assert_eq!((spool.base_row(), spool.rows()), (6, 6));
+    assert!(spool.start_at(11).is_err(), "past the spec's 10 rows");
+    spool.append(&rows(6, 2, 2)).unwrap();
+    assert_eq!(spool.read(6, 8).unwrap(), rows(6, 2, 2));
+    let err = spool.start_at(0).unwrap_err().to_string();
+    assert!(err.contains("its next row is 8"), "{err}");
+    drop(spool);
+    // Durable: a reopened spool continues at row 8.
+    let spool = spools.open("cont").unwrap();
+    assert_eq!((spool.base_row(), spool.rows()), (6, 8));
+    assert_eq!(
+        spool.confirmed_rows(),
+        6,
+        "rows below the start are on the server"
+    );
+    spool.save_state(&UploadState {
+        confirmed_rows: Some(7),
+        ..Default::default()
+    });
+    assert_eq!(spool.confirmed_rows(), 7);
+    spool.save_state(&UploadState {
+        confirmed_rows: Some(99),
+        ..Default::default()
+    });
+    assert_eq!(spool.confirmed_rows(), 8, "never past the spooled rows");
+}
