@@ -1263,10 +1263,11 @@ pub async fn drain(
                              keep the spool and upload it under a new --session-id, or delete it once you know \
                              which data is right (`helmholtz spool status {id}`)"
                         ),
-                        Some(tonic::Code::FailedPrecondition) => format!(
+                        Some(tonic::Code::FailedPrecondition) => {
                             "the session takes no more rows; the unsent rows stay in the spool until you delete it \
                              or upload them under a new --session-id"
-                        ),
+                                .to_string()
+                        }
                         _ if retryable(&e) => format!("`helmholtz spool upload {id}` resumes"),
                         _ => format!(
                             "retrying cannot help until the cause is fixed; then `helmholtz spool upload {id}`"
