@@ -81,6 +81,23 @@ pub fn retain_freed_memory() -> bool {
     }
 }
 
+/// Gives freed heap pages back to the system (glibc `malloc_trim(0)`), which
+/// [`retain_freed_memory`] otherwise keeps for the next job: called when the last running job of
+/// the process has ended or been cancelled, so an idle server does not sit on a finished job's
+/// peak. A no-op on other C libraries. Returns whether any memory was given back.
+pub fn release_free_memory() -> bool {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    {
+        // SAFETY: malloc_trim only returns free pages of glibc's arenas to the system; it takes
+        // the arena locks itself.
+        unsafe { libc::malloc_trim(0) == 1 }
+    }
+    #[cfg(not(all(target_os = "linux", target_env = "gnu")))]
+    {
+        false
+    }
+}
+
 /// Heap bytes live now (0 when the counting allocator is not installed).
 pub fn live_bytes() -> usize {
     LIVE.load(Ordering::Relaxed)

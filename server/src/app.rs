@@ -104,11 +104,13 @@ impl Application {
                 lease: config.lease,
                 max_running_per_lab: config.limits.max_running_jobs_per_lab,
                 memory_budget: config.worker_memory,
+                process_memory: config.limits.memory_budget,
                 ..PoolConfig::default()
             },
         );
         let state = AppState::new(store.clone(), workers.notifier(), config.limits.clone())
-            .with_transport_cache(config.transport_cache);
+            .with_transport_cache(config.transport_cache)
+            .with_transport_memory(config.worker_memory as u64);
         let (health_reporter, health_service) = tonic_health::server::health_reporter();
         health_reporter
             .set_serving::<AcquisitionServer<AcquisitionService>>()

@@ -102,6 +102,12 @@ struct LimitArgs {
     /// rows it committed stay.
     #[arg(long, default_value_t = Limits::default().upload_idle.as_secs(), value_parser = clap::value_parser!(u64).range(1..))]
     upload_idle_secs: u64,
+    /// Memory the reconstructions running in this process may take together, in MiB [default:
+    /// three quarters of the machine's memory]. A request whose estimate exceeds it is refused
+    /// up front (413 / RESOURCE_EXHAUSTED with the estimate); jobs start only while the running
+    /// ones' estimates leave room.
+    #[arg(long, env = "HELMHOLTZ_MEMORY_BUDGET_MIB", value_parser = clap::value_parser!(u64).range(1..))]
+    memory_budget_mib: Option<u64>,
 }
 
 impl LimitArgs {
@@ -121,6 +127,9 @@ impl LimitArgs {
             rate_burst: self.rate_burst,
             upload_lease: Duration::from_secs(self.upload_lease_secs),
             upload_idle: Duration::from_secs(self.upload_idle_secs),
+            memory_budget: self
+                .memory_budget_mib
+                .map_or_else(crate::limits::default_memory_budget, |m| m << 20),
         }
     }
 }

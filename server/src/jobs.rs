@@ -33,6 +33,9 @@ pub struct PoolConfig {
     /// Working-set budget of one reconstruction of a camera session (frame blocks, solutions,
     /// scratch): the transport solver picks its block of camera pixels to stay within it.
     pub memory_budget: usize,
+    /// Memory all jobs running in this process may take together (their estimates), bytes: a
+    /// worker claims only a job that fits what the running ones leave (any job when none runs).
+    pub process_memory: u64,
 }
 
 impl Default for PoolConfig {
@@ -43,6 +46,7 @@ impl Default for PoolConfig {
             idle_poll: Duration::from_millis(500),
             max_running_per_lab: 0,
             memory_budget: transport::DEFAULT_MEMORY_BUDGET,
+            process_memory: u64::MAX,
         }
     }
 }
@@ -57,6 +61,10 @@ pub struct WorkerPool {
 
 /// The jobs this process is computing, by id, with their cancellation handles.
 type Running = Arc<Mutex<HashMap<i64, Arc<Control>>>>;
+
+/// The memory estimates of the jobs running in this process, summed; held while claiming, so
+/// two workers never both claim into the same room.
+type Reserved = Arc<Mutex<u64>>;
 
 /// Wakes idle workers when a job is queued; stops a running job at once when it is cancelled.
 #[derive(Clone, Debug)]
@@ -84,6 +92,7 @@ impl WorkerPool {
         let stop = Arc::new(AtomicBool::new(false));
         let wake = Arc::new(Notify::new());
         let running: Running = Arc::default();
+        let reserved: Reserved = Arc::default();
         let threads = (0..config.workers)
             .map(|n| {
                 let worker = Worker {
@@ -94,6 +103,7 @@ impl WorkerPool {
                     stop: stop.clone(),
                     wake: wake.clone(),
                     running: running.clone(),
+                    reserved: reserved.clone(),
                 };
                 std::thread::Builder::new()
                     .name(format!("recon-worker-{n}"))
@@ -138,18 +148,53 @@ struct Worker {
     stop: Arc<AtomicBool>,
     wake: Arc<Notify>,
     running: Running,
+    reserved: Reserved,
 }
 
 impl Worker {
+    /// Claims the next job that fits the room the running jobs' estimates leave in the
+    /// process's budget (any job when none runs), and reserves its estimate.
+    fn claim(&self) -> Result<Option<ClaimedJob>, crate::store::StoreError> {
+        let mut reserved = self.reserved.lock().expect("reserved lock");
+        let room = if *reserved == 0 {
+            u64::MAX
+        } else {
+            self.config.process_memory.saturating_sub(*reserved)
+        };
+        let job = self.runtime.block_on(self.store.claim_job_within(
+            &self.id,
+            self.config.lease.as_millis() as i64,
+            self.config.max_running_per_lab,
+            room,
+        ))?;
+        if let Some(job) = &job {
+            *reserved += job.memory_bytes;
+        }
+        Ok(job)
+    }
+
+    /// Gives a finished job's reservation back; the last job out returns freed heap pages to
+    /// the system.
+    fn unreserve(&self, bytes: u64) {
+        let mut reserved = self.reserved.lock().expect("reserved lock");
+        *reserved = reserved.saturating_sub(bytes);
+        let idle = self.running.lock().expect("running lock").is_empty();
+        drop(reserved);
+        if idle {
+            crate::alloc::release_free_memory();
+        }
+        // A job that did not fit may fit now.
+        self.wake.notify_waiters();
+    }
+
     fn run(self) {
-        let lease_ms = self.config.lease.as_millis() as i64;
         while !self.stop.load(Ordering::SeqCst) {
-            match self.runtime.block_on(self.store.claim_job(
-                &self.id,
-                lease_ms,
-                self.config.max_running_per_lab,
-            )) {
-                Ok(Some(job)) => self.run_job(job),
+            match self.claim() {
+                Ok(Some(job)) => {
+                    let memory = job.memory_bytes;
+                    self.run_job(job);
+                    self.unreserve(memory);
+                }
                 Ok(None) => self.idle(),
                 Err(e) => {
                     tracing::error!(worker = %self.id, error = %e, "claiming a job failed");
@@ -224,6 +269,8 @@ impl Worker {
                         json!(crate::alloc::peak_bytes().saturating_sub(heap_base));
                 }
                 report["seconds"] = json!(seconds);
+                // What the request estimated (and the workers reserved) against the budget.
+                report["memory_estimate_bytes"] = json!(job.memory_bytes);
                 let report = report.to_string();
                 self.runtime.block_on(store.complete_reconstruction(
                     id,

@@ -37,6 +37,22 @@ pub struct Limits {
     pub upload_lease: Duration,
     /// An upload stream that sends no chunk for this long is closed (its committed rows stay).
     pub upload_idle: Duration,
+    /// Memory the reconstructions running in this process may take together, bytes: a job whose
+    /// estimate exceeds it is refused when requested; the workers start a job only while the
+    /// estimates of the running ones leave room for it.
+    pub memory_budget: u64,
+}
+
+/// Three quarters of the machine's memory (`MemTotal` of `/proc/meminfo`), else 8 GiB.
+pub fn default_memory_budget() -> u64 {
+    std::fs::read_to_string("/proc/meminfo")
+        .ok()
+        .and_then(|text| {
+            let line = text.lines().find(|l| l.starts_with("MemTotal:"))?;
+            let kib: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+            Some(kib * 1024 / 4 * 3)
+        })
+        .unwrap_or(8 << 30)
 }
 
 impl Default for Limits {
@@ -56,6 +72,7 @@ impl Default for Limits {
             rate_burst: 200.0,
             upload_lease: Duration::from_secs(10),
             upload_idle: Duration::from_secs(60),
+            memory_budget: default_memory_budget(),
         }
     }
 }

@@ -48,6 +48,15 @@ pub enum ApiError {
         limit: &'static str,
         message: String,
     },
+    /// A reconstruction whose estimated memory can never fit the process's budget.
+    #[error(
+        "this reconstruction needs an estimated {} MiB, more than the {} MiB all running \
+         reconstructions may take together (--memory-budget-mib); use fewer rows, a smaller \
+         pattern grid, or a cheaper method",
+        estimate >> 20,
+        budget >> 20
+    )]
+    MemoryBudget { estimate: u64, budget: u64 },
     #[error("internal error")]
     Internal(String),
 }
@@ -75,6 +84,7 @@ impl ApiError {
             ApiError::PermissionDenied(_) => ("permission-denied", "Permission denied"),
             ApiError::ResourceExhausted { .. } => ("resource-exhausted", "Limit reached"),
             ApiError::TooLarge { .. } => ("too-large", "Request too large"),
+            ApiError::MemoryBudget { .. } => ("memory-budget", "Needs more memory than the budget"),
             ApiError::Internal(_) => ("internal", "Internal error"),
         }
     }
@@ -91,7 +101,9 @@ impl ApiError {
             ApiError::Unauthenticated(_) => StatusCode::UNAUTHORIZED,
             ApiError::PermissionDenied(_) => StatusCode::FORBIDDEN,
             ApiError::ResourceExhausted { .. } => StatusCode::TOO_MANY_REQUESTS,
-            ApiError::TooLarge { .. } => StatusCode::PAYLOAD_TOO_LARGE,
+            ApiError::TooLarge { .. } | ApiError::MemoryBudget { .. } => {
+                StatusCode::PAYLOAD_TOO_LARGE
+            }
             ApiError::Internal(_) => StatusCode::INTERNAL_SERVER_ERROR,
         }
     }
@@ -149,6 +161,11 @@ impl IntoResponse for ApiError {
         {
             body["limit"] = json!(limit);
         }
+        if let ApiError::MemoryBudget { estimate, budget } = &self {
+            body["limit"] = json!("memory_budget");
+            body["estimate_bytes"] = json!(estimate);
+            body["limit_bytes"] = json!(budget);
+        }
         let mut response = (status, body.to_string()).into_response();
         let headers = response.headers_mut();
         headers.insert(
@@ -195,7 +212,9 @@ impl From<ApiError> for tonic::Status {
                 }
                 status
             }
-            ApiError::TooLarge { .. } => tonic::Status::resource_exhausted(message),
+            ApiError::TooLarge { .. } | ApiError::MemoryBudget { .. } => {
+                tonic::Status::resource_exhausted(message)
+            }
             ApiError::Internal(_) => tonic::Status::internal(message),
         }
     }

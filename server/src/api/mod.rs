@@ -32,6 +32,8 @@ pub struct AppState {
     pub transports: Arc<relight::TransportCache>,
     /// Relight and primal responses by ETag.
     pub responses: Arc<relight::ResponseCache>,
+    /// The working-set budget of one transport reconstruction (its memory estimate), bytes.
+    pub transport_memory: u64,
 }
 
 /// Holds a session's upload lease (one writer per session, across every server process that
@@ -111,7 +113,14 @@ impl AppState {
             rate: Arc::default(),
             transports: Arc::new(relight::TransportCache::new(2 << 30)),
             responses: Arc::new(relight::ResponseCache::new(64 << 20)),
+            transport_memory: crate::recon::transport::DEFAULT_MEMORY_BUDGET as u64,
         }
+    }
+
+    /// The working-set budget the workers give a transport reconstruction, bytes.
+    pub fn with_transport_memory(mut self, bytes: u64) -> Self {
+        self.transport_memory = bytes;
+        self
     }
 
     /// Keeps at most `bytes` of decoded transport matrices in memory.
@@ -229,7 +238,7 @@ impl AppState {
         method: &str,
         params: &Value,
     ) -> Result<ReconstructionRow, ApiError> {
-        let (name, params_json) = if method == "transport" {
+        let (name, params_json, memory) = if method == "transport" {
             let config = TransportConfig::parse(params)
                 .map_err(|e| ApiError::invalid(e.field.clone(), e.message.clone()))?;
             let session = self.own_session(caller, session_id).await?;
@@ -243,7 +252,8 @@ impl AppState {
                     "session {session_id:?} has no frames yet"
                 )));
             }
-            ("transport", config.params_json())
+            // The solver sizes its blocks of camera pixels to stay within this.
+            ("transport", config.params_json(), self.transport_memory)
         } else {
             let config = MethodConfig::parse(method, params)
                 .map_err(|e| ApiError::invalid(e.field.clone(), e.message.clone()))?;
@@ -261,8 +271,18 @@ impl AppState {
             config
                 .check(&problem)
                 .map_err(|e| ApiError::FailedPrecondition(e.to_string()))?;
-            (config.name(), config.params_json())
+            (
+                config.name(),
+                config.params_json(),
+                config.memory_estimate(&problem),
+            )
         };
+        if memory > self.limits.memory_budget {
+            return Err(ApiError::MemoryBudget {
+                estimate: memory,
+                budget: self.limits.memory_budget,
+            });
+        }
         let session = self.own_session(caller, session_id).await?;
         let row = self
             .store
@@ -274,6 +294,7 @@ impl AppState {
                 session.committed_rows,
                 3,
                 self.limits.max_pending_jobs_per_lab,
+                memory,
             )
             .await?;
         self.jobs.job_queued();

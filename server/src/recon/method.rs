@@ -491,6 +491,52 @@ impl MethodConfig {
     }
 
     /// Whether this method can run on `problem` at all; the error says why not.
+    /// An upper bound on the heap a reconstruction of `problem` with this method takes, in bytes:
+    /// image-sized vectors (per channel) times a per-method count, plus the pattern operator where
+    /// it is stored (Bernoulli bits and their tables, speckle values), plus the buckets.
+    ///
+    /// The counts are the upper envelope of the peaks the counting allocator measured over the
+    /// full benchmark grid (`docs/benchmarks.json`: 2,682 reconstructions, 32x32 to 256x256, 1 %
+    /// to 400 % rows; e.g. Bernoulli `auto` at most 48 vectors + 4.7 kn/8 bytes, Hadamard `auto`
+    /// 56 vectors), with a quarter more as margin; `tests/tests/memory.rs` checks the bound
+    /// against the peaks the real server reports.
+    pub fn memory_estimate(&self, problem: &Problem) -> u64 {
+        const MIB: f64 = (1u64 << 20) as f64;
+        let n = problem.spec.pixels() as f64;
+        let k = problem.rows as f64;
+        let ch = problem.channels.max(1) as f64;
+        let vector = 8.0 * n;
+        // (vectors per channel, whether the solver builds the pattern operator)
+        let (vectors, operator) = match self {
+            MethodConfig::Gi | MethodConfig::Dgi | MethodConfig::Ngi => (10.0, false),
+            MethodConfig::Direct | MethodConfig::ZeroFilled | MethodConfig::Levels { .. } => {
+                (4.0, false)
+            }
+            MethodConfig::Lsq { .. } | MethodConfig::Cs { .. } | MethodConfig::Tv { .. } => {
+                (40.0, true)
+            }
+            MethodConfig::Auto { .. } => (60.0, true),
+        };
+        let operator_bytes = if !operator {
+            0.0
+        } else {
+            match problem.spec.family() {
+                // Packed bits, their transpose and the product kernels' tables.
+                Family::Bernoulli { .. } => 5.0 * k * n / 8.0,
+                // One f32 per pattern cell, and a cell index per pixel.
+                Family::Speckle { grain } => {
+                    let g = (*grain).max(1) as f64;
+                    2.0 * (k * (n / (g * g)).ceil() * 4.0 + n * 4.0)
+                }
+                // Fast transforms and index lists: no stored matrix.
+                Family::Hadamard { .. } | Family::Raster { .. } => 16.0 * k,
+            }
+        };
+        let buckets = 16.0 * k * ch;
+        let bytes = 1.25 * (vectors * vector * ch + operator_bytes + buckets) + 4.0 * MIB;
+        bytes.min(u64::MAX as f64) as u64
+    }
+
     pub fn check(&self, problem: &Problem) -> Result<(), ReconError> {
         if problem.rows == 0 {
             return Err(ReconError::Unsolvable(

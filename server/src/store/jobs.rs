@@ -38,6 +38,8 @@ pub struct ReconstructionRow {
 pub struct ClaimedJob {
     pub id: i64,
     pub attempt: i64,
+    /// The job's estimated peak memory, bytes (reserved against the process's budget).
+    pub memory_bytes: u64,
     pub reconstruction: ReconstructionRow,
 }
 
@@ -93,13 +95,15 @@ impl Store {
             rows_used,
             max_attempts,
             u64::MAX,
+            0,
         )
         .await
     }
 
     /// [`Store::enqueue_reconstruction`] unless the lab already has `max_pending` jobs queued or
     /// running ([`StoreError::Cap`]): the count and the insert are one transaction, so
-    /// concurrent requests never pass the cap together.
+    /// concurrent requests never pass the cap together. `memory_bytes`: the job's estimated
+    /// peak memory, which a worker must have room for to claim it.
     #[allow(clippy::too_many_arguments)]
     pub async fn enqueue_reconstruction_capped(
         &self,
@@ -110,6 +114,7 @@ impl Store {
         rows_used: u64,
         max_attempts: u32,
         max_pending: u64,
+        memory_bytes: u64,
     ) -> Result<ReconstructionRow, StoreError> {
         let now = now_ms();
         let mut tx = self.pool.begin_with("BEGIN IMMEDIATE").await?;
@@ -129,12 +134,13 @@ impl Store {
             });
         }
         let id: i64 = sqlx::query(
-            "INSERT INTO jobs (kind, state, run_at_ms, max_attempts, created_ms, lab) \
-             VALUES ('reconstruction', 'queued', $1, $2, $1, $3) RETURNING id",
+            "INSERT INTO jobs (kind, state, run_at_ms, max_attempts, created_ms, lab, memory_bytes) \
+             VALUES ('reconstruction', 'queued', $1, $2, $1, $3, $4) RETURNING id",
         )
         .bind(now)
         .bind(max_attempts as i64)
         .bind(lab)
+        .bind(memory_bytes.min(i64::MAX as u64) as i64)
         .fetch_one(&mut *tx)
         .await?
         .get(0);
@@ -212,6 +218,19 @@ impl Store {
         lease_ms: i64,
         max_running_per_lab: u32,
     ) -> Result<Option<ClaimedJob>, StoreError> {
+        self.claim_job_within(worker_id, lease_ms, max_running_per_lab, u64::MAX)
+            .await
+    }
+
+    /// [`Store::claim_job`] among the jobs whose memory estimate is at most `max_memory` bytes
+    /// (what the claiming process's budget has left).
+    pub async fn claim_job_within(
+        &self,
+        worker_id: &str,
+        lease_ms: i64,
+        max_running_per_lab: u32,
+        max_memory: u64,
+    ) -> Result<Option<ClaimedJob>, StoreError> {
         let now = now_ms();
         let mut tx = self.pool.begin_with("BEGIN IMMEDIATE").await?;
         sqlx::query(
@@ -234,23 +253,26 @@ impl Store {
              WHERE id = (SELECT j.id FROM jobs j JOIN lab_load l ON l.lab = j.lab \
                  WHERE j.run_at_ms <= $1 AND \
                  (j.state = 'queued' OR (j.state = 'running' AND j.lease_until_ms < $1 AND j.attempt < j.max_attempts)) \
-                 AND ($4 <= 0 OR l.running < $4) \
+                 AND ($4 <= 0 OR l.running < $4) AND j.memory_bytes <= $5 \
                  ORDER BY l.running, COALESCE(l.last_start, 0), j.priority DESC, j.run_at_ms, j.id LIMIT 1) \
-             RETURNING id, attempt",
+             RETURNING id, attempt, memory_bytes",
         )
         .bind(now)
         .bind(lease_ms)
         .bind(worker_id)
         .bind(max_running_per_lab as i64)
+        .bind(max_memory.min(i64::MAX as u64) as i64)
         .fetch_optional(&mut *tx)
         .await?;
         tx.commit().await?;
         let Some(row) = claimed else { return Ok(None) };
         let id: i64 = row.get("id");
         let attempt: i64 = row.get("attempt");
+        let memory_bytes: i64 = row.get("memory_bytes");
         Ok(Some(ClaimedJob {
             id,
             attempt,
+            memory_bytes: memory_bytes.max(0) as u64,
             reconstruction: self.reconstruction(id).await?,
         }))
     }

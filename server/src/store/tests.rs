@@ -582,7 +582,7 @@ async fn lab_caps_hold_under_concurrent_callers() {
         .map(|_| {
             let (s, id) = (s.clone(), first.clone());
             tokio::spawn(async move {
-                s.enqueue_reconstruction_capped("a", &id, "gi", "{}", 0, 3, 5)
+                s.enqueue_reconstruction_capped("a", &id, "gi", "{}", 0, 3, 5, 0)
                     .await
             })
         })
@@ -597,4 +597,24 @@ async fn lab_caps_hold_under_concurrent_callers() {
     }
     assert_eq!(accepted, 5);
     assert_eq!(s.pending_jobs_for_lab("a").await.unwrap(), 5);
+}
+
+#[tokio::test]
+async fn claims_skip_jobs_that_do_not_fit_the_memory_left() {
+    let (_d, s) = store().await;
+    s.create_session(&new_session("m", 10)).await.unwrap();
+    let big = s
+        .enqueue_reconstruction_capped("default", "m", "gi", "{}", 10, 3, u64::MAX, 900)
+        .await
+        .unwrap();
+    let small = s
+        .enqueue_reconstruction_capped("default", "m", "gi", "{}", 10, 3, u64::MAX, 100)
+        .await
+        .unwrap();
+    // 500 bytes left: the older, larger job waits; the smaller one is taken.
+    let job = s.claim_job_within("w", 10_000, 0, 500).await.unwrap().unwrap();
+    assert_eq!((job.id, job.memory_bytes), (small.id, 100));
+    assert!(s.claim_job_within("w", 10_000, 0, 500).await.unwrap().is_none());
+    let job = s.claim_job_within("w", 10_000, 0, 900).await.unwrap().unwrap();
+    assert_eq!((job.id, job.memory_bytes), (big.id, 900));
 }

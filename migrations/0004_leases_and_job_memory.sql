@@ -8,3 +8,7 @@ CREATE TABLE upload_leases (
     holder      TEXT NOT NULL,              -- the stream's id: process, time, counter
     expires_ms  INTEGER NOT NULL
 ) WITHOUT ROWID;
+
+-- A job's estimated peak memory (bytes), made when it is requested: a worker claims it only
+-- while its process's running jobs leave that much of the process's memory budget.
+ALTER TABLE jobs ADD COLUMN memory_bytes INTEGER NOT NULL DEFAULT 0;
