@@ -48,6 +48,9 @@ pub enum ApiError {
         limit: &'static str,
         message: String,
     },
+    /// A request body that stopped arriving (`--body-timeout-secs`).
+    #[error("{0}")]
+    Timeout(String),
     #[error("internal error")]
     Internal(String),
 }
@@ -75,6 +78,7 @@ impl ApiError {
             ApiError::PermissionDenied(_) => ("permission-denied", "Permission denied"),
             ApiError::ResourceExhausted { .. } => ("resource-exhausted", "Limit reached"),
             ApiError::TooLarge { .. } => ("too-large", "Request too large"),
+            ApiError::Timeout(_) => ("request-timeout", "Request timeout"),
             ApiError::Internal(_) => ("internal", "Internal error"),
         }
     }
@@ -92,6 +96,7 @@ impl ApiError {
             ApiError::PermissionDenied(_) => StatusCode::FORBIDDEN,
             ApiError::ResourceExhausted { .. } => StatusCode::TOO_MANY_REQUESTS,
             ApiError::TooLarge { .. } => StatusCode::PAYLOAD_TOO_LARGE,
+            ApiError::Timeout(_) => StatusCode::REQUEST_TIMEOUT,
             ApiError::Internal(_) => StatusCode::INTERNAL_SERVER_ERROR,
         }
     }
@@ -190,6 +195,7 @@ impl From<ApiError> for tonic::Status {
                 status
             }
             ApiError::TooLarge { .. } => tonic::Status::resource_exhausted(message),
+            ApiError::Timeout(_) => tonic::Status::deadline_exceeded(message),
             ApiError::Internal(_) => tonic::Status::internal(message),
         }
     }
