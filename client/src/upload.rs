@@ -675,9 +675,11 @@ pub struct CreatedSession {
     pub session: v1::Session,
 }
 
-/// True for ids the server accepts: 1-128 characters of `[A-Za-z0-9._-]`.
+/// True for ids the server accepts: 1-128 characters of `[A-Za-z0-9._-]`, but not `.` or `..`.
 pub fn valid_session_id(id: &str) -> bool {
     (1..=128).contains(&id.len())
+        && id != "."
+        && id != ".."
         && id
             .bytes()
             .all(|b| b.is_ascii_alphanumeric() || matches!(b, b'.' | b'_' | b'-'))
@@ -688,7 +690,7 @@ pub fn valid_session_id(id: &str) -> bool {
 pub async fn create_session(server: &str, session: &NewSession) -> anyhow::Result<CreatedSession> {
     anyhow::ensure!(
         valid_session_id(&session.session_id),
-        "session id {:?} must be 1-128 characters of A-Z a-z 0-9 . _ -",
+        "session id {:?} must be 1-128 characters of A-Z a-z 0-9 . _ - (and not . or ..)",
         session.session_id
     );
     session.validate()?;
