@@ -429,12 +429,22 @@ pub fn connect(server: &str, connect_timeout: Duration) -> anyhow::Result<Grpc> 
     let (server, token) = crate::auth::split_server(server);
     let endpoint = Endpoint::from_shared(server.clone())
         .with_context(|| {
-            format!("invalid server address {server:?} (expected e.g. http://127.0.0.1:8080)")
+            format!(
+                "invalid server address {server:?} (expected e.g. http://127.0.0.1:8080 or https://host:port)"
+            )
         })?
         .connect_timeout(connect_timeout)
         .tcp_nodelay(true)
         .http2_keep_alive_interval(Duration::from_secs(10))
         .keep_alive_timeout(Duration::from_secs(20));
+    // https://: verified against the system roots and the lab's CA (--ca-file, see `tls`).
+    let endpoint = if crate::tls::is_https(&server) {
+        endpoint
+            .tls_config(crate::tls::grpc_config())
+            .context("TLS settings for the gRPC channel")?
+    } else {
+        endpoint
+    };
     let bearer = crate::auth::Bearer::new(token.as_deref())?;
     Ok(
         AcquisitionClient::with_interceptor(endpoint.connect_lazy(), bearer)
