@@ -64,6 +64,31 @@ pub(crate) fn http_roots(
     })
 }
 
+/// True when `error` (or anything in its source chain) is a refused server certificate: an
+/// unknown issuer, a name mismatch, an expired certificate. Waiting does not fix those, so
+/// callers give up at once instead of retrying.
+pub fn is_certificate_error(error: &(dyn std::error::Error + 'static)) -> bool {
+    let mut next = Some(error);
+    while let Some(e) = next {
+        let inner = e
+            .downcast_ref::<std::io::Error>()
+            .and_then(|io| io.get_ref())
+            .map(|i| i as &(dyn std::error::Error + 'static));
+        for candidate in [Some(e), inner].into_iter().flatten() {
+            if let Some(r) = candidate.downcast_ref::<rustls::Error>()
+                && matches!(
+                    r,
+                    rustls::Error::InvalidCertificate(_) | rustls::Error::NoCertificatesPresented
+                )
+            {
+                return true;
+            }
+        }
+        next = e.source();
+    }
+    false
+}
+
 /// A readable cause for a failed connection: the innermost error of the chain names what
 /// went wrong (e.g. "invalid peer certificate: UnknownIssuer"), the outer ones rarely do.
 pub fn root_cause(error: &(dyn std::error::Error + 'static)) -> String {

@@ -475,7 +475,9 @@ where
                 Status::deadline_exceeded(format!("no answer within {:?}", policy.rpc_timeout))
             }
         };
-        if disposition(status.code()) != Disposition::Retry || started.elapsed() >= policy.retry_for
+        if disposition(status.code()) != Disposition::Retry
+            || started.elapsed() >= policy.retry_for
+            || crate::tls::is_certificate_error(&status)
         {
             return Err(RpcError::new(operation, &status).into());
         }

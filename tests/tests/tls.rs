@@ -160,8 +160,22 @@ fn the_client_uploads_and_fetches_over_tls_with_the_labs_ca_and_refuses_without_
         .unwrap();
     ok(out, "status with HELMHOLTZ_CA_FILE");
 
-    // Without the lab's CA: a clear certificate error, for gRPC and for REST.
+    // Without the lab's CA: a clear certificate error at once (not retried), for gRPC (creating
+    // the session) and for REST (status, fetch).
     for args in [
+        &[
+            "simulate",
+            "--scene",
+            "double-slit",
+            "--width",
+            "8",
+            "--height",
+            "8",
+            "--count",
+            "100",
+            "--session-id",
+            "no-ca",
+        ][..],
         &["status", "tls-1"][..],
         &[
             "fetch",
@@ -173,8 +187,15 @@ fn the_client_uploads_and_fetches_over_tls_with_the_labs_ca_and_refuses_without_
             "/dev/null",
         ][..],
     ] {
+        let started = std::time::Instant::now();
         let out = helmholtz(&server, None, args);
         assert!(!out.status.success(), "{args:?} succeeded without the CA");
+        // Transient failures are retried for 60 s; a refused certificate is not one.
+        assert!(
+            started.elapsed() < std::time::Duration::from_secs(30),
+            "{args:?} retried a certificate error for {:?}",
+            started.elapsed()
+        );
         let err = String::from_utf8_lossy(&out.stderr).to_string()
             + &String::from_utf8_lossy(&out.stdout);
         assert!(
