@@ -48,7 +48,8 @@ Every measured row is first written to a durable local spool (--spool DIR, env H
 #[derive(Debug, Parser)]
 #[command(name = "helmholtz", version, about = ABOUT, long_about = LONG_ABOUT)]
 pub struct Cli {
-    /// Server address, for gRPC and REST alike.
+    /// Server address, for gRPC and REST alike (http://host:port, or https://host:port when the
+    /// server runs with --tls-cert).
     #[arg(
         long,
         global = true,
@@ -69,6 +70,10 @@ pub struct Cli {
     /// ~/.local/state/helmholtz/spool].
     #[arg(long, global = true, env = "HELMHOLTZ_SPOOL", value_name = "DIR")]
     pub spool: Option<PathBuf>,
+    /// For an https:// server: also trust this PEM CA certificate (a lab's own CA), besides the
+    /// system's roots.
+    #[arg(long, global = true, env = "HELMHOLTZ_CA_FILE", value_name = "FILE")]
+    pub ca_file: Option<PathBuf>,
     #[command(subcommand)]
     pub command: Command,
 }
@@ -757,6 +762,9 @@ pub async fn run(cli: Cli) -> anyhow::Result<Outcome> {
         None => cli.server.clone(),
     };
     let server = server.as_str();
+    if let Some(ca) = &cli.ca_file {
+        crate::tls::trust_ca_file(ca)?;
+    }
     let spools = SpoolDir::new(cli.spool.clone().unwrap_or_else(spool::default_root));
     match &cli.command {
         Command::Simulate(a) => simulate_cmd(server, &spools, a, progress).await,

@@ -13,7 +13,8 @@
 //! - writes pattern frames as PNGs for a projector or DMD ([`frames`]),
 //! - and is the `helmholtz` command line ([`cli`]).
 //!
-//! One address serves both gRPC and REST (`http://127.0.0.1:8080` by default). Every network
+//! One address serves both gRPC and REST (`http://127.0.0.1:8080` by default; `https://` is
+//! verified against the system roots and a CA trusted with [`tls::trust_ca_file`]). Every network
 //! function takes it as `server: &str`; none keeps state between calls, so they can be called
 //! from tests against a server started on port 0. The lab's access token rides in it as the
 //! URL's user part (`http://hz_...@127.0.0.1:8080`, see [`auth::with_token`]) and is sent as a
@@ -49,6 +50,7 @@ pub mod rest;
 pub mod scene;
 pub mod simulate;
 pub mod spool;
+pub mod tls;
 pub mod upload;
 
 pub use helmholtz_proto::PatternSpec;

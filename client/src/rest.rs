@@ -130,9 +130,10 @@ impl From<v1::Reconstruction> for Reconstruction {
 }
 
 fn http() -> anyhow::Result<reqwest::Client> {
-    reqwest::Client::builder()
+    let builder = reqwest::Client::builder()
         .connect_timeout(Duration::from_secs(5))
-        .timeout(Duration::from_secs(300))
+        .timeout(Duration::from_secs(300));
+    crate::tls::http_roots(builder)?
         .build()
         .context("building the HTTP client")
 }

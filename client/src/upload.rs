@@ -438,12 +438,22 @@ pub fn connect(server: &str, connect_timeout: Duration) -> anyhow::Result<Grpc> 
     let (server, token) = crate::auth::split_server(server);
     let endpoint = Endpoint::from_shared(server.clone())
         .with_context(|| {
-            format!("invalid server address {server:?} (expected e.g. http://127.0.0.1:8080)")
+            format!(
+                "invalid server address {server:?} (expected e.g. http://127.0.0.1:8080 or https://host:port)"
+            )
         })?
         .connect_timeout(connect_timeout)
         .tcp_nodelay(true)
         .http2_keep_alive_interval(Duration::from_secs(10))
         .keep_alive_timeout(Duration::from_secs(20));
+    // https://: verified against the system roots and the lab's CA (--ca-file, see `tls`).
+    let endpoint = if crate::tls::is_https(&server) {
+        endpoint
+            .tls_config(crate::tls::grpc_config())
+            .context("TLS settings for the gRPC channel")?
+    } else {
+        endpoint
+    };
     let bearer = crate::auth::Bearer::new(token.as_deref())?;
     Ok(
         AcquisitionClient::with_interceptor(endpoint.connect_lazy(), bearer)
@@ -474,7 +484,9 @@ where
                 Status::deadline_exceeded(format!("no answer within {:?}", policy.rpc_timeout))
             }
         };
-        if disposition(status.code()) != Disposition::Retry || started.elapsed() >= policy.retry_for
+        if disposition(status.code()) != Disposition::Retry
+            || started.elapsed() >= policy.retry_for
+            || crate::tls::is_certificate_error(&status)
         {
             return Err(RpcError::new(operation, &status).into());
         }
@@ -684,9 +696,11 @@ pub struct CreatedSession {
     pub session: v1::Session,
 }
 
-/// True for ids the server accepts: 1-128 characters of `[A-Za-z0-9._-]`.
+/// True for ids the server accepts: 1-128 characters of `[A-Za-z0-9._-]`, but not `.` or `..`.
 pub fn valid_session_id(id: &str) -> bool {
     (1..=128).contains(&id.len())
+        && id != "."
+        && id != ".."
         && id
             .bytes()
             .all(|b| b.is_ascii_alphanumeric() || matches!(b, b'.' | b'_' | b'-'))
@@ -697,7 +711,7 @@ pub fn valid_session_id(id: &str) -> bool {
 pub async fn create_session(server: &str, session: &NewSession) -> anyhow::Result<CreatedSession> {
     anyhow::ensure!(
         valid_session_id(&session.session_id),
-        "session id {:?} must be 1-128 characters of A-Z a-z 0-9 . _ -",
+        "session id {:?} must be 1-128 characters of A-Z a-z 0-9 . _ - (and not . or ..)",
         session.session_id
     );
     session.validate()?;

@@ -18,6 +18,7 @@ use tower_http::trace::TraceLayer;
 
 use crate::api::grpc::AcquisitionService;
 use crate::api::{AppState, rest};
+use crate::edge::EdgeConfig;
 use crate::jobs::{PoolConfig, WorkerPool};
 use crate::limits::Limits;
 use crate::store::Store;
@@ -41,6 +42,8 @@ pub struct Config {
     pub worker_memory: usize,
     /// Decoded transport matrices kept in memory for relighting, bytes.
     pub transport_cache: usize,
+    /// Timeouts, the connection cap, the shutdown deadline, TLS and CORS.
+    pub edge: EdgeConfig,
 }
 
 impl Default for Config {
@@ -56,6 +59,7 @@ impl Default for Config {
             worker_memory: crate::recon::transport::DEFAULT_MEMORY_BUDGET,
             transport_cache: 2 << 30,
             metrics_listen: None,
+            edge: EdgeConfig::default(),
         }
     }
 }
@@ -67,6 +71,8 @@ pub struct Application {
     router: Router,
     workers: WorkerPool,
     store: Store,
+    edge: EdgeConfig,
+    tls: Option<tokio_rustls::TlsAcceptor>,
     metrics: Option<(
         tokio::net::TcpListener,
         SocketAddr,
@@ -76,6 +82,15 @@ pub struct Application {
 
 impl Application {
     pub async fn build(config: Config) -> anyhow::Result<Application> {
+        // Before binding: a bad certificate or key is refused with nothing listening.
+        let tls = config
+            .edge
+            .tls
+            .as_ref()
+            .map(crate::edge::tls_acceptor)
+            .transpose()?;
+        let mut edge = config.edge.clone();
+        edge.max_connections = crate::edge::connection_cap(edge.max_connections);
         let listener = tokio::net::TcpListener::bind(config.listen)
             .await
             .with_context(|| {
@@ -116,7 +131,12 @@ impl Application {
             .set_serving::<AcquisitionServer<AcquisitionService>>()
             .await;
         let acquisition = AcquisitionService::new(state.clone()).into_server();
-        let router = rest::router(state)
+        // REST bodies that stop arriving fail with 408 (gRPC streams are not cut here).
+        let rest = rest::router(state).layer(axum::middleware::from_fn_with_state(
+            edge.body_timeout,
+            crate::edge::body_timeout,
+        ));
+        let router = rest
             .route_service(&format!("/{}/{{*rpc}}", <AcquisitionServer<AcquisitionService> as NamedService>::NAME), grpc_route(acquisition))
             .route_service(&format!("/{}/{{*rpc}}", health_name(&health_service)), grpc_route(health_service))
             .layer(axum::middleware::from_fn(crate::telemetry::record_latency))
@@ -132,13 +152,20 @@ impl Application {
                     .to_string();
                 tracing::info_span!("request", request_id = %id, method = %request.method(), path = %request.uri().path())
             }))
-            .layer(SetRequestIdLayer::x_request_id(MakeRequestUuid));
+            .layer(SetRequestIdLayer::x_request_id(MakeRequestUuid))
+            .layer(axum::middleware::map_response(nosniff));
+        let router = match cors(&edge.cors_origins)? {
+            Some(layer) => router.layer(layer),
+            None => router,
+        };
         Ok(Application {
             listener,
             addr,
             router,
             workers,
             store,
+            edge,
+            tls,
             metrics,
         })
     }
@@ -147,9 +174,10 @@ impl Application {
         self.addr
     }
 
-    /// `http://host:port`: the address for the client's `--server`.
+    /// `http://host:port` (`https://` with TLS): the address for the client's `--server`.
     pub fn base_url(&self) -> String {
-        format!("http://{}", self.addr)
+        let scheme = if self.tls.is_some() { "https" } else { "http" };
+        format!("{scheme}://{}", self.addr)
     }
 
     /// `http://host:port/metrics` when metrics are served.
@@ -165,7 +193,8 @@ impl Application {
 
     /// Serves until `shutdown` resolves, then: stops accepting connections and lets requests
     /// in flight finish (an upload stream commits every chunk it has received; the client
-    /// resumes the rest elsewhere or later), stops the workers (running jobs stop at their next
+    /// resumes the rest elsewhere or later) until the shutdown deadline, when every connection
+    /// still open is cut (idle upload streams included), stops the workers (running jobs stop at their next
     /// check and give their lease back without spending an attempt), and closes the database.
     pub async fn run_until(
         self,
@@ -177,6 +206,8 @@ impl Application {
             workers,
             store,
             metrics,
+            edge,
+            tls,
             ..
         } = self;
         let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
@@ -191,9 +222,7 @@ impl Application {
                 },
             ))
         });
-        axum::serve(listener, router)
-            .with_graceful_shutdown(shutdown)
-            .await?;
+        crate::edge::serve(listener, router, &edge, tls, shutdown).await;
         tracing::info!("no longer serving; stopping the workers");
         let _ = stop_tx.send(true);
         tokio::task::spawn_blocking(move || workers.shutdown()).await?;
@@ -204,6 +233,51 @@ impl Application {
         tracing::info!("shut down cleanly");
         Ok(())
     }
+}
+
+/// Every HTTP response: browsers must not guess a content type other than the one we send.
+async fn nosniff(mut response: axum::response::Response) -> axum::response::Response {
+    response.headers_mut().insert(
+        http::header::X_CONTENT_TYPE_OPTIONS,
+        http::HeaderValue::from_static("nosniff"),
+    );
+    response
+}
+
+/// CORS: none unless origins are configured (`--cors-origin`), then exactly those origins.
+fn cors(origins: &[String]) -> anyhow::Result<Option<tower_http::cors::CorsLayer>> {
+    use http::{HeaderName, HeaderValue, Method, header};
+    if origins.is_empty() {
+        return Ok(None);
+    }
+    let allowed = origins
+        .iter()
+        .map(|o| {
+            let o = o.trim_end_matches('/');
+            let host = o
+                .strip_prefix("https://")
+                .or_else(|| o.strip_prefix("http://"));
+            anyhow::ensure!(
+                host.is_some_and(|h| !h.is_empty() && !h.contains('/')),
+                "--cors-origin {o:?}: expected an origin such as https://lab.example.org"
+            );
+            HeaderValue::from_str(o)
+                .map_err(|_| anyhow::anyhow!("--cors-origin {o:?}: not a valid header value"))
+        })
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    Ok(Some(
+        tower_http::cors::CorsLayer::new()
+            .allow_origin(allowed)
+            .allow_methods([Method::GET, Method::POST, Method::DELETE])
+            .allow_headers([
+                header::AUTHORIZATION,
+                header::CONTENT_TYPE,
+                header::IF_NONE_MATCH,
+                HeaderName::from_static("x-request-id"),
+            ])
+            .expose_headers([header::ETAG, HeaderName::from_static("x-request-id")])
+            .max_age(Duration::from_secs(600)),
+    ))
 }
 
 fn health_name<S: NamedService>(_: &S) -> &'static str {

@@ -8,6 +8,7 @@ use clap::{Parser, Subcommand};
 
 use crate::app::{Application, Config};
 use crate::auth::Roles;
+use crate::edge::{EdgeConfig, TlsFiles};
 use crate::limits::Limits;
 
 #[derive(Parser, Debug)]
@@ -53,6 +54,70 @@ struct ServeArgs {
     metrics_listen: Option<SocketAddr>,
     #[command(flatten)]
     limits: LimitArgs,
+    #[command(flatten)]
+    edge: EdgeArgs,
+}
+
+/// The network edge: timeouts, the connection cap, the shutdown deadline, TLS and CORS
+/// (docs/security.md).
+#[derive(clap::Args, Debug, Clone)]
+struct EdgeArgs {
+    /// Seconds a connection has to send a complete request head (the first one counted from
+    /// accept, TLS handshake and HTTP/2 preface included); slower connections are closed.
+    #[arg(long, env = "HELMHOLTZ_HEADER_TIMEOUT_SECS", default_value_t = 10, value_parser = clap::value_parser!(u64).range(1..))]
+    header_timeout_secs: u64,
+    /// Seconds a REST request body may pause before the request fails with 408 (gRPC upload
+    /// streams are not affected).
+    #[arg(long, env = "HELMHOLTZ_BODY_TIMEOUT_SECS", default_value_t = 30, value_parser = clap::value_parser!(u64).range(1..))]
+    body_timeout_secs: u64,
+    /// Most connections open at once; further ones wait to be accepted (logged). Lowered to fit
+    /// under the open-file limit.
+    #[arg(long, env = "HELMHOLTZ_MAX_CONNECTIONS", default_value_t = 1024, value_parser = clap::value_parser!(u64).range(1..))]
+    max_connections: u64,
+    /// On SIGTERM/Ctrl-C: seconds requests in flight may take to finish before every connection
+    /// still open (idle upload streams included) is cut and the server exits.
+    #[arg(long, env = "HELMHOLTZ_SHUTDOWN_DEADLINE_SECS", default_value_t = 10)]
+    shutdown_deadline_secs: u64,
+    /// PEM certificate chain: serve REST and gRPC over TLS (https://, ALPN h2 and http/1.1) on
+    /// the same address. Needs --tls-key.
+    #[arg(
+        long,
+        env = "HELMHOLTZ_TLS_CERT",
+        value_name = "FILE",
+        requires = "tls_key"
+    )]
+    tls_cert: Option<PathBuf>,
+    /// PEM private key (PKCS#8, PKCS#1 or SEC1) of --tls-cert.
+    #[arg(
+        long,
+        env = "HELMHOLTZ_TLS_KEY",
+        value_name = "FILE",
+        requires = "tls_cert"
+    )]
+    tls_key: Option<PathBuf>,
+    /// Allow browser pages from this origin (e.g. https://viewer.lab.example) to call the REST
+    /// API (CORS). Repeat for several. Without it no CORS headers are sent.
+    #[arg(long = "cors-origin", value_name = "ORIGIN")]
+    cors_origins: Vec<String>,
+}
+
+impl EdgeArgs {
+    fn edge(&self) -> EdgeConfig {
+        EdgeConfig {
+            header_timeout: Duration::from_secs(self.header_timeout_secs),
+            body_timeout: Duration::from_secs(self.body_timeout_secs),
+            max_connections: usize::try_from(self.max_connections).unwrap_or(usize::MAX),
+            shutdown_deadline: Duration::from_secs(self.shutdown_deadline_secs),
+            tls: match (&self.tls_cert, &self.tls_key) {
+                (Some(cert), Some(key)) => Some(TlsFiles {
+                    cert: cert.clone(),
+                    key: key.clone(),
+                }),
+                _ => None,
+            },
+            cors_origins: self.cors_origins.clone(),
+        }
+    }
 }
 
 /// Caps; each refusal names its limit.
@@ -203,6 +268,7 @@ impl ServeArgs {
             metrics_listen: self.metrics_listen,
             worker_memory: (self.worker_memory_mib as usize) << 20,
             transport_cache: (self.transport_cache_mib as usize) << 20,
+            edge: self.edge.edge(),
             ..Config::default()
         };
         if let Some(w) = self.workers {

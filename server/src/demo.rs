@@ -57,6 +57,13 @@ fn rigs() -> Vec<DemoRig> {
 pub const DEMO_LAB: &str = "demo";
 
 pub async fn run(config: Config, exit_after_demo: bool) -> anyhow::Result<()> {
+    // With --tls-cert the simulated rig connects over https: it trusts the system's roots and
+    // the CA in HELMHOLTZ_CA_FILE, like the `helmholtz` client.
+    if config.edge.tls.is_some()
+        && let Some(ca) = std::env::var_os("HELMHOLTZ_CA_FILE")
+    {
+        helmholtz_client::tls::trust_ca_file(std::path::Path::new(&ca))?;
+    }
     let app = Application::build(config.clone()).await?;
     announce(&app, &config);
     let base = app.base_url();

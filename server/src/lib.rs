@@ -10,6 +10,7 @@ pub mod auth;
 pub mod bench;
 pub mod cli;
 mod demo;
+pub mod edge;
 pub mod jobs;
 pub mod limits;
 pub mod recon;

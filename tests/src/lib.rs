@@ -162,7 +162,9 @@ impl ServerProcess {
         let line = rx
             .recv_timeout(Duration::from_secs(60))
             .context("server printed no address")?;
-        let mut urls = line.split_whitespace().filter(|w| w.starts_with("http://"));
+        let mut urls = line
+            .split_whitespace()
+            .filter(|w| w.starts_with("http://") || w.starts_with("https://"));
         let address = urls
             .next()
             .with_context(|| format!("no address in {line:?}"))?

@@ -57,6 +57,9 @@ pub enum ApiError {
         budget >> 20
     )]
     MemoryBudget { estimate: u64, budget: u64 },
+    /// A request body that stopped arriving (`--body-timeout-secs`).
+    #[error("{0}")]
+    Timeout(String),
     #[error("internal error")]
     Internal(String),
 }
@@ -85,6 +88,7 @@ impl ApiError {
             ApiError::ResourceExhausted { .. } => ("resource-exhausted", "Limit reached"),
             ApiError::TooLarge { .. } => ("too-large", "Request too large"),
             ApiError::MemoryBudget { .. } => ("memory-budget", "Needs more memory than the budget"),
+            ApiError::Timeout(_) => ("request-timeout", "Request timeout"),
             ApiError::Internal(_) => ("internal", "Internal error"),
         }
     }
@@ -104,6 +108,7 @@ impl ApiError {
             ApiError::TooLarge { .. } | ApiError::MemoryBudget { .. } => {
                 StatusCode::PAYLOAD_TOO_LARGE
             }
+            ApiError::Timeout(_) => StatusCode::REQUEST_TIMEOUT,
             ApiError::Internal(_) => StatusCode::INTERNAL_SERVER_ERROR,
         }
     }
@@ -215,6 +220,7 @@ impl From<ApiError> for tonic::Status {
             ApiError::TooLarge { .. } | ApiError::MemoryBudget { .. } => {
                 tonic::Status::resource_exhausted(message)
             }
+            ApiError::Timeout(_) => tonic::Status::deadline_exceeded(message),
             ApiError::Internal(_) => tonic::Status::internal(message),
         }
     }

@@ -460,6 +460,21 @@ fn number(map: &Map<String, Value>, key: &str, field: &str) -> Result<f64, ApiEr
     }
 }
 
+/// Refuses a computed image holding inf or NaN (the input's values overflow 32-bit floats),
+/// naming the input `field`.
+fn finite_result(data: &[f32], field: &str) -> Result<(), ApiError> {
+    match data.iter().position(|v| !v.is_finite()) {
+        None => Ok(()),
+        Some(i) => Err(ApiError::invalid(
+            field,
+            format!(
+                "the result is not finite at pixel {i} ({}): the values overflow 32-bit floats; scale them down",
+                data[i]
+            ),
+        )),
+    }
+}
+
 fn only_keys(map: &Map<String, Value>, allowed: &[&str], field: &str) -> Result<(), ApiError> {
     match map.keys().find(|k| !allowed.contains(&k.as_str())) {
         Some(k) => Err(ApiError::invalid(
@@ -623,7 +638,17 @@ fn bucket_relight(
                         format!("no such channel; this session has {}", channels.join(", ")),
                     )
                 })?;
-                out[i] = number(w, name, "light.weights")?;
+                let v = number(w, name, "light.weights")?;
+                if v.abs() > f32::MAX as f64 {
+                    return Err(ApiError::invalid(
+                        format!("light.weights.{name}"),
+                        format!(
+                            "{v} is outside the 32-bit float range of the images (|w| <= {:e})",
+                            f32::MAX
+                        ),
+                    ));
+                }
+                out[i] = v;
             }
             out
         }
@@ -644,17 +669,29 @@ fn bucket_relight(
     let first = images
         .first()
         .ok_or_else(|| ApiError::Internal("finished reconstruction without images".into()))?;
-    let mut data = vec![0f32; first.data.len()];
+    // Summed in f64, then checked: weights that make any pixel overflow f32 are refused (an
+    // image of inf/NaN is no answer).
+    let mut sum = vec![0f64; first.data.len()];
     for image in images {
         let w = weights
             .get(image.channel_index as usize)
             .copied()
-            .unwrap_or(0.0) as f32;
+            .unwrap_or(0.0);
         if w != 0.0 {
-            data.iter_mut()
+            sum.iter_mut()
                 .zip(&image.data)
-                .for_each(|(d, v)| *d += w * v);
+                .for_each(|(d, v)| *d += w * *v as f64);
         }
+    }
+    let data: Vec<f32> = sum.iter().map(|v| *v as f32).collect();
+    if let Some(i) = data.iter().position(|v| !v.is_finite()) {
+        return Err(ApiError::invalid(
+            "light.weights",
+            format!(
+                "the weighted sum overflows 32-bit floats (pixel {i} would be {:e}); use smaller weights",
+                sum[i]
+            ),
+        ));
     }
     Ok(StoredImage {
         channel_index: 0,
@@ -702,6 +739,7 @@ pub async fn relight(
             let data = tokio::task::spawn_blocking(move || t.relight(&light))
                 .await
                 .map_err(|e| ApiError::Internal(e.to_string()))?;
+            finite_result(&data, "light")?;
             (pw, ph, data)
         }
         None => {
@@ -836,6 +874,14 @@ pub async fn primal(
                 .for_each(|(p, a)| *p += a);
         }
     }
+    finite_result(
+        &predicted,
+        if measured_row.is_some() {
+            "pattern_index"
+        } else {
+            "body"
+        },
+    )?;
     let ms = started.elapsed().as_secs_f64() * 1e3;
     metrics::histogram!("helmholtz_relight_seconds", "kind" => "primal").record(ms / 1e3);
     let mut extra = Vec::new();

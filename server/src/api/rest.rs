@@ -101,15 +101,25 @@ impl From<QueryRejection> for ApiError {
     }
 }
 
-/// A request body of at most `max_body_bytes` (413 problem+json naming the limit).
+/// A request body of at most `max_body_bytes` (413 problem+json naming the limit; 408 when it
+/// stops arriving for the body timeout, see `edge::body_timeout`).
 async fn read_body(state: &AppState, body: Body) -> Result<Bytes, ApiError> {
     let max = state.limits.max_body_bytes;
-    axum::body::to_bytes(body, max)
-        .await
-        .map_err(|_| ApiError::TooLarge {
-            limit: "max_body_bytes",
-            message: format!("request bodies may hold at most {max} bytes"),
-        })
+    axum::body::to_bytes(body, max).await.map_err(|e| {
+        let timed_out =
+            std::iter::successors(Some(&e as &(dyn std::error::Error + 'static)), |e| {
+                e.source()
+            })
+            .any(|e| e.is::<tower_http::timeout::TimeoutError>());
+        if timed_out {
+            ApiError::Timeout("the request body stopped arriving (body timeout)".into())
+        } else {
+            ApiError::TooLarge {
+                limit: "max_body_bytes",
+                message: format!("request bodies may hold at most {max} bytes"),
+            }
+        }
+    })
 }
 
 async fn index(Caller(_caller): Caller) -> axum::Json<Value> {
@@ -639,7 +649,9 @@ async fn serve_dual(
         Format::Tiff => ("tiff", "image/tiff"),
         Format::Npy => ("npy", "application/octet-stream"),
     };
-    // Results are immutable: the id, channel and encoding name the bytes.
+    // Results are immutable: the id, channel and encoding name the bytes. They are a lab's
+    // data behind its token: cacheable by the caller's own client only (private), never by a
+    // shared cache.
     let etag = format!("\"r{id}-c{}-{ext}{scale_tag}\"", image.channel_index);
     if headers
         .get(header::IF_NONE_MATCH)
@@ -666,7 +678,7 @@ async fn serve_dual(
     h.insert(header::ETAG, HeaderValue::from_str(&etag).expect("ascii"));
     h.insert(
         header::CACHE_CONTROL,
-        HeaderValue::from_static("public, max-age=31536000, immutable"),
+        HeaderValue::from_static("private, max-age=31536000, immutable"),
     );
     h.insert(
         header::CONTENT_DISPOSITION,

@@ -29,6 +29,13 @@ pub fn session_id(id: &str, field: &str) -> Result<(), ApiError> {
             format!("may hold only A-Z a-z 0-9 . _ - (found {c:?})"),
         ));
     }
+    if id == "." || id == ".." {
+        // Path segments of their own: URLs, file names and spool directories would misread them.
+        return Err(ApiError::invalid(
+            field,
+            format!("{id:?} is not a usable id (it names a directory)"),
+        ));
+    }
     Ok(())
 }
 

@@ -612,9 +612,22 @@ async fn claims_skip_jobs_that_do_not_fit_the_memory_left() {
         .await
         .unwrap();
     // 500 bytes left: the older, larger job waits; the smaller one is taken.
-    let job = s.claim_job_within("w", 10_000, 0, 500).await.unwrap().unwrap();
+    let job = s
+        .claim_job_within("w", 10_000, 0, 500)
+        .await
+        .unwrap()
+        .unwrap();
     assert_eq!((job.id, job.memory_bytes), (small.id, 100));
-    assert!(s.claim_job_within("w", 10_000, 0, 500).await.unwrap().is_none());
-    let job = s.claim_job_within("w", 10_000, 0, 900).await.unwrap().unwrap();
+    assert!(
+        s.claim_job_within("w", 10_000, 0, 500)
+            .await
+            .unwrap()
+            .is_none()
+    );
+    let job = s
+        .claim_job_within("w", 10_000, 0, 900)
+        .await
+        .unwrap()
+        .unwrap();
     assert_eq!((job.id, job.memory_bytes), (big.id, 900));
 }
