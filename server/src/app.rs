@@ -211,12 +211,21 @@ impl Application {
             ..
         } = self;
         let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+        // The metrics listener stops after the API: scrapes are short, so its own deadline is
+        // at most a second (the total stays within the API's deadline plus one second).
+        let metrics_edge = EdgeConfig {
+            shutdown_deadline: edge.shutdown_deadline.min(Duration::from_secs(1)),
+            max_connections: edge.max_connections.min(64),
+            tls: None,
+            ..edge.clone()
+        };
         let metrics_task = metrics.map(|(l, _, handle)| {
             let mut rx = stop_rx.clone();
             tokio::spawn(crate::telemetry::serve(
                 l,
                 handle,
                 store.clone(),
+                metrics_edge,
                 async move {
                     let _ = rx.wait_for(|s| *s).await;
                 },
@@ -236,7 +245,7 @@ impl Application {
 }
 
 /// Every HTTP response: browsers must not guess a content type other than the one we send.
-async fn nosniff(mut response: axum::response::Response) -> axum::response::Response {
+pub(crate) async fn nosniff(mut response: axum::response::Response) -> axum::response::Response {
     response.headers_mut().insert(
         http::header::X_CONTENT_TYPE_OPTIONS,
         http::HeaderValue::from_static("nosniff"),

@@ -206,12 +206,19 @@ pub async fn serve(
         header_timeout: config.header_timeout,
     });
     let mut connections = JoinSet::new();
+    // Logged when the cap is reached, and again only once 10% of it is free (no flapping at the
+    // boundary) or a minute has passed.
     let mut saturated = false;
+    let mut last_warning: Option<tokio::time::Instant> = None;
+    let relief = (cap / 10).max(1);
     tokio::pin!(shutdown);
     loop {
         while connections.try_join_next().is_some() {}
-        if permits.available_permits() == 0 && !saturated {
+        if permits.available_permits() == 0
+            && (!saturated || last_warning.is_none_or(|t| t.elapsed() >= Duration::from_secs(60)))
+        {
             saturated = true;
+            last_warning = Some(tokio::time::Instant::now());
             tracing::warn!(
                 max_connections = cap,
                 "connection cap reached: new connections wait to be accepted"
@@ -221,7 +228,7 @@ pub async fn serve(
             _ = &mut shutdown => break,
             p = permits.clone().acquire_owned() => p.expect("semaphore never closed"),
         };
-        if saturated && permits.available_permits() > 0 {
+        if saturated && permits.available_permits() >= relief {
             saturated = false;
             tracing::info!(max_connections = cap, "below the connection cap again");
         }

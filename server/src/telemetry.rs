@@ -90,18 +90,20 @@ fn describe() {
 }
 
 /// Serves `GET /metrics` on `listener` until `shutdown`.
+/// Serves `GET /metrics` (plain HTTP) through the same edge as the API: header timeout,
+/// connection cap and shutdown deadline, so a stalled scraper cannot hold the shutdown.
 pub async fn serve(
     listener: tokio::net::TcpListener,
     handle: PrometheusHandle,
     store: Store,
+    edge: crate::edge::EdgeConfig,
     shutdown: impl std::future::Future<Output = ()> + Send + 'static,
-) -> std::io::Result<()> {
+) {
     let app = axum::Router::new()
         .route("/metrics", axum::routing::get(render))
-        .with_state((handle, store));
-    axum::serve(listener, app)
-        .with_graceful_shutdown(shutdown)
-        .await
+        .with_state((handle, store))
+        .layer(axum::middleware::map_response(crate::app::nosniff));
+    crate::edge::serve(listener, app, &edge, None, shutdown).await
 }
 
 async fn render(State((handle, store)): State<(PrometheusHandle, Store)>) -> Response {

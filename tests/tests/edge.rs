@@ -588,3 +588,89 @@ async fn relight_weights_whose_result_overflows_f32_are_refused_naming_the_field
     // A sane weight still works.
     assert_eq!(relight(0.5).await.unwrap().status(), 200);
 }
+
+/// A little-endian f32 NPY of shape (h, w) holding `value` everywhere.
+fn npy_f32(h: usize, w: usize, value: f32) -> Vec<u8> {
+    let mut header = format!("{{'descr': '<f4', 'fortran_order': False, 'shape': ({h}, {w}), }}");
+    while (10 + header.len() + 1) % 64 != 0 {
+        header.push(' ');
+    }
+    header.push('\n');
+    let mut out = b"\x93NUMPY\x01\x00".to_vec();
+    out.extend_from_slice(&(header.len() as u16).to_le_bytes());
+    out.extend_from_slice(header.as_bytes());
+    for _ in 0..h * w {
+        out.extend_from_slice(&value.to_le_bytes());
+    }
+    out
+}
+
+#[tokio::test]
+async fn camera_relight_and_primal_inputs_whose_result_overflows_f32_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = ServerProcess::start(&dir.path().join("data"), 0, &[]).unwrap();
+    let out = std::process::Command::new(helmholtz_tests::binary("helmholtz"))
+        .args(["--server", &server.address, "--token", &server.token])
+        .arg("--spool")
+        .arg(dir.path().join("spool"))
+        .args([
+            "simulate",
+            "--scene",
+            "lambert",
+            "--camera",
+            "12x10",
+            "--frame-format",
+            "f32",
+            "--family",
+            "hadamard",
+            "--width",
+            "16",
+            "--height",
+            "16",
+            "--session-id",
+            "cam",
+            "--reconstruct",
+            "transport",
+            "--wait",
+        ])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let doc: Value = reqwest::get(server.url("/v1/sessions/cam"))
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    let id = doc["latest_reconstruction"].as_i64().unwrap();
+    let http = reqwest::Client::new();
+    let post = |what: &str, body: Vec<u8>| {
+        http.post(server.url(&format!("/v1/reconstructions/{id}/{what}?format=npy")))
+            .header("content-type", "application/x-npy")
+            .body(body)
+            .send()
+    };
+    // The result is linear in the input: a unit input's peak tells whether f32::MAX overflows.
+    for (what, h, w) in [("relight", 10, 12), ("primal", 16, 16)] {
+        let unit = post(what, npy_f32(h, w, 1.0)).await.unwrap();
+        assert_eq!(unit.status(), 200, "{what} of ones");
+        let (_, v) = helmholtz_tests::parse_npy(&unit.bytes().await.unwrap()).unwrap();
+        let peak = v.iter().fold(0f64, |m, x| m.max(x.abs()));
+        let r = post(what, npy_f32(h, w, f32::MAX)).await.unwrap();
+        if peak > 1.01 {
+            assert_eq!(r.status(), 400, "{what}: unit peak {peak}");
+            let p: Value = r.json().await.unwrap();
+            assert_eq!(p["field"], "body", "{p}");
+            assert!(p["detail"].as_str().unwrap().contains("not finite"), "{p}");
+        } else {
+            assert_eq!(r.status(), 200, "{what}: unit peak {peak}");
+            let (_, v) = helmholtz_tests::parse_npy(&r.bytes().await.unwrap()).unwrap();
+            assert!(v.iter().all(|x| x.is_finite()), "{what}");
+        }
+        eprintln!("{what}: unit input peak {peak}");
+    }
+}

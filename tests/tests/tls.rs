@@ -214,6 +214,57 @@ fn the_client_uploads_and_fetches_over_tls_with_the_labs_ca_and_refuses_without_
     assert!(!out.status.success(), "plain http to the TLS port worked");
 }
 
+#[tokio::test]
+async fn one_tls_port_speaks_http1_and_http2_by_alpn() {
+    let dir = tempfile::tempdir().unwrap();
+    make_pki(dir.path());
+    let server = ServerProcess::start(
+        &dir.path().join("data"),
+        0,
+        &[
+            "--tls-cert",
+            dir.path().join("server.pem").to_str().unwrap(),
+            "--tls-key",
+            dir.path().join("server.key").to_str().unwrap(),
+        ],
+    )
+    .unwrap();
+    let ca =
+        reqwest::Certificate::from_pem(&std::fs::read(dir.path().join("ca.pem")).unwrap()).unwrap();
+    let url = format!("{}/v1/sessions", server.address);
+    for (client, version) in [
+        (
+            reqwest::Client::builder()
+                .tls_certs_merge([ca.clone()])
+                .http1_only()
+                .build()
+                .unwrap(),
+            reqwest::Version::HTTP_11,
+        ),
+        (
+            reqwest::Client::builder()
+                .tls_certs_merge([ca.clone()])
+                .build()
+                .unwrap(),
+            reqwest::Version::HTTP_2,
+        ),
+    ] {
+        let r = client
+            .get(&url)
+            .bearer_auth(&server.token)
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(r.status(), 200);
+        assert_eq!(r.version(), version);
+        assert_eq!(r.headers()["x-content-type-options"], "nosniff");
+    }
+    // A client that does not trust the lab's CA is refused by its own verifier.
+    let e = reqwest::Client::new().get(&url).send().await.unwrap_err();
+    let chain = format!("{:?}", e).to_ascii_lowercase();
+    assert!(chain.contains("certificate"), "{chain}");
+}
+
 #[test]
 fn bad_tls_files_are_refused_at_start_naming_the_flag() {
     let dir = tempfile::tempdir().unwrap();

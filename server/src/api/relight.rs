@@ -733,13 +733,17 @@ pub async fn relight(
     let started = Instant::now();
     let (width, height, data) = match session.camera {
         Some(camera) => {
+            let field = match input {
+                Input::Json(_) => "light",
+                Input::Image { .. } => "body",
+            };
             let light = camera_light(input, camera.width as usize, camera.height as usize)?;
             let t = state.transports.get(state, id).await?;
             let (pw, ph) = t.projector();
             let data = tokio::task::spawn_blocking(move || t.relight(&light))
                 .await
                 .map_err(|e| ApiError::Internal(e.to_string()))?;
-            finite_result(&data, "light")?;
+            finite_result(&data, field)?;
             (pw, ph, data)
         }
         None => {
