@@ -6,6 +6,8 @@
 CREATE TABLE upload_leases (
     session_id  TEXT PRIMARY KEY NOT NULL REFERENCES sessions(id) ON DELETE CASCADE,
     holder      TEXT NOT NULL,              -- the stream's id: process, time, counter
+    writer      TEXT NOT NULL DEFAULT '',   -- the client's upload id (x-helmholtz-writer), if sent:
+                                            -- its next stream takes over from a stale one
     expires_ms  INTEGER NOT NULL
 ) WITHOUT ROWID;
 

@@ -1197,6 +1197,9 @@ pub async fn drain(
     let mut watch = spool.watch();
     let mut created = false;
     let mut confirmed = spool.confirmed_rows();
+    // One writer for every pass of this drain: a pass after a cut connection takes the session
+    // over from its own stale stream.
+    let writer = upload::new_writer_id();
     let mut committed: Option<u64> = None;
     let mut failures = 0u32;
     let opts = UploadOptions {
@@ -1217,7 +1220,7 @@ pub async fn drain(
             if !created {
                 upload::create_session_request(server, spool.request(), &opts.policy()).await?;
             }
-            upload::upload_rows_from(
+            upload::upload_rows_as(
                 server,
                 &id,
                 channels,
@@ -1227,6 +1230,7 @@ pub async fn drain(
                 },
                 confirmed,
                 &opts,
+                &writer,
             )
             .await
         };

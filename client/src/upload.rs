@@ -377,7 +377,6 @@ fn hint(code: Code) -> &'static str {
         Code::AlreadyExists => {
             "; the server holds other data under this id: pick another --session-id (or repeat the original declaration)"
         }
-        Code::Aborted => "; another upload holds the session: wait for it to end, then retry",
         _ => "",
     }
 }
@@ -999,6 +998,32 @@ pub async fn upload_rows_from(
     confirmed: u64,
     opts: &UploadOptions,
 ) -> anyhow::Result<UploadReport> {
+    let writer = new_writer_id();
+    upload_rows_as(
+        server, session_id, channels, source, confirmed, opts, &writer,
+    )
+    .await
+}
+
+/// A fresh writer id for [`upload_rows_as`]: 128 random bits in hex.
+pub fn new_writer_id() -> String {
+    format!("{:032x}", rand::random::<u128>())
+}
+
+/// [`upload_rows_from`] as writer `writer`: every stream carries it (metadata
+/// `x-helmholtz-writer`), so when a connection is cut without the server noticing, the next
+/// stream of the same upload takes the session over from the stale one at once instead of
+/// being refused as a second writer until the stale stream times out. Another writer's streams
+/// are still refused (ABORTED).
+pub async fn upload_rows_as(
+    server: &str,
+    session_id: &str,
+    channels: u32,
+    source: &dyn RowSource,
+    confirmed: u64,
+    opts: &UploadOptions,
+    writer: &str,
+) -> anyhow::Result<UploadReport> {
     anyhow::ensure!(channels > 0, "channels must be at least 1");
     let total = source.rows();
     let chunk_rows = opts.rows_per_chunk_of(channels as usize, source.format());
@@ -1102,6 +1127,7 @@ pub async fn upload_rows_from(
         let outcome = stream_rows(
             server,
             session_id,
+            writer,
             channels,
             source,
             to,
@@ -1253,6 +1279,7 @@ enum StreamFailure {
 async fn stream_rows(
     server: &str,
     session_id: &str,
+    writer: &str,
     channels: u32,
     source: &dyn RowSource,
     total: u64,
@@ -1290,7 +1317,11 @@ async fn stream_rows(
             bar.set_position(end);
         }
     };
-    let call = client.upload_measurements(ReceiverStream::new(rx));
+    let mut request = tonic::Request::new(ReceiverStream::new(rx));
+    if let Ok(value) = writer.parse() {
+        request.metadata_mut().insert("x-helmholtz-writer", value);
+    }
+    let call = client.upload_measurements(request);
     tokio::pin!(producer);
     tokio::pin!(call);
     let mut producing = true;

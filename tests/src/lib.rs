@@ -399,3 +399,52 @@ pub fn relative_error(a: &[f64], b: &[f64]) -> f64 {
     let den: f64 = b.iter().map(|y| y * y).sum();
     (num / den).sqrt()
 }
+
+/// A bucket session's declaration: `count` frames of `family` patterns on a `width` x `height`
+/// grid (seed 1), one channel per name in `channels`, no metadata or ground truth.
+pub fn bucket_session(
+    id: &str,
+    family: helmholtz_proto::v1::PatternFamily,
+    width: u32,
+    height: u32,
+    count: u64,
+    channels: &[&str],
+) -> helmholtz_proto::v1::CreateSessionRequest {
+    use helmholtz_proto::v1;
+    v1::CreateSessionRequest {
+        session_id: id.into(),
+        rig: "r".into(),
+        patterns: Some(v1::PatternSpec {
+            family: family as i32,
+            width,
+            height,
+            count,
+            seed: 1,
+            params: None,
+        }),
+        detector: Some(v1::DetectorLayout {
+            channels: channels.iter().map(|c| c.to_string()).collect(),
+            ..Default::default()
+        }),
+        metadata: Default::default(),
+        ground_truth: None,
+    }
+}
+
+/// One upload chunk of f64 rows (`channels` values each) from row `start`, with its CRC-32C.
+pub fn f64_chunk(
+    id: &str,
+    start: u64,
+    channels: u32,
+    values: &[f64],
+) -> helmholtz_proto::v1::MeasurementChunk {
+    let (bytes, crc) = helmholtz_proto::wire::encode_values(values);
+    helmholtz_proto::v1::MeasurementChunk {
+        session_id: id.into(),
+        start_row: start,
+        channels,
+        values_f64le: bytes,
+        crc32c: crc,
+        ..Default::default()
+    }
+}

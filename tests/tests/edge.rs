@@ -6,7 +6,6 @@
 use std::time::{Duration, Instant};
 
 use helmholtz_proto::v1;
-use helmholtz_proto::wire::encode_values;
 use helmholtz_tests::ServerProcess;
 use serde_json::Value;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -14,36 +13,11 @@ use tokio::net::TcpStream;
 use tonic::Code;
 
 fn create(id: &str, count: u64) -> v1::CreateSessionRequest {
-    v1::CreateSessionRequest {
-        session_id: id.into(),
-        rig: "r".into(),
-        patterns: Some(v1::PatternSpec {
-            family: v1::PatternFamily::Bernoulli as i32,
-            width: 8,
-            height: 8,
-            count,
-            seed: 1,
-            params: None,
-        }),
-        detector: Some(v1::DetectorLayout {
-            channels: vec!["a".into()],
-            ..Default::default()
-        }),
-        metadata: Default::default(),
-        ground_truth: None,
-    }
+    helmholtz_tests::bucket_session(id, v1::PatternFamily::Bernoulli, 8, 8, count, &["a"])
 }
 
 fn chunk(id: &str, start: u64, values: &[f64]) -> v1::MeasurementChunk {
-    let (bytes, crc) = encode_values(values);
-    v1::MeasurementChunk {
-        session_id: id.into(),
-        start_row: start,
-        channels: 1,
-        values_f64le: bytes,
-        crc32c: crc,
-        ..Default::default()
-    }
+    helmholtz_tests::f64_chunk(id, start, 1, values)
 }
 
 /// Reads until the server closes the socket (EOF or reset); returns what it sent and when.

@@ -301,7 +301,9 @@ fn session_declarations() {
                         && id.len() <= 128
                         && id
                             .chars()
-                            .all(|c| c.is_ascii_alphanumeric() || "._-".contains(c));
+                            .all(|c| c.is_ascii_alphanumeric() || "._-".contains(c))
+                        && id != "."
+                        && id != "..";
                     if !existed && valid_id {
                         // Nothing was stored under that id.
                         let s = h.rt.block_on(c.get_upload_status(v1::SessionRef {

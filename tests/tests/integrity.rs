@@ -12,7 +12,6 @@ use std::time::{Duration, Instant};
 
 use helmholtz_client::auth::Grpc;
 use helmholtz_proto::v1;
-use helmholtz_proto::wire::encode_values;
 use helmholtz_tests::{ServerProcess, binary, parse_npy};
 use tonic::Code;
 
@@ -365,41 +364,12 @@ async fn acquire_stopped_and_resumed_continues_where_the_session_continues() {
     assert_eq!(stored_bits(&server, "rig").await, bits(&values(1, 0..200)));
 }
 
-fn spec(count: u64) -> v1::PatternSpec {
-    v1::PatternSpec {
-        family: v1::PatternFamily::Bernoulli as i32,
-        width: 8,
-        height: 8,
-        count,
-        seed: 7,
-        params: None,
-    }
-}
-
 fn create(id: &str, count: u64) -> v1::CreateSessionRequest {
-    v1::CreateSessionRequest {
-        session_id: id.into(),
-        rig: "r".into(),
-        patterns: Some(spec(count)),
-        detector: Some(v1::DetectorLayout {
-            channels: vec!["a".into(), "b".into()],
-            ..Default::default()
-        }),
-        metadata: Default::default(),
-        ground_truth: None,
-    }
+    helmholtz_tests::bucket_session(id, v1::PatternFamily::Bernoulli, 8, 8, count, &["a", "b"])
 }
 
 fn chunk(id: &str, start: u64, values: &[f64]) -> v1::MeasurementChunk {
-    let (bytes, crc) = encode_values(values);
-    v1::MeasurementChunk {
-        session_id: id.into(),
-        start_row: start,
-        channels: 2,
-        values_f64le: bytes,
-        crc32c: crc,
-        ..Default::default()
-    }
+    helmholtz_tests::f64_chunk(id, start, 2, values)
 }
 
 fn rows2(range: std::ops::Range<u64>) -> Vec<f64> {
@@ -636,4 +606,91 @@ async fn lab_caps_hold_under_concurrent_requests() {
     }
     assert_eq!(accepted, 5, "50 concurrent requests under a cap of 5");
     assert_eq!(stored_bits(&server, &id).await, bits(&rows2(0..10)));
+}
+
+/// An upload stream of writer `writer` (metadata `x-helmholtz-writer`).
+fn as_writer<S>(writer: &str, stream: S) -> tonic::Request<S> {
+    let mut request = tonic::Request::new(stream);
+    request
+        .metadata_mut()
+        .insert("x-helmholtz-writer", writer.parse().unwrap());
+    request
+}
+
+#[tokio::test]
+async fn a_writer_whose_connection_was_cut_takes_over_its_own_stale_stream() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = ServerProcess::start(&dir.path().join("data"), 0, &[]).unwrap();
+    let mut c = server.grpc().await.unwrap();
+    c.create_session(create("t", 100)).await.unwrap();
+    // Writer rig-a's first stream: one chunk, then silence (its connection "cut" without the
+    // server noticing).
+    let (tx, rx) = tokio::sync::mpsc::channel(4);
+    tx.send(chunk("t", 0, &rows2(0..10))).await.unwrap();
+    let stale = tokio::spawn({
+        let mut c = c.clone();
+        async move {
+            c.upload_measurements(as_writer(
+                "rig-a",
+                tokio_stream::wrappers::ReceiverStream::new(rx),
+            ))
+            .await
+        }
+    });
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while committed(&mut c, "t").await < 10 {
+        assert!(Instant::now() < deadline, "the first chunk never committed");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    // Another writer: refused while rig-a holds the session.
+    let other = c
+        .upload_measurements(as_writer(
+            "rig-b",
+            tokio_stream::iter(vec![chunk("t", 10, &rows2(10..12))]),
+        ))
+        .await
+        .unwrap_err();
+    assert_eq!(other.code(), Code::Aborted, "{other:?}");
+    // rig-a reconnects: its new stream takes over at once.
+    let resumed = c
+        .upload_measurements(as_writer(
+            "rig-a",
+            tokio_stream::iter(vec![chunk("t", 5, &rows2(5..15))]),
+        ))
+        .await
+        .unwrap()
+        .into_inner();
+    assert_eq!(
+        (
+            resumed.committed_rows,
+            resumed.rows_written,
+            resumed.rows_skipped
+        ),
+        (15, 5, 5)
+    );
+    // The stale stream wakes up: fenced off, nothing of it stored.
+    tx.send(chunk("t", 15, &rows2(15..20))).await.unwrap();
+    drop(tx);
+    let status = stale.await.unwrap().unwrap_err();
+    assert_eq!(status.code(), Code::Aborted, "{status:?}");
+    assert!(
+        status.message().contains("no longer holds"),
+        "{}",
+        status.message()
+    );
+    assert_eq!(stored_bits(&server, "t").await, bits(&rows2(0..15)));
+    // A malformed writer id is refused, naming the header.
+    let bad = c
+        .upload_measurements(as_writer(
+            "no spaces",
+            tokio_stream::iter(vec![chunk("t", 15, &rows2(15..16))]),
+        ))
+        .await
+        .unwrap_err();
+    assert_eq!(bad.code(), Code::InvalidArgument, "{bad:?}");
+    assert!(
+        bad.message().contains("x-helmholtz-writer"),
+        "{}",
+        bad.message()
+    );
 }

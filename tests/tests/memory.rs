@@ -8,30 +8,12 @@ use std::time::{Duration, Instant};
 
 use helmholtz_client::auth::Grpc;
 use helmholtz_proto::v1;
-use helmholtz_proto::wire::encode_values;
 use helmholtz_tests::ServerProcess;
 use serde_json::{Value, json};
 use tonic::Code;
 
 fn create(id: &str, family: v1::PatternFamily, side: u32, count: u64) -> v1::CreateSessionRequest {
-    v1::CreateSessionRequest {
-        session_id: id.into(),
-        rig: "r".into(),
-        patterns: Some(v1::PatternSpec {
-            family: family as i32,
-            width: side,
-            height: side,
-            count,
-            seed: 11,
-            params: None,
-        }),
-        detector: Some(v1::DetectorLayout {
-            channels: vec!["bucket".into()],
-            ..Default::default()
-        }),
-        metadata: Default::default(),
-        ground_truth: None,
-    }
+    helmholtz_tests::bucket_session(id, family, side, side, count, &["bucket"])
 }
 
 /// Creates a one-channel session and uploads `rows` rows of smooth, positive values.
@@ -53,15 +35,7 @@ async fn session(
         let values: Vec<f64> = (start..end)
             .map(|r| 100.0 + (r as f64 * 0.37).sin() * 10.0)
             .collect();
-        let (bytes, crc) = encode_values(&values);
-        chunks.push(v1::MeasurementChunk {
-            session_id: id.into(),
-            start_row: start,
-            channels: 1,
-            values_f64le: bytes,
-            crc32c: crc,
-            ..Default::default()
-        });
+        chunks.push(helmholtz_tests::f64_chunk(id, start, 1, &values));
     }
     let r = c
         .upload_measurements(tokio_stream::iter(chunks))

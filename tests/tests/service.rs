@@ -8,7 +8,6 @@ use helmholtz_client::scene::Scene;
 use helmholtz_client::simulate::{self, NoiseModel};
 use helmholtz_client::{NewSession, PatternSpec, UploadOptions};
 use helmholtz_proto::v1;
-use helmholtz_proto::wire::encode_values;
 use helmholtz_tests::ServerProcess;
 use serde_json::Value;
 use tonic::Code;
@@ -272,36 +271,11 @@ fn create(
     h: u32,
     count: u64,
 ) -> v1::CreateSessionRequest {
-    v1::CreateSessionRequest {
-        session_id: id.into(),
-        rig: "r".into(),
-        patterns: Some(v1::PatternSpec {
-            family: family as i32,
-            width: w,
-            height: h,
-            count,
-            seed: 1,
-            params: None,
-        }),
-        detector: Some(v1::DetectorLayout {
-            channels: vec!["a".into()],
-            ..Default::default()
-        }),
-        metadata: Default::default(),
-        ground_truth: None,
-    }
+    helmholtz_tests::bucket_session(id, family, w, h, count, &["a"])
 }
 
 fn chunk(id: &str, start: u64, values: &[f64]) -> v1::MeasurementChunk {
-    let (bytes, crc) = encode_values(values);
-    v1::MeasurementChunk {
-        session_id: id.into(),
-        start_row: start,
-        channels: 1,
-        values_f64le: bytes,
-        crc32c: crc,
-        ..Default::default()
-    }
+    helmholtz_tests::f64_chunk(id, start, 1, values)
 }
 
 fn refused<T: std::fmt::Debug>(r: Result<T, tonic::Status>, code: Code, mentions: &[&str]) {

@@ -45,6 +45,7 @@ impl AcquisitionService {
     async fn receive_chunks(
         &self,
         caller: &Principal,
+        writer: &str,
         stream: &mut Streaming<v1::MeasurementChunk>,
         session: &mut Option<(SessionRow, super::WriterGuard)>,
     ) -> Result<v1::UploadResponse, Status> {
@@ -64,7 +65,7 @@ impl AcquisitionService {
             if session.is_none() {
                 validate::session_id(&chunk.session_id, "session_id")?;
                 let row = self.state.own_session(caller, &chunk.session_id).await?;
-                let guard = self.state.lock_writer(&row.id).await?;
+                let guard = self.state.lock_writer(&row.id, writer).await?;
                 if chunk.start_row > 0 || row.committed_rows > 0 {
                     metrics::counter!("helmholtz_upload_resumed_total").increment(1);
                 }
@@ -128,6 +129,30 @@ impl AcquisitionService {
             rows_skipped: matched,
         })
     }
+}
+
+/// The metadata naming an upload's writer: one id for every stream of one client upload.
+pub const WRITER_HEADER: &str = "x-helmholtz-writer";
+
+/// The upload's writer id from [`WRITER_HEADER`] (empty when not sent): 1-64 characters of
+/// `A-Z a-z 0-9 _ -`.
+fn writer_id<T>(request: &Request<T>) -> Result<String, ApiError> {
+    let Some(value) = request.metadata().get(WRITER_HEADER) else {
+        return Ok(String::new());
+    };
+    let id = value.to_str().unwrap_or("");
+    if id.is_empty()
+        || id.len() > 64
+        || !id
+            .bytes()
+            .all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-')
+    {
+        return Err(ApiError::invalid(
+            WRITER_HEADER,
+            "must be 1-64 characters of A-Z a-z 0-9 _ -",
+        ));
+    }
+    Ok(id.to_string())
 }
 
 pub fn session_message(s: &SessionRow) -> v1::Session {
@@ -319,10 +344,11 @@ impl Acquisition for AcquisitionService {
         request: Request<Streaming<v1::MeasurementChunk>>,
     ) -> Result<Response<v1::UploadResponse>, Status> {
         let caller = self.caller(&request, &[Role::Rig]).await?;
+        let writer = writer_id(&request)?;
         let mut stream = request.into_inner();
         let mut session: Option<(SessionRow, super::WriterGuard)> = None;
         let result = self
-            .receive_chunks(&caller, &mut stream, &mut session)
+            .receive_chunks(&caller, &writer, &mut stream, &mut session)
             .await;
         if let Some((_, guard)) = session {
             guard.release().await;

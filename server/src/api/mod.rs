@@ -186,18 +186,21 @@ impl AppState {
     }
 
     /// One uploader per session at a time, enforced in the database (so across server
-    /// processes): a second concurrent stream is ABORTED naming the session.
-    pub async fn lock_writer(&self, session_id: &str) -> Result<WriterGuard, ApiError> {
+    /// processes): another writer's concurrent stream is ABORTED naming the session. `writer`:
+    /// the client's upload id (`x-helmholtz-writer`), whose new stream takes over from its own
+    /// earlier one.
+    pub async fn lock_writer(
+        &self,
+        session_id: &str,
+        writer: &str,
+    ) -> Result<WriterGuard, ApiError> {
         let lease = WriterLease {
             session_id: session_id.to_string(),
             holder: WriterLease::new_holder(),
+            writer: writer.to_string(),
             ttl: self.limits.upload_lease,
         };
-        if !self
-            .store
-            .acquire_writer(session_id, &lease.holder, lease.ttl)
-            .await?
-        {
+        if !self.store.acquire_writer(&lease).await? {
             metrics::counter!("helmholtz_upload_writer_conflicts_total").increment(1);
             return Err(ApiError::Aborted(format!(
                 "session {session_id:?} has another writer: another upload to it is in progress (from another \

@@ -27,6 +27,10 @@ pub struct WriterLease {
     pub session_id: String,
     /// This stream's id (unique across processes: see [`WriterLease::new_holder`]).
     pub holder: String,
+    /// The client's upload id (empty when it sent none): a new stream of the same writer takes
+    /// the session over from its own earlier stream (a connection cut without the server
+    /// noticing), and that stream's appends are then refused.
+    pub writer: String,
     /// How long the lease lasts without a renewal.
     pub ttl: Duration,
 }
@@ -56,23 +60,22 @@ fn first_difference(stored: &[u8], sent: &[u8], row_bytes: usize) -> Option<(u64
 }
 
 impl Store {
-    /// Takes session `session_id`'s upload lease for `holder` unless another live holder has
-    /// it: true when taken (or already held by `holder`, then renewed).
-    pub async fn acquire_writer(
-        &self,
-        session_id: &str,
-        holder: &str,
-        ttl: Duration,
-    ) -> Result<bool, StoreError> {
+    /// Takes `lease`'s session for its holder unless another writer's live stream has it: true
+    /// when taken (or already held by this holder, or by an earlier stream of the same writer,
+    /// which is fenced off from then on).
+    pub async fn acquire_writer(&self, lease: &WriterLease) -> Result<bool, StoreError> {
         let now = now_ms();
         let taken = sqlx::query(
-            "INSERT INTO upload_leases (session_id, holder, expires_ms) VALUES ($1, $2, $3) \
-             ON CONFLICT (session_id) DO UPDATE SET holder = excluded.holder, expires_ms = excluded.expires_ms \
-             WHERE upload_leases.expires_ms <= $4 OR upload_leases.holder = excluded.holder",
+            "INSERT INTO upload_leases (session_id, holder, writer, expires_ms) VALUES ($1, $2, $3, $4) \
+             ON CONFLICT (session_id) DO UPDATE SET holder = excluded.holder, writer = excluded.writer, \
+             expires_ms = excluded.expires_ms \
+             WHERE upload_leases.expires_ms <= $5 OR upload_leases.holder = excluded.holder \
+             OR (excluded.writer <> '' AND upload_leases.writer = excluded.writer)",
         )
-        .bind(session_id)
-        .bind(holder)
-        .bind(now + ttl.as_millis() as i64)
+        .bind(&lease.session_id)
+        .bind(&lease.holder)
+        .bind(&lease.writer)
+        .bind(now + lease.ttl.as_millis() as i64)
         .bind(now)
         .execute(&self.pool)
         .await?

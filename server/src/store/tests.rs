@@ -503,15 +503,13 @@ async fn one_writer_lease_per_session_with_fencing() {
     let lease = |holder: &str| WriterLease {
         session_id: "s".into(),
         holder: holder.into(),
+        writer: String::new(),
         ttl,
     };
-    let (a, b) = (lease("a"), lease("b"));
-    assert!(s.acquire_writer("s", "a", ttl).await.unwrap());
-    assert!(!s.acquire_writer("s", "b", ttl).await.unwrap(), "held by a");
-    assert!(
-        s.acquire_writer("s", "a", ttl).await.unwrap(),
-        "a renews its own"
-    );
+    let (a, b, c) = (lease("a"), lease("b"), lease("c"));
+    assert!(s.acquire_writer(&a).await.unwrap());
+    assert!(!s.acquire_writer(&b).await.unwrap(), "held by a");
+    assert!(s.acquire_writer(&a).await.unwrap(), "a renews its own");
     let blob =
         |r: u64, n: u64| -> Vec<u8> { rows(r, n).iter().flat_map(|v| v.to_le_bytes()).collect() };
     s.append_raw("s", Some(&a), 0, 16, &blob(0, 2))
@@ -524,10 +522,7 @@ async fn one_writer_lease_per_session_with_fencing() {
     ));
     // a falls silent past its ttl; b takes the session; a's next append is refused.
     tokio::time::sleep(ttl + Duration::from_millis(100)).await;
-    assert!(
-        s.acquire_writer("s", "b", ttl).await.unwrap(),
-        "a's lease expired"
-    );
+    assert!(s.acquire_writer(&b).await.unwrap(), "a's lease expired");
     assert!(!s.renew_writer(&a).await.unwrap());
     assert!(matches!(
         s.append_raw("s", Some(&a), 2, 16, &blob(2, 2)).await,
@@ -538,10 +533,43 @@ async fn one_writer_lease_per_session_with_fencing() {
         .unwrap();
     // Releasing is the holder's only: a's release leaves b's lease.
     s.release_writer(&a).await.unwrap();
-    assert!(!s.acquire_writer("s", "c", ttl).await.unwrap());
+    assert!(!s.acquire_writer(&c).await.unwrap());
     s.release_writer(&b).await.unwrap();
-    assert!(s.acquire_writer("s", "c", ttl).await.unwrap());
+    assert!(s.acquire_writer(&c).await.unwrap());
     assert_eq!(s.session("s").await.unwrap().committed_rows, 4);
+
+    // A writer's new stream takes over from its own earlier one (a connection cut without the
+    // server noticing), which is fenced off; another writer still cannot.
+    let stream = |holder: &str, writer: &str| WriterLease {
+        session_id: "s".into(),
+        holder: holder.into(),
+        writer: writer.into(),
+        ttl: Duration::from_secs(60),
+    };
+    s.release_writer(&c).await.unwrap();
+    let (w1, w2, v) = (
+        stream("w1", "rig-7"),
+        stream("w2", "rig-7"),
+        stream("v", "rig-8"),
+    );
+    assert!(s.acquire_writer(&w1).await.unwrap());
+    assert!(!s.acquire_writer(&v).await.unwrap(), "another writer");
+    assert!(
+        s.acquire_writer(&w2).await.unwrap(),
+        "the same writer's new stream"
+    );
+    assert!(matches!(
+        s.append_raw("s", Some(&w1), 4, 16, &blob(4, 1)).await,
+        Err(StoreError::WriterLost(_))
+    ));
+    s.append_raw("s", Some(&w2), 4, 16, &blob(4, 1))
+        .await
+        .unwrap();
+    s.release_writer(&w1).await.unwrap();
+    assert!(
+        !s.acquire_writer(&v).await.unwrap(),
+        "w1's release leaves w2's lease"
+    );
 }
 
 #[tokio::test]
