@@ -448,3 +448,71 @@ pub fn f64_chunk(
         ..Default::default()
     }
 }
+
+/// An upload stream kept open: its first chunk sent and committed; send more chunks with
+/// [`OpenUpload::send`], end it with [`OpenUpload::finish`] (or drop it).
+pub struct OpenUpload {
+    tx: tokio::sync::mpsc::Sender<helmholtz_proto::v1::MeasurementChunk>,
+    call: tokio::task::JoinHandle<Result<helmholtz_proto::v1::UploadResponse, tonic::Status>>,
+}
+
+impl OpenUpload {
+    /// Opens a stream on `client` (as writer `writer`, metadata `x-helmholtz-writer`, if given),
+    /// sends `first` and waits (up to 20 s) until the session's committed count reaches its end.
+    pub async fn start(
+        client: &Grpc,
+        writer: Option<&str>,
+        first: helmholtz_proto::v1::MeasurementChunk,
+        rows: u64,
+    ) -> OpenUpload {
+        let id = first.session_id.clone();
+        let end = first.start_row + rows;
+        let (tx, rx) = tokio::sync::mpsc::channel(4);
+        tx.send(first).await.expect("the stream is open");
+        let mut request = tonic::Request::new(tokio_stream::wrappers::ReceiverStream::new(rx));
+        if let Some(w) = writer {
+            request
+                .metadata_mut()
+                .insert("x-helmholtz-writer", w.parse().expect("ASCII writer id"));
+        }
+        let mut uploader = client.clone();
+        let call = tokio::spawn(async move {
+            uploader
+                .upload_measurements(request)
+                .await
+                .map(|r| r.into_inner())
+        });
+        let mut status = client.clone();
+        let deadline = Instant::now() + Duration::from_secs(20);
+        loop {
+            let committed = status
+                .get_upload_status(helmholtz_proto::v1::SessionRef {
+                    session_id: id.clone(),
+                })
+                .await
+                .expect("upload status")
+                .into_inner()
+                .committed_rows;
+            if committed >= end {
+                break;
+            }
+            assert!(
+                Instant::now() < deadline,
+                "the first chunk of {id} was never committed ({committed} of {end} rows)"
+            );
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+        OpenUpload { tx, call }
+    }
+
+    /// Sends one more chunk (false when the server already ended the stream).
+    pub async fn send(&self, chunk: helmholtz_proto::v1::MeasurementChunk) -> bool {
+        self.tx.send(chunk).await.is_ok()
+    }
+
+    /// Ends the stream and returns the server's answer.
+    pub async fn finish(self) -> Result<helmholtz_proto::v1::UploadResponse, tonic::Status> {
+        drop(self.tx);
+        self.call.await.expect("the upload task")
+    }
+}

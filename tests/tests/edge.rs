@@ -6,7 +6,7 @@
 use std::time::{Duration, Instant};
 
 use helmholtz_proto::v1;
-use helmholtz_tests::ServerProcess;
+use helmholtz_tests::{OpenUpload, ServerProcess};
 use serde_json::Value;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
@@ -166,31 +166,7 @@ async fn sigterm_cuts_an_idle_upload_stream_at_the_deadline_and_keeps_committed_
     let mut c = server.grpc().await.unwrap();
     c.create_session(create("idle", 200)).await.unwrap();
     let rows: Vec<f64> = (0..200).map(|i| i as f64 * 0.25).collect();
-    let (tx, rx) = tokio::sync::mpsc::channel(4);
-    let mut uploader = c.clone();
-    let upload = tokio::spawn(async move {
-        uploader
-            .upload_measurements(tokio_stream::wrappers::ReceiverStream::new(rx))
-            .await
-    });
-    tx.send(chunk("idle", 0, &rows[..50])).await.unwrap();
-    let deadline = Instant::now() + Duration::from_secs(20);
-    while c
-        .get_upload_status(v1::SessionRef {
-            session_id: "idle".into(),
-        })
-        .await
-        .unwrap()
-        .into_inner()
-        .committed_rows
-        < 50
-    {
-        assert!(
-            Instant::now() < deadline,
-            "the first chunk was never committed"
-        );
-        tokio::time::sleep(Duration::from_millis(10)).await;
-    }
+    let upload = OpenUpload::start(&c, None, chunk("idle", 0, &rows[..50]), 50).await;
     // A raw connection with half an HTTP/1 request is open too.
     let mut raw = TcpStream::connect(format!("127.0.0.1:{port}"))
         .await
@@ -218,15 +194,13 @@ async fn sigterm_cuts_an_idle_upload_stream_at_the_deadline_and_keeps_committed_
         "exited {took:?} after SIGTERM with a 2 s shutdown deadline"
     );
     eprintln!("exited {took:?} after SIGTERM (deadline 2 s)");
-    let result = tokio::time::timeout(Duration::from_secs(10), upload)
+    let result = tokio::time::timeout(Duration::from_secs(10), upload.finish())
         .await
-        .expect("the cut stream ends on the client too")
-        .unwrap();
+        .expect("the cut stream ends on the client too");
     assert!(
         result.is_err(),
         "an idle stream cut at the deadline: {result:?}"
     );
-    drop(tx);
     drop(server);
 
     // Restarted on the same data: the committed rows are there.

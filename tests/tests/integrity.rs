@@ -12,7 +12,7 @@ use std::time::{Duration, Instant};
 
 use helmholtz_client::auth::Grpc;
 use helmholtz_proto::v1;
-use helmholtz_tests::{ServerProcess, binary, parse_npy};
+use helmholtz_tests::{OpenUpload, ServerProcess, binary, parse_npy};
 use tonic::Code;
 
 const SPEC: &str = r#"{"family":"bernoulli","width":8,"height":8,"count":200,"seed":5}"#;
@@ -445,21 +445,7 @@ async fn one_writer_per_session_across_two_server_processes_on_one_database() {
     let (mut ca, mut cb) = (a.grpc().await.unwrap(), b.grpc().await.unwrap());
     ca.create_session(create("w", 100)).await.unwrap();
     // A stream through server A that has sent one chunk and stays open.
-    let (tx, rx) = tokio::sync::mpsc::channel(4);
-    tx.send(chunk("w", 0, &rows2(0..10))).await.unwrap();
-    let open = tokio::spawn({
-        let mut ca = ca.clone();
-        async move {
-            ca.upload_measurements(tokio_stream::wrappers::ReceiverStream::new(rx))
-                .await
-                .map(|r| r.into_inner())
-        }
-    });
-    let deadline = Instant::now() + Duration::from_secs(10);
-    while committed(&mut ca, "w").await < 10 {
-        assert!(Instant::now() < deadline, "the first chunk never committed");
-        tokio::time::sleep(Duration::from_millis(20)).await;
-    }
+    let open = OpenUpload::start(&ca, None, chunk("w", 0, &rows2(0..10)), 10).await;
     // Through server B, the same rows and new ones: ABORTED naming the session, nothing stored.
     let status = send(&mut cb, vec![chunk("w", 10, &rows2(10..20))])
         .await
@@ -472,9 +458,8 @@ async fn one_writer_per_session_across_two_server_processes_on_one_database() {
     );
     assert_eq!(committed(&mut cb, "w").await, 10);
     // The first stream goes on and ends; then B's writer gets the session.
-    tx.send(chunk("w", 10, &rows2(10..20))).await.unwrap();
-    drop(tx);
-    let done = open.await.unwrap().unwrap();
+    assert!(open.send(chunk("w", 10, &rows2(10..20))).await);
+    let done = open.finish().await.unwrap();
     assert_eq!((done.committed_rows, done.rows_written), (20, 20));
     // The lease is given back before the response: the session is free at once.
     let r = send(&mut cb, vec![chunk("w", 15, &rows2(15..30))])
@@ -625,23 +610,7 @@ async fn a_writer_whose_connection_was_cut_takes_over_its_own_stale_stream() {
     c.create_session(create("t", 100)).await.unwrap();
     // Writer rig-a's first stream: one chunk, then silence (its connection "cut" without the
     // server noticing).
-    let (tx, rx) = tokio::sync::mpsc::channel(4);
-    tx.send(chunk("t", 0, &rows2(0..10))).await.unwrap();
-    let stale = tokio::spawn({
-        let mut c = c.clone();
-        async move {
-            c.upload_measurements(as_writer(
-                "rig-a",
-                tokio_stream::wrappers::ReceiverStream::new(rx),
-            ))
-            .await
-        }
-    });
-    let deadline = Instant::now() + Duration::from_secs(10);
-    while committed(&mut c, "t").await < 10 {
-        assert!(Instant::now() < deadline, "the first chunk never committed");
-        tokio::time::sleep(Duration::from_millis(20)).await;
-    }
+    let stale = OpenUpload::start(&c, Some("rig-a"), chunk("t", 0, &rows2(0..10)), 10).await;
     // Another writer: refused while rig-a holds the session.
     let other = c
         .upload_measurements(as_writer(
@@ -669,9 +638,8 @@ async fn a_writer_whose_connection_was_cut_takes_over_its_own_stale_stream() {
         (15, 5, 5)
     );
     // The stale stream wakes up: fenced off, nothing of it stored.
-    tx.send(chunk("t", 15, &rows2(15..20))).await.unwrap();
-    drop(tx);
-    let status = stale.await.unwrap().unwrap_err();
+    stale.send(chunk("t", 15, &rows2(15..20))).await;
+    let status = stale.finish().await.unwrap_err();
     assert_eq!(status.code(), Code::Aborted, "{status:?}");
     assert!(
         status.message().contains("no longer holds"),

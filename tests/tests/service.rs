@@ -8,7 +8,7 @@ use helmholtz_client::scene::Scene;
 use helmholtz_client::simulate::{self, NoiseModel};
 use helmholtz_client::{NewSession, PatternSpec, UploadOptions};
 use helmholtz_proto::v1;
-use helmholtz_tests::ServerProcess;
+use helmholtz_tests::{OpenUpload, ServerProcess};
 use serde_json::Value;
 use tonic::Code;
 
@@ -595,38 +595,15 @@ async fn sigterm_finishes_uploads_in_flight_and_gives_running_jobs_back() {
         .await
         .unwrap();
     let rows: Vec<f64> = (0..200).map(|i| i as f64 * 0.5).collect();
-    let (tx, rx) = tokio::sync::mpsc::channel(4);
-    let mut uploader = c.clone();
-    let upload = tokio::spawn(async move {
-        uploader
-            .upload_measurements(tokio_stream::wrappers::ReceiverStream::new(rx))
-            .await
-    });
-    tx.send(chunk("up", 0, &rows[..100])).await.unwrap();
-    let deadline = Instant::now() + Duration::from_secs(20);
-    while c
-        .get_upload_status(v1::SessionRef {
-            session_id: "up".into(),
-        })
-        .await
-        .unwrap()
-        .into_inner()
-        .committed_rows
-        < 100
-    {
-        assert!(Instant::now() < deadline);
-        tokio::time::sleep(Duration::from_millis(10)).await;
-    }
+    let upload = OpenUpload::start(&c, None, chunk("up", 0, &rows[..100]), 100).await;
     server.signal_term().unwrap();
     tokio::time::sleep(Duration::from_millis(200)).await;
     // The stream in flight is still served to its end: its next chunk is committed too.
-    tx.send(chunk("up", 100, &rows[100..])).await.unwrap();
-    drop(tx);
+    assert!(upload.send(chunk("up", 100, &rows[100..])).await);
     let done = upload
+        .finish()
         .await
-        .unwrap()
-        .expect("the upload in flight completes")
-        .into_inner();
+        .expect("the upload in flight completes");
     assert_eq!(done.committed_rows, 200);
     let status = tokio::task::spawn_blocking(move || {
         let s = server.terminate();
