@@ -222,7 +222,7 @@ pub struct PatternArgs {
     #[arg(long, default_value_t = 64)]
     pub height: u32,
     /// Number of patterns (frames) shown. Default: the full basis for hadamard (2 x width x
-    /// height frames) and raster (one per block); required for bernoulli and speckle.
+    /// height frames) and raster (--scans x one per block); required for bernoulli and speckle.
     #[arg(long)]
     pub count: Option<u64>,
     /// Bernoulli: probability that a pixel is on, in (0, 1).
@@ -234,6 +234,10 @@ pub struct PatternArgs {
     /// Raster: block side in pixels.
     #[arg(long, default_value_t = 1)]
     pub block: u32,
+    /// Raster: how many times the block scan repeats (e.g. to average noise); --count may be
+    /// at most scans x blocks, and defaults to exactly that.
+    #[arg(long, default_value_t = 1)]
+    pub scans: u32,
     /// Speckle: cell side in pixels.
     #[arg(long, default_value_t = 1)]
     pub grain: u32,
@@ -250,7 +254,10 @@ impl PatternArgs {
             FamilyArg::Hadamard => Family::Hadamard {
                 ordering: self.ordering.into(),
             },
-            FamilyArg::Raster => Family::Raster { block: self.block },
+            FamilyArg::Raster => Family::Raster {
+                block: self.block,
+                scans: self.scans,
+            },
             FamilyArg::Speckle => Family::Speckle { grain: self.grain },
         };
         let pixels = self.width as u64 * self.height as u64;
@@ -259,7 +266,8 @@ impl PatternArgs {
             (None, FamilyArg::Hadamard) => 2 * pixels,
             (None, FamilyArg::Raster) => {
                 let b = self.block.max(1);
-                self.width.div_ceil(b) as u64 * self.height.div_ceil(b) as u64
+                let blocks = self.width.div_ceil(b) as u64 * self.height.div_ceil(b) as u64;
+                blocks * self.scans.max(1) as u64
             }
             (None, f) => bail!(
                 "--count is required for {} patterns (correlation imaging needs many: e.g. {} = 8 x width x height)",
@@ -2646,6 +2654,23 @@ mod tests {
             panic!()
         };
         assert_eq!(a.patterns.to_spec().unwrap().count(), 4 * 3);
+        let cli = parse(&[
+            "simulate", "--scene", "x", "--family", "raster", "--width", "10", "--height", "7",
+            "--block", "3", "--scans", "2",
+        ]);
+        let Command::Simulate(a) = cli.command else {
+            panic!()
+        };
+        assert_eq!(a.patterns.to_spec().unwrap().count(), 2 * 4 * 3);
+        let cli = parse(&[
+            "simulate", "--scene", "x", "--family", "raster", "--width", "10", "--height", "7",
+            "--block", "3", "--count", "13",
+        ]);
+        let Command::Simulate(a) = cli.command else {
+            panic!()
+        };
+        let e = a.patterns.to_spec().unwrap_err().to_string();
+        assert!(e.starts_with("--count:") && e.contains("scans"), "{e}");
     }
 
     #[test]

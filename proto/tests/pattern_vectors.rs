@@ -412,7 +412,7 @@ fn vectors_cover_the_contract() {
         &|s, _| matches!(s.family(), Family::Bernoulli { .. }) && s.seed() == u64::MAX
     ));
     assert!(any(
-        &|s, _| matches!(*s.family(), Family::Raster { block } if block > 1
+        &|s, _| matches!(*s.family(), Family::Raster { block, .. } if block > 1
         && (s.width() % block != 0 && s.height() % block != 0))
     ));
     assert!(any(

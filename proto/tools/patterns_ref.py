@@ -91,6 +91,8 @@ def canonical_spec(raw: dict) -> dict:
         raise SpecError("family", f"unknown family {family!r}")
     pname, pdefault = params[family]
     allowed = {"family", "width", "height", "count", "seed", pname}
+    if family == "raster":
+        allowed.add("scans")
     for key in raw:
         if key not in allowed:
             raise SpecError(key, "unknown field")
@@ -130,8 +132,18 @@ def canonical_spec(raw: dict) -> dict:
             raise SpecError("width" if width & (width - 1) else "height", "not a power of two")
         if count % 2 or count > 2 * k:
             raise SpecError("count", "must be even and at most 2 * width * height")
-    return {"family": family, pname: p, "width": width, "height": height, "count": count,
-            "seed": seed}
+    if family == "raster":
+        scans = raw.get("scans", 1)
+        blocks = -(-width // p) * -(-height // p)
+        if not _is_uint(scans) or not 1 <= scans <= -(-MAX_COUNT // blocks):
+            raise SpecError("scans", "out of range")
+        if count > scans * blocks:
+            raise SpecError("count", "more patterns than the declared scans of the blocks")
+    out = {"family": family, pname: p}
+    if family == "raster":
+        out["scans"] = scans
+    out.update({"width": width, "height": height, "count": count, "seed": seed})
+    return out
 
 
 def spec_json(spec: dict) -> str:
@@ -411,15 +423,17 @@ def build() -> dict:
 
     # raster -------------------------------------------------------------------------------
     vectors.append(vector("raster 10x7 block 1", {"family": "raster", "width": 10, "height": 7,
-                                                  "count": 140},
+                                                  "count": 140, "scans": 2},
                           [0, 1, 9, 10, 69, 70, 139], [(0, 140)],
                           "70 blocks: pattern 70 repeats pattern 0"))
     vectors.append(vector("raster 10x7 block 3", {"family": "raster", "width": 10, "height": 7,
-                                                  "count": 30, "block": 3, "seed": 5},
+                                                  "count": 30, "block": 3, "seed": 5,
+                                                  "scans": 3},
                           [0, 1, 3, 4, 8, 11, 12, 29], [(0, 30)],
-                          "4 x 3 blocks; the last column (x = 9) and row (y = 6) are partial"))
+                          "4 x 3 blocks; the last column (x = 9) and row (y = 6) are partial;"
+                          " two and a half scans"))
     vectors.append(vector("raster 16x3 block 5", {"family": "raster", "width": 16, "height": 3,
-                                                  "count": 10, "block": 5},
+                                                  "count": 10, "block": 5, "scans": 3},
                           [0, 2, 3, 4], [(0, 10)],
                           "block taller than the image: 4 x 1 blocks, the last 1 pixel wide"))
     vectors.append(vector("raster 64x64 block 8", {"family": "raster", "width": 64,

@@ -256,6 +256,80 @@ async fn dot_session_ids_are_refused() {
     assert!(e.to_string().contains("session id"), "{e:#}");
 }
 
+#[tokio::test]
+async fn a_raster_past_one_scan_is_refused_unless_it_declares_its_repeats() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = ServerProcess::start(dir.path(), 0, &[]).unwrap();
+    let mut c = server.grpc().await.unwrap();
+    let raster = |id: &str, block: u32, scans: u32, count: u64| {
+        let mut req =
+            helmholtz_tests::bucket_session(id, v1::PatternFamily::Raster, 8, 8, count, &["a"]);
+        req.patterns.as_mut().unwrap().params = Some(v1::pattern_spec::Params::Raster(
+            v1::RasterParams { block, scans },
+        ));
+        req
+    };
+    // More patterns than pixels (64 blocks of 1 pixel), and more than the 16 blocks of 2x2.
+    for (id, block, count) in [("px", 1, 65), ("px2", 1, 1_000_000), ("blk", 2, 17)] {
+        let status = c
+            .create_session(raster(id, block, 0, count))
+            .await
+            .unwrap_err();
+        assert_eq!(status.code(), Code::InvalidArgument, "{status:?}");
+        assert!(
+            status.message().contains("count") && status.message().contains("scans"),
+            "{status:?}"
+        );
+    }
+    // Declared repeats are accepted up to scans x blocks, and the canonical spec keeps them.
+    let status = c
+        .create_session(raster("over", 1, 2, 129))
+        .await
+        .unwrap_err();
+    assert_eq!(status.code(), Code::InvalidArgument, "{status:?}");
+    let created = c
+        .create_session(raster("twice", 1, 2, 128))
+        .await
+        .unwrap()
+        .into_inner();
+    let spec = created.session.unwrap().patterns.unwrap();
+    assert_eq!(
+        spec.params,
+        Some(v1::pattern_spec::Params::Raster(v1::RasterParams {
+            block: 1,
+            scans: 2
+        }))
+    );
+    // Only that one session exists.
+    let listed: Value = reqwest::Client::new()
+        .get(server.url("/v1/sessions"))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    let ids: Vec<&str> = listed["sessions"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|s| s["id"].as_str().unwrap())
+        .collect();
+    assert_eq!(ids, ["twice"], "{listed}");
+    // The CLI refuses it before calling, saying what to declare.
+    let out = std::process::Command::new(helmholtz_tests::binary("helmholtz"))
+        .args(["patterns", "--out"])
+        .arg(dir.path().join("frames"))
+        .args(["--spec-json", r#"{"family":"raster","width":8,"height":8,"count":65}"#])
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && stderr.contains("count") && stderr.contains(r#""scans": 2"#),
+        "{stderr}"
+    );
+}
+
 #[cfg(unix)]
 #[test]
 fn the_data_directory_is_0700_and_the_database_0600_whatever_the_umask() {

@@ -147,7 +147,8 @@ fn params_strategy() -> impl Strategy<Value = Option<v1::pattern_spec::Params>> 
     use v1::pattern_spec::Params;
     prop_oneof![
         Just(None),
-        u32_edge().prop_map(|block| Some(Params::Raster(v1::RasterParams { block }))),
+        (u32_edge(), u32_edge())
+            .prop_map(|(block, scans)| Some(Params::Raster(v1::RasterParams { block, scans }))),
         proptest::option::of(f64_edge())
             .prop_map(|fill| Some(Params::Bernoulli(v1::BernoulliParams { fill }))),
         (-2i32..8).prop_map(|ordering| Some(Params::Hadamard(v1::HadamardParams { ordering }))),

@@ -19,7 +19,7 @@ fn bucket_signals_match_dot_products() {
         Family::Hadamard {
             ordering: HadamardOrdering::Sequency,
         },
-        Family::Raster { block: 3 },
+        Family::Raster { block: 3, scans: 4 },
         Family::Speckle { grain: 2 },
     ];
     for family in families {

@@ -13,12 +13,12 @@ impl TryFrom<&v1::PatternSpec> for PatternSpec {
         use v1::pattern_spec::Params;
         let family = match v1::PatternFamily::try_from(m.family) {
             Ok(v1::PatternFamily::Raster) => {
-                let block = match &m.params {
-                    Some(Params::Raster(p)) if p.block > 0 => p.block,
-                    Some(Params::Raster(_)) | None => 1,
+                let (block, scans) = match &m.params {
+                    Some(Params::Raster(p)) => (p.block.max(1), p.scans.max(1)),
+                    None => (1, 1),
                     Some(_) => return Err(params_mismatch("raster")),
                 };
-                Family::Raster { block }
+                Family::Raster { block, scans }
             }
             Ok(v1::PatternFamily::Bernoulli) => {
                 let fill = match &m.params {
@@ -86,9 +86,9 @@ impl From<&PatternSpec> for v1::PatternSpec {
     fn from(s: &PatternSpec) -> Self {
         use v1::pattern_spec::Params;
         let (family, params) = match *s.family() {
-            Family::Raster { block } => (
+            Family::Raster { block, scans } => (
                 v1::PatternFamily::Raster,
-                Params::Raster(v1::RasterParams { block }),
+                Params::Raster(v1::RasterParams { block, scans }),
             ),
             Family::Bernoulli { fill } => (
                 v1::PatternFamily::Bernoulli,

@@ -65,7 +65,7 @@ pub struct NotBinary;
 impl PatternGenerator {
     pub fn new(spec: &PatternSpec) -> Self {
         let kind = match *spec.family() {
-            Family::Raster { block } => {
+            Family::Raster { block, .. } => {
                 let (_, bx, by) = spec.raster_grid().expect("raster");
                 Kind::Raster {
                     block,

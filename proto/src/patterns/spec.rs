@@ -20,6 +20,11 @@ pub enum Family {
     Raster {
         #[serde(default = "one")]
         block: u32,
+        /// How many times the block scan may repeat (e.g. to average noise): `count` is at most
+        /// `scans * BW * BH`. One scan by default, so a count beyond the blocks is refused unless
+        /// the repeat is declared.
+        #[serde(default = "one")]
+        scans: u32,
     },
     Bernoulli {
         #[serde(default = "half")]
@@ -50,6 +55,15 @@ impl Family {
             Family::Hadamard { .. } => "hadamard",
             Family::Speckle { .. } => "speckle",
         }
+    }
+
+    /// Raster with block `block` declaring just enough scans for `count` patterns on a
+    /// `width x height` image (at least one).
+    pub fn raster_covering(block: u32, width: u32, height: u32, count: u64) -> Family {
+        let b = block.max(1);
+        let blocks = (width.div_ceil(b) as u64 * height.div_ceil(b) as u64).max(1);
+        let scans = count.div_ceil(blocks).clamp(1, u32::MAX as u64) as u32;
+        Family::Raster { block, scans }
     }
 
     /// True when every pattern value is 0 or 1.
@@ -150,7 +164,7 @@ impl PatternSpec {
             ));
         }
         let family = match family {
-            Family::Raster { block } => {
+            Family::Raster { block, scans } => {
                 if block == 0 || block > width.max(height) {
                     return Err(err(
                         "block",
@@ -160,7 +174,27 @@ impl PatternSpec {
                         ),
                     ));
                 }
-                Family::Raster { block }
+                let blocks = width.div_ceil(block) as u64 * height.div_ceil(block) as u64;
+                let max_scans = MAX_COUNT.div_ceil(blocks);
+                if scans == 0 || scans as u64 > max_scans {
+                    return Err(err(
+                        "scans",
+                        format!("must be 1..={max_scans} (up to {MAX_COUNT} patterns), got {scans}"),
+                    ));
+                }
+                if count > scans as u64 * blocks {
+                    let needed = count.div_ceil(blocks);
+                    return Err(err(
+                        "count",
+                        format!(
+                            "a raster of {width}x{height} with block {block} has {blocks} patterns \
+                             per scan, so {scans} scan(s) hold at most {}, got {count}; to repeat \
+                             the scan (e.g. to average noise) declare \"scans\": {needed}",
+                            scans as u64 * blocks
+                        ),
+                    ));
+                }
+                Family::Raster { block, scans }
             }
             Family::Bernoulli { fill } => {
                 if !(fill > 0.0 && fill < 1.0) {
@@ -252,7 +286,7 @@ impl PatternSpec {
     /// Raster: blocks per row and per column.
     pub fn raster_grid(&self) -> Option<(u32, u32, u32)> {
         match self.family {
-            Family::Raster { block } => Some((
+            Family::Raster { block, .. } => Some((
                 block,
                 self.width.div_ceil(block),
                 self.height.div_ceil(block),
@@ -312,6 +346,19 @@ mod tests {
                 r#"{"family":"raster","width":8,"height":8,"count":0}"#,
                 "count",
             ),
+            // More patterns than the 64 blocks of one scan, with no repeat declared.
+            (
+                r#"{"family":"raster","width":8,"height":8,"count":65}"#,
+                "count",
+            ),
+            (
+                r#"{"family":"raster","width":10,"height":7,"block":3,"scans":2,"count":25}"#,
+                "count",
+            ),
+            (
+                r#"{"family":"raster","width":8,"height":8,"count":64,"scans":0}"#,
+                "scans",
+            ),
             (
                 r#"{"family":"bernoulli","width":8,"height":8,"count":8,"fill":1.5}"#,
                 "fill",
@@ -355,5 +402,27 @@ mod tests {
                 fill: 19661.0 / 65536.0
             }
         );
+    }
+
+    #[test]
+    fn raster_repeats_only_when_declared() {
+        // 10 x 7 with block 3: 12 blocks per scan.
+        let one: PatternSpec =
+            serde_json::from_str(r#"{"family":"raster","width":10,"height":7,"block":3,"count":12}"#)
+                .unwrap();
+        assert_eq!(one.family(), &Family::Raster { block: 3, scans: 1 });
+        let e = one.with_count(13).unwrap_err();
+        assert_eq!(e.field, "count");
+        assert!(e.message.contains(r#""scans": 2"#), "{e}");
+        // Two and a half scans, declared as three.
+        let rep = PatternSpec::new(Family::Raster { block: 3, scans: 3 }, 10, 7, 30, 0).unwrap();
+        assert_eq!(rep.count(), 30);
+        let back: PatternSpec = serde_json::from_str(&rep.to_json()).unwrap();
+        assert_eq!(back, rep);
+        assert!(rep.to_json().contains(r#""scans":3"#));
+        // The scan count is bounded by MAX_COUNT patterns.
+        let e = PatternSpec::new(Family::Raster { block: 1, scans: u32::MAX }, 8, 8, 64, 0)
+            .unwrap_err();
+        assert_eq!(e.field, "scans");
     }
 }

@@ -161,7 +161,7 @@ fn bernoulli_threshold_form_equals_the_recurrence() {
 #[test]
 fn fill_bits_and_fill_values_agree() {
     for json in [
-        r#"{"family":"raster","width":10,"height":7,"count":30,"block":3}"#,
+        r#"{"family":"raster","width":10,"height":7,"count":30,"block":3,"scans":3}"#,
         r#"{"family":"raster","width":64,"height":3,"count":30}"#,
         r#"{"family":"bernoulli","width":13,"height":11,"count":2000000,"seed":9,"fill":0.3}"#,
         r#"{"family":"bernoulli","width":100,"height":37,"count":2000000,"seed":9,"fill":0.95}"#,
@@ -197,7 +197,7 @@ fn fill_bits_and_fill_values_agree() {
 fn raster_scan_lights_each_pixel_exactly_once() {
     for block in [1u32, 3] {
         let s = spec(&format!(
-            r#"{{"family":"raster","width":10,"height":7,"count":1000,"block":{block}}}"#
+            r#"{{"family":"raster","width":10,"height":7,"count":1000,"block":{block},"scans":84}}"#
         ));
         let g = PatternGenerator::new(&s);
         let (b, bw, bh) = s.raster_grid().unwrap();
@@ -451,7 +451,7 @@ fn speckle_cells_read_their_own_counter() {
 // --- statelessness ----------------------------------------------------------------------------
 
 const STATELESS_SPECS: [&str; 5] = [
-    r#"{"family":"raster","width":10,"height":7,"count":1000,"block":3}"#,
+    r#"{"family":"raster","width":10,"height":7,"count":1000,"block":3,"scans":84}"#,
     r#"{"family":"bernoulli","width":13,"height":11,"count":2000000,"seed":3,"fill":0.3}"#,
     r#"{"family":"bernoulli","width":64,"height":64,"count":2000000,"seed":3}"#,
     r#"{"family":"hadamard","width":16,"height":8,"count":256,"ordering":"russian_doll"}"#,

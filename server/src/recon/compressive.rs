@@ -677,7 +677,7 @@ mod tests {
             );
         }
         // Where the offset cannot be fitted, the request says why.
-        let raster = PatternSpec::new(Family::Raster { block: 1 }, 4, 4, 16, 0).unwrap();
+        let raster = PatternSpec::new(Family::Raster { block: 1, scans: 1 }, 4, 4, 16, 0).unwrap();
         let e = reconstruct(
             &Problem {
                 spec: &raster,

@@ -1352,7 +1352,7 @@ mod tests {
         let specs = [
             bernoulli(10, 7, 1000, 0.5, 1),
             bernoulli(9, 9, 1000, 0.3, 2),
-            PatternSpec::new(Family::Raster { block: 3 }, 10, 7, 1000, 0).unwrap(),
+            PatternSpec::new(Family::raster_covering(3, 10, 7, 1000), 10, 7, 1000, 0).unwrap(),
             // Hadamard: frame 1 (P- of natural row 0) is all-off, exercising R = 0 in NGI.
             PatternSpec::new(
                 Family::Hadamard {
@@ -1817,7 +1817,7 @@ mod tests {
             (bernoulli(10, 7, 1000, 0.5, 1), 237u64),
             (bernoulli(9, 9, 1000, 0.3, 2), 237),
             (
-                PatternSpec::new(Family::Raster { block: 3 }, 10, 7, 1000, 0).unwrap(),
+                PatternSpec::new(Family::raster_covering(3, 10, 7, 1000), 10, 7, 1000, 0).unwrap(),
                 237,
             ),
             (

@@ -365,7 +365,7 @@ mod tests {
     fn raster_block_one_returns_t() {
         let (w, h) = (12u32, 7u32);
         let k = (w * h) as usize;
-        let spec = PatternSpec::new(Family::Raster { block: 1 }, w, h, k as u64, 0).unwrap();
+        let spec = PatternSpec::new(Family::Raster { block: 1, scans: 1 }, w, h, k as u64, 0).unwrap();
         let t = random_scene(k, 0.0, 1.0, 1);
         let buckets = simulate(&spec, std::slice::from_ref(&t), k as u64, |_| 1.0, 0.0);
         let r = solve(&spec, &buckets, 1, 10);
@@ -382,7 +382,7 @@ mod tests {
         let t = random_scene(k, 0.0, 1.0, 2);
         let want = f32s(&block_average(&t, w as usize, h as usize, b as usize));
         // One scan, then 2.5 scans with per-scan gains that average to 1 on every block.
-        let spec = PatternSpec::new(Family::Raster { block: b }, w, h, 1000, 0).unwrap();
+        let spec = PatternSpec::new(Family::raster_covering(b, w, h, 1000), w, h, 1000, 0).unwrap();
         let one = simulate(&spec, std::slice::from_ref(&t), blocks, |_| 1.0, 0.0);
         let r = solve(&spec, &one, 1, 5);
         assert!(relative_error(&r.images[0].data, &want) < 1e-6);
@@ -513,7 +513,7 @@ mod tests {
             Family::Hadamard {
                 ordering: HadamardOrdering::Zigzag,
             },
-            Family::Raster { block: 1 },
+            Family::Raster { block: 1, scans: 1 },
         ] {
             let count = if matches!(family, Family::Raster { .. }) {
                 k as u64
@@ -704,7 +704,7 @@ mod tests {
             Err(ReconError::Unsolvable(_))
         ));
         // Complete spec, but the source stops early.
-        let spec = PatternSpec::new(Family::Raster { block: 1 }, 4, 4, 16, 0).unwrap();
+        let spec = PatternSpec::new(Family::Raster { block: 1, scans: 1 }, 4, 4, 16, 0).unwrap();
         let problem = Problem {
             spec: &spec,
             channels: 1,

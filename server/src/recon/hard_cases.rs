@@ -63,7 +63,7 @@ fn hadamard(w: u32, h: u32, count: u64) -> PatternSpec {
 }
 
 fn raster(w: u32, h: u32, block: u32, count: u64) -> PatternSpec {
-    PatternSpec::new(Family::Raster { block }, w, h, count, 0).unwrap()
+    PatternSpec::new(Family::raster_covering(block, w, h, count), w, h, count, 0).unwrap()
 }
 
 /// Two flat rectangles (1.0 and 0.6) on a dim background (0.05), placed at fractions of the grid
@@ -781,7 +781,7 @@ fn non_square_and_non_power_of_two_grids() {
         let truth = blocks(w, h);
         let c = clean(&spec, &truth);
         let complete = rows == 2 * (w * h) as u64
-            || matches!(spec.family(), Family::Raster { block: 1 }) && rows == (w * h) as u64;
+            || matches!(spec.family(), Family::Raster { block: 1, .. }) && rows == (w * h) as u64;
         for &method in &methods {
             let case = format!("{} {w}x{h} rows {rows}", spec.family().name());
             let image = checked_image(&case, &spec, &c, rows, method);
@@ -795,7 +795,7 @@ fn non_square_and_non_power_of_two_grids() {
                 assert!(err < 1e-6, "{case} / {method}: error {err:.3e}");
             }
         }
-        if let Family::Raster { block } = *spec.family() {
+        if let Family::Raster { block, .. } = *spec.family() {
             // direct on 3 x 3 blocks (8 x 14 blocks, the last row 1 pixel high): block means.
             let image = checked_image("raster blocks", &spec, &c, rows, "direct");
             let want = block_means(&truth, w, h, block as usize);

@@ -185,7 +185,32 @@ fn private_files(data_dir: &Path, db: &Path) -> std::io::Result<()> {
 }
 
 pub(crate) fn parse_spec(json: &str) -> Result<PatternSpec, StoreError> {
-    serde_json::from_str(json).map_err(|e| StoreError::Corrupt(format!("stored spec: {e}")))
+    serde_json::from_str(json)
+        .or_else(|e| legacy_repeated_raster(json).ok_or(e))
+        .map_err(|e| StoreError::Corrupt(format!("stored spec: {e}")))
+}
+
+/// A raster stored before `scans` was part of the spec (PATTERNS.md) could run past one scan
+/// without declaring it. Such a session was a repeated scan: read it as declaring the scans its
+/// count holds, so its rows stay readable and reconstructable.
+fn legacy_repeated_raster(json: &str) -> Option<PatternSpec> {
+    let mut v: serde_json::Map<String, serde_json::Value> = serde_json::from_str(json).ok()?;
+    if v.get("family")?.as_str()? != "raster" || v.contains_key("scans") {
+        return None;
+    }
+    let get = |k: &str| v.get(k).and_then(serde_json::Value::as_u64);
+    let (w, h, count) = (get("width")?, get("height")?, get("count")?);
+    let block = get("block").unwrap_or(1);
+    let helmholtz_proto::Family::Raster { scans, .. } = helmholtz_proto::Family::raster_covering(
+        u32::try_from(block).ok()?,
+        u32::try_from(w).ok()?,
+        u32::try_from(h).ok()?,
+        count,
+    ) else {
+        return None;
+    };
+    v.insert("scans".into(), scans.into());
+    serde_json::from_value(serde_json::Value::Object(v)).ok()
 }
 
 pub(crate) fn f32_to_le(data: &[f32]) -> Vec<u8> {

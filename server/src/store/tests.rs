@@ -395,6 +395,15 @@ async fn upgrading_a_database_keeps_its_sessions_and_jobs_in_the_default_lab() {
         .await
         .unwrap();
     }
+    // A repeated raster stored before `scans` existed (two scans of 16 blocks, no declaration).
+    sqlx::query(
+        "INSERT INTO sessions (id, rig, spec_json, channels_json, metadata_json, expected_rows, committed_rows, created_ms) \
+         VALUES ('old-repeat', 'r', $1, '[\"a\"]', '{}', 32, 0, 1)",
+    )
+    .bind(r#"{"family":"raster","block":1,"width":4,"height":4,"count":32,"seed":0}"#)
+    .execute(&pool)
+    .await
+    .unwrap();
     sqlx::query("INSERT INTO jobs (id, kind, state, run_at_ms, created_ms) VALUES (1, 'reconstruction', 'queued', 1, 1)")
         .execute(&pool)
         .await
@@ -410,7 +419,11 @@ async fn upgrading_a_database_keeps_its_sessions_and_jobs_in_the_default_lab() {
     assert_eq!(s.session("demo-usaf-hadamard").await.unwrap().lab, "demo");
     let r = s.reconstruction(1).await.unwrap();
     assert_eq!((r.lab.as_str(), r.state.as_str()), ("default", "queued"));
-    assert_eq!(s.list_sessions("default", 10).await.unwrap().len(), 1);
+    assert_eq!(s.list_sessions("default", 10).await.unwrap().len(), 2);
+    // The old repeated raster still opens, now declaring the two scans its count holds.
+    let old = s.session("old-repeat").await.unwrap();
+    assert_eq!(old.spec.family(), &Family::Raster { block: 1, scans: 2 });
+    assert_eq!(old.spec.count(), 32);
     assert!(
         s.claim_job("w", 60_000, 0).await.unwrap().is_some(),
         "the queued job still runs"

@@ -246,7 +246,7 @@ fn bench_other_families() {
         for family in [
             Family::Speckle { grain: 1 },
             Family::Speckle { grain: 4 },
-            Family::Raster { block: 1 },
+            Family::Raster { block: 1, scans: 1 },
         ] {
             let spec = PatternSpec::new(family.clone(), side, side, n as u64, 1).unwrap();
             let t0 = Instant::now();

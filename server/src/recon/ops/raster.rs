@@ -49,7 +49,7 @@ impl RasterOperator {
     }
 
     pub fn from_spec(spec: &PatternSpec, rows: u64) -> Result<Self, OpError> {
-        let Family::Raster { block } = *spec.family() else {
+        let Family::Raster { block, .. } = *spec.family() else {
             return Err(OpError::WrongFamily {
                 want: "raster",
                 got: spec.family().name(),

@@ -147,7 +147,7 @@ fn binary_operator_takes_any_binary_family() {
         1e-12,
         "hadamard frames as bits",
     );
-    let s = spec(Family::Raster { block: 3 }, 10, 7, 30, 0);
+    let s = spec(Family::Raster { block: 3, scans: 3 }, 10, 7, 30, 0);
     let op = BinaryOperator::from_spec(&s, 30).unwrap();
     check_equals(&op, &naive_patterns(&s, 30), 1e-12, "raster as bits");
     let s = spec(Family::Speckle { grain: 1 }, 4, 4, 3, 0);
@@ -272,7 +272,7 @@ fn raster_matches_the_generator() {
         (5, 9, 1, 100),
         (6, 6, 6, 2),
     ] {
-        let s = spec(Family::Raster { block }, w, h, n, 0);
+        let s = spec(Family::raster_covering(block, w, h, n), w, h, n, 0);
         let op = RasterOperator::from_spec(&s, n).unwrap();
         let what = format!("raster {w}x{h} b{block} n={n}");
         check_equals(&op, &naive_patterns(&s, n), 1e-12, &what);
@@ -310,7 +310,7 @@ fn measurement_operator_picks_and_checks() {
             100,
             50,
         ),
-        (Family::Raster { block: 2 }, 100, 100),
+        (Family::Raster { block: 2, scans: 4 }, 100, 100),
         (Family::Speckle { grain: 2 }, 100, 100),
     ];
     for (family, rows, want_rows) in cases {
@@ -480,7 +480,7 @@ fn centred_objective_splits_exactly() {
 
 #[test]
 fn centred_wraps_boxed_dyn_operators() {
-    let s = spec(Family::Raster { block: 2 }, 6, 6, 9, 0);
+    let s = spec(Family::Raster { block: 2, scans: 1 }, 6, 6, 9, 0);
     let boxed: Box<dyn LinearOperator> = measurement_operator(&s, 9);
     let c: CentredOperator = CentredOperator::new(boxed).with_dc_weight(2.0);
     assert_eq!(c.rows(), 10);

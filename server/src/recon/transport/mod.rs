@@ -204,7 +204,7 @@ impl<'a> Plan<'a> {
                     raster_counts: None,
                 }
             }
-            Family::Raster { block } => {
+            Family::Raster { block, .. } => {
                 let op = RasterOperator::from_spec(spec, rows as u64).map_err(unsolvable)?;
                 let exact = *block == 1 && rows >= k;
                 let raster_counts = exact.then(|| {

@@ -136,7 +136,7 @@ fn a_complete_hadamard_set_reconstructs_to_f32_precision_and_stores_sparse() {
 
 #[test]
 fn a_complete_raster_set_with_noise_drops_what_is_below_the_noise() {
-    let spec = PatternSpec::new(Family::Raster { block: 1 }, 32, 32, 1024, 0).unwrap();
+    let spec = PatternSpec::new(Family::Raster { block: 1, scans: 1 }, 32, 32, 1024, 0).unwrap();
     let truth = synthetic_t(CAM, 32, 32);
     let sigma = 1e-3;
     let f = frames(&spec, &truth, CAM.pixels(), sigma);
