@@ -2,7 +2,7 @@
 """The other tools on the problems Helmholtz exports (`helmholtz-bench --preset compare`).
 
 Runs, on every exported problem (DIR/NAME/problem.json + NPY files, see
-server/src/bench/compare.rs for the conventions):
+bench/src/compare.rs for the conventions):
 
 - pylops FISTA, l1 on orthonormal Daubechies-4 wavelet coefficients (pylops DWT2D, periodised);
 - pyproximal primal-dual (Chambolle-Pock) isotropic TV with t >= 0 (pyproximal.Box);

@@ -21,9 +21,9 @@ use serde_json::{Value, json};
 use crate::frames;
 use crate::measurements::{self, Measurements};
 use crate::rest::{self, FetchTarget, ImageFormat, Reconstruction};
-use crate::scene::Scene;
-use crate::simulate::lambert;
-use crate::simulate::{self, NoiseModel};
+use helmholtz_sim::Target;
+use helmholtz_sim::simulate::lambert;
+use helmholtz_sim::simulate::{self, NoiseModel};
 use crate::spool::{self, DrainReport, SpoolDir};
 use crate::upload::{self, NewSession, SampleBuf, SampleFormat, UploadOptions};
 
@@ -428,7 +428,7 @@ impl From<FrameFormatArg> for SampleFormat {
 
 #[derive(Debug, Clone, Args)]
 pub struct SimulateArgs {
-    /// Scene: camera, shapes, usaf (USAF-1951 chart), double-slit, or a PNG file (grey or colour,
+    /// Target: camera, shapes, usaf (USAF-1951 chart), double-slit, or a PNG file (grey or colour,
     /// 8/16 bit; resampled to the pattern grid): one bucket detector sees it as its transport.
     /// Or lambert: an analytic Lambertian scene (ground plane, hemisphere, box; cast shadows, one
     /// diffuse bounce) with a known light transport for any detector direction or camera (see
@@ -1104,7 +1104,7 @@ fn normalised_png(width: u32, height: u32, values: &[f64]) -> anyhow::Result<Vec
         .iter()
         .map(|&v| if max > 0.0 { (v / max) as f32 } else { 0.0 })
         .collect();
-    Scene {
+    Target {
         width,
         height,
         pixels,
@@ -1220,8 +1220,8 @@ async fn simulate_cmd(
             a.camera_tilt.is_finite() && a.camera_tilt.abs() < 90.0,
             "--camera-tilt must be within (-90, 90) degrees"
         );
-        let scene = helmholtz_scenes::Scene::demo(spec.width(), spec.height(), a.scene_seed);
-        let rig = helmholtz_scenes::Camera::tilted(cw, ch, a.camera_tilt);
+        let scene = helmholtz_sim::Scene::demo(spec.width(), spec.height(), a.scene_seed);
+        let rig = helmholtz_sim::Camera::tilted(cw, ch, a.camera_tilt);
         let t0 = Instant::now();
         let sim =
             lambert::FrameSimulator::new(&scene, rig, &spec, a.noise.gain as f64, format, &model)?;
@@ -1325,11 +1325,11 @@ async fn simulate_cmd(
     // Bucket detectors: names, directions and one transport per channel.
     let (names, directions, mut transports, ground_truth) = if is_lambert {
         let plan = lambert::detector_plan(a.detectors.as_deref(), a.detector_elevation, a.colour)?;
-        let scene = helmholtz_scenes::Scene::demo(spec.width(), spec.height(), a.scene_seed);
+        let scene = helmholtz_sim::Scene::demo(spec.width(), spec.height(), a.scene_seed);
         let transports = lambert::plan_transports(&scene, &plan, a.noise.gain as f64);
         (plan.names, plan.directions, transports, None)
     } else {
-        let scene = Scene::load(&a.scene, spec.width(), spec.height())?;
+        let scene = Target::load(&a.scene, spec.width(), spec.height())?;
         let transport = scene.transport(a.noise.gain);
         if let Some(path) = &a.scene_out {
             rest::write_atomically(path, &scene.to_png()?)?;

@@ -5,7 +5,7 @@ use std::path::{Path, PathBuf};
 use anyhow::Context;
 use helmholtz_proto::{PatternGenerator, PatternSpec};
 
-use crate::pngio;
+use helmholtz_proto::png;
 
 /// File name of frame `i`: `frame_000000.png`, ... (six digits, more if needed).
 pub fn frame_name(i: u64) -> String {
@@ -16,7 +16,7 @@ pub fn frame_name(i: u64) -> String {
 pub fn frame_pixels(generator: &PatternGenerator, i: u64) -> Vec<u8> {
     let mut values = vec![0.0f32; generator.spec().pixels()];
     generator.fill_values(i, &mut values);
-    pngio::to_grey8(&values)
+    png::to_grey8(&values)
 }
 
 /// Writes frames `first..first + count` of `spec` into `dir` (created if missing) and returns
@@ -38,7 +38,7 @@ pub fn write_frames(
     (first..end)
         .map(|i| {
             let png =
-                pngio::encode_grey8(spec.width(), spec.height(), &frame_pixels(&generator, i))?;
+                png::encode_grey8(spec.width(), spec.height(), &frame_pixels(&generator, i))?;
             let path = dir.join(frame_name(i));
             std::fs::write(&path, png).with_context(|| format!("writing {}", path.display()))?;
             Ok(path)
@@ -65,7 +65,7 @@ mod tests {
             let mut expect = vec![0.0f32; spec.pixels()];
             for (n, path) in paths.iter().enumerate() {
                 generator.fill_values(2 + n as u64, &mut expect);
-                let img = pngio::decode_luminance(&std::fs::read(path).unwrap()).unwrap();
+                let img = png::decode_luminance(&std::fs::read(path).unwrap()).unwrap();
                 assert_eq!((img.width, img.height), (spec.width(), spec.height()));
                 for (a, b) in img.pixels.iter().zip(&expect) {
                     assert!((a - b).abs() <= 0.5 / 255.0 + 1e-6);

@@ -4,7 +4,7 @@
 //! the seed) and records one bucket value per pattern and detector channel, `c_i = t · p_i + noise`
 //! (or, in a camera session, a whole frame `T p_i + noise` per pattern). This crate
 //!
-//! - loads or draws a scene ([`scene`]) and simulates a rig measuring it ([`simulate`]),
+//! - simulates a rig measuring a known scene (with [`helmholtz_sim`], the `simulate` command),
 //! - reads a real rig's measurements from CSV or NPY ([`measurements`]),
 //! - spools every measured row durably on local disk before upload ([`spool`]),
 //! - creates a session and streams the rows to the server over gRPC with resume after any
@@ -22,11 +22,12 @@
 //!
 //! ```no_run
 //! # async fn demo() -> anyhow::Result<()> {
-//! use helmholtz_client::{NewSession, UploadOptions, scene::Scene, simulate};
+//! use helmholtz_client::{NewSession, UploadOptions};
+//! use helmholtz_sim::{Target, simulate};
 //! use helmholtz_proto::PatternSpec;
 //! let spec: PatternSpec = serde_json::from_str(
 //!     r#"{"family":"bernoulli","width":32,"height":32,"count":8192,"seed":7}"#)?;
-//! let transport = Scene::builtin("double-slit", 32, 32)?.transport(1.0);
+//! let transport = Target::builtin("double-slit", 32, 32)?.transport(1.0);
 //! let sim = simulate::simulate(&spec, &[&transport], &simulate::NoiseModel::default(), None);
 //! let server = helmholtz_client::auth::with_token("http://127.0.0.1:8080", "hz_...");
 //! let server = server.as_str();
@@ -45,10 +46,7 @@ pub mod auth;
 pub mod cli;
 pub mod frames;
 pub mod measurements;
-pub mod pngio;
 pub mod rest;
-pub mod scene;
-pub mod simulate;
 pub mod spool;
 pub mod tls;
 pub mod upload;

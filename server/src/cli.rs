@@ -25,8 +25,9 @@ struct Cli {
     log_format: String,
 }
 
+/// The service's options (`serve`, and the demo binary, which runs the same service).
 #[derive(clap::Args, Debug, Clone)]
-struct ServeArgs {
+pub struct ServeArgs {
     /// Address for gRPC and REST (one port serves both); port 0 picks a free port.
     #[arg(long, env = "HELMHOLTZ_LISTEN", default_value = "127.0.0.1:8080")]
     listen: SocketAddr,
@@ -234,15 +235,6 @@ enum TokenCommand {
 enum Command {
     /// Run the service until Ctrl-C (or SIGTERM).
     Serve(ServeArgs),
-    /// Run the service with a simulated rig: uploads demo sessions, reconstructs them, prints the
-    /// URLs of the sessions and dual images, then keeps serving until Ctrl-C.
-    Demo {
-        #[command(flatten)]
-        serve: ServeArgs,
-        /// Exit once the demo sessions are reconstructed instead of serving on.
-        #[arg(long)]
-        exit_after_demo: bool,
-    },
     /// Manage access tokens directly in the database (works whether or not the server runs).
     Token {
         #[command(subcommand)]
@@ -259,7 +251,8 @@ enum Command {
 }
 
 impl ServeArgs {
-    fn config(&self) -> Config {
+    /// The application's configuration from these options.
+    pub fn config(&self) -> Config {
         let mut config = Config {
             listen: self.listen,
             data_dir: self.data_dir.clone(),
@@ -288,10 +281,6 @@ pub fn main() {
     let result = runtime.block_on(async move {
         match cli.command {
             Command::Serve(args) => serve(args.config()).await,
-            Command::Demo {
-                serve,
-                exit_after_demo,
-            } => crate::demo::run(serve.config(), exit_after_demo).await,
             Command::Token { command, data_dir } => token(command, &data_dir).await,
         }
     });
@@ -301,7 +290,8 @@ pub fn main() {
     }
 }
 
-fn init_tracing(format: &str) {
+/// Logs to stderr as text or JSON lines, filtered by `RUST_LOG`.
+pub fn init_tracing(format: &str) {
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info,sqlx=warn,tower_http=info"));
     let builder = tracing_subscriber::fmt()

@@ -3,17 +3,16 @@
 //! Data flows one way: `api` (gRPC, REST) -> `jobs` -> `recon` (pure numerics), with `store`
 //! the only module that speaks SQL.
 
-pub mod alloc;
+pub use helmholtz_alloc as alloc;
 pub mod api;
 pub mod app;
 pub mod auth;
-pub mod bench;
 pub mod cli;
-mod demo;
 pub mod edge;
 pub mod jobs;
 pub mod limits;
-pub mod recon;
+/// The numerics live in their own crate (no async, SQL or HTTP); the server calls them as `recon`.
+pub use helmholtz_recon as recon;
 pub mod store;
 pub mod telemetry;
 

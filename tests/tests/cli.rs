@@ -3,7 +3,7 @@
 
 use std::process::Command;
 
-use helmholtz_client::scene::Scene;
+use helmholtz_sim::Target;
 use helmholtz_tests::{ServerProcess, binary, correlation, parse_npy};
 
 fn helmholtz(server: &ServerProcess, args: &[&str]) -> serde_json::Value {
@@ -81,7 +81,7 @@ fn simulate_reconstruct_fetch_and_status_from_the_command_line() {
     );
     let (shape, image) = parse_npy(&std::fs::read(&npy).unwrap()).unwrap();
     assert_eq!(shape, vec![32, 32]);
-    let truth: Vec<f64> = Scene::builtin("double-slit", 32, 32)
+    let truth: Vec<f64> = Target::builtin("double-slit", 32, 32)
         .unwrap()
         .transport(1.0)
         .iter()

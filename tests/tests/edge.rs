@@ -386,13 +386,13 @@ fn the_data_directory_is_0700_and_the_database_0600_whatever_the_umask() {
 
 /// A finished `dgi` reconstruction of a simulated 8x8 session; returns its id.
 async fn reconstructed(server: &ServerProcess, id: &str) -> i64 {
-    use helmholtz_client::scene::Scene;
-    use helmholtz_client::simulate::{self, NoiseModel};
+    use helmholtz_sim::Target;
+    use helmholtz_sim::simulate::{self, NoiseModel};
     let spec: helmholtz_client::PatternSpec = serde_json::from_str(
         r#"{"family":"bernoulli","width":8,"height":8,"count":2000,"seed":3}"#,
     )
     .unwrap();
-    let transport = Scene::builtin("double-slit", 8, 8).unwrap().transport(1.0);
+    let transport = Target::builtin("double-slit", 8, 8).unwrap().transport(1.0);
     let sim = simulate::simulate(&spec, &[&transport], &NoiseModel::default(), None);
     let s = server.base_url.as_str();
     helmholtz_client::create_session(

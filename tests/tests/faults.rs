@@ -9,8 +9,8 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::{Duration, Instant};
 
-use helmholtz_client::scene::Scene;
-use helmholtz_client::simulate::{self, NoiseModel};
+use helmholtz_sim::Target;
+use helmholtz_sim::simulate::{self, NoiseModel};
 use helmholtz_client::spool::{self, SpoolDir};
 use helmholtz_client::{Backoff, NewSession, PatternSpec, UploadOptions};
 use helmholtz_tests::{FaultyProxy, ServerProcess, SplitMix64, binary, fault_seed, parse_npy};
@@ -569,7 +569,7 @@ async fn server_killed_mid_upload_then_restarted_loses_and_duplicates_nothing() 
         r#"{"family":"bernoulli","width":16,"height":16,"count":60000,"seed":5}"#,
     )
     .unwrap();
-    let transport = Scene::builtin("usaf", 16, 16).unwrap().transport(1.0);
+    let transport = Target::builtin("usaf", 16, 16).unwrap().transport(1.0);
     let noise = NoiseModel {
         snr_db: Some(30.0),
         ..NoiseModel::default()
@@ -646,7 +646,7 @@ async fn a_job_whose_server_died_is_taken_up_again_and_finishes_once() {
         r#"{"family":"speckle","width":64,"height":64,"count":120000,"seed":9}"#,
     )
     .unwrap();
-    let transport = Scene::builtin("double-slit", 64, 64)
+    let transport = Target::builtin("double-slit", 64, 64)
         .unwrap()
         .transport(1.0);
     let sim = simulate::simulate(&spec, &[&transport], &NoiseModel::default(), None);

@@ -5,7 +5,7 @@
 use std::path::Path;
 use std::process::Command;
 
-use helmholtz_scenes::Scene;
+use helmholtz_sim::Scene;
 use helmholtz_tests::{ServerProcess, binary, parse_npy};
 
 fn helmholtz(server: &ServerProcess, spool: &Path, args: &[&str]) -> String {
@@ -294,7 +294,7 @@ async fn a_camera_rigs_frames_upload_from_an_npy_file() {
     let spec_json = r#"{"family":"hadamard","width":16,"height":16,"count":512,"seed":0,"ordering":"sequency"}"#;
     let spec: helmholtz_proto::PatternSpec = serde_json::from_str(spec_json).unwrap();
     let scene = Scene::demo(16, 16, 8);
-    let view = scene.view(&helmholtz_scenes::Camera::tilted(10, 8, 15.0));
+    let view = scene.view(&helmholtz_sim::Camera::tilted(10, 8, 15.0));
     let generator = helmholtz_proto::PatternGenerator::new(&spec);
     let mut p = vec![0f32; 256];
     let counts_per_unit = 20000.0;

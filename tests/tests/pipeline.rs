@@ -3,8 +3,8 @@
 
 use std::time::Duration;
 
-use helmholtz_client::scene::Scene;
-use helmholtz_client::simulate::{self, NoiseModel};
+use helmholtz_sim::Target;
+use helmholtz_sim::simulate::{self, NoiseModel};
 use helmholtz_client::{NewSession, PatternSpec, UploadOptions};
 use helmholtz_tests::{ServerProcess, correlation, parse_npy, relative_error};
 
@@ -17,7 +17,7 @@ async fn acquire(
     spec_json: &str,
 ) -> (PatternSpec, Vec<f32>) {
     let spec: PatternSpec = serde_json::from_str(spec_json).unwrap();
-    let transport = Scene::builtin(scene, spec.width(), spec.height())
+    let transport = Target::builtin(scene, spec.width(), spec.height())
         .unwrap()
         .transport(1.0);
     let sim = simulate::simulate(&spec, &[&transport], &NoiseModel::default(), None);

@@ -4,8 +4,8 @@
 
 use std::time::{Duration, Instant};
 
-use helmholtz_client::scene::Scene;
-use helmholtz_client::simulate::{self, NoiseModel};
+use helmholtz_sim::Target;
+use helmholtz_sim::simulate::{self, NoiseModel};
 use helmholtz_client::{NewSession, PatternSpec, UploadOptions};
 use helmholtz_proto::v1;
 use helmholtz_tests::{OpenUpload, ServerProcess};
@@ -15,7 +15,7 @@ use tonic::Code;
 /// Creates and fills a simulated session (`spec` JSON, scene "double-slit").
 async fn acquire(server: &str, id: &str, spec: &str) {
     let spec: PatternSpec = serde_json::from_str(spec).unwrap();
-    let transport = Scene::builtin("double-slit", spec.width(), spec.height())
+    let transport = Target::builtin("double-slit", spec.width(), spec.height())
         .unwrap()
         .transport(1.0);
     let sim = {

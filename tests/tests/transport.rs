@@ -5,7 +5,7 @@
 use std::time::Duration;
 
 use helmholtz_proto::{PatternGenerator, PatternSpec, v1};
-use helmholtz_scenes::{Camera, Scene};
+use helmholtz_sim::{Camera, Scene};
 use helmholtz_tests::{ServerProcess, parse_npy, relative_error};
 
 /// An f32 camera session of `scene` under the first `count` frames of a Hadamard spec; every

@@ -174,11 +174,7 @@ pub fn session_message(s: &SessionRow) -> v1::Session {
             camera: s.camera.map(|c| v1::CameraLayout {
                 width: c.width,
                 height: c.height,
-                format: match c.format {
-                    SampleFormat::F64 => v1::SampleFormat::F64,
-                    SampleFormat::F32 => v1::SampleFormat::F32,
-                    SampleFormat::U16 => v1::SampleFormat::U16,
-                } as i32,
+                format: c.format.to_proto() as i32,
             }),
         }),
         metadata: s

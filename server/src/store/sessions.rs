@@ -8,61 +8,7 @@ use sqlx::sqlite::SqliteRow;
 
 use super::{Store, StoreError, f32_to_le, le_to_f32, now_ms, parse_spec};
 
-/// How one stored value is encoded (little-endian).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
-#[serde(rename_all = "snake_case")]
-pub enum SampleFormat {
-    F64,
-    F32,
-    U16,
-}
-
-impl SampleFormat {
-    pub fn bytes(self) -> usize {
-        match self {
-            SampleFormat::F64 => 8,
-            SampleFormat::F32 => 4,
-            SampleFormat::U16 => 2,
-        }
-    }
-    pub fn name(self) -> &'static str {
-        match self {
-            SampleFormat::F64 => "f64",
-            SampleFormat::F32 => "f32",
-            SampleFormat::U16 => "u16",
-        }
-    }
-    fn parse(name: &str) -> Result<Self, StoreError> {
-        match name {
-            "f64" => Ok(SampleFormat::F64),
-            "f32" => Ok(SampleFormat::F32),
-            "u16" => Ok(SampleFormat::U16),
-            other => Err(StoreError::Corrupt(format!(
-                "unknown sample format {other:?}"
-            ))),
-        }
-    }
-    /// Decodes little-endian samples (a whole number of them) to f32.
-    pub fn decode_f32(self, bytes: &[u8], out: &mut Vec<f32>) {
-        match self {
-            SampleFormat::F64 => out.extend(
-                bytes
-                    .chunks_exact(8)
-                    .map(|b| f64::from_le_bytes(b.try_into().expect("8")) as f32),
-            ),
-            SampleFormat::F32 => out.extend(
-                bytes
-                    .chunks_exact(4)
-                    .map(|b| f32::from_le_bytes(b.try_into().expect("4"))),
-            ),
-            SampleFormat::U16 => out.extend(
-                bytes
-                    .chunks_exact(2)
-                    .map(|b| u16::from_le_bytes(b.try_into().expect("2")) as f32),
-            ),
-        }
-    }
-}
+pub use helmholtz_proto::wire::SampleFormat;
 
 /// A camera in place of bucket detectors: one frame of `width x height` per pattern.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
@@ -146,7 +92,9 @@ const SESSION_COLUMNS: &str = "id, lab, rig, spec_json, channels_json, metadata_
 
 fn session_from_row(row: &SqliteRow) -> Result<SessionRow, StoreError> {
     let corrupt = |what: &str, e: serde_json::Error| StoreError::Corrupt(format!("{what}: {e}"));
-    let format = SampleFormat::parse(row.get("sample_format"))?;
+    let name: &str = row.get("sample_format");
+    let format = SampleFormat::parse(name)
+        .ok_or_else(|| StoreError::Corrupt(format!("unknown sample format {name:?}")))?;
     let camera = match (
         row.get::<Option<i64>, _>("camera_width"),
         row.get::<Option<i64>, _>("camera_height"),

@@ -14,8 +14,8 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, bail};
 use clap::Parser;
-use helmholtz_client::scene::Scene;
-use helmholtz_client::simulate::{self, NoiseModel};
+use helmholtz_sim::Target;
+use helmholtz_sim::simulate::{self, NoiseModel};
 use helmholtz_client::spool::{self, SpoolDir};
 use helmholtz_client::{NewSession, PatternSpec, UploadOptions};
 use helmholtz_tests::ServerProcess;
@@ -180,7 +180,7 @@ async fn main() -> anyhow::Result<()> {
         ))
         .expect("valid spec")
     };
-    let transport = Scene::builtin("usaf", side, side)?.transport(1.0);
+    let transport = Target::builtin("usaf", side, side)?.transport(1.0);
     let noise = NoiseModel {
         snr_db: Some(30.0),
         ..NoiseModel::default()
@@ -208,8 +208,8 @@ async fn main() -> anyhow::Result<()> {
     // a 64x64 projector (complete Hadamard set, 8192 frames) seen by a 32x32 camera.
     eprintln!("reconstructing the camera reference session...");
     let camera_rec = {
-        let scene = helmholtz_scenes::Scene::demo(64, 64, 1);
-        let view = scene.view(&helmholtz_scenes::Camera::tilted(32, 32, 25.0));
+        let scene = helmholtz_sim::Scene::demo(64, 64, 1);
+        let view = scene.view(&helmholtz_sim::Camera::tilted(32, 32, 25.0));
         let s: PatternSpec = serde_json::from_str(
             r#"{"family":"hadamard","width":64,"height":64,"count":8192,"seed":1}"#,
         )?;
@@ -223,13 +223,13 @@ async fn main() -> anyhow::Result<()> {
         }
         let id = "ref-camera";
         let session =
-            NewSession::camera(id, s, 32, 32, helmholtz_client::upload::SampleFormat::F32);
+            NewSession::camera(id, s, 32, 32, helmholtz_proto::wire::SampleFormat::F32);
         helmholtz_client::create_session(&base, &session).await?;
         helmholtz_client::upload_samples(
             &base,
             id,
             (32 * 32) as u32,
-            helmholtz_client::upload::Samples::F32(&frames),
+            helmholtz_proto::wire::Samples::F32(&frames),
             &UploadOptions::default(),
         )
         .await?;

@@ -1,5 +1,5 @@
 //! Relight benchmark (on demand, not a test): interactive relighting through HTTP on a real camera
-//! session. Starts the real server, creates a camera session of a `helmholtz_scenes` Lambertian
+//! session. Starts the real server, creates a camera session of a `helmholtz_sim` Lambertian
 //! scene (default: 256x256 projector, 64x64 camera, the first 8,192 frames of a Russian-doll
 //! Hadamard set, i.e. every pattern of the 64x64 level), uploads the frames through the client
 //! library, reconstructs `T` (method `transport`), then sends relight and primal queries whose
@@ -115,8 +115,8 @@ async fn main() -> anyhow::Result<()> {
         r#"{{"family":"hadamard","ordering":"russian_doll","width":{pw},"height":{pw},"count":{},"seed":1}}"#,
         args.frames
     ))?;
-    let scene = helmholtz_scenes::Scene::demo(pw, pw, 7);
-    let view = scene.view(&helmholtz_scenes::Camera::tilted(cw, cw, 25.0));
+    let scene = helmholtz_sim::Scene::demo(pw, pw, 7);
+    let view = scene.view(&helmholtz_sim::Camera::tilted(cw, cw, 25.0));
     eprintln!(
         "rendering {} frames of {pw}x{pw} patterns on a {cw}x{cw} camera...",
         args.frames
@@ -139,7 +139,7 @@ async fn main() -> anyhow::Result<()> {
             spec.clone(),
             cw,
             cw,
-            helmholtz_client::upload::SampleFormat::F32,
+            helmholtz_proto::wire::SampleFormat::F32,
         ),
     )
     .await?;
@@ -148,7 +148,7 @@ async fn main() -> anyhow::Result<()> {
         &base,
         id,
         cw * cw,
-        helmholtz_client::upload::Samples::F32(&frames),
+        helmholtz_proto::wire::Samples::F32(&frames),
         &UploadOptions::default(),
     )
     .await?;
@@ -237,7 +237,7 @@ async fn main() -> anyhow::Result<()> {
         if cfg!(debug_assertions) { "dev profile: optimised, with debug assertions" } else { "release build" },
     ));
     md.push_str(&format!(
-        "Session: `helmholtz_scenes::Scene::demo({pw}, {pw}, 7)` seen by `Camera::tilted({cw}, {cw}, 25)`, the first {} frames of a Russian-doll Hadamard set (f32, {upload_mib:.0} MiB, rendered in {render_seconds:.1} s, uploaded through the client library in {upload_seconds:.1} s), reconstructed by the server with `transport` (params `{}`); the server runs with `--rate-per-second 1000000` (queries go one at a time, faster than the default per-token limit).\n\n",
+        "Session: `helmholtz_sim::Scene::demo({pw}, {pw}, 7)` seen by `Camera::tilted({cw}, {cw}, 25)`, the first {} frames of a Russian-doll Hadamard set (f32, {upload_mib:.0} MiB, rendered in {render_seconds:.1} s, uploaded through the client library in {upload_seconds:.1} s), reconstructed by the server with `transport` (params `{}`); the server runs with `--rate-per-second 1000000` (queries go one at a time, faster than the default per-token limit).\n\n",
         args.frames, args.params
     ));
     md.push_str("| T: seconds | transform | lambda | stored MiB | dense f32 MiB | nonzeros/row | held-out |\n|---|---|---|---|---|---|---|\n");

@@ -1,0 +1,80 @@
+//! Reconstructs one simulated acquisition and prints time, PSNR and the report's solver figures:
+//! a profiling aid for the numerics (the bench runs whole grids).
+//!
+//! `cargo run --release -p helmholtz-bench --example one -- hadamard 128 0.1 camera tv '{"max_iter":100}' [repeat] [none|snr30|poisson]`
+
+use std::time::Instant;
+
+use helmholtz_sim::Target;
+use helmholtz_sim::simulate;
+use helmholtz_bench::{Case, Noise};
+use helmholtz_recon::{self as recon, Control, MethodConfig, Problem, SliceSource, metrics};
+
+fn main() {
+    helmholtz_alloc::retain_freed_memory();
+    let a: Vec<String> = std::env::args().collect();
+    let arg = |i: usize, d: &str| a.get(i).cloned().unwrap_or_else(|| d.to_string());
+    let family = arg(1, "hadamard");
+    let n: u32 = arg(2, "128").parse().expect("size");
+    let ratio: f64 = arg(3, "0.1").parse().expect("ratio");
+    let scene = arg(4, "camera");
+    let method = arg(5, "tv");
+    let params: serde_json::Value = serde_json::from_str(&arg(6, "null")).expect("params JSON");
+    let repeat: usize = arg(7, "1").parse().expect("repeat");
+    let noise = match arg(8, "none").as_str() {
+        "none" => Noise::None,
+        "snr30" => Noise::Snr30,
+        "poisson" => Noise::Poisson,
+        other => panic!("noise {other:?}: none, snr30 or poisson"),
+    };
+    let case = Case {
+        scene: scene.clone(),
+        size: (n, n),
+        ratio,
+        family,
+        noise,
+        method: method.clone(),
+    };
+    let spec = case.spec();
+    let truth = Target::builtin(&scene, n, n).expect("scene").transport(1.0);
+    let sim = simulate::simulate(&spec, &[&truth], &noise.model(), None);
+    let config = MethodConfig::parse(&method, &params).expect("method");
+    let problem = Problem {
+        spec: &spec,
+        channels: 1,
+        rows: spec.count(),
+    };
+    for _ in 0..repeat {
+        let mut source = SliceSource::new(&sim.values, 1, 4096);
+        let started = Instant::now();
+        let r = recon::reconstruct(&problem, &config, &mut source, &Control::new())
+            .expect("reconstruct");
+        let s = started.elapsed().as_secs_f64();
+        let img = &r.images[0].data;
+        println!(
+            "{:.4} s  {:.2} dB  ssim {:.3}  iterations {}  held-out {:?}",
+            s,
+            metrics::psnr(img, &truth),
+            metrics::ssim(img, &truth, n as usize, n as usize),
+            r.report.iterations,
+            r.report.held_out.as_ref().map(|h| h.relative_residual)
+        );
+        if std::env::var_os("ONE_REPORT").is_some() {
+            let mut v = serde_json::to_value(&r.report.details).unwrap_or_default();
+            strip(&mut v);
+            println!("{}", serde_json::to_string_pretty(&v).unwrap_or_default());
+        }
+    }
+}
+
+/// Drops the long arrays (objective histories, paths) so the report fits a terminal.
+fn strip(v: &mut serde_json::Value) {
+    match v {
+        serde_json::Value::Object(m) => {
+            m.retain(|_, x| !matches!(x, serde_json::Value::Array(a) if a.len() > 8 && a.iter().all(|e| e.is_number())));
+            m.values_mut().for_each(strip);
+        }
+        serde_json::Value::Array(a) => a.iter_mut().for_each(strip),
+        _ => {}
+    }
+}

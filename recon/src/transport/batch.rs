@@ -1,0 +1,286 @@
+//! Many right-hand sides at once: FISTA for
+//! `min_s 1/2 ||A Psi^T s_j - b_j||^2 + lambda_j ||s_j[free..]||_1` for every row `j` of a block,
+//! sharing the operator `A` and the orthonormal transform `Psi` (synthesis form; for an
+//! orthonormal `Psi` it equals the analysis problem in `t_j = Psi^T s_j`, and the prox is the
+//! exact soft threshold, so the rows come out sparse in `Psi`).
+//!
+//! The rows still iterating are kept contiguous (`active x k`), so every iteration is one
+//! `apply_batch` and one `adjoint_batch` of `A` over all of them; a row that has converged is
+//! written out and swapped out of the batch. A block is split into chunks of rows solved in
+//! parallel (rayon), each chunk with its own scratch. Per row: momentum with the gradient
+//! restart of O'Donoghue-Candes, stop after 3 consecutive steps with
+//! `||s_k - s_{k-1}|| <= tol ||s_k||` or at `max_iter`. Step `1 / L` with `L >= ||A||^2` given
+//! by the caller (power iteration with a margin; Hadamard split pairs: exactly 1).
+
+use rayon::prelude::*;
+
+use crate::linop::LinearOperator;
+use crate::{Control, ReconError};
+
+/// What every row of a block shares.
+pub(crate) struct Shared<'a> {
+    pub op: &'a dyn LinearOperator,
+    pub psi: &'a dyn LinearOperator,
+    /// `Psi = I` (skip the transforms).
+    pub identity: bool,
+    pub lipschitz: f64,
+    /// Leading coefficients left unpenalised (the DC term of a wavelet or DCT).
+    pub free: usize,
+    pub max_iter: usize,
+    pub tol: f64,
+}
+
+impl Shared<'_> {
+    fn k(&self) -> usize {
+        self.op.cols()
+    }
+    fn n(&self) -> usize {
+        self.op.rows()
+    }
+
+    /// `ys = Psi xs` row by row.
+    pub fn forward(&self, xs: &[f64], ys: &mut [f64]) {
+        if self.identity {
+            ys.copy_from_slice(xs);
+        } else {
+            let k = self.k();
+            for (x, y) in xs.chunks_exact(k).zip(ys.chunks_exact_mut(k)) {
+                self.psi.apply(x, y);
+            }
+        }
+    }
+
+    /// `xs = Psi^T ys` row by row.
+    pub fn inverse(&self, ys: &[f64], xs: &mut [f64]) {
+        if self.identity {
+            xs.copy_from_slice(ys);
+        } else {
+            let k = self.k();
+            for (y, x) in ys.chunks_exact(k).zip(xs.chunks_exact_mut(k)) {
+                self.psi.adjoint(y, x);
+            }
+        }
+    }
+
+    /// Bytes of scratch one row in a chunk needs while it iterates.
+    pub fn scratch_bytes_per_row(k: usize, n: usize) -> usize {
+        8 * (4 * k + 2 * n) + 64
+    }
+}
+
+/// `lambda_max_j = max_{i >= free} |(Psi A^T b_j)_i|` for every row (`bs`: rows x n), chunked
+/// over the threads.
+pub(crate) fn lambda_max(sh: &Shared, bs: &[f64], chunk: usize) -> Vec<f64> {
+    let (k, n) = (sh.k(), sh.n());
+    let rows = bs.len() / n.max(1);
+    let mut out = vec![0.0; rows];
+    if n == 0 {
+        return out;
+    }
+    bs.par_chunks(chunk * n)
+        .zip(out.par_chunks_mut(chunk))
+        .for_each(|(b, o)| {
+            let c = o.len();
+            let mut g = vec![0.0; c * k];
+            let mut s = vec![0.0; c * k];
+            sh.op.adjoint_batch(b, &mut g, c);
+            sh.forward(&g, &mut s);
+            for (v, row) in o.iter_mut().zip(s.chunks_exact(k)) {
+                *v = row.iter().skip(sh.free).fold(0.0f64, |m, x| m.max(x.abs()));
+            }
+        });
+    out
+}
+
+/// Solves every row (`bs`: rows x n data, `lams`: rows weights, `s`: rows x k warm start in,
+/// solution out) in chunks of `chunk` rows over the threads. Returns each row's iterations.
+pub(crate) fn solve_rows(
+    sh: &Shared,
+    bs: &[f64],
+    lams: &[f64],
+    s: &mut [f64],
+    chunk: usize,
+    control: &Control,
+) -> Result<Vec<usize>, ReconError> {
+    in_chunks(sh, bs, lams, s, chunk, false, control)
+}
+
+/// The debiasing refit of a lasso solution (the relaxed lasso, Meinshausen 2007): every row's
+/// least-squares fit on the support of its warm start `s` (the coefficients that are nonzero,
+/// plus the free ones), no penalty, the rest held at zero; `s` in, refitted out. The soft
+/// threshold shrinks every kept coefficient by `lambda`; at a weight large enough to keep only
+/// the coefficients the data support, the refit removes that bias. Returns each row's iterations.
+pub(crate) fn refit_rows(
+    sh: &Shared,
+    bs: &[f64],
+    s: &mut [f64],
+    chunk: usize,
+    control: &Control,
+) -> Result<Vec<usize>, ReconError> {
+    let lams = vec![0.0; s.len() / sh.k().max(1)];
+    in_chunks(sh, bs, &lams, s, chunk, true, control)
+}
+
+/// [`fista_chunk`] over chunks of `chunk` rows, in parallel.
+fn in_chunks(
+    sh: &Shared,
+    bs: &[f64],
+    lams: &[f64],
+    s: &mut [f64],
+    chunk: usize,
+    refit: bool,
+    control: &Control,
+) -> Result<Vec<usize>, ReconError> {
+    let (k, n) = (sh.k(), sh.n());
+    let rows = lams.len();
+    assert_eq!(bs.len(), rows * n);
+    assert_eq!(s.len(), rows * k);
+    let chunk = chunk.max(1);
+    let mut iterations = vec![0usize; rows];
+    let results: Vec<Result<(), ReconError>> = s
+        .par_chunks_mut(chunk * k)
+        .zip(bs.par_chunks(chunk * n.max(1)))
+        .zip(lams.par_chunks(chunk))
+        .zip(iterations.par_chunks_mut(chunk))
+        .map(|(((s, b), l), it)| fista_chunk(sh, b, l, s, it, refit, control))
+        .collect();
+    results.into_iter().collect::<Result<Vec<()>, _>>()?;
+    Ok(iterations)
+}
+
+fn soft(v: f64, t: f64) -> f64 {
+    if v > t {
+        v - t
+    } else if v < -t {
+        v + t
+    } else {
+        0.0
+    }
+}
+
+/// One chunk of rows (module docs). `out` holds the warm start and receives the solutions.
+/// With `refit`, the coefficients that are zero in the warm start stay zero ([`refit_rows`]).
+#[allow(clippy::too_many_arguments)]
+fn fista_chunk(
+    sh: &Shared,
+    bs: &[f64],
+    lams: &[f64],
+    out: &mut [f64],
+    iterations: &mut [usize],
+    refit: bool,
+    control: &Control,
+) -> Result<(), ReconError> {
+    let (k, n) = (sh.k(), sh.n());
+    let rows = lams.len();
+    if rows == 0 {
+        return Ok(());
+    }
+    // Active rows, compacted: original index, iterate s, momentum point y, data b.
+    let mut ids: Vec<usize> = (0..rows).collect();
+    let mut s = out.to_vec();
+    let mut y = out.to_vec();
+    // The support each row keeps (refit only).
+    let mut keep: Vec<bool> = if refit {
+        out.chunks_exact(k)
+            .flat_map(|row| {
+                row.iter()
+                    .enumerate()
+                    .map(|(i, v)| i < sh.free || *v != 0.0)
+            })
+            .collect()
+    } else {
+        Vec::new()
+    };
+    let mut b = bs.to_vec();
+    let mut lam: Vec<f64> = lams.to_vec();
+    let mut momentum = vec![1.0f64; rows];
+    let mut streak = vec![0u8; rows];
+    let mut x = vec![0.0; rows * k];
+    let mut g = vec![0.0; rows * k];
+    let mut r = vec![0.0; rows * n];
+    let inv_l = 1.0 / sh.lipschitz;
+    let mut active = rows;
+    let mut it = 0;
+    while active > 0 && it < sh.max_iter {
+        if control.is_cancelled() {
+            return Err(ReconError::Cancelled);
+        }
+        it += 1;
+        let (ka, na) = (active * k, active * n);
+        // Gradient at y: Psi A^T (A Psi^T y - b).
+        sh.inverse(&y[..ka], &mut x[..ka]);
+        sh.op.apply_batch(&x[..ka], &mut r[..na], active);
+        r[..na].iter_mut().zip(&b[..na]).for_each(|(r, b)| *r -= b);
+        sh.op.adjoint_batch(&r[..na], &mut x[..ka], active);
+        sh.forward(&x[..ka], &mut g[..ka]);
+        let mut done = Vec::new();
+        for a in 0..active {
+            let row = a * k..(a + 1) * k;
+            let (sr, yr, gr) = (&mut s[row.clone()], &mut y[row.clone()], &mut g[row]);
+            let thresh = lam[a] * inv_l;
+            let (mut restart_dot, mut diff2, mut new2) = (0.0, 0.0, 0.0);
+            for i in 0..k {
+                let v = yr[i] - gr[i] * inv_l;
+                let new = if refit {
+                    if keep[a * k + i] { v } else { 0.0 }
+                } else if i < sh.free {
+                    v
+                } else {
+                    soft(v, thresh)
+                };
+                let d = new - sr[i];
+                restart_dot += (yr[i] - new) * d;
+                diff2 += d * d;
+                new2 += new * new;
+                gr[i] = new;
+            }
+            let beta = if restart_dot > 0.0 {
+                momentum[a] = 1.0;
+                0.0
+            } else {
+                let next = 0.5 * (1.0 + (1.0 + 4.0 * momentum[a] * momentum[a]).sqrt());
+                let beta = (momentum[a] - 1.0) / next;
+                momentum[a] = next;
+                beta
+            };
+            for i in 0..k {
+                let new = gr[i];
+                yr[i] = new + beta * (new - sr[i]);
+                sr[i] = new;
+            }
+            iterations[ids[a]] += 1;
+            if diff2 <= sh.tol * sh.tol * new2 {
+                streak[a] += 1;
+            } else {
+                streak[a] = 0;
+            }
+            if streak[a] >= 3 {
+                done.push(a);
+            }
+        }
+        // Retire converged rows (highest slot first, so swaps never move a retiring row).
+        for &a in done.iter().rev() {
+            let id = ids[a];
+            out[id * k..(id + 1) * k].copy_from_slice(&s[a * k..(a + 1) * k]);
+            let last = active - 1;
+            if a != last {
+                s.copy_within(last * k..(last + 1) * k, a * k);
+                y.copy_within(last * k..(last + 1) * k, a * k);
+                b.copy_within(last * n..(last + 1) * n, a * n);
+                if refit {
+                    keep.copy_within(last * k..(last + 1) * k, a * k);
+                }
+                ids[a] = ids[last];
+                lam[a] = lam[last];
+                momentum[a] = momentum[last];
+                streak[a] = streak[last];
+            }
+            active -= 1;
+        }
+    }
+    for a in 0..active {
+        let id = ids[a];
+        out[id * k..(id + 1) * k].copy_from_slice(&s[a * k..(a + 1) * k]);
+    }
+    Ok(())
+}

@@ -1,0 +1,1128 @@
+//! Camera sessions: the light transport matrix `T` (m camera pixels x k projector pixels).
+//!
+//! Frame `i` is `c_i = T p_i` (+ noise), so with `Y` (n frames x m camera pixels) `Y = A T^T`:
+//! every camera pixel's column `y_j = A t_j` is one compressive problem and all of them share
+//! the pattern operator `A` ([`crate::ops`]; Hadamard split pairs as differences,
+//! Bernoulli and speckle conditioned by [`CentredOperator`]). Row `t_j` of `T` is the dual
+//! image seen by camera pixel `j`.
+//!
+//! # How
+//!
+//! - **Blocks of camera pixels.** The frames are read one contiguous block of camera pixels at a
+//!   time ([`FrameSource::read_pixels`]); the block size comes from `memory_budget_bytes`, which
+//!   covers the operator, the frame block, the block's data and solutions, and the solver
+//!   scratch of every thread ([`plan_memory`]). A session is never held whole.
+//! - **Complete raster or Hadamard sets: the exact inverse**, stored sparse: each row's
+//!   coefficients in the transform below the noise the data show are dropped (noise `sigma`
+//!   from the median absolute finest diagonal Haar detail, `sigma = median |HH_1| / 0.6745`;
+//!   threshold `sqrt(2 ln k) sigma`, and never below f32 resolution of the row's largest
+//!   coefficient). With the transform left to the data, the one with the fewest coefficients
+//!   above that threshold on a sample of camera pixels is used.
+//! - **Otherwise: l1 in an orthonormal transform** (`min 1/2 ||A Psi^T s - b||^2 + lambda ||s||_1`
+//!   per row, [`batch`]: batched FISTA over many rows at once, chunks of rows over the rayon
+//!   threads), `lambda` a fraction of each row's own `lambda_max`. The data choose the transform
+//!   and the fraction: on a sample of camera pixels (runs spread over the camera) each candidate
+//!   transform is fitted along a warm-started path of fractions without the held-out rows
+//!   ([`crate::holdout`]) and scored on them. Held-out rows are hashed out of random
+//!   designs; of a Hadamard subset they are the LAST measured pairs ([`holdout::tail`]): its
+//!   rows are ordered coarse to fine, the unmeasured ones lie beyond the measured ones, and
+//!   randomly held-out pairs (among the fitted ones) would be predicted well by any model that
+//!   fits, whatever it puts in the unmeasured coefficients (they remain blind to error in the
+//!   unmeasured coefficients, a test documents the case). The choice is the sparsest model
+//!   (fewest nonzeros) whose held-out score is within one standard error of the best one (the
+//!   error from the spread of the held-out rows' residuals): noise-free data otherwise pull the
+//!   weight to the smallest one tried, where hundreds of tiny coefficients buy a fraction of a
+//!   percent of held-out error. Every lasso point is scored twice: as solved, and refitted by
+//!   least squares on its own support ([`batch::refit_rows`], the relaxed lasso): the soft
+//!   threshold shrinks every kept coefficient by the weight, so a larger weight (fewer
+//!   coefficients) with the refit often predicts as well as a small one without it.
+//!   The chosen (transform, fraction, refit) is applied to all camera
+//!   pixels with all rows; the rows keep only their nonzero coefficients (the soft threshold
+//!   zeroes the rest), so the stored size follows the scene's complexity.
+//!   `t >= 0` is not imposed (the prox would become iterative); the reported held-out error is
+//!   that of the chosen model on the sample pixels.
+//!   The final fit of every row runs down a continuation path (the larger fractions of
+//!   [`LAMBDA_PATH`], each warm-starting the next), which converges in far fewer iterations than
+//!   a cold start at a small weight.
+//! - **Coarse-to-fine** (Peers et al. 2009, optional): each block (whole pairs of camera lines)
+//!   first solves its 2x2-binned camera pixels (data averaged) down the continuation path, then
+//!   every pixel starts from its parent's solution at the final weight only.
+
+pub mod batch;
+mod config;
+mod matrix;
+#[cfg(test)]
+mod tests;
+
+use std::ops::Range;
+use std::time::Instant;
+
+use helmholtz_proto::{Family, PatternSpec};
+use serde_json::{Value, json};
+
+pub use config::{CANDIDATE_TRANSFORMS, DEFAULT_MEMORY_BUDGET, LAMBDA_PATH, TransportConfig};
+use matrix::Builder;
+pub use matrix::{TransportDecodeError, TransportMatrix};
+
+use super::holdout::{self, Score};
+use super::linop::{LinearOperator, spectral_norm};
+use super::ops::{
+    BernoulliOperator, CentredOperator, HadamardOperator, RasterOperator, RowSubset,
+    SpeckleOperator,
+};
+use super::transforms::TransformKind;
+use super::{Control, ReconError, Report, SourceError};
+use batch::Shared;
+
+/// The camera's pixel grid: `m = width * height` rows of `T`, row-major.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct CameraGrid {
+    pub width: u32,
+    pub height: u32,
+}
+
+impl CameraGrid {
+    pub fn pixels(&self) -> usize {
+        self.width as usize * self.height as usize
+    }
+}
+
+/// The frames of a session, read one block of camera pixels at a time (may re-read storage).
+pub trait FrameSource {
+    /// Frames 0..rows restricted to camera pixels `pixels` (row-major camera pixel indices):
+    /// row-major `rows x pixels.len()` f32 values.
+    fn read_pixels(&mut self, pixels: Range<usize>) -> Result<Vec<f32>, SourceError>;
+}
+
+/// Frames already in memory (`rows x m` f32, row-major): tests, benchmarks. Records the
+/// largest request it served.
+pub struct SliceFrames<'a> {
+    frames: &'a [f32],
+    pixels: usize,
+    /// Requests served, in order.
+    pub reads: Vec<Range<usize>>,
+    /// Largest request in bytes (`rows * pixels.len() * 4`).
+    pub largest_read_bytes: usize,
+}
+
+impl<'a> SliceFrames<'a> {
+    pub fn new(frames: &'a [f32], pixels: usize) -> Self {
+        assert!(
+            pixels > 0 && frames.len().is_multiple_of(pixels),
+            "frames must be rows x pixels"
+        );
+        SliceFrames {
+            frames,
+            pixels,
+            reads: Vec::new(),
+            largest_read_bytes: 0,
+        }
+    }
+}
+
+impl FrameSource for SliceFrames<'_> {
+    fn read_pixels(&mut self, pixels: Range<usize>) -> Result<Vec<f32>, SourceError> {
+        if pixels.end > self.pixels || pixels.start > pixels.end {
+            return Err(SourceError(format!(
+                "camera pixels {pixels:?} outside 0..{}",
+                self.pixels
+            )));
+        }
+        let rows = self.frames.len() / self.pixels;
+        let mut out = Vec::with_capacity(rows * pixels.len());
+        for frame in self.frames.chunks_exact(self.pixels) {
+            out.extend_from_slice(&frame[pixels.clone()]);
+        }
+        self.largest_read_bytes = self.largest_read_bytes.max(out.len() * 4);
+        self.reads.push(pixels);
+        Ok(out)
+    }
+}
+
+/// The family's operator, planned once; its rows are the "raw" rows (frames, or split pairs).
+enum Raw {
+    Hadamard(HadamardOperator),
+    Raster(RasterOperator),
+    Bernoulli(CentredOperator<BernoulliOperator>),
+    Speckle(CentredOperator<SpeckleOperator>),
+}
+
+/// An operator a fit runs on and how its data come from raw rows.
+enum Fitting {
+    Plain(Box<dyn LinearOperator>),
+    Centred(CentredOperator),
+}
+
+impl Fitting {
+    fn op(&self) -> &dyn LinearOperator {
+        match self {
+            Fitting::Plain(op) => op.as_ref(),
+            Fitting::Centred(op) => op,
+        }
+    }
+    fn data(&self, raw: &[f64]) -> Vec<f64> {
+        match self {
+            Fitting::Plain(_) => raw.to_vec(),
+            Fitting::Centred(op) => op.centre_data(raw),
+        }
+    }
+}
+
+struct Plan<'a> {
+    spec: &'a PatternSpec,
+    /// Frames used (Hadamard: whole pairs).
+    frames: usize,
+    /// Frames every read returns per camera pixel (the session's rows).
+    rows_read: usize,
+    raw: Raw,
+    exact: bool,
+    /// Raster exact inverse: how often each pixel is lit.
+    raster_counts: Option<Vec<f64>>,
+}
+
+impl<'a> Plan<'a> {
+    fn new(spec: &'a PatternSpec, rows: usize) -> Result<Self, ReconError> {
+        let k = spec.pixels();
+        let unsolvable = |e: super::ops::OpError| ReconError::Unsolvable(e.to_string());
+        Ok(match spec.family() {
+            Family::Hadamard { .. } => {
+                let frames = rows - rows % 2;
+                if frames == 0 {
+                    return Err(ReconError::Unsolvable(
+                        "Hadamard needs at least one P+/P- pair of frames; the session has 1 frame"
+                            .into(),
+                    ));
+                }
+                let op = HadamardOperator::from_spec(spec, frames as u64).map_err(unsolvable)?;
+                let exact = op.rows() >= k;
+                Plan {
+                    spec,
+                    rows_read: rows,
+                    frames,
+                    raw: Raw::Hadamard(op),
+                    exact,
+                    raster_counts: None,
+                }
+            }
+            Family::Raster { block, .. } => {
+                let op = RasterOperator::from_spec(spec, rows as u64).map_err(unsolvable)?;
+                let exact = *block == 1 && rows >= k;
+                let raster_counts = exact.then(|| {
+                    let mut c = vec![0.0; k];
+                    op.adjoint(&vec![1.0; rows], &mut c);
+                    c
+                });
+                Plan {
+                    spec,
+                    rows_read: rows,
+                    frames: rows,
+                    raw: Raw::Raster(op),
+                    exact,
+                    raster_counts,
+                }
+            }
+            Family::Bernoulli { .. } => {
+                let op = BernoulliOperator::from_spec(spec, rows as u64).map_err(unsolvable)?;
+                Plan {
+                    spec,
+                    rows_read: rows,
+                    frames: rows,
+                    raw: Raw::Bernoulli(CentredOperator::augmented(Box::new(op))),
+                    exact: false,
+                    raster_counts: None,
+                }
+            }
+            Family::Speckle { .. } => {
+                let op = SpeckleOperator::from_spec(spec, rows as u64).map_err(unsolvable)?;
+                Plan {
+                    spec,
+                    rows_read: rows,
+                    frames: rows,
+                    raw: Raw::Speckle(CentredOperator::augmented(Box::new(op))),
+                    exact: false,
+                    raster_counts: None,
+                }
+            }
+        })
+    }
+
+    fn k(&self) -> usize {
+        self.spec.pixels()
+    }
+
+    /// The operator the fits on all rows run on.
+    fn op(&self) -> &dyn LinearOperator {
+        match &self.raw {
+            Raw::Hadamard(op) => op,
+            Raw::Raster(op) => op,
+            Raw::Bernoulli(op) => op,
+            Raw::Speckle(op) => op,
+        }
+    }
+
+    /// Raw rows: split pairs for Hadamard, frames otherwise.
+    fn raw_rows(&self) -> usize {
+        match &self.raw {
+            Raw::Hadamard(op) => op.rows(),
+            _ => self.frames,
+        }
+    }
+
+    /// Raw data of camera pixel `col` of a frame block (`rows x width` f32).
+    fn raw_column(&self, frames: &[f32], width: usize, col: usize) -> Vec<f64> {
+        let at = |f: usize| frames[f * width + col] as f64;
+        match &self.raw {
+            Raw::Hadamard(op) => {
+                let scale = 1.0 / (self.k() as f64).sqrt();
+                (0..op.rows())
+                    .map(|r| (at(2 * r) - at(2 * r + 1)) * scale)
+                    .collect()
+            }
+            _ => (0..self.frames).map(at).collect(),
+        }
+    }
+
+    /// The data of the full operator from raw data.
+    fn fit_data(&self, raw: &[f64]) -> Vec<f64> {
+        match &self.raw {
+            Raw::Bernoulli(op) => op.centre_data(raw),
+            Raw::Speckle(op) => op.centre_data(raw),
+            _ => raw.to_vec(),
+        }
+    }
+
+    /// Bytes the planned operator holds.
+    fn op_bytes(&self) -> usize {
+        let k = self.k();
+        match &self.raw {
+            Raw::Hadamard(op) => op.rows() * 8,
+            Raw::Raster(_) => k * 4,
+            Raw::Bernoulli(op) => op.inner().memory_bytes() + k * 8,
+            Raw::Speckle(op) => op.inner().memory_bytes() + k * 8,
+        }
+    }
+
+    /// `L >= ||A||^2` for a fitting operator: 1 for Hadamard split pairs (orthonormal rows),
+    /// else the power-iteration estimate with a 2 % margin.
+    fn lipschitz(&self, op: &dyn LinearOperator) -> f64 {
+        match &self.raw {
+            Raw::Hadamard(_) => 1.0,
+            _ => {
+                let s = spectral_norm(op, 500, 1e-7);
+                (s * s * 1.02).max(f64::MIN_POSITIVE)
+            }
+        }
+    }
+
+    /// Fitting operator on the `train` raw rows and the plain operator of the `test` rows.
+    fn holdout_ops(
+        &self,
+        split: &holdout::Split,
+    ) -> Result<(Fitting, Box<dyn LinearOperator>), ReconError> {
+        let unsolvable = |e: super::ops::OpError| ReconError::Unsolvable(e.to_string());
+        Ok(match &self.raw {
+            Raw::Hadamard(op) => (
+                Fitting::Plain(Box::new(op.select_rows(&split.train))),
+                Box::new(op.select_rows(&split.test)),
+            ),
+            Raw::Bernoulli(op) => (
+                Fitting::Centred(CentredOperator::augmented(Box::new(
+                    op.inner().select_rows(&split.train),
+                ))),
+                Box::new(op.inner().select_rows(&split.test)),
+            ),
+            Raw::Raster(_) => {
+                let full =
+                    || RasterOperator::from_spec(self.spec, self.frames as u64).map_err(unsolvable);
+                (
+                    Fitting::Plain(Box::new(RowSubset::new(
+                        Box::new(full()?) as Box<dyn LinearOperator>,
+                        split.train.clone(),
+                    ))),
+                    Box::new(RowSubset::new(
+                        Box::new(full()?) as Box<dyn LinearOperator>,
+                        split.test.clone(),
+                    )),
+                )
+            }
+            Raw::Speckle(_) => {
+                let full = || {
+                    SpeckleOperator::from_spec(self.spec, self.frames as u64).map_err(unsolvable)
+                };
+                let train: Box<dyn LinearOperator> = Box::new(RowSubset::new(
+                    Box::new(full()?) as Box<dyn LinearOperator>,
+                    split.train.clone(),
+                ));
+                (
+                    Fitting::Centred(CentredOperator::augmented(train)),
+                    Box::new(RowSubset::new(
+                        Box::new(full()?) as Box<dyn LinearOperator>,
+                        split.test.clone(),
+                    )),
+                )
+            }
+        })
+    }
+
+    /// Exact inverse of raw data (complete sets only).
+    fn exact_inverse(&self, raw: &[f64]) -> Vec<f64> {
+        let mut t = vec![0.0; self.k()];
+        self.op().adjoint(raw, &mut t);
+        if let Some(counts) = &self.raster_counts {
+            t.iter_mut().zip(counts).for_each(|(v, c)| *v /= c);
+        }
+        t
+    }
+}
+
+/// How the working set is split (see [`plan_memory`]).
+#[derive(Clone, Debug)]
+struct MemoryPlan {
+    budget: usize,
+    fixed: usize,
+    per_pixel: usize,
+    scratch: usize,
+    block_pixels: usize,
+    chunk: usize,
+}
+
+impl MemoryPlan {
+    fn working_set(&self) -> usize {
+        self.fixed + self.scratch + self.per_pixel * self.block_pixels
+    }
+}
+
+/// Splits `budget` into the fixed part (operator, twice while the model is chosen on held-out
+/// rows; transform and per-thread operator scratch), the solver scratch of every thread
+/// (`threads x chunk` rows iterating at once) and the per-camera-pixel part of a block (its
+/// frames as f32, raw and fitted data, solution, coarse-to-fine parent share).
+fn plan_memory(
+    plan: &Plan,
+    budget: usize,
+    m: usize,
+    selecting: bool,
+    coarse: bool,
+) -> Result<MemoryPlan, ReconError> {
+    let (k, n, raw_rows) = (plan.k(), plan.op().rows(), plan.raw_rows());
+    let threads = rayon::current_num_threads().max(1);
+    let fixed = plan.op_bytes() * if selecting { 2 } else { 1 } + 8 * k * (threads + 2);
+    let mut per_pixel = 4 * plan.frames + 8 * raw_rows + 8 * n + 8 * k;
+    if plan.exact {
+        per_pixel += 8 * k;
+    }
+    if coarse {
+        per_pixel += (8 * n + 8 * k).div_ceil(4);
+    }
+    let scratch_row = if plan.exact {
+        16 * k
+    } else {
+        Shared::scratch_bytes_per_row(k, n)
+    };
+    let mut chunk = 16usize;
+    while chunk > 1 && fixed + threads * chunk * scratch_row + per_pixel > budget {
+        chunk /= 2;
+    }
+    let scratch = threads * chunk * scratch_row;
+    let need = fixed + scratch + per_pixel;
+    if need > budget {
+        return Err(ReconError::Unsolvable(format!(
+            "the memory budget of {budget} bytes is too small for this session: one camera pixel at a time needs {need} bytes \
+             ({fixed} for the {} operator, {scratch} solver scratch, {per_pixel} per camera pixel for {} frames and {k} projector pixels)",
+            plan.spec.family().name(),
+            plan.frames
+        )));
+    }
+    let block_pixels = ((budget - fixed - scratch) / per_pixel).min(m).max(1);
+    let chunk = chunk.min(block_pixels.div_ceil(threads)).max(1);
+    Ok(MemoryPlan {
+        budget,
+        fixed,
+        per_pixel,
+        scratch,
+        block_pixels,
+        chunk,
+    })
+}
+
+/// Reads camera pixels `range`, checking the length.
+fn read(
+    source: &mut dyn FrameSource,
+    range: Range<usize>,
+    rows: usize,
+    largest: &mut usize,
+) -> Result<Vec<f32>, ReconError> {
+    let len = range.len();
+    let values = source.read_pixels(range.clone())?;
+    if values.len() != rows * len {
+        return Err(ReconError::BadRows(format!(
+            "the frame source returned {} values for camera pixels {range:?}, expected {rows} frames x {len} pixels = {} \
+             (frames of the wrong length for the camera grid?)",
+            values.len(),
+            rows * len
+        )));
+    }
+    if let Some(i) = values.iter().position(|v| !v.is_finite()) {
+        return Err(ReconError::BadRows(format!(
+            "frame {} has a non-finite value at camera pixel {}",
+            i / len,
+            range.start + i % len
+        )));
+    }
+    *largest = (*largest).max(values.len() * 4);
+    Ok(values)
+}
+
+/// Up to 8 runs of camera pixels spread evenly over `0..m`, `sample` pixels in all.
+fn sample_ranges(m: usize, sample: usize) -> Vec<Range<usize>> {
+    let sample = sample.clamp(1, m);
+    let runs = sample.min(8);
+    let base = sample / runs;
+    let mut out = Vec::with_capacity(runs);
+    for r in 0..runs {
+        let len = base + usize::from(r < sample % runs);
+        let slot = (r * m / runs, (r + 1) * m / runs);
+        let start = slot.0 + (slot.1 - slot.0).saturating_sub(len) / 2;
+        out.push(start..(start + len).min(m));
+    }
+    out
+}
+
+/// Noise of an image from its finest diagonal Haar details (2x2 blocks), robustly:
+/// `median |(a - b - c + d) / 2| / 0.6745` (Donoho-Johnstone). The same `sigma` holds in every
+/// orthonormal basis for white noise.
+fn noise_sigma(t: &[f64], w: usize, h: usize) -> f64 {
+    let mut d = Vec::with_capacity((w / 2) * (h / 2));
+    for y in (0..h - h % 2).step_by(2) {
+        for x in (0..w - w % 2).step_by(2) {
+            let (a, b, c, e) = (
+                t[y * w + x],
+                t[y * w + x + 1],
+                t[(y + 1) * w + x],
+                t[(y + 1) * w + x + 1],
+            );
+            d.push(((a - b - c + e) * 0.5).abs());
+        }
+    }
+    if d.is_empty() {
+        return 0.0;
+    }
+    let mid = d.len() / 2;
+    let (_, median, _) = d.select_nth_unstable_by(mid, |a, b| a.total_cmp(b));
+    *median / 0.6745
+}
+
+/// The keep threshold of an exact row (module docs).
+fn exact_threshold(s: &[f64], sigma: f64, k: usize) -> f64 {
+    let max = s.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    ((2.0 * (k as f64).ln()).sqrt() * sigma).max(max * f32::EPSILON as f64 * 0.5)
+}
+
+fn free_coefficients(kind: TransformKind) -> usize {
+    usize::from(kind != TransformKind::Identity)
+}
+
+/// The session's blocks of camera pixels: contiguous ranges of at most `block` pixels; with
+/// `lines_of`, whole pairs of camera lines of that width.
+fn blocks(m: usize, block: usize, lines_of: Option<usize>) -> Vec<Range<usize>> {
+    let step = match lines_of {
+        Some(w) => ((block / w) & !1).max(2) * w,
+        None => block.max(1),
+    };
+    (0..m).step_by(step).map(|s| s..(s + step).min(m)).collect()
+}
+
+/// The 2x2 parents of a block of whole camera lines (`pixels` pixels of width `w`): for every
+/// parent, its children's local indices.
+fn parents(pixels: usize, w: usize) -> Vec<Vec<usize>> {
+    let h = pixels / w;
+    let mut out = Vec::new();
+    for py in 0..h.div_ceil(2) {
+        for px in 0..w.div_ceil(2) {
+            let mut children = Vec::with_capacity(4);
+            for y in 2 * py..(2 * py + 2).min(h) {
+                for x in 2 * px..(2 * px + 2).min(w) {
+                    children.push(y * w + x);
+                }
+            }
+            out.push(children);
+        }
+    }
+    out
+}
+
+/// Relative standard error of a held-out relative residual `sqrt(sum e / spread)` from its
+/// rows' squared residuals `e`: the sum's standard error `sqrt(H var(e))` over the sum, halved
+/// for the square root (delta method). 0 for fewer than two rows or a zero sum.
+fn relative_standard_error(e: &[f64]) -> f64 {
+    let h = e.len();
+    let sum: f64 = e.iter().sum();
+    if h < 2 || sum <= 0.0 {
+        return 0.0;
+    }
+    let mean = sum / h as f64;
+    let var = e.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (h - 1) as f64;
+    0.5 * (h as f64 * var).sqrt() / sum
+}
+
+/// One candidate of the model choice, as reported.
+#[derive(Clone, Debug, serde::Serialize)]
+struct Candidate {
+    transform: &'static str,
+    lambda: f64,
+    held_out: Option<f64>,
+    /// Standard error of `held_out` (from the spread of the held-out rows' residuals).
+    held_out_se: Option<f64>,
+    iterations_mean: f64,
+    nonzeros_mean: f64,
+    /// Least-squares refit on the lasso's support ([`batch::refit_rows`]).
+    refit: bool,
+}
+
+/// Counters of the iterative solve, as reported.
+#[derive(Default)]
+struct Tally {
+    iterations: u64,
+    iterations_max: usize,
+    parent_iterations: u64,
+    parent_rows: u64,
+    /// Of the least-squares refit on the support, when chosen.
+    refit_iterations: u64,
+}
+
+/// Reconstructs `T` from the first `rows` frames of a camera session (module docs).
+pub fn reconstruct_transport(
+    spec: &PatternSpec,
+    camera: CameraGrid,
+    rows: u64,
+    config: &TransportConfig,
+    source: &mut dyn FrameSource,
+    control: &Control,
+) -> Result<(TransportMatrix, Report), ReconError> {
+    let start = Instant::now();
+    let m = camera.pixels();
+    let k = spec.pixels();
+    let (pw, ph) = (spec.width() as usize, spec.height() as usize);
+    if m == 0 {
+        return Err(ReconError::Unsolvable(format!(
+            "the camera grid {}x{} has no pixels",
+            camera.width, camera.height
+        )));
+    }
+    if rows == 0 {
+        return Err(ReconError::Unsolvable("the session has no frames".into()));
+    }
+    if rows > spec.count() {
+        return Err(ReconError::Unsolvable(format!(
+            "{rows} frames requested but the spec declares {}",
+            spec.count()
+        )));
+    }
+    let plan = Plan::new(spec, rows as usize)?;
+    let n_read = rows as usize;
+    let selecting = !plan.exact;
+    let mut coarse = config.coarse_to_fine && !plan.exact && m > 1;
+    let mut notes: Vec<String> = Vec::new();
+    let mut mem = plan_memory(&plan, config.memory_budget_bytes, m, selecting, coarse)?;
+    if coarse && mem.block_pixels < (2 * camera.width as usize).min(m) {
+        notes.push(format!(
+            "coarse_to_fine off: a block of {} camera pixels under the memory budget is less than two camera lines",
+            mem.block_pixels
+        ));
+        coarse = false;
+        mem = plan_memory(&plan, config.memory_budget_bytes, m, selecting, false)?;
+    }
+    let mut largest = 0usize;
+    // At most half a block: the model choice also holds each sample pixel's image and
+    // predictions besides what a block pixel needs.
+    let sample = config
+        .sample_pixels
+        .min((mem.block_pixels / 2).max(1))
+        .min(m);
+    let mut details = serde_json::Map::new();
+    let mut held_out = None;
+    let mut held_out_unavailable = None;
+    let mut tally = Tally::default();
+
+    let (transform, lambda, refit) = if plan.exact {
+        let transform = match config.transform {
+            Some(t) => t,
+            None => {
+                // The transform with the fewest coefficients above the noise on the sample.
+                let mut ts = Vec::new();
+                for r in sample_ranges(m, sample) {
+                    let f = read(source, r.clone(), n_read, &mut largest)?;
+                    for c in 0..r.len() {
+                        ts.push(plan.exact_inverse(&plan.raw_column(&f, r.len(), c)));
+                    }
+                }
+                let mut counts = Vec::new();
+                for kind in CANDIDATE_TRANSFORMS {
+                    let psi = kind.build(pw, ph);
+                    let mut s = vec![0.0; k];
+                    let mut kept = 0usize;
+                    for t in &ts {
+                        psi.apply(t, &mut s);
+                        let tau = exact_threshold(&s, noise_sigma(t, pw, ph), k);
+                        kept += s.iter().filter(|v| v.abs() > tau).count();
+                    }
+                    counts.push((kind, kept));
+                }
+                let best = counts.iter().min_by_key(|c| c.1).expect("candidates").0;
+                details.insert(
+                    "selection".into(),
+                    json!({
+                        "rule": "fewest coefficients above the noise threshold on the sample pixels",
+                        "sample_pixels": ts.len(),
+                        "kept": counts.iter().map(|(kind, c)| json!({"transform": kind.name(), "kept": c})).collect::<Vec<_>>(),
+                    }),
+                );
+                best
+            }
+        };
+        held_out_unavailable = Some(
+            "a complete raster or Hadamard set is inverted exactly: every coefficient comes from its own rows alone, so no \
+             other row predicts a held-out one"
+                .to_string(),
+        );
+        (transform, None, false)
+    } else {
+        control.set_progress(0.0);
+        let (transform, lambda, refit) = choose_model(
+            &plan,
+            config,
+            source,
+            m,
+            sample,
+            &mem,
+            &mut largest,
+            &mut details,
+            &mut held_out,
+            &mut held_out_unavailable,
+            control,
+        )?;
+        (transform, Some(lambda), refit)
+    };
+    if control.is_cancelled() {
+        return Err(ReconError::Cancelled);
+    }
+    let progress0 = if plan.exact { 0.0 } else { 0.2 };
+    control.set_progress(progress0);
+
+    let psi = transform.build(pw, ph);
+    let lipschitz = if plan.exact {
+        1.0
+    } else {
+        plan.lipschitz(plan.op())
+    };
+    let shared = Shared {
+        op: plan.op(),
+        psi: psi.as_ref(),
+        identity: transform == TransformKind::Identity,
+        lipschitz,
+        free: free_coefficients(transform),
+        max_iter: config.max_iter,
+        tol: config.tol,
+    };
+    let mut builder = Builder::new(
+        (spec.width(), spec.height()),
+        (camera.width, camera.height),
+        transform,
+    );
+    let block_list = blocks(m, mem.block_pixels, coarse.then_some(camera.width as usize));
+    let largest_block = block_list.iter().map(|b| b.len()).max().unwrap_or(0);
+    let mut sigmas = Vec::new();
+    for (bi, range) in block_list.iter().enumerate() {
+        if control.is_cancelled() {
+            return Err(ReconError::Cancelled);
+        }
+        let frames = read(source, range.clone(), n_read, &mut largest)?;
+        let len = range.len();
+        if plan.exact {
+            let mut s = vec![0.0; k];
+            for c in 0..len {
+                let t = plan.exact_inverse(&plan.raw_column(&frames, len, c));
+                let sigma = noise_sigma(&t, pw, ph);
+                sigmas.push(sigma);
+                psi.apply(&t, &mut s);
+                builder.push_row(&s, exact_threshold(&s, sigma, k));
+            }
+        } else {
+            let n = plan.op().rows();
+            let mut bs = Vec::with_capacity(len * n);
+            for c in 0..len {
+                bs.extend(plan.fit_data(&plan.raw_column(&frames, len, c)));
+            }
+            drop(frames);
+            let mut s = solve_block(
+                &shared,
+                &bs,
+                lambda.expect("iterative"),
+                coarse.then_some(camera.width as usize),
+                mem.chunk,
+                &mut tally,
+                control,
+            )?;
+            if refit {
+                let it = batch::refit_rows(&shared, &bs, &mut s, mem.chunk, control)?;
+                tally.refit_iterations += it.iter().sum::<usize>() as u64;
+            }
+            for row in s.chunks_exact(k) {
+                builder.push_row(row, 0.0);
+            }
+        }
+        control.set_progress(
+            progress0 + (1.0 - progress0) * (bi + 1) as f64 / block_list.len() as f64,
+        );
+    }
+    let matrix = builder.finish();
+    control.set_progress(1.0);
+
+    let stored = matrix.stored_bytes();
+    details.insert("transform".into(), json!(transform.name()));
+    details.insert("lambda".into(), json!(lambda));
+    details.insert("refit".into(), json!(refit));
+    details.insert("projector".into(), json!([spec.width(), spec.height()]));
+    details.insert("camera".into(), json!([camera.width, camera.height]));
+    details.insert(
+        "path".into(),
+        json!(if plan.exact {
+            "exact inverse of a complete set, coefficients below the noise dropped"
+        } else {
+            "l1 in an orthonormal transform, batched FISTA over the camera pixels"
+        }),
+    );
+    details.insert("stored_bytes".into(), json!(stored));
+    details.insert("dense_f32_bytes".into(), json!(m * k * 4));
+    details.insert("nonzeros".into(), json!(matrix.nonzeros()));
+    details.insert(
+        "nonzeros_per_row".into(),
+        json!(matrix.nonzeros() as f64 / m as f64),
+    );
+    details.insert("seconds".into(), json!(start.elapsed().as_secs_f64()));
+    if plan.exact {
+        sigmas.sort_by(|a, b| a.total_cmp(b));
+        details.insert(
+            "noise_sigma_median".into(),
+            json!(sigmas.get(sigmas.len() / 2).copied().unwrap_or(0.0)),
+        );
+    } else {
+        details.insert(
+            "iterations_mean".into(),
+            json!(tally.iterations as f64 / m as f64),
+        );
+        details.insert("iterations_max".into(), json!(tally.iterations_max));
+        details.insert(
+            "refit_iterations_mean".into(),
+            json!(tally.refit_iterations as f64 / m as f64),
+        );
+        details.insert("lipschitz".into(), json!(lipschitz));
+    }
+    details.insert(
+        "coarse_to_fine".into(),
+        json!({
+            "requested": config.coarse_to_fine,
+            "used": coarse,
+            "parent_rows": tally.parent_rows,
+            "parent_iterations": tally.parent_iterations,
+        }),
+    );
+    let working = MemoryPlan {
+        block_pixels: largest_block,
+        ..mem.clone()
+    };
+    details.insert(
+        "memory".into(),
+        json!({
+            "budget_bytes": mem.budget,
+            "working_set_bytes": working.working_set(),
+            "fixed_bytes": mem.fixed,
+            "solver_scratch_bytes": mem.scratch,
+            "bytes_per_camera_pixel": mem.per_pixel,
+            "block_pixels": mem.block_pixels,
+            "blocks": block_list.len(),
+            "largest_read_bytes": largest,
+        }),
+    );
+    if !notes.is_empty() {
+        details.insert("notes".into(), json!(notes));
+    }
+    let report = Report {
+        method: "transport".into(),
+        params: config.params_json(),
+        rows_used: rows,
+        iterations: tally.iterations + tally.parent_iterations + tally.refit_iterations,
+        details,
+        held_out,
+        held_out_unavailable,
+    };
+    Ok((matrix, report))
+}
+
+/// The continuation path down to `lambda`: the larger fractions of [`LAMBDA_PATH`], then
+/// `lambda` itself (each solve warm-starts the next; a cold solve at a small weight is slow).
+fn continuation(lambda: f64) -> Vec<f64> {
+    let mut path: Vec<f64> = LAMBDA_PATH
+        .iter()
+        .copied()
+        .filter(|&l| l > lambda * 1.0001)
+        .collect();
+    path.push(lambda);
+    path
+}
+
+/// Solves rows along `path` (fractions of each row's `lambda_max`), warm-starting `s`.
+/// Returns the iterations of every row summed over the path.
+fn solve_path(
+    sh: &Shared,
+    bs: &[f64],
+    path: &[f64],
+    s: &mut [f64],
+    chunk: usize,
+    control: &Control,
+) -> Result<Vec<usize>, ReconError> {
+    let lam_max = batch::lambda_max(sh, bs, chunk);
+    let mut total = vec![0usize; lam_max.len()];
+    for &frac in path {
+        let lams: Vec<f64> = lam_max.iter().map(|l| l * frac).collect();
+        let it = batch::solve_rows(sh, bs, &lams, s, chunk, control)?;
+        total.iter_mut().zip(&it).for_each(|(t, i)| *t += i);
+    }
+    Ok(total)
+}
+
+/// Solves one block's rows (`bs`: pixels x n) along the continuation path; with `coarse` (the
+/// camera width), the 2x2 parents go down the path first and every pixel then starts from its
+/// parent's solution at the final weight. Returns the coefficients (pixels x k).
+fn solve_block(
+    sh: &Shared,
+    bs: &[f64],
+    lambda: f64,
+    coarse: Option<usize>,
+    chunk: usize,
+    tally: &mut Tally,
+    control: &Control,
+) -> Result<Vec<f64>, ReconError> {
+    let (k, n) = (sh.op.cols(), sh.op.rows());
+    let pixels = bs.len() / n.max(1);
+    let mut s = vec![0.0; pixels * k];
+    let path = match coarse {
+        None => continuation(lambda),
+        Some(w) => {
+            let groups = parents(pixels, w);
+            let mut pb = vec![0.0; groups.len() * n];
+            for (g, children) in groups.iter().enumerate() {
+                let row = &mut pb[g * n..(g + 1) * n];
+                for &c in children {
+                    row.iter_mut()
+                        .zip(&bs[c * n..(c + 1) * n])
+                        .for_each(|(a, b)| *a += b);
+                }
+                let inv = 1.0 / children.len() as f64;
+                row.iter_mut().for_each(|v| *v *= inv);
+            }
+            let mut ps = vec![0.0; groups.len() * k];
+            let it = solve_path(sh, &pb, &continuation(lambda), &mut ps, chunk, control)?;
+            tally.parent_iterations += it.iter().sum::<usize>() as u64;
+            tally.parent_rows += groups.len() as u64;
+            for (g, children) in groups.iter().enumerate() {
+                for &c in children {
+                    s[c * k..(c + 1) * k].copy_from_slice(&ps[g * k..(g + 1) * k]);
+                }
+            }
+            vec![lambda]
+        }
+    };
+    let it = solve_path(sh, bs, &path, &mut s, chunk, control)?;
+    tally.iterations += it.iter().sum::<usize>() as u64;
+    tally.iterations_max = tally
+        .iterations_max
+        .max(it.iter().copied().max().unwrap_or(0));
+    Ok(s)
+}
+
+/// The data choose the transform and the weight: every candidate along its path, fitted on the
+/// sample pixels without the held-out rows, scored on them (module docs).
+#[allow(clippy::too_many_arguments)]
+fn choose_model(
+    plan: &Plan,
+    config: &TransportConfig,
+    source: &mut dyn FrameSource,
+    m: usize,
+    sample: usize,
+    mem: &MemoryPlan,
+    largest: &mut usize,
+    details: &mut serde_json::Map<String, Value>,
+    held_out: &mut Option<holdout::HeldOut>,
+    held_out_unavailable: &mut Option<String>,
+    control: &Control,
+) -> Result<(TransformKind, f64, bool), ReconError> {
+    let (pw, ph) = (plan.spec.width() as usize, plan.spec.height() as usize);
+    let k = plan.k();
+    let fraction = config
+        .holdout
+        .unwrap_or_else(|| holdout::default_fraction(plan.raw_rows()));
+    // Hadamard subsets are ordered (coarse patterns first): hold out the last measured pairs.
+    let ordered = matches!(plan.raw, Raw::Hadamard(_));
+    let split = match if ordered {
+        holdout::tail(plan.raw_rows(), fraction)
+    } else {
+        holdout::split(plan.raw_rows(), fraction)
+    } {
+        Ok(s) => s,
+        Err(why) => {
+            let transform = config.transform.unwrap_or(TransformKind::Haar);
+            let lambda = config.lambda.unwrap_or(1e-3);
+            *held_out_unavailable = Some(why.clone());
+            details.insert(
+                "selection".into(),
+                json!({"rule": format!("defaults (no held-out rows: {why})")}),
+            );
+            return Ok((transform, lambda, false));
+        }
+    };
+    let mut raws = Vec::new();
+    for r in sample_ranges(m, sample) {
+        let f = read(source, r.clone(), plan.rows_read, largest)?;
+        for c in 0..r.len() {
+            raws.push(plan.raw_column(&f, r.len(), c));
+        }
+    }
+    let rows = raws.len();
+    let (train, test) = plan.holdout_ops(&split)?;
+    let n = train.op().rows();
+    let mut bs = Vec::with_capacity(rows * n);
+    let mut observed = Vec::with_capacity(rows);
+    for raw in &raws {
+        let train_raw: Vec<f64> = split.train.iter().map(|&i| raw[i]).collect();
+        bs.extend(train.data(&train_raw));
+        observed.push(split.test.iter().map(|&i| raw[i]).collect::<Vec<f64>>());
+    }
+    drop(raws);
+    let lipschitz = plan.lipschitz(train.op());
+    let transforms: Vec<TransformKind> = config
+        .transform
+        .map_or(CANDIDATE_TRANSFORMS.to_vec(), |t| vec![t]);
+    let lambdas: Vec<f64> = config.lambda.map_or(LAMBDA_PATH.to_vec(), |l| vec![l]);
+    let chunk = mem
+        .chunk
+        .min(rows.div_ceil(rayon::current_num_threads().max(1)))
+        .max(1);
+    let mut candidates = Vec::new();
+    // Every point scored: (transform, fraction, refitted, held-out score, its standard error,
+    // mean nonzeros, score).
+    let mut scored: Vec<(TransformKind, f64, bool, f64, f64, f64, Score)> = Vec::new();
+    let steps = (transforms.len() * lambdas.len()) as f64;
+    let mut step = 0usize;
+    for &kind in &transforms {
+        let psi = kind.build(pw, ph);
+        let sh = Shared {
+            op: train.op(),
+            psi: psi.as_ref(),
+            identity: kind == TransformKind::Identity,
+            lipschitz,
+            free: free_coefficients(kind),
+            max_iter: config.max_iter,
+            tol: config.tol,
+        };
+        let lam_max = batch::lambda_max(&sh, &bs, chunk);
+        let mut s = vec![0.0; rows * k];
+        let mut t = vec![0.0; rows * k];
+        let h = test.rows();
+        let mut pred = vec![0.0; rows * h];
+        let mut worse = 0;
+        let mut best_here = f64::INFINITY;
+        for &frac in &lambdas {
+            let lams: Vec<f64> = lam_max.iter().map(|l| l * frac).collect();
+            let it = batch::solve_rows(&sh, &bs, &lams, &mut s, chunk, control)?;
+            // The lasso point, then its least-squares refit on the same support (which
+            // continues nothing: the path goes on from the lasso point).
+            let mut refitted = s.clone();
+            let refit_it = batch::refit_rows(&sh, &bs, &mut refitted, chunk, control)?;
+            let nnz = s.iter().filter(|v| **v != 0.0).count() as f64 / rows as f64;
+            let mut value = f64::INFINITY;
+            for (refit, coefficients, iterations) in
+                [(false, &s, &it), (true, &refitted, &refit_it)]
+            {
+                sh.inverse(coefficients, &mut t);
+                test.apply_batch(&t, &mut pred, rows);
+                let mut score = Score::new(rows);
+                // Squared residual of every held-out row, summed over the sample pixels: their
+                // spread gives the standard error of the score.
+                let mut per_row = vec![0.0; h];
+                for (j, obs) in observed.iter().enumerate() {
+                    let p = &pred[j * h..(j + 1) * h];
+                    score.add_channel(j, obs, p);
+                    per_row
+                        .iter_mut()
+                        .zip(obs.iter().zip(p))
+                        .for_each(|(e, (o, p))| *e += (o - p) * (o - p));
+                }
+                let rho = score.finish(split.fraction).relative_residual;
+                let se = rho.map(|r| r * relative_standard_error(&per_row));
+                candidates.push(Candidate {
+                    transform: kind.name(),
+                    lambda: frac,
+                    held_out: rho,
+                    held_out_se: se,
+                    iterations_mean: iterations.iter().sum::<usize>() as f64 / rows as f64,
+                    nonzeros_mean: nnz,
+                    refit,
+                });
+                let v = rho.unwrap_or(f64::INFINITY);
+                value = value.min(v);
+                scored.push((kind, frac, refit, v, se.unwrap_or(0.0), nnz, score));
+            }
+            step += 1;
+            control.set_progress(0.2 * step as f64 / steps);
+            // Down the path: stop once the held-out error has risen twice in a row.
+            if value < best_here {
+                best_here = value;
+                worse = 0;
+            } else {
+                worse += 1;
+                if worse >= 2 {
+                    break;
+                }
+            }
+        }
+    }
+    let identifiable = super::auto::identifiable_coefficients(plan.op().rows(), k);
+    let best = scored
+        .iter()
+        .min_by(|a, b| a.3.total_cmp(&b.3))
+        .expect("at least one candidate");
+    let (best_value, best_se) = (best.3, best.4);
+    // The sparsest model within one standard error of the best held-out score (ties: the
+    // larger weight, which comes first along each path, then the lower score: a lasso point
+    // and its refit keep the same coefficients).
+    let within = best_value + best_se;
+    let chosen = scored
+        .iter()
+        .filter(|c| c.3 <= within)
+        .min_by(|a, b| {
+            a.5.total_cmp(&b.5)
+                .then(b.1.total_cmp(&a.1))
+                .then(a.3.total_cmp(&b.3))
+        })
+        .expect("the best is within");
+    let (transform, lambda, refit) = (chosen.0, chosen.1, chosen.2);
+    *held_out = Some(chosen.6.finish(split.fraction));
+
+    details.insert(
+        "selection".into(),
+        json!({
+            "rule": "the fewest nonzeros among the candidates (every lasso point and its least-squares refit on the same support) whose held-out relative residual on the sample pixels is within one standard error of the lowest (the one-standard-error rule)",
+            "identifiable_per_row_l1": if identifiable.is_finite() { json!(identifiable.round()) } else { Value::Null },
+            "held_out_rows": if ordered {
+                format!("the last {} of the {} measured split pairs (Hadamard rows are ordered: the unmeasured ones lie beyond them)", split.test.len(), plan.raw_rows())
+            } else {
+                format!("{} of {} rows, chosen by a hash of the row index", split.test.len(), plan.raw_rows())
+            },
+            "sample_pixels": rows,
+            "best": {"transform": best.0.name(), "lambda": best.1, "refit": best.2, "held_out": best_value, "standard_error": best_se, "nonzeros_mean": best.5},
+            "chosen": {"transform": transform.name(), "lambda": lambda, "refit": refit, "held_out": chosen.3, "nonzeros_mean": chosen.5},
+            "candidates": candidates,
+        }),
+    );
+    Ok((transform, lambda, refit))
+}

@@ -1,0 +1,871 @@
+use helmholtz_proto::{Family, HadamardOrdering, PatternGenerator, PatternSpec};
+use serde_json::json;
+
+use super::*;
+use crate::metrics::relative_error;
+
+/// A synthetic `T` (m x k, row-major): camera pixel `(cx, cy)` sees a small bright blob at the
+/// matching projector point plus a dimmer, wider halo around it (both Gaussian, cut off, so
+/// every row is sparse and smooth); a few camera pixels see nothing.
+fn synthetic_t(camera: CameraGrid, pw: usize, ph: usize) -> Vec<f32> {
+    let (cw, ch) = (camera.width as usize, camera.height as usize);
+    let k = pw * ph;
+    let mut t = vec![0f32; cw * ch * k];
+    for cy in 0..ch {
+        for cx in 0..cw {
+            let j = cy * cw + cx;
+            if (cx * 7 + cy * 3) % 11 == 0 {
+                continue;
+            }
+            let px = (cx as f64 + 0.5) * pw as f64 / cw as f64 - 0.3;
+            let py = (cy as f64 + 0.5) * ph as f64 / ch as f64 - 0.2;
+            let row = &mut t[j * k..(j + 1) * k];
+            for y in 0..ph {
+                for x in 0..pw {
+                    let d2 = (x as f64 - px).powi(2) + (y as f64 - py).powi(2);
+                    if d2 <= 16.0 {
+                        row[y * pw + x] = (0.25 * (-d2 / 8.0).exp() + (-d2 / 1.28).exp()) as f32;
+                    }
+                }
+            }
+        }
+    }
+    t
+}
+
+/// Frames `c_i = T p_i` (rows x m), plus Gaussian noise of standard deviation `noise`.
+fn frames(spec: &PatternSpec, t: &[f32], m: usize, noise: f64) -> Vec<f32> {
+    let k = spec.pixels();
+    let g = PatternGenerator::new(spec);
+    let mut p = vec![0f32; k];
+    let mut rng = crate::testutil::Rng::new(99);
+    let mut out = Vec::with_capacity(spec.count() as usize * m);
+    for i in 0..spec.count() {
+        g.fill_values(i, &mut p);
+        for row in t.chunks_exact(k) {
+            let c: f64 = row.iter().zip(&p).map(|(a, b)| *a as f64 * *b as f64).sum();
+            out.push((c + noise * rng.normal()) as f32);
+        }
+    }
+    out
+}
+
+/// The zero-filled inverse `A^T d` of Hadamard split pairs, row by row (the baseline).
+fn zero_filled(spec: &PatternSpec, f: &[f32], m: usize) -> Vec<f32> {
+    let op = HadamardOperator::from_spec(spec, spec.count()).unwrap();
+    let k = spec.pixels();
+    let scale = 1.0 / (k as f64).sqrt();
+    let mut out = Vec::with_capacity(m * k);
+    let mut t = vec![0.0; k];
+    for j in 0..m {
+        let d: Vec<f64> = (0..op.rows())
+            .map(|r| (f[2 * r * m + j] as f64 - f[(2 * r + 1) * m + j] as f64) * scale)
+            .collect();
+        op.adjoint(&d, &mut t);
+        out.extend(t.iter().map(|&v| v as f32));
+    }
+    out
+}
+
+fn dense(t: &TransportMatrix) -> Vec<f32> {
+    let (cw, ch) = t.camera();
+    (0..(cw * ch) as usize).flat_map(|j| t.row(j)).collect()
+}
+
+fn run(
+    spec: &PatternSpec,
+    camera: CameraGrid,
+    f: &[f32],
+    config: &TransportConfig,
+) -> (TransportMatrix, Report, SliceFrames<'static>) {
+    let leaked: &'static [f32] = Box::leak(f.to_vec().into_boxed_slice());
+    let mut source = SliceFrames::new(leaked, camera.pixels());
+    let (t, r) = reconstruct_transport(
+        spec,
+        camera,
+        spec.count(),
+        config,
+        &mut source,
+        &Control::new(),
+    )
+    .unwrap();
+    (t, r, source)
+}
+
+const CAM: CameraGrid = CameraGrid {
+    width: 8,
+    height: 8,
+};
+
+#[test]
+fn a_complete_hadamard_set_reconstructs_to_f32_precision_and_stores_sparse() {
+    let spec = PatternSpec::new(
+        Family::Hadamard {
+            ordering: HadamardOrdering::Sequency,
+        },
+        32,
+        32,
+        2048,
+        0,
+    )
+    .unwrap();
+    let truth = synthetic_t(CAM, 32, 32);
+    let f = frames(&spec, &truth, CAM.pixels(), 0.0);
+    let (t, report, _) = run(&spec, CAM, &f, &TransportConfig::default());
+    let err = relative_error(&dense(&t), &truth);
+    println!(
+        "complete hadamard: rel err {err:e}, nnz {}, stored {} B, details {}",
+        t.nonzeros(),
+        t.stored_bytes(),
+        json!(report.details)
+    );
+    assert!(err < 1e-5, "relative Frobenius error {err:e}");
+    assert!(report.held_out.is_none() && report.held_out_unavailable.is_some());
+    // Sparse: far fewer coefficients than m x k (each row is a blob in a 49-pixel halo).
+    assert!(
+        t.nonzeros() < CAM.pixels() * 200,
+        "{} nonzeros",
+        t.nonzeros()
+    );
+    assert_eq!(t.stored_bytes(), t.encode().len());
+    assert_eq!(
+        report.details["transform"], "identity",
+        "the data should choose the pixel basis here"
+    );
+}
+
+#[test]
+fn a_complete_raster_set_with_noise_drops_what_is_below_the_noise() {
+    let spec = PatternSpec::new(Family::Raster { block: 1, scans: 1 }, 32, 32, 1024, 0).unwrap();
+    let truth = synthetic_t(CAM, 32, 32);
+    let sigma = 1e-3;
+    let f = frames(&spec, &truth, CAM.pixels(), sigma);
+    let (t, report, _) = run(&spec, CAM, &f, &TransportConfig::default());
+    let err = relative_error(&dense(&t), &truth);
+    let estimated = report.details["noise_sigma_median"].as_f64().unwrap();
+    println!(
+        "raster + noise: rel err {err:e}, nnz {}, sigma {estimated:e}",
+        t.nonzeros()
+    );
+    assert!(
+        (estimated / sigma - 1.0).abs() < 0.2,
+        "noise estimate {estimated:e} vs {sigma:e}"
+    );
+    // The noise alone is ||n|| / ||T|| = 1e-3 sqrt(k m) / ||T||; thresholding keeps the error
+    // below the raw noise and drops nearly all pure-noise coefficients.
+    let raw_noise = sigma * ((CAM.pixels() * 1024) as f64).sqrt()
+        / truth
+            .iter()
+            .map(|v| (*v as f64).powi(2))
+            .sum::<f64>()
+            .sqrt();
+    assert!(err < raw_noise, "error {err:e} vs raw noise {raw_noise:e}");
+    assert!(
+        t.nonzeros() < CAM.pixels() * 150,
+        "{} nonzeros",
+        t.nonzeros()
+    );
+}
+
+#[test]
+fn partial_hadamard_and_bernoulli_match_within_tolerance_with_held_out_error() {
+    let truth = synthetic_t(CAM, 32, 32);
+    let cases = [
+        // Measured (noise-free): Hadamard 50 % 0.140 (zero-filled 0.201), 25 % 0.514 (the
+        // complete 16x16 level: zero-filled 0.514, nothing finer is measured); Bernoulli 50 %
+        // 0.0013, 25 % 0.0017.
+        (
+            Family::Hadamard {
+                ordering: HadamardOrdering::RussianDoll,
+            },
+            1024u64,
+            0.16,
+        ),
+        (
+            Family::Hadamard {
+                ordering: HadamardOrdering::RussianDoll,
+            },
+            512,
+            0.53,
+        ),
+        (Family::Bernoulli { fill: 0.5 }, 512, 0.005),
+        (Family::Bernoulli { fill: 0.5 }, 256, 0.005),
+    ];
+    for (family, count, tolerance) in cases {
+        let spec = PatternSpec::new(family.clone(), 32, 32, count, 3).unwrap();
+        let f = frames(&spec, &truth, CAM.pixels(), 0.0);
+        let (t, report, _) = run(&spec, CAM, &f, &TransportConfig::default());
+        let err = relative_error(&dense(&t), &truth);
+        if family.name() == "hadamard" {
+            // Never worse than the minimum-norm image, and clearly better where finer rows exist.
+            let zf = relative_error(&zero_filled(&spec, &f, 64), &truth);
+            println!("zero-filled: {zf:.4}");
+            assert!(err < 1.01 * zf, "{count}: {err} vs zero-filled {zf}");
+            if count == 1024 {
+                assert!(err < 0.8 * zf, "{count}: {err} vs zero-filled {zf}");
+            }
+        }
+        let held = report
+            .held_out
+            .as_ref()
+            .and_then(|h| h.relative_residual)
+            .expect("held-out error reported");
+        println!(
+            "{} {count}: rel err {err:.4}, held-out {held:.4}, transform {}, lambda {}, nnz/row {:.1}, iterations/row {}",
+            family.name(),
+            report.details["transform"],
+            report.details["lambda"],
+            t.nonzeros() as f64 / CAM.pixels() as f64,
+            report.details["iterations_mean"]
+        );
+        assert!(
+            err < tolerance,
+            "{} {count}: relative error {err} over {tolerance}",
+            family.name()
+        );
+        if family.name() == "bernoulli" {
+            assert!(held < 0.01, "held-out {held}");
+        }
+    }
+}
+
+#[test]
+fn relight_is_the_adjoint_of_primal_and_rows_are_relights_of_one_pixel() {
+    let truth = synthetic_t(CAM, 32, 32);
+    for kind in [
+        TransformKind::Identity,
+        TransformKind::Haar,
+        TransformKind::Db4,
+        TransformKind::Dct,
+    ] {
+        let t = TransportMatrix::from_dense((32, 32), (8, 8), kind, &truth, 1e-3);
+        let p: Vec<f32> = crate::linop::test_vector(1024, 1)
+            .iter()
+            .map(|&v| v as f32)
+            .collect();
+        let c: Vec<f32> = crate::linop::test_vector(64, 2)
+            .iter()
+            .map(|&v| v as f32)
+            .collect();
+        let tp = t.primal(&p);
+        let tc = t.relight(&c);
+        let l: f64 = tp.iter().zip(&c).map(|(a, b)| *a as f64 * *b as f64).sum();
+        let r: f64 = p.iter().zip(&tc).map(|(a, b)| *a as f64 * *b as f64).sum();
+        let mismatch = (l - r).abs() / (l.abs() + r.abs());
+        assert!(
+            mismatch < 1e-5,
+            "{}: <Tp, c> = {l}, <p, T^T c> = {r}",
+            kind.name()
+        );
+        let mut e = vec![0f32; 64];
+        e[13] = 1.0;
+        let relit = t.relight(&e);
+        let row = t.row(13);
+        assert!(relative_error(&relit, &row) < 1e-6);
+        // Stored with a small threshold, the matrix is close to the truth.
+        assert!(relative_error(&dense(&t), &truth) < 0.02, "{}", kind.name());
+    }
+}
+
+#[test]
+fn encode_decode_round_trips_and_corrupt_bytes_are_refused() {
+    let truth = synthetic_t(CAM, 32, 32);
+    let t = TransportMatrix::from_dense((32, 32), (8, 8), TransformKind::Haar, &truth, 1e-4);
+    let bytes = t.encode();
+    assert_eq!(bytes.len(), t.stored_bytes());
+    let back = TransportMatrix::decode(&bytes).unwrap();
+    assert_eq!(back, t);
+    assert_eq!(back.row(5), t.row(5));
+    // One flipped bit anywhere: refused by the checksum (or the magic).
+    for pos in [3, 12, 40, bytes.len() / 2, bytes.len() - 6, bytes.len() - 1] {
+        let mut bad = bytes.clone();
+        bad[pos] ^= 0x10;
+        let e = TransportMatrix::decode(&bad).unwrap_err();
+        assert!(
+            matches!(
+                e,
+                TransportDecodeError::Checksum { .. } | TransportDecodeError::BadMagic
+            ),
+            "byte {pos}: {e}"
+        );
+    }
+    assert!(matches!(
+        TransportMatrix::decode(&bytes[..bytes.len() - 10]),
+        Err(TransportDecodeError::Checksum { .. })
+    ));
+    assert!(matches!(
+        TransportMatrix::decode(&bytes[..5]),
+        Err(TransportDecodeError::TooShort(5))
+    ));
+    // A well-checksummed body with inconsistent counts is refused too.
+    let mut forged = bytes[..bytes.len() - 4 - 8].to_vec();
+    let crc = crc32c::crc32c(&forged);
+    forged.extend_from_slice(&crc.to_le_bytes());
+    assert!(
+        matches!(
+            TransportMatrix::decode(&forged),
+            Err(TransportDecodeError::Inconsistent(_))
+        ),
+        "{:?}",
+        TransportMatrix::decode(&forged)
+    );
+}
+
+/// A 16x16 camera over a 16x16 projector, Bernoulli 50 %: 128 frames x 256 pixels = 128 KiB.
+fn small_session() -> (PatternSpec, CameraGrid, Vec<f32>, Vec<f32>) {
+    let camera = CameraGrid {
+        width: 16,
+        height: 16,
+    };
+    let spec = PatternSpec::new(Family::Bernoulli { fill: 0.5 }, 16, 16, 128, 5).unwrap();
+    let truth = synthetic_t(camera, 16, 16);
+    let f = frames(&spec, &truth, camera.pixels(), 0.0);
+    (spec, camera, truth, f)
+}
+
+#[test]
+fn blocked_equals_unblocked_and_reads_stay_within_the_budget() {
+    let (spec, camera, truth, f) = small_session();
+    let frame_bytes = f.len() * 4;
+    let budget = 100_000;
+    assert!(
+        frame_bytes > budget,
+        "the session's frames ({frame_bytes} B) must exceed the budget"
+    );
+    let config = TransportConfig {
+        sample_pixels: 2,
+        ..TransportConfig::default()
+    };
+    let (whole, r1, s1) = run(
+        &spec,
+        camera,
+        &f,
+        &config.clone().with_memory_budget(64 << 20),
+    );
+    let (blocked, r2, s2) = run(
+        &spec,
+        camera,
+        &f,
+        &config.clone().with_memory_budget(budget),
+    );
+    println!(
+        "unblocked: {}; blocked: {}",
+        r1.details["memory"], r2.details["memory"]
+    );
+    assert_eq!(r1.details["memory"]["blocks"], 1);
+    let blocks = r2.details["memory"]["blocks"].as_u64().unwrap();
+    assert!(blocks >= 4, "{blocks} blocks");
+    assert!(
+        s2.largest_read_bytes <= budget,
+        "a read of {} B over the {budget} B budget",
+        s2.largest_read_bytes
+    );
+    assert!(r2.details["memory"]["working_set_bytes"].as_u64().unwrap() as usize <= budget);
+    assert!(
+        s2.reads.len() as u64 > blocks,
+        "every block read separately (plus the sample)"
+    );
+    assert!(s1.largest_read_bytes > budget);
+    assert_eq!(r1.details["transform"], r2.details["transform"]);
+    assert_eq!(r1.details["lambda"], r2.details["lambda"]);
+    assert!(
+        whole == blocked,
+        "blocked and unblocked differ: {} vs {}",
+        relative_error(&dense(&whole), &dense(&blocked)),
+        0
+    );
+    assert!(relative_error(&dense(&whole), &truth) < 0.1);
+    // A budget that cannot hold one camera pixel is a clear error.
+    let mut source = SliceFrames::new(&f, camera.pixels());
+    let e = reconstruct_transport(
+        &spec,
+        camera,
+        128,
+        &config.clone().with_memory_budget(10_000),
+        &mut source,
+        &Control::new(),
+    )
+    .unwrap_err();
+    assert!(
+        e.to_string()
+            .contains("memory budget of 10000 bytes is too small"),
+        "{e}"
+    );
+}
+
+#[test]
+fn coarse_to_fine_solves_the_parents_first_and_stays_close() {
+    let (spec, camera, truth, f) = small_session();
+    let base = TransportConfig {
+        transform: Some(TransformKind::Haar),
+        lambda: Some(1e-3),
+        ..TransportConfig::default()
+    };
+    let (plain, rp, _) = run(
+        &spec,
+        camera,
+        &f,
+        &TransportConfig {
+            coarse_to_fine: false,
+            ..base.clone()
+        },
+    );
+    let (c2f, rc, _) = run(
+        &spec,
+        camera,
+        &f,
+        &TransportConfig {
+            coarse_to_fine: true,
+            ..base
+        },
+    );
+    let (ep, ec) = (
+        relative_error(&dense(&plain), &truth),
+        relative_error(&dense(&c2f), &truth),
+    );
+    println!(
+        "plain: err {ep:.4}, {} iterations; coarse-to-fine: err {ec:.4}, {} iterations ({})",
+        rp.iterations, rc.iterations, rc.details["coarse_to_fine"]
+    );
+    assert_eq!(rc.details["coarse_to_fine"]["used"], true);
+    assert_eq!(rc.details["coarse_to_fine"]["parent_rows"], 64);
+    // Measured: plain 0.102 (91,079 iterations), coarse-to-fine 0.174 (80,275 including 24,354
+    // for the parents): here the parents' blur is a worse start than the continuation path
+    // (neighbouring camera pixels see projector points a whole pixel apart).
+    assert!(ep < 0.12 && ec < 2.0 * ep, "errors {ep} vs {ec}");
+}
+
+struct CancelAfter<'a> {
+    inner: SliceFrames<'a>,
+    control: &'a Control,
+    reads: usize,
+}
+
+impl FrameSource for CancelAfter<'_> {
+    fn read_pixels(&mut self, pixels: Range<usize>) -> Result<Vec<f32>, SourceError> {
+        self.reads += 1;
+        if self.reads == 6 {
+            self.control.cancel();
+        }
+        self.inner.read_pixels(pixels)
+    }
+}
+
+#[test]
+fn cancellation_stops_between_blocks() {
+    let (spec, camera, _, f) = small_session();
+    let control = Control::new();
+    let config = TransportConfig {
+        sample_pixels: 4,
+        ..TransportConfig::default()
+    }
+    .with_memory_budget(100_000);
+    let mut source = CancelAfter {
+        inner: SliceFrames::new(&f, camera.pixels()),
+        control: &control,
+        reads: 0,
+    };
+    let e = reconstruct_transport(&spec, camera, 128, &config, &mut source, &control).unwrap_err();
+    assert!(matches!(e, ReconError::Cancelled), "{e}");
+    assert!(
+        source.reads <= 7,
+        "{} reads after cancelling at the 6th",
+        source.reads
+    );
+}
+
+struct WrongLength;
+
+impl FrameSource for WrongLength {
+    fn read_pixels(&mut self, pixels: Range<usize>) -> Result<Vec<f32>, SourceError> {
+        Ok(vec![0.0; pixels.len() * 3])
+    }
+}
+
+#[test]
+fn bad_sizes_are_clear_errors() {
+    let spec = PatternSpec::new(Family::Bernoulli { fill: 0.5 }, 16, 16, 128, 5).unwrap();
+    let camera = CameraGrid {
+        width: 4,
+        height: 4,
+    };
+    let e = reconstruct_transport(
+        &spec,
+        camera,
+        128,
+        &TransportConfig::default(),
+        &mut WrongLength,
+        &Control::new(),
+    )
+    .unwrap_err();
+    let text = e.to_string();
+    assert!(
+        matches!(e, ReconError::BadRows(_)) && text.contains("expected 128 frames x"),
+        "{text}"
+    );
+    let e = reconstruct_transport(
+        &spec,
+        camera,
+        129,
+        &TransportConfig::default(),
+        &mut WrongLength,
+        &Control::new(),
+    )
+    .unwrap_err();
+    assert!(e.to_string().contains("129 frames requested"), "{e}");
+    let e = reconstruct_transport(
+        &spec,
+        CameraGrid {
+            width: 0,
+            height: 4,
+        },
+        128,
+        &TransportConfig::default(),
+        &mut WrongLength,
+        &Control::new(),
+    )
+    .unwrap_err();
+    assert!(e.to_string().contains("no pixels"), "{e}");
+    // Frames from a source with a different camera width: the lengths disagree.
+    let f = vec![0f32; 128 * 20];
+    let mut source = SliceFrames::new(&f, 20);
+    let e = reconstruct_transport(
+        &spec,
+        CameraGrid {
+            width: 5,
+            height: 5,
+        },
+        128,
+        &TransportConfig::default(),
+        &mut source,
+        &Control::new(),
+    )
+    .unwrap_err();
+    assert!(e.to_string().contains("outside 0..20"), "{e}");
+}
+
+#[test]
+fn params_parse_refuse_unknown_keys_and_round_trip() {
+    let c = TransportConfig::parse(
+        &json!({"transform": "db4", "lambda": 0.001, "max_iter": 50, "coarse_to_fine": true}),
+    )
+    .unwrap();
+    assert_eq!(c.transform, Some(TransformKind::Db4));
+    assert_eq!(c.max_iter, 50);
+    assert!(c.coarse_to_fine);
+    assert_eq!(TransportConfig::parse(&c.params_json()).unwrap(), c);
+    let d = TransportConfig::parse(&json!({})).unwrap();
+    assert_eq!(d, TransportConfig::default());
+    assert_eq!(TransportConfig::parse(&d.params_json()).unwrap(), d);
+    assert_eq!(TransportConfig::parse(&serde_json::Value::Null).unwrap(), d);
+    for (params, field) in [
+        (json!({"bogus": 1}), "params.bogus"),
+        (json!({"transform": "fourier"}), "params.transform"),
+        (json!({"lambda": 2}), "params.lambda"),
+        (json!({"max_iter": 0}), "params.max_iter"),
+        (json!({"max_iter": "ten"}), "params.max_iter"),
+        (json!({"holdout": 0.9}), "params.holdout"),
+        (json!({"coarse_to_fine": 1}), "params.coarse_to_fine"),
+        (
+            json!({"memory_budget_bytes": 5}),
+            "params.memory_budget_bytes",
+        ),
+        (json!([1]), "params"),
+    ] {
+        let e = TransportConfig::parse(&params).unwrap_err();
+        assert_eq!(e.field, field, "{params}: {e}");
+    }
+    assert_eq!(d.clone().with_memory_budget(1234).memory_budget_bytes, 1234);
+}
+
+/// Model-choice study (run by hand): every candidate's held-out score under two splits against
+/// its true error on the sample pixels (the bench's scene; `STUDY=h50,b10` selects cases):
+/// `cargo test -p helmholtz-recon --lib study_model_choice -- --ignored --nocapture`.
+#[test]
+#[ignore = "a study run by hand (minutes): prints, asserts nothing"]
+fn study_model_choice() {
+    use helmholtz_sim::{Camera, Scene};
+    let (pw, ph) = (64u32, 64u32);
+    let scene = Scene::demo(pw, ph, 7);
+    let view = scene.view(&Camera::tilted(32, 32, 25.0));
+    let m = view.pixels();
+    let k = (pw * ph) as usize;
+    let which = std::env::var("STUDY").unwrap_or_default();
+    let rd = HadamardOrdering::RussianDoll;
+    let cases = [
+        ("h50", Family::Hadamard { ordering: rd }, k as u64),
+        ("h25", Family::Hadamard { ordering: rd }, k as u64 / 2),
+        ("b25", Family::Bernoulli { fill: 0.5 }, k as u64 / 4),
+        ("b10", Family::Bernoulli { fill: 0.5 }, k as u64 / 10),
+    ];
+    for (name, family, count) in cases {
+        if !which.is_empty() && !which.contains(name) {
+            continue;
+        }
+        let spec = PatternSpec::new(family, pw, ph, count, 3).unwrap();
+        let g = PatternGenerator::new(&spec);
+        let mut p = vec![0f32; k];
+        let mut f = Vec::new();
+        for i in 0..count {
+            g.fill_values(i, &mut p);
+            let p64: Vec<f64> = p.iter().map(|&v| v as f64).collect();
+            f.extend(view.render(&p64).into_iter().map(|v| v as f32));
+        }
+        let plan = Plan::new(&spec, count as usize).unwrap();
+        let pixels: Vec<usize> = sample_ranges(m, 64).into_iter().flatten().collect();
+        let raws: Vec<Vec<f64>> = pixels.iter().map(|&j| plan.raw_column(&f, m, j)).collect();
+        let truth: Vec<f64> = pixels.iter().flat_map(|&j| view.row(j)).collect();
+        let rows = pixels.len();
+        let raw_rows = plan.raw_rows();
+        let random = holdout::split(raw_rows, 0.1).unwrap();
+        let tail = holdout::tail(raw_rows, 0.1).unwrap();
+        for (sname, split) in [("random", &random), ("tail", &tail)] {
+            let (train, test) = plan.holdout_ops(split).unwrap();
+            let mut bs = Vec::new();
+            let mut observed = Vec::new();
+            let mut full_bs = Vec::new();
+            for raw in &raws {
+                let tr: Vec<f64> = split.train.iter().map(|&i| raw[i]).collect();
+                bs.extend(train.data(&tr));
+                observed.push(split.test.iter().map(|&i| raw[i]).collect::<Vec<f64>>());
+                full_bs.extend(plan.fit_data(raw));
+            }
+            let lipschitz = plan.lipschitz(train.op());
+            let full_l = plan.lipschitz(plan.op());
+            for kind in CANDIDATE_TRANSFORMS {
+                let psi = kind.build(pw as usize, ph as usize);
+                let sh = Shared {
+                    op: train.op(),
+                    psi: psi.as_ref(),
+                    identity: kind == TransformKind::Identity,
+                    lipschitz,
+                    free: free_coefficients(kind),
+                    max_iter: 300,
+                    tol: 1e-4,
+                };
+                let shf = Shared {
+                    op: plan.op(),
+                    psi: psi.as_ref(),
+                    identity: kind == TransformKind::Identity,
+                    lipschitz: full_l,
+                    free: free_coefficients(kind),
+                    max_iter: 300,
+                    tol: 1e-4,
+                };
+                let lam_max = batch::lambda_max(&sh, &bs, 8);
+                let lam_full = batch::lambda_max(&shf, &full_bs, 8);
+                let mut s = vec![0.0; rows * k];
+                let mut sf = vec![0.0; rows * k];
+                let mut t = vec![0.0; rows * k];
+                let mut pred = vec![0.0; rows * test.rows()];
+                for &frac in &LAMBDA_PATH {
+                    let lams: Vec<f64> = lam_max.iter().map(|l| l * frac).collect();
+                    batch::solve_rows(&sh, &bs, &lams, &mut s, 8, &Control::new()).unwrap();
+                    sh.inverse(&s, &mut t);
+                    test.apply_batch(&t, &mut pred, rows);
+                    let mut score = Score::new(rows);
+                    let mut per_row = Vec::new();
+                    for (j, obs) in observed.iter().enumerate() {
+                        let pr = &pred[j * test.rows()..(j + 1) * test.rows()];
+                        score.add_channel(j, obs, pr);
+                        per_row.push(
+                            obs.iter()
+                                .zip(pr)
+                                .map(|(a, b)| (a - b).powi(2))
+                                .sum::<f64>(),
+                        );
+                    }
+                    let rho = score.finish(0.1).relative_residual.unwrap_or(f64::NAN);
+                    let nnz = s.iter().filter(|v| **v != 0.0).count() as f64 / rows as f64;
+                    let lams_f: Vec<f64> = lam_full.iter().map(|l| l * frac).collect();
+                    batch::solve_rows(&shf, &full_bs, &lams_f, &mut sf, 8, &Control::new())
+                        .unwrap();
+                    let mut tf = vec![0.0; rows * k];
+                    shf.inverse(&sf, &mut tf);
+                    let nnz_f = sf.iter().filter(|v| **v != 0.0).count() as f64 / rows as f64;
+                    let err_train = crate::metrics::relative_error(
+                        &t.iter().map(|&v| v as f32).collect::<Vec<_>>(),
+                        &truth.iter().map(|&v| v as f32).collect::<Vec<_>>(),
+                    );
+                    let err_full = crate::metrics::relative_error(
+                        &tf.iter().map(|&v| v as f32).collect::<Vec<_>>(),
+                        &truth.iter().map(|&v| v as f32).collect::<Vec<_>>(),
+                    );
+                    println!(
+                        "{name} {sname:<6} {:<8} f={frac:<6} held-out {rho:.5} nnz {nnz:7.1} true(train) {err_train:.4} | full: true {err_full:.4} nnz {nnz_f:7.1}",
+                        kind.name()
+                    );
+                }
+            }
+        }
+    }
+}
+
+/// The data's choice against every fixed model it chooses from, judged by the truth the choice
+/// never sees: the chosen model's error (after the refit on all rows) and the best fixed
+/// model's, with its name.
+fn choice_against_fixed(family: Family, count: u64) -> (f64, f64, String, f64, f64) {
+    let truth = synthetic_t(CAM, 32, 32);
+    let spec = PatternSpec::new(family.clone(), 32, 32, count, 3).unwrap();
+    let f = frames(&spec, &truth, CAM.pixels(), 0.0);
+    let (t, report, _) = run(&spec, CAM, &f, &TransportConfig::default());
+    let chosen = relative_error(&dense(&t), &truth);
+    let nnz = t.nonzeros() as f64 / CAM.pixels() as f64;
+    let mut best = (f64::INFINITY, String::new());
+    for kind in CANDIDATE_TRANSFORMS {
+        for lambda in LAMBDA_PATH {
+            let config = TransportConfig {
+                transform: Some(kind),
+                lambda: Some(lambda),
+                ..TransportConfig::default()
+            };
+            let (tf, _, _) = run(&spec, CAM, &f, &config);
+            let e = relative_error(&dense(&tf), &truth);
+            if e < best.0 {
+                best = (e, format!("{} f={lambda}", kind.name()));
+            }
+        }
+    }
+    let rows = if family.name() == "hadamard" {
+        count as usize / 2
+    } else {
+        count as usize
+    };
+    let identifiable = crate::auto::identifiable_coefficients(rows, 1024);
+    println!(
+        "{} {count}: chosen {} f={} error {chosen:.4}, {nnz:.1} nonzeros/row (identifiable {identifiable:.0}); best fixed {} error {:.4}\n  selection best {} chosen {}",
+        family.name(),
+        report.details["transform"],
+        report.details["lambda"],
+        best.1,
+        best.0,
+        report.details["selection"]["best"],
+        report.details["selection"]["chosen"],
+    );
+    (chosen, best.0, best.1, nnz, identifiable)
+}
+
+/// On Bernoulli rows (held-out rows hashed out) and on a Hadamard subset of a complete level and
+/// a half (held-out pairs: the last measured ones), the chosen model's error is near the best
+/// fixed model's.
+#[test]
+fn the_chosen_model_is_near_the_best_fixed_one_by_ground_truth() {
+    for (family, count) in [
+        (Family::Bernoulli { fill: 0.5 }, 256u64),
+        (
+            Family::Hadamard {
+                ordering: HadamardOrdering::RussianDoll,
+            },
+            768,
+        ),
+    ] {
+        let name = format!("{} {count}", family.name());
+        let (chosen, best, best_name, nnz, identifiable) = choice_against_fixed(family, count);
+        assert!(
+            chosen <= 1.25 * best,
+            "{name}: chosen error {chosen} vs best fixed {best} ({best_name}); {nnz:.0} nonzeros per row ({identifiable:.0} identifiable)"
+        );
+    }
+}
+
+/// A known limitation of the model choice: half a Hadamard set of smooth rows. The held-out
+/// pairs (the last measured ones) are predicted best by the pixel basis (held-out 0.0014 against
+/// db4's 0.099), but db4 extrapolates the unmeasured pairs better (error 0.087 against 0.140):
+/// the measured rows do not tell which model extrapolates. Also tried (2026-11-22): choosing the
+/// transform by its extrapolation one Russian-doll level down, scored against the exact image of
+/// the last complete level, fitted on the coarse grid (pixel basis 0.036, db4 0.187) or on the
+/// full grid (0.036 against 0.145): with fewer rows the sparsest basis wins, so it picks the
+/// pixel basis too. Run by hand; it fails today.
+#[test]
+#[ignore = "known limitation: the held-out model choice on Hadamard subsets of smooth rows"]
+fn the_chosen_model_on_half_a_hadamard_set_of_smooth_rows() {
+    let (chosen, best, best_name, _, _) = choice_against_fixed(
+        Family::Hadamard {
+            ordering: HadamardOrdering::RussianDoll,
+        },
+        1024,
+    );
+    assert!(
+        chosen <= 1.25 * best,
+        "chosen error {chosen} vs best fixed {best} ({best_name})"
+    );
+}
+
+/// The refit is the least-squares solution on the warm start's support (a known answer): with
+/// more rows than kept coefficients and noise-free data it recovers the sparse truth exactly,
+/// where the lasso it starts from is shrunk by its weight; coefficients outside the support stay
+/// zero, even where the truth is not zero.
+#[test]
+fn the_refit_is_least_squares_on_the_lasso_support() {
+    use crate::linop::spectral_norm;
+    use crate::solve::testkit::gaussian;
+    use crate::transforms::TransformKind;
+    let (n, k, rows) = (60, 128, 3);
+    let a = gaussian(n, k, 11);
+    let psi = TransformKind::Identity.build(k, 1);
+    let l = spectral_norm(&a, 500, 1e-9).powi(2) * 1.02;
+    let sh = Shared {
+        op: &a,
+        psi: psi.as_ref(),
+        identity: true,
+        lipschitz: l,
+        free: 0,
+        max_iter: 20_000,
+        tol: 1e-12,
+    };
+    // Row r: 8 spikes of height 1..2 (rows 0 and 1), row 2 also one small spike of 1e-3 the
+    // lasso drops.
+    let mut truth = vec![0.0; rows * k];
+    let mut rng = crate::testutil::Rng::new(5);
+    for r in 0..rows {
+        for j in 0..8 {
+            truth[r * k + (j * 37 + r * 11) % k] = 1.0 + rng.uniform();
+        }
+    }
+    truth[2 * k + 100] = 1e-3;
+    let mut bs = vec![0.0; rows * n];
+    for r in 0..rows {
+        a.apply(&truth[r * k..(r + 1) * k], &mut bs[r * n..(r + 1) * n]);
+    }
+    let lam_max = batch::lambda_max(&sh, &bs, 2);
+    let lams: Vec<f64> = lam_max.iter().map(|m| 0.05 * m).collect();
+    let mut s = vec![0.0; rows * k];
+    batch::solve_rows(&sh, &bs, &lams, &mut s, 2, &Control::new()).unwrap();
+    let lasso_err = relative_error(
+        &s.iter().map(|&v| v as f32).collect::<Vec<_>>(),
+        &truth.iter().map(|&v| v as f32).collect::<Vec<_>>(),
+    );
+    let support: Vec<bool> = s.iter().map(|v| *v != 0.0).collect();
+    assert!(
+        !support[2 * k + 100],
+        "the lasso at 5 % of lambda_max keeps the 1e-3 spike; pick a larger weight"
+    );
+    batch::refit_rows(&sh, &bs, &mut s, 2, &Control::new()).unwrap();
+    for (i, (&v, &kept)) in s.iter().zip(&support).enumerate() {
+        assert!(
+            kept || v == 0.0,
+            "coefficient {i} outside the support moved to {v}"
+        );
+    }
+    for r in 0..rows {
+        let row = r * k..(r + 1) * k;
+        let err: f64 = s[row.clone()]
+            .iter()
+            .zip(&truth[row.clone()])
+            .map(|(a, b)| (a - b) * (a - b))
+            .sum::<f64>()
+            .sqrt();
+        // Rows 0, 1: the truth lies on the support, so least squares recovers it (to the
+        // iterative solve's tolerance); row 2: off by the dropped spike's 1e-3 (its least-squares
+        // shadow on the support adds a little more).
+        let bound = if r == 2 { 2e-3 } else { 1e-6 };
+        assert!(
+            err < bound,
+            "row {r}: refit error {err:e}, lasso relative error {lasso_err:e}"
+        );
+    }
+    assert!(
+        lasso_err > 1e-2,
+        "the lasso is shrunk: relative error {lasso_err:e}"
+    );
+}
