@@ -28,6 +28,7 @@ pub mod method;
 pub mod metrics;
 pub mod ops;
 pub mod photometric;
+pub mod request;
 pub(crate) mod simd;
 pub mod solve;
 mod stream;
@@ -37,6 +38,7 @@ pub mod transforms;
 pub mod transport;
 
 pub use method::{MethodConfig, ParamError};
+pub use request::Request;
 
 /// Consecutive bucket rows: `values` is row-major, `rows x channels`.
 #[derive(Clone, Debug)]

@@ -4,6 +4,9 @@
 //! `f64`. `truth` is the reference; the data range `L` used by PSNR and SSIM is taken from it.
 //! Correlation methods (GI, DGI, NGI) estimate `t` only up to a gain and an offset: compare them
 //! after [`fit_affine`] (or with [`pearson`]), not raw.
+//!
+//! [`dual_quality`] and [`transport_quality`] score a finished reconstruction against a simulated
+//! session's ground truth: the `quality` of its report.
 
 /// The data range of `truth`: `max - min`, or `max |truth|` when the image is constant, or 1 when
 /// it is all zero (so the figures stay finite).
@@ -185,6 +188,145 @@ pub fn pearson(estimate: &[f32], truth: &[f32]) -> f64 {
     }
 }
 
+// ---------------------------------------------------------------------------------------------
+// Scores of a finished reconstruction against a simulated session's ground truth (the report's
+// `quality`).
+
+/// A figure in a report: finite values as numbers, `+inf` (a perfect PSNR) as `"inf"`, anything
+/// else as `null`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Figure(pub f64);
+
+impl serde::Serialize for Figure {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        if self.0.is_finite() {
+            s.serialize_f64(self.0)
+        } else if self.0 == f64::INFINITY {
+            s.serialize_str("inf")
+        } else {
+            s.serialize_none()
+        }
+    }
+}
+
+/// One channel's dual image against its truth, raw and after the least-squares affine fit
+/// (correlation methods estimate t only up to scale and offset).
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct ChannelQuality {
+    pub channel: String,
+    pub psnr_db: Figure,
+    pub ssim: Figure,
+    pub relative_error: Figure,
+    pub psnr_fitted_db: Figure,
+    pub ssim_fitted: Figure,
+    pub fit: AffineFit,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+pub struct AffineFit {
+    pub scale: f64,
+    pub offset: f64,
+}
+
+/// Every channel whose image is `w x h` against `truth`: one image shared by every channel, or
+/// one per channel (row-major, concatenated).
+pub fn dual_quality(
+    images: &[super::DualImage],
+    channels: &[String],
+    w: u32,
+    h: u32,
+    truth: &[f32],
+) -> Vec<ChannelQuality> {
+    let k = w as usize * h as usize;
+    images
+        .iter()
+        .zip(channels)
+        .enumerate()
+        .filter(|(_, (img, _))| img.width == w && img.height == h)
+        .map(|(c, (img, name))| {
+            let truth = if truth.len() >= (c + 1) * k && truth.len() > k {
+                &truth[c * k..(c + 1) * k]
+            } else {
+                &truth[..k]
+            };
+            let (a, b) = fit_affine(&img.data, truth);
+            let fitted: Vec<f32> = img.data.iter().map(|&v| (a * v as f64 + b) as f32).collect();
+            let (w, h) = (w as usize, h as usize);
+            ChannelQuality {
+                channel: name.clone(),
+                psnr_db: Figure(psnr(&img.data, truth)),
+                ssim: Figure(ssim(&img.data, truth, w, h)),
+                relative_error: Figure(relative_error(&img.data, truth)),
+                psnr_fitted_db: Figure(psnr(&fitted, truth)),
+                ssim_fitted: Figure(ssim(&fitted, truth, w, h)),
+                fit: AffineFit {
+                    scale: a,
+                    offset: b,
+                },
+            }
+        })
+        .collect()
+}
+
+/// A transport matrix against the simulator's (`m x k`, row-major).
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+#[serde(untagged)]
+pub enum TransportQuality {
+    Scored {
+        /// Relative Frobenius error of T.
+        transport_relative_error: Figure,
+        /// The worst camera pixel's (row's) relative error.
+        worst_row_relative_error: Figure,
+        /// The dual image under the whole camera (`T^T 1`) against the truth's column sums.
+        camera_dual_psnr_db: Figure,
+        camera_dual_ssim: Figure,
+    },
+    Unavailable {
+        unavailable: &'static str,
+    },
+}
+
+/// `t` against `truth` (`w x h` projector pixels, `truth.len() / (w h)` camera pixels);
+/// `summed` is `T^T 1`.
+pub fn transport_quality(
+    t: &super::transport::TransportMatrix,
+    summed: &[f32],
+    w: u32,
+    h: u32,
+    truth: &[f32],
+) -> TransportQuality {
+    let k = w as usize * h as usize;
+    let m = truth.len() / k.max(1);
+    if k == 0 || truth.len() != m * k || t.camera().0 as usize * t.camera().1 as usize != m {
+        return TransportQuality::Unavailable {
+            unavailable: "the ground truth does not match the camera and pattern sizes",
+        };
+    }
+    let (mut err2, mut norm2, mut worst) = (0.0f64, 0.0f64, 0.0f64);
+    let mut column_sums = vec![0f32; k];
+    for j in 0..m {
+        let row = t.row(j);
+        let want = &truth[j * k..(j + 1) * k];
+        let (mut e, mut n) = (0.0f64, 0.0f64);
+        for ((a, b), s) in row.iter().zip(want).zip(column_sums.iter_mut()) {
+            e += (*a as f64 - *b as f64).powi(2);
+            n += (*b as f64).powi(2);
+            *s += b;
+        }
+        err2 += e;
+        norm2 += n;
+        if n > 0.0 {
+            worst = worst.max((e / n).sqrt());
+        }
+    }
+    TransportQuality::Scored {
+        transport_relative_error: Figure((err2 / norm2).sqrt()),
+        worst_row_relative_error: Figure(worst),
+        camera_dual_psnr_db: Figure(psnr(summed, &column_sums)),
+        camera_dual_ssim: Figure(ssim(summed, &column_sums, w as usize, h as usize)),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -303,5 +445,29 @@ mod tests {
         assert!((pearson(&e, &t) - 1.0).abs() < 1e-12);
         let neg: Vec<f32> = t.iter().map(|v| -v).collect();
         assert!((pearson(&neg, &t) + 1.0).abs() < 1e-12);
+    }
+
+    #[test]
+    fn figures_serialise_as_reports_show_them() {
+        let v = serde_json::to_value([Figure(1.5), Figure(f64::INFINITY), Figure(f64::NAN)]);
+        assert_eq!(v.unwrap(), serde_json::json!([1.5, "inf", null]));
+    }
+
+    #[test]
+    fn dual_quality_scores_each_channel_against_its_own_truth() {
+        let truth = [0.0f32, 1.0, 2.0, 3.0, 10.0, 20.0, 30.0, 40.0];
+        let image = |data: &[f32]| crate::DualImage {
+            width: 2,
+            height: 2,
+            data: data.to_vec(),
+        };
+        // Channel a is exact; channel b is its truth at half scale plus 1.
+        let images = [image(&truth[..4]), image(&[6.0, 11.0, 16.0, 21.0])];
+        let names = ["a".to_string(), "b".to_string()];
+        let q = dual_quality(&images, &names, 2, 2, &truth);
+        assert_eq!(q[0].psnr_db, Figure(f64::INFINITY));
+        assert!(q[1].relative_error.0 > 0.1);
+        assert!((q[1].fit.scale - 2.0).abs() < 1e-9 && (q[1].fit.offset + 2.0).abs() < 1e-9);
+        assert_eq!(q[1].psnr_fitted_db, Figure(f64::INFINITY));
     }
 }

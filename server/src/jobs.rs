@@ -337,19 +337,41 @@ impl Worker {
         })
     }
 
+    /// Decodes the stored request (validated when it was queued) and dispatches it once.
     fn compute(&self, job: &ClaimedJob, control: &Control) -> Result<Computed, JobError> {
         let r = &job.reconstruction;
+        let params: Value =
+            serde_json::from_str(&r.params_json).map_err(|e| JobError::Internal(e.to_string()))?;
+        let request = recon::Request::parse(&r.method, &params)
+            .map_err(|e| JobError::Internal(format!("stored request: {e}")))?;
         let session = self
             .runtime
             .block_on(self.store.session(&r.session_id))
             .map_err(|e| JobError::Source(SourceError(e.to_string())))?;
-        if let Some(camera) = session.camera {
-            return self.compute_transport(job, &session, camera, control);
+        match (request, session.camera) {
+            (recon::Request::Bucket(config), None) => {
+                self.compute_buckets(job, &session, &config, control)
+            }
+            (recon::Request::Transport(config), Some(camera)) => {
+                self.compute_transport(job, &session, camera, config, control)
+            }
+            (request, _) => Err(JobError::Internal(format!(
+                "method {} does not fit session {:?}",
+                request.name(),
+                session.id
+            ))),
         }
-        let params: Value =
-            serde_json::from_str(&r.params_json).map_err(|e| JobError::Internal(e.to_string()))?;
-        let config = MethodConfig::parse(&r.method, &params)
-            .map_err(|e| JobError::Internal(e.to_string()))?;
+    }
+
+    /// A bucket session: one dual image per channel.
+    fn compute_buckets(
+        &self,
+        job: &ClaimedJob,
+        session: &SessionRow,
+        config: &MethodConfig,
+        control: &Control,
+    ) -> Result<Computed, JobError> {
+        let r = &job.reconstruction;
         let problem = Problem {
             spec: &session.spec,
             channels: session.channels.len(),
@@ -365,7 +387,7 @@ impl Worker {
             pending: Vec::new(),
         };
         let result =
-            recon::reconstruct(&problem, &config, &mut source, control).map_err(JobError::Recon)?;
+            recon::reconstruct(&problem, config, &mut source, control).map_err(JobError::Recon)?;
         let mut report =
             serde_json::to_value(&result.report).map_err(|e| JobError::Internal(e.to_string()))?;
         if session.has_ground_truth {
@@ -374,7 +396,13 @@ impl Worker {
                 .block_on(self.store.ground_truth(&r.session_id))
                 .map_err(|e| JobError::Source(SourceError(e.to_string())))?;
             if let Some((w, h, truth)) = truth {
-                report["quality"] = quality(&result.images, &session.channels, w, h, &truth);
+                report["quality"] = json!(recon::metrics::dual_quality(
+                    &result.images,
+                    &session.channels,
+                    w,
+                    h,
+                    &truth,
+                ));
             }
         }
         let images = result
@@ -406,15 +434,12 @@ impl Worker {
         job: &ClaimedJob,
         session: &SessionRow,
         camera: CameraLayout,
+        config: TransportConfig,
         control: &Control,
     ) -> Result<Computed, JobError> {
         let r = &job.reconstruction;
         let heap_base = crate::alloc::live_bytes();
-        let params: Value =
-            serde_json::from_str(&r.params_json).map_err(|e| JobError::Internal(e.to_string()))?;
-        let config = TransportConfig::parse(&params)
-            .map_err(|e| JobError::Internal(e.to_string()))?
-            .with_memory_budget(self.config.memory_budget);
+        let config = config.with_memory_budget(self.config.memory_budget);
         let grid = CameraGrid {
             width: camera.width,
             height: camera.height,
@@ -457,7 +482,8 @@ impl Worker {
                 .block_on(self.store.ground_truth(&r.session_id))
                 .map_err(|e| JobError::Source(SourceError(e.to_string())))?;
             if let Some((w, h, truth)) = truth {
-                report["quality"] = transport_quality(&t, &summed, w, h, &truth);
+                report["quality"] =
+                    json!(recon::metrics::transport_quality(&t, &summed, w, h, &truth));
             }
         }
         let (pw, ph) = t.projector();
@@ -491,45 +517,6 @@ struct Computed {
     /// A camera session's encoded T.
     transport: Option<Vec<u8>>,
     report: Value,
-}
-
-/// T against the simulator's (m x k): relative Frobenius error, the worst row's relative error,
-/// and the dual image under the full camera (`T^T 1`) against the truth's column sums.
-fn transport_quality(
-    t: &transport::TransportMatrix,
-    summed: &[f32],
-    w: u32,
-    h: u32,
-    truth: &[f32],
-) -> Value {
-    let k = w as usize * h as usize;
-    let m = truth.len() / k.max(1);
-    if k == 0 || truth.len() != m * k || t.camera().0 as usize * t.camera().1 as usize != m {
-        return json!({"unavailable": "the ground truth does not match the camera and pattern sizes"});
-    }
-    let (mut err2, mut norm2, mut worst) = (0.0f64, 0.0f64, 0.0f64);
-    let mut column_sums = vec![0f32; k];
-    for j in 0..m {
-        let row = t.row(j);
-        let want = &truth[j * k..(j + 1) * k];
-        let (mut e, mut n) = (0.0f64, 0.0f64);
-        for ((a, b), s) in row.iter().zip(want).zip(column_sums.iter_mut()) {
-            e += (*a as f64 - *b as f64).powi(2);
-            n += (*b as f64).powi(2);
-            *s += b;
-        }
-        err2 += e;
-        norm2 += n;
-        if n > 0.0 {
-            worst = worst.max((e / n).sqrt());
-        }
-    }
-    json!({
-        "transport_relative_error": finite_or_null((err2 / norm2).sqrt()),
-        "worst_row_relative_error": finite_or_null(worst),
-        "camera_dual_psnr_db": finite_or_null(recon::metrics::psnr(summed, &column_sums)),
-        "camera_dual_ssim": finite_or_null(recon::metrics::ssim(summed, &column_sums, w as usize, h as usize)),
-    })
 }
 
 /// A camera session's stored frames, read a block of camera pixels at a time (one pass over
@@ -673,50 +660,6 @@ impl FrameSource for StoreFrames<'_> {
             other => SourceError(other.to_string()),
         })?;
         Ok(out)
-    }
-}
-
-/// Quality against the simulator's ground truth, per channel: raw PSNR/SSIM, and PSNR after the
-/// least-squares affine fit (correlation methods estimate t only up to scale and offset).
-/// `truth` holds one image shared by every channel, or one per channel.
-fn quality(
-    images: &[recon::DualImage],
-    channels: &[String],
-    w: u32,
-    h: u32,
-    truth: &[f32],
-) -> Value {
-    let k = w as usize * h as usize;
-    let per_channel: Vec<Value> = images
-        .iter()
-        .zip(channels)
-        .enumerate()
-        .filter(|(_, (img, _))| img.width == w && img.height == h)
-        .map(|(c, (img, name))| {
-            let truth = if truth.len() >= (c + 1) * k && truth.len() > k { &truth[c * k..(c + 1) * k] } else { &truth[..k] };
-            let (a, b) = recon::metrics::fit_affine(&img.data, truth);
-            let fitted: Vec<f32> = img.data.iter().map(|&v| (a * v as f64 + b) as f32).collect();
-            json!({
-                "channel": name,
-                "psnr_db": finite_or_null(recon::metrics::psnr(&img.data, truth)),
-                "ssim": finite_or_null(recon::metrics::ssim(&img.data, truth, w as usize, h as usize)),
-                "relative_error": finite_or_null(recon::metrics::relative_error(&img.data, truth)),
-                "psnr_fitted_db": finite_or_null(recon::metrics::psnr(&fitted, truth)),
-                "ssim_fitted": finite_or_null(recon::metrics::ssim(&fitted, truth, w as usize, h as usize)),
-                "fit": {"scale": a, "offset": b},
-            })
-        })
-        .collect();
-    Value::Array(per_channel)
-}
-
-fn finite_or_null(v: f64) -> Value {
-    if v.is_finite() {
-        json!(v)
-    } else if v == f64::INFINITY {
-        json!("inf")
-    } else {
-        Value::Null
     }
 }
 

@@ -399,9 +399,11 @@ impl Acquisition for AcquisitionService {
             serde_json::from_str(&req.params_json)
                 .map_err(|e| ApiError::invalid("params_json", format!("not JSON: {e}")))?
         };
+        let request = crate::recon::Request::parse(&req.method, &params)
+            .map_err(|e| ApiError::invalid(e.field, e.message))?;
         let row = self
             .state
-            .request_reconstruction(&caller, &req.session_id, &req.method, &params)
+            .request_reconstruction(&caller, &req.session_id, &request)
             .await?;
         Ok(Response::new(reconstruction_message(&row)))
     }

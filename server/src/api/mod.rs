@@ -10,15 +10,13 @@ pub mod validate;
 
 use std::sync::Arc;
 
-use serde_json::Value;
 
 pub use error::ApiError;
 
 use crate::auth::{self, CredentialError, Principal, Role};
 use crate::jobs::JobNotifier;
 use crate::limits::{Limits, RateLimiter};
-use crate::recon::transport::TransportConfig;
-use crate::recon::{MethodConfig, Problem};
+use crate::recon::{self, Problem};
 use crate::store::{ReconstructionRow, SessionRow, Store, StoreError, WriterLease};
 
 /// Shared by every handler.
@@ -233,52 +231,47 @@ impl AppState {
         })
     }
 
-    /// Validates and queues a reconstruction of the session's rows committed so far.
+    /// Queues a reconstruction of the session's rows committed so far. `request` was parsed once
+    /// at the edge ([`recon::Request::parse`]); here it is checked against the session (camera
+    /// or buckets, rows, memory) and stored by name and canonical parameters.
     pub async fn request_reconstruction(
         &self,
         caller: &Principal,
         session_id: &str,
-        method: &str,
-        params: &Value,
+        request: &recon::Request,
     ) -> Result<ReconstructionRow, ApiError> {
-        let (name, params_json, memory) = if method == "transport" {
-            let config = TransportConfig::parse(params)
-                .map_err(|e| ApiError::invalid(e.field.clone(), e.message.clone()))?;
-            let session = self.own_session(caller, session_id).await?;
-            if session.camera.is_none() {
-                return Err(ApiError::FailedPrecondition(format!(
-                    "session {session_id:?} has bucket detectors, not a camera; transport reconstructs camera sessions (use gi, dgi, ngi, direct, zero_filled, levels, lsq, cs, tv or auto)"
-                )));
+        let session = self.own_session(caller, session_id).await?;
+        let memory = match request {
+            recon::Request::Transport(_) => {
+                if session.camera.is_none() {
+                    return Err(ApiError::FailedPrecondition(format!(
+                        "session {session_id:?} has bucket detectors, not a camera; transport reconstructs camera sessions (use gi, dgi, ngi, direct, zero_filled, levels, lsq, cs, tv or auto)"
+                    )));
+                }
+                if session.committed_rows == 0 {
+                    return Err(ApiError::FailedPrecondition(format!(
+                        "session {session_id:?} has no frames yet"
+                    )));
+                }
+                // The solver sizes its blocks of camera pixels to stay within this.
+                self.transport_memory
             }
-            if session.committed_rows == 0 {
-                return Err(ApiError::FailedPrecondition(format!(
-                    "session {session_id:?} has no frames yet"
-                )));
+            recon::Request::Bucket(config) => {
+                if session.camera.is_some() {
+                    return Err(ApiError::FailedPrecondition(format!(
+                        "session {session_id:?} is a camera session: reconstruct its transport matrix with method \"transport\""
+                    )));
+                }
+                let problem = Problem {
+                    spec: &session.spec,
+                    channels: session.channels.len(),
+                    rows: session.committed_rows,
+                };
+                config
+                    .check(&problem)
+                    .map_err(|e| ApiError::FailedPrecondition(e.to_string()))?;
+                config.memory_estimate(&problem)
             }
-            // The solver sizes its blocks of camera pixels to stay within this.
-            ("transport", config.params_json(), self.transport_memory)
-        } else {
-            let config = MethodConfig::parse(method, params)
-                .map_err(|e| ApiError::invalid(e.field.clone(), e.message.clone()))?;
-            let session = self.own_session(caller, session_id).await?;
-            if session.camera.is_some() {
-                return Err(ApiError::FailedPrecondition(format!(
-                    "session {session_id:?} is a camera session: reconstruct its transport matrix with method \"transport\""
-                )));
-            }
-            let problem = Problem {
-                spec: &session.spec,
-                channels: session.channels.len(),
-                rows: session.committed_rows,
-            };
-            config
-                .check(&problem)
-                .map_err(|e| ApiError::FailedPrecondition(e.to_string()))?;
-            (
-                config.name(),
-                config.params_json(),
-                config.memory_estimate(&problem),
-            )
         };
         if memory > self.limits.memory_budget {
             return Err(ApiError::MemoryBudget {
@@ -286,14 +279,13 @@ impl AppState {
                 budget: self.limits.memory_budget,
             });
         }
-        let session = self.own_session(caller, session_id).await?;
         let row = self
             .store
             .enqueue_reconstruction_capped(
                 &caller.lab,
                 session_id,
-                name,
-                &params_json.to_string(),
+                request.name(),
+                &request.params_json().to_string(),
                 session.committed_rows,
                 3,
                 self.limits.max_pending_jobs_per_lab,

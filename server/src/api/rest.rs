@@ -308,9 +308,9 @@ async fn post_reconstruction(
         None => return Err(ApiError::invalid("method", "is required")),
     };
     let params = body.get("params").cloned().unwrap_or(Value::Null);
-    let row = state
-        .request_reconstruction(&caller, &id, &method, &params)
-        .await?;
+    let request = crate::recon::Request::parse(&method, &params)
+        .map_err(|e| ApiError::invalid(e.field, e.message))?;
+    let row = state.request_reconstruction(&caller, &id, &request).await?;
     let location = format!("/v1/reconstructions/{}", row.id);
     let mut response =
         (StatusCode::ACCEPTED, axum::Json(reconstruction_json(&row))).into_response();
