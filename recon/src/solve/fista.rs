@@ -38,7 +38,7 @@ use std::time::Instant;
 use rayon::prelude::*;
 
 use super::condition::Prepared;
-use super::tv::{Grid, check_grid, gradient, lambda_max_tv, pair_norm};
+use super::grid::{Grid, check_grid, gradient, lambda_max_tv, pair_norm};
 use super::{
     History, Lambda, Solution, SolveOptions, SolveReport, StopReason, Ticker, check_orthonormal,
     check_problem, count_nonzeros, half_wsq, is_zero_data, lambda_without_solve, lipschitz_of,

@@ -1,7 +1,7 @@
 //! Solver tests on small problems built here (Gaussian / 0-1 matrices, a test-only Haar).
 
 use super::testkit::*;
-use super::tv::Grid;
+use super::grid::Grid;
 use super::*;
 use crate::linop::{DenseOperator, LinearOperator, adjoint_mismatch};
 use crate::testutil::Rng;
