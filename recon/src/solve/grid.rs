@@ -8,8 +8,8 @@
 
 use serde::Serialize;
 
-use crate::linop::{LinearOperator, norm};
 use crate::ReconError;
+use crate::linop::{LinearOperator, norm};
 
 /// A `width x height` pixel grid; images are row-major (`index = y * width + x`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
