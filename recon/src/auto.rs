@@ -40,7 +40,7 @@ use std::time::Instant;
 use serde::Serialize;
 use serde_json::{Value, json};
 
-use super::compressive::{Offset, Scorer, fit_model, fitting};
+use super::fit::{Offset, Scorer, fit_model, fitting, model_options};
 use super::holdout;
 use super::linop::LinearOperator;
 use super::method::{Fit, Model, Noise};
@@ -201,7 +201,7 @@ impl<'a> Running<'a> {
                 grid: Grid::new(grid.0, grid.1),
             },
         };
-        let opts = super::compressive::model_options(model, opts);
+        let opts = model_options(model, opts);
         let runner = PathRunner::new(op_train, penalty, b_train, &opts)?;
         Ok(Running {
             model,

@@ -19,6 +19,7 @@ pub mod colour;
 pub mod compressive;
 pub mod correlate;
 pub mod direct;
+mod fit;
 pub mod fwht;
 #[cfg(test)]
 mod hard_cases;

@@ -41,6 +41,18 @@
 //! Without the mean row (`CentredOperator::new`) the solver sees only `A_c`, whose null space
 //! contains (nearly) the constant image: recover the DC term afterwards with `fix_dc`.
 //! Held-out residuals should be computed on the original `P` and `c` ([`CentredOperator::inner`]).
+//!
+//! The solvers' automatic mean deflation ([`crate::solve::condition`]) is this operator too:
+//! `[A_c; alpha m^T]` of the row-weighted operator `W^1/2 P`, with the weight `alpha` it measures.
+//!
+//! # Arithmetic
+//!
+//! Products centre the outputs of `P` (`A_c t = P t - mean(P t) 1`, and `A_c^T y = P^T (y -
+//! mean(y) 1)`, the mean row folded into the same shift), which needs no mean pattern: `m` is
+//! computed on first use (one adjoint) by the methods that need it ([`CentredOperator::fix_dc`],
+//! the balanced weight, ...).
+
+use std::sync::OnceLock;
 
 use super::scratch::Pool;
 use crate::linop::{LinearOperator, dot, norm, spectral_norm};
@@ -48,8 +60,8 @@ use crate::linop::{LinearOperator, dot, norm, spectral_norm};
 /// `A_c = P - 1 m^T`, optionally with the weighted mean row `w m^T` appended (module docs).
 pub struct CentredOperator<A: LinearOperator + ?Sized = dyn LinearOperator> {
     inner: Box<A>,
-    mean: Vec<f64>,
-    mean_norm: f64,
+    /// `m = P^T 1 / n` and `||m||`, computed on first use.
+    mean: OnceLock<(Vec<f64>, f64)>,
     dc_weight: Option<f64>,
     pool: Pool,
 }
@@ -65,22 +77,28 @@ impl<A: LinearOperator + ?Sized> std::fmt::Debug for CentredOperator<A> {
 }
 
 impl<A: LinearOperator + ?Sized> CentredOperator<A> {
-    /// `A_c` alone (n rows). Computes the mean pattern with one adjoint.
+    /// `A_c` alone (n rows). The mean pattern is computed (one adjoint) when first needed.
     pub fn new(inner: Box<A>) -> Self {
-        let (n, k) = (inner.rows(), inner.cols());
-        let mut mean = vec![0.0; k];
-        if n > 0 {
-            inner.adjoint(&vec![1.0; n], &mut mean);
-            mean.iter_mut().for_each(|v| *v /= n as f64);
-        }
-        let mean_norm = norm(&mean);
         CentredOperator {
             inner,
-            mean,
-            mean_norm,
+            mean: OnceLock::new(),
             dc_weight: None,
             pool: Pool::new(),
         }
+    }
+
+    /// `(m, ||m||)`.
+    fn mean(&self) -> &(Vec<f64>, f64) {
+        self.mean.get_or_init(|| {
+            let (n, k) = (self.inner.rows(), self.inner.cols());
+            let mut mean = vec![0.0; k];
+            if n > 0 {
+                self.inner.adjoint(&vec![1.0; n], &mut mean);
+                mean.iter_mut().for_each(|v| *v /= n as f64);
+            }
+            let mean_norm = norm(&mean);
+            (mean, mean_norm)
+        })
     }
 
     /// `[A_c; w m^T]` with the balanced weight `w = ||A_c|| / ||m||`, `||A_c||` estimated by
@@ -96,8 +114,9 @@ impl<A: LinearOperator + ?Sized> CentredOperator<A> {
     /// `centred_norm / ||m||` (1 if `m = 0`): the mean row as strong as the strongest centred
     /// direction.
     pub fn balanced_dc_weight(&self, centred_norm: f64) -> f64 {
-        if self.mean_norm > 0.0 && centred_norm > 0.0 {
-            centred_norm / self.mean_norm
+        let mean_norm = self.mean().1;
+        if mean_norm > 0.0 && centred_norm > 0.0 {
+            centred_norm / mean_norm
         } else {
             1.0
         }
@@ -140,7 +159,7 @@ impl<A: LinearOperator + ?Sized> CentredOperator<A> {
 
     /// `m = P^T 1 / n`.
     pub fn mean_pattern(&self) -> &[f64] {
-        &self.mean
+        &self.mean().0
     }
 
     /// Mean of the data, `cbar`.
@@ -166,18 +185,19 @@ impl<A: LinearOperator + ?Sized> CentredOperator<A> {
     /// Shifts `t` by a constant so that the mean equation `m . t = cbar` holds exactly (the DC
     /// term; `cbar` from [`CentredOperator::data_mean`] of the raw buckets). Returns the shift.
     pub fn fix_dc(&self, t: &mut [f64], cbar: f64) -> f64 {
-        let total: f64 = self.mean.iter().sum();
+        let mean = self.mean_pattern();
+        let total: f64 = mean.iter().sum();
         if total == 0.0 {
             return 0.0;
         }
-        let shift = (cbar - dot(&self.mean, t)) / total;
+        let shift = (cbar - dot(mean, t)) / total;
         t.iter_mut().for_each(|v| *v += shift);
         shift
     }
 
     /// Residual of the mean equation, `m . t - cbar`.
     pub fn dc_residual(&self, t: &[f64], cbar: f64) -> f64 {
-        dot(&self.mean, t) - cbar
+        dot(self.mean_pattern(), t) - cbar
     }
 }
 
@@ -207,11 +227,12 @@ impl<A: LinearOperator + ?Sized> LinearOperator for CentredOperator<A> {
                 ys.copy_within(b * n..(b + 1) * n, b * rows);
             }
         }
-        for (x, y) in xs.chunks_exact(k).zip(ys.chunks_exact_mut(rows)) {
-            let mx = dot(&self.mean, x);
-            y[..n].iter_mut().for_each(|v| *v -= mx);
+        for y in ys.chunks_exact_mut(rows.max(1)).take(batch) {
+            // mean(P x) = m . x.
+            let m = mean_of(&y[..n]);
+            y[..n].iter_mut().for_each(|v| *v -= m);
             if let Some(w) = self.dc_weight {
-                y[n] = w * mx;
+                y[n] = w * m;
             }
         }
     }
@@ -219,31 +240,35 @@ impl<A: LinearOperator + ?Sized> LinearOperator for CentredOperator<A> {
         let (n, k, rows) = (self.inner.rows(), self.inner.cols(), self.rows());
         assert_eq!(ys.len(), rows * batch);
         assert_eq!(xs.len(), k * batch);
-        if self.dc_weight.is_none() {
-            self.inner.adjoint_batch(ys, xs, batch);
-        } else if batch == 1 {
-            self.inner.adjoint(&ys[..n], xs);
-        } else {
-            let mut compact = self.pool.take(n * batch);
-            for (c, y) in compact
-                .chunks_exact_mut(n.max(1))
-                .zip(ys.chunks_exact(rows))
-            {
-                c.copy_from_slice(&y[..n]);
-            }
-            self.inner.adjoint_batch(&compact, xs, batch);
+        // A_c^T y + w y_n m = P^T (y - mean(y) 1 + w y_n 1 / n).
+        let mut z = self.pool.take(n * batch);
+        for (zb, y) in z
+            .chunks_exact_mut(n.max(1))
+            .zip(ys.chunks_exact(rows.max(1)))
+        {
+            let m = mean_of(&y[..n]);
+            let shift = match self.dc_weight {
+                Some(w) => w * y[n] / n as f64 - m,
+                None => -m,
+            };
+            zb.iter_mut().zip(&y[..n]).for_each(|(z, v)| *z = v + shift);
         }
-        for (y, x) in ys.chunks_exact(rows).zip(xs.chunks_exact_mut(k)) {
-            let mut coef = -y[..n].iter().sum::<f64>();
-            if let Some(w) = self.dc_weight {
-                coef += w * y[n];
-            }
-            for (xj, &mj) in x.iter_mut().zip(&self.mean) {
-                *xj += coef * mj;
-            }
+        if batch == 1 {
+            self.inner.adjoint(&z, xs);
+        } else {
+            self.inner.adjoint_batch(&z, xs, batch);
         }
     }
     fn batching_pays(&self) -> bool {
         self.inner.batching_pays()
+    }
+}
+
+/// `mean(v)`, 0 for no values.
+fn mean_of(v: &[f64]) -> f64 {
+    if v.is_empty() {
+        0.0
+    } else {
+        v.iter().sum::<f64>() / v.len() as f64
     }
 }

@@ -11,7 +11,7 @@
 //! and the `n >= k` method, not the non-negative one. `opts.lambda` and `opts.nonnegative` are
 //! ignored. Stops when `||s|| <= tol * ref` (relative normal-equation residual), `ref` =
 //! `||A^T W b||`, or, for 0/1 patterns whose common mode dominates (`opts.deflate_mean` and
-//! [`MeanDeflated::detect`]), the smaller `||A'^T b'||` of the mean-deflated problem. The
+//! [`Deflation::detect`]), the smaller `||A'^T b'||` of the mean-deflated problem. The
 //! iterations always run on the exact problem; only the yardstick changes. Why: `||A^T W b||` is
 //! then carried by that one direction (`sigma_max^2 ~ n k q^2`, ~1e4 times the bulk's
 //! `sigma^2`), so the plain rule declared convergence with the bulk of the image unresolved
@@ -21,7 +21,7 @@
 
 use std::time::Instant;
 
-use super::condition::MeanDeflated;
+use super::condition::{Deflation, deflated_rhs};
 use super::{
     History, Solution, SolveOptions, SolveReport, StopReason, Ticker, check_problem,
     count_nonzeros, is_zero_data, non_finite, ratio_or_abs, zero_solution,
@@ -182,11 +182,11 @@ pub fn cgls(
 }
 
 /// `||A'^T b'||` of the mean-deflated problem (weights folded in) when the common mode of the
-/// rows dominates ([`MeanDeflated::detect`]); `None` otherwise or if it is not a positive number.
+/// rows dominates ([`Deflation::detect`]); `None` otherwise or if it is not a positive number.
 fn deflated_reference(a: &dyn LinearOperator, b: &[f64], w: Option<&[f64]>) -> Option<f64> {
-    let d = MeanDeflated::detect(a, w)?;
+    let d = Deflation::detect(a, w).operator(a, w)?;
     let mut g = vec![0.0; a.cols()];
-    d.adjoint(&d.rhs(b), &mut g);
+    d.adjoint(&deflated_rhs(&d, b), &mut g);
     let r = norm(&g);
     (r.is_finite() && r > 0.0).then_some(r)
 }

@@ -9,7 +9,9 @@
 //!
 //! [`MeanDeflated`] keeps both parts but gives the mean row the weight `alpha^2` instead of `n`,
 //! with `alpha ||mu||` equal to the RMS norm of the centred rows: the operator
-//! `[P A; alpha mu^T]` (`n + 1` rows) then has no outlying singular value. Noise-free data give
+//! `[P A; alpha mu^T]` (`n + 1` rows) then has no outlying singular value. It is the centred
+//! operator of the measurement operators ([`CentredOperator`] with the mean row of weight
+//! `alpha`) over the row-weighted [`RowWeighted`] `W^1/2 A`. Noise-free data give
 //! the same solution (both forms vanish at `A t = b`); with noise only the weight of the one
 //! mean measurement changes (it is the best-determined one by far). Weights are folded in first
 //! (`A <- W^1/2 A`, `b <- W^1/2 b`), so the deflated problem is unweighted.
@@ -19,26 +21,81 @@
 //! row norm; centred operators (Gaussian, Hadamard differences) are left alone.
 
 use crate::linop::{LinearOperator, norm, test_vector};
+use crate::ops::CentredOperator;
 
 /// Deflate when `sqrt(n) ||mu||` exceeds this multiple of the RMS centred row norm.
 const DOMINANCE: f64 = 3.0;
 const PROBES: usize = 4;
 
-/// `[P W^1/2 A; alpha mu^T]` as an operator (`n + 1` rows), matrix-free over `A`.
-pub struct MeanDeflated<'a> {
+/// `W^1/2 A`, matrix-free over `A` (`A` itself without weights).
+pub struct RowWeighted<'a> {
     a: &'a dyn LinearOperator,
     sqrt_w: Option<Vec<f64>>,
-    alpha: f64,
-    mu_norm: f64,
-    dominance: f64,
 }
 
-impl<'a> MeanDeflated<'a> {
-    /// Measures the mean component of `W^1/2 A`; `Some` if it dominates (see module docs).
-    pub fn detect(a: &'a dyn LinearOperator, weights: Option<&[f64]>) -> Option<Self> {
+impl<'a> RowWeighted<'a> {
+    pub fn new(a: &'a dyn LinearOperator, weights: Option<&[f64]>) -> Self {
+        RowWeighted {
+            a,
+            sqrt_w: weights.map(|w| w.iter().map(|v| v.sqrt()).collect()),
+        }
+    }
+
+    /// `W^1/2 b`.
+    pub fn weigh(&self, b: &[f64]) -> Vec<f64> {
+        match &self.sqrt_w {
+            None => b.to_vec(),
+            Some(s) => b.iter().zip(s).map(|(b, s)| b * s).collect(),
+        }
+    }
+}
+
+impl LinearOperator for RowWeighted<'_> {
+    fn rows(&self) -> usize {
+        self.a.rows()
+    }
+    fn cols(&self) -> usize {
+        self.a.cols()
+    }
+    fn apply(&self, x: &[f64], y: &mut [f64]) {
+        self.a.apply(x, y);
+        if let Some(s) = &self.sqrt_w {
+            y.iter_mut().zip(s).for_each(|(v, s)| *v *= s);
+        }
+    }
+    fn adjoint(&self, y: &[f64], x: &mut [f64]) {
+        match &self.sqrt_w {
+            None => self.a.adjoint(y, x),
+            Some(_) => self.a.adjoint(&self.weigh(y), x),
+        }
+    }
+}
+
+/// `[P W^1/2 A; alpha mu^T]` (`n + 1` rows): the centred operator of `W^1/2 A` with the mean
+/// row of weight `alpha` (module docs). Built by [`Deflation::operator`].
+pub type MeanDeflated<'a> = CentredOperator<RowWeighted<'a>>;
+
+/// What [`Deflation::detect`] decided for an operator and its weights. Detection costs one
+/// adjoint and four products; a path passes the decision to its points (same operator, same
+/// weights) through [`super::SolveOptions::deflation`] instead of measuring it again per point.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Deflation {
+    /// The mean does not dominate (or deflation was not asked for): solve as given.
+    Off,
+    /// Deflate with these measured values.
+    On {
+        alpha: f64,
+        mu_norm: f64,
+        dominance: f64,
+    },
+}
+
+impl Deflation {
+    /// Measures the mean component of `W^1/2 A`; `On` if it dominates (see module docs).
+    pub fn detect(a: &dyn LinearOperator, weights: Option<&[f64]>) -> Self {
         let (n, k) = (a.rows(), a.cols());
         if n < 2 || k == 0 {
-            return None;
+            return Deflation::Off;
         }
         let sqrt_w: Option<Vec<f64>> = weights.map(|w| w.iter().map(|v| v.sqrt()).collect());
         // mu = A_w^T 1 / n.
@@ -50,7 +107,7 @@ impl<'a> MeanDeflated<'a> {
         a.adjoint(&ones, &mut mean_row);
         let mu_norm = norm(&mean_row);
         if !(mu_norm.is_finite() && mu_norm > 0.0) {
-            return None;
+            return Deflation::Off;
         }
         // ||A_w||_F^2 by Hutchinson with uniform [-1, 1) probes (E g g^T = I / 3).
         let mut xs = Vec::with_capacity(PROBES * k);
@@ -71,115 +128,52 @@ impl<'a> MeanDeflated<'a> {
         let rms_row = (centred2 / n as f64).sqrt();
         let dominance = (mean2.sqrt()) / rms_row.max(f64::MIN_POSITIVE);
         if !(dominance.is_finite() && dominance > DOMINANCE) {
-            return None;
+            return Deflation::Off;
         }
-        Some(MeanDeflated {
-            a,
-            sqrt_w,
+        Deflation::On {
             alpha: rms_row / mu_norm,
             mu_norm,
             dominance,
-        })
+        }
     }
 
-    /// The deflated operator with values [`MeanDeflated::detect`] measured before for the same
-    /// operator and weights ([`Deflation::On`]).
-    fn known(
+    /// The deflated operator of `W^1/2 A` (`None` when `Off`); the decision must come from the
+    /// same operator and weights.
+    pub fn operator<'a>(
+        &self,
         a: &'a dyn LinearOperator,
         weights: Option<&[f64]>,
-        alpha: f64,
-        mu_norm: f64,
-        dominance: f64,
-    ) -> Self {
-        MeanDeflated {
-            a,
-            sqrt_w: weights.map(|w| w.iter().map(|v| v.sqrt()).collect()),
-            alpha,
-            mu_norm,
-            dominance,
+    ) -> Option<MeanDeflated<'a>> {
+        match *self {
+            Deflation::Off => None,
+            Deflation::On { alpha, .. } => Some(
+                CentredOperator::new(Box::new(RowWeighted::new(a, weights))).with_dc_weight(alpha),
+            ),
         }
     }
 
-    /// The right-hand side `[P W^1/2 b; alpha mean(W^1/2 b)]`.
-    pub fn rhs(&self, b: &[f64]) -> Vec<f64> {
-        let n = b.len();
-        let mut out: Vec<f64> = match &self.sqrt_w {
-            None => b.to_vec(),
-            Some(s) => b.iter().zip(s).map(|(b, s)| b * s).collect(),
-        };
-        let m = out.iter().sum::<f64>() / n as f64;
-        out.iter_mut().for_each(|v| *v -= m);
-        out.push(self.alpha * m);
-        out
-    }
-
-    /// `sqrt(n) ||mu||` over the RMS centred row norm (how dominant the mean was).
-    pub fn dominance(&self) -> f64 {
-        self.dominance
-    }
-
-    /// Weight of the mean row (`alpha`).
-    pub fn alpha(&self) -> f64 {
-        self.alpha
-    }
-
-    /// An upper bound on `||W^1/2 A||^2` from `||A'||^2` (the deflated operator's):
-    /// `A^T W A = A'^T A' + (n - alpha^2) mu mu^T`.
-    pub fn undeflated_lipschitz(&self, deflated: f64) -> f64 {
-        let n = self.a.rows() as f64;
-        deflated + (n - self.alpha * self.alpha).max(0.0) * self.mu_norm * self.mu_norm
-    }
-}
-
-impl LinearOperator for MeanDeflated<'_> {
-    fn rows(&self) -> usize {
-        self.a.rows() + 1
-    }
-    fn cols(&self) -> usize {
-        self.a.cols()
-    }
-    fn apply(&self, x: &[f64], y: &mut [f64]) {
-        let n = self.a.rows();
-        let (head, tail) = y.split_at_mut(n);
-        self.a.apply(x, head);
-        if let Some(s) = &self.sqrt_w {
-            head.iter_mut().zip(s).for_each(|(v, s)| *v *= s);
+    /// An upper bound on `||W^1/2 A||^2` from `||A'||^2` (the deflated operator's), `n` rows:
+    /// `A^T W A = A'^T A' + (n - alpha^2) mu mu^T`. `deflated` itself when `Off`.
+    pub fn undeflated_lipschitz(&self, n: usize, deflated: f64) -> f64 {
+        match *self {
+            Deflation::Off => deflated,
+            Deflation::On { alpha, mu_norm, .. } => {
+                deflated + (n as f64 - alpha * alpha).max(0.0) * mu_norm * mu_norm
+            }
         }
-        let m = head.iter().sum::<f64>() / n as f64;
-        head.iter_mut().for_each(|v| *v -= m);
-        tail[0] = self.alpha * m;
-    }
-    fn adjoint(&self, y: &[f64], x: &mut [f64]) {
-        let n = self.a.rows();
-        let m = y[..n].iter().sum::<f64>() / n as f64;
-        let shift = self.alpha * y[n] / n as f64 - m;
-        let z: Vec<f64> = match &self.sqrt_w {
-            None => y[..n].iter().map(|v| v + shift).collect(),
-            Some(s) => y[..n].iter().zip(s).map(|(v, s)| (v + shift) * s).collect(),
-        };
-        self.a.adjoint(&z, x);
     }
 }
 
-/// What [`MeanDeflated::detect`] decided for an operator and its weights. Detection costs one
-/// adjoint and four products; a path passes the decision to its points (same operator, same
-/// weights) through [`super::SolveOptions::deflation`] instead of measuring it again per point.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub enum Deflation {
-    /// The mean does not dominate (or deflation was not asked for): solve as given.
-    Off,
-    /// Deflate with these measured values.
-    On {
-        alpha: f64,
-        mu_norm: f64,
-        dominance: f64,
-    },
+/// The right-hand side of the deflated problem: `[P W^1/2 b; alpha mean(W^1/2 b)]`.
+pub fn deflated_rhs(op: &MeanDeflated, b: &[f64]) -> Vec<f64> {
+    op.centre_data(&op.inner().weigh(b))
 }
 
 /// The problem a solver iterates on: the caller's `(A, b, W)`, or its deflated form.
 pub(crate) struct Prepared<'a> {
     a: &'a dyn LinearOperator,
     deflated: Option<MeanDeflated<'a>>,
+    decision: Deflation,
     b: Vec<f64>,
     weights: Option<&'a [f64]>,
 }
@@ -204,28 +198,23 @@ impl<'a> Prepared<'a> {
         deflate: bool,
         known: Option<Deflation>,
     ) -> Self {
-        let deflated = match (deflate, known) {
-            (false, _) | (true, Some(Deflation::Off)) => None,
-            (true, None) => MeanDeflated::detect(a, weights),
-            (
-                true,
-                Some(Deflation::On {
-                    alpha,
-                    mu_norm,
-                    dominance,
-                }),
-            ) => Some(MeanDeflated::known(a, weights, alpha, mu_norm, dominance)),
+        let decision = match (deflate, known) {
+            (false, _) => Deflation::Off,
+            (true, None) => Deflation::detect(a, weights),
+            (true, Some(d)) => d,
         };
-        match deflated {
+        match decision.operator(a, weights) {
             Some(d) => Prepared {
                 a,
-                b: d.rhs(b),
+                b: deflated_rhs(&d, b),
                 deflated: Some(d),
+                decision,
                 weights: None,
             },
             None => Prepared {
                 a,
                 deflated: None,
+                decision,
                 b: b.to_vec(),
                 weights,
             },
@@ -246,19 +235,9 @@ impl<'a> Prepared<'a> {
     pub fn is_deflated(&self) -> bool {
         self.deflated.is_some()
     }
-    pub fn deflation(&self) -> Option<&MeanDeflated<'a>> {
-        self.deflated.as_ref()
-    }
     /// The deflation decision, to pass to later solves on the same operator and weights.
     pub fn decision(&self) -> Deflation {
-        match &self.deflated {
-            None => Deflation::Off,
-            Some(d) => Deflation::On {
-                alpha: d.alpha,
-                mu_norm: d.mu_norm,
-                dominance: d.dominance,
-            },
-        }
+        self.decision
     }
 }
 
@@ -272,14 +251,18 @@ mod tests {
     fn deflation_is_exact_and_conditions_bernoulli() {
         let (n, k) = (60, 200);
         let a = bernoulli(n, k, 0.5, 4);
-        let d = MeanDeflated::detect(&a, None).expect("0/1 patterns have a dominant mean");
+        let decision = Deflation::detect(&a, None);
+        let Deflation::On { dominance, .. } = decision else {
+            panic!("0/1 patterns have a dominant mean")
+        };
+        let d = decision.operator(&a, None).unwrap();
         assert!(adjoint_mismatch(&d, 9) < 1e-13);
-        assert!(d.dominance() > 5.0, "{}", d.dominance());
+        assert!(dominance > 5.0, "{dominance}");
         // Same zero set: A t = b  <=>  A' t = b'.
         let t = test_vector(k, 5);
         let mut b = vec![0.0; n];
         a.apply(&t, &mut b);
-        let bd = d.rhs(&b);
+        let bd = deflated_rhs(&d, &b);
         let mut at = vec![0.0; n + 1];
         d.apply(&t, &mut at);
         let r: f64 = at
@@ -300,18 +283,26 @@ mod tests {
         assert!(s_raw > 3.0 * s_def && s_def < 1.5 * s_c);
         // Weighted: the deflated problem equals deflating W^1/2 A.
         let w: Vec<f64> = (0..n).map(|i| 0.5 + (i % 3) as f64).collect();
-        let dw = MeanDeflated::detect(&a, Some(&w)).unwrap();
+        let decision = Deflation::detect(&a, Some(&w));
+        let Deflation::On { alpha, .. } = decision else {
+            panic!("weighted 0/1 patterns have a dominant mean")
+        };
+        let dw = decision.operator(&a, Some(&w)).unwrap();
+        assert_eq!(dw.dc_weight(), Some(alpha));
         assert!(adjoint_mismatch(&dw, 2) < 1e-13);
         let y = test_vector(n, 8);
-        let bw = dw.rhs(&y);
+        let bw = deflated_rhs(&dw, &y);
         let ys: Vec<f64> = y.iter().zip(&w).map(|(y, w)| y * w.sqrt()).collect();
         let m = ys.iter().sum::<f64>() / n as f64;
-        assert!((bw[n] - dw.alpha() * m).abs() < 1e-12 && (bw[0] - (ys[0] - m)).abs() < 1e-12);
+        assert!((bw[n] - alpha * m).abs() < 1e-12 && (bw[0] - (ys[0] - m)).abs() < 1e-12);
         assert!(dot(&bw[..n], &vec![1.0; n]).abs() < 1e-10);
     }
 
     #[test]
     fn centred_operators_are_left_alone() {
-        assert!(MeanDeflated::detect(&gaussian(50, 120, 3), None).is_none());
+        assert_eq!(
+            Deflation::detect(&gaussian(50, 120, 3), None),
+            Deflation::Off
+        );
     }
 }

@@ -38,7 +38,7 @@ use std::time::Instant;
 use rayon::prelude::*;
 
 use super::condition::Prepared;
-use super::tv::{Grid, check_grid, gradient, lambda_max_tv, pair_norm};
+use super::grid::{Grid, check_grid, gradient, lambda_max_tv, pair_norm};
 use super::{
     History, Lambda, Solution, SolveOptions, SolveReport, StopReason, Ticker, check_orthonormal,
     check_problem, count_nonzeros, half_wsq, is_zero_data, lambda_without_solve, lipschitz_of,
@@ -768,14 +768,17 @@ pub(crate) fn polish_exact(
     solver: &'static str,
     start: Instant,
 ) -> Result<Solution, ReconError> {
-    let Some(d) = prep.deflation() else {
+    if !prep.is_deflated() {
         return Ok(first);
-    };
+    }
     let exact = Prepared::new(a, b, opts.weights.as_deref(), false);
     let mut o = opts.clone();
     o.lambda = Lambda::Absolute(first.report.lambda);
     o.warm_start = Some(first.t.clone());
-    o.lipschitz = Some(d.undeflated_lipschitz(first.report.lipschitz));
+    o.lipschitz = Some(
+        prep.decision()
+            .undeflated_lipschitz(a.rows(), first.report.lipschitz),
+    );
     o.max_iter = (opts.max_iter / 5).max(20).min(opts.max_iter);
     o.progress = (opts.progress.1, opts.progress.1);
     let mut second = fista_core(

@@ -41,6 +41,7 @@ use super::{Control, ReconError};
 mod cgls;
 pub mod condition;
 mod fista;
+mod grid;
 mod path;
 mod poisson;
 mod tv;
@@ -58,7 +59,8 @@ pub use path::{
     solve_path_until,
 };
 pub use poisson::{poisson_irls, poisson_weights};
-pub use tv::{Grid, gradient_magnitudes, lambda_max_tv, tv, tv_value};
+pub use grid::{Grid, gradient_magnitudes, lambda_max_tv, tv_value};
+pub use tv::tv;
 
 /// The regularisation weight.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize)]

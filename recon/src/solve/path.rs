@@ -6,7 +6,7 @@
 use std::time::Instant;
 
 use super::condition::Prepared;
-use super::tv::Grid;
+use super::grid::Grid;
 use super::{
     Lambda, Solution, SolveOptions, SolveReport, check_problem, fista, is_zero_data, lambda_max_l1,
     lambda_max_l1_free, lambda_max_tv, lipschitz_of, tv, tv_fista, zero_solution,

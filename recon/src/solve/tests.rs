@@ -1,7 +1,7 @@
 //! Solver tests on small problems built here (Gaussian / 0-1 matrices, a test-only Haar).
 
 use super::testkit::*;
-use super::tv::Grid;
+use super::grid::Grid;
 use super::*;
 use crate::linop::{DenseOperator, LinearOperator, adjoint_mismatch};
 use crate::testutil::Rng;
@@ -1024,7 +1024,9 @@ fn explore_power_iteration() {
     for (name, side) in [("fast-binary", 128usize), ("fast-binary", 64)] {
         let k = side * side;
         let a = FastBinary::new(k / 10, k, 3);
-        let d = super::condition::MeanDeflated::detect(&a, None).unwrap();
+        let d = super::condition::Deflation::detect(&a, None)
+            .operator(&a, None)
+            .unwrap();
         let exact = spectral_norm(&d, 2000, 1e-12);
         let line: Vec<String> = [5, 10, 15, 20, 30, 40]
             .iter()
@@ -1105,7 +1107,7 @@ fn tv_path_points_reach_their_minimum_after_failed_inexact_steps() {
     }
 }
 
-/// Counts the four-probe batches [`MeanDeflated::detect`] makes (nothing else here applies
+/// Counts the four-probe batches [`Deflation::detect`] makes (nothing else here applies
 /// batches of four) and delegates every product.
 struct CountsDetections<'a> {
     inner: &'a dyn LinearOperator,

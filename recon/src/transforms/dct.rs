@@ -13,16 +13,28 @@
 //!   whole rows, a vector operation however short the span; the left half of the columns are
 //!   the real parts and the right half the imaginary parts of one complex transform per pair.
 //!   The horizontal axis is transformed the same way between two transposes;
-//! - any other length: the cached `N x N` cosine matrix, applied to all rows as one matrix
-//!   product (O(N^2) per row).
+//! - any other length: `rustdct`'s planned DCT-II (forward) and DCT-III (inverse), O(N log N)
+//!   per row, scaled to the orthonormal transform; applied to all rows of the axis (the vertical
+//!   axis between two transposes).
+//!
+//! The cached `N x N` cosine matrix ([`Dct2d::with_matrices`], O(N^2) per row) remains as the
+//! reference. [`Dct2d::with_paths`] picks a path for every axis (benchmarks, tests).
 //!
 //! Measured (`transforms::bench`, best of 5, forward and inverse): 128 x 128 0.066-0.088 ms
 //! against 0.125-0.145 ms with the FFT run one row pair at a time (its early stages, spans of 1
 //! to 4, do not vectorise) and 0.48-0.60 ms for the matrix; 512 x 512 5.8-5.9 ms against
-//! 7.5-7.9 ms (two threads); 158 x 210 (matrix on both axes) 0.9-1.1 ms.
+//! 7.5-7.9 ms (two threads); 158 x 210 (then the matrix on both axes) 0.9-1.1 ms.
 //! Images from 2^15 pixels up split the columns into stripes over threads.
+//!
+//! `transforms::dct_bench` times the three paths against each other (figures there): rustdct
+//! beats the matrix by 1.6x (side 100) to 13x (side 512) from side 64 up, and is level with it
+//! at 48 (0.9-1.3x); the radix-2 path is faster than rustdct on every power of two measured
+//! (64-512: 0.67-0.98 of its time, once 1.10 at 512 in three runs), so it stays there.
+
+use std::sync::Arc;
 
 use rayon::prelude::*;
+use rustdct::{DctPlanner, TransformType2And3};
 
 use super::Transform;
 use super::fft::Fft;
@@ -55,8 +67,26 @@ const LANES_PER_TASK: usize = 32;
 /// Blocks smaller than this (values) run on one thread.
 const PARALLEL_MIN: usize = 1 << 15;
 
-#[derive(Debug)]
+/// How an axis is transformed ([`Dct2d::with_paths`]).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum DctPath {
+    /// The cached `N x N` cosine matrix, O(N^2) per row (the reference).
+    Matrix,
+    /// The hand-written radix-2 FFT path down the columns; powers of two only (others fall
+    /// back to [`DctPath::Planned`]).
+    Radix2,
+    /// `rustdct`'s planned DCT-II / DCT-III of any length, O(N log N) per row.
+    Planned,
+}
+
 enum Axis {
+    Planned {
+        n: usize,
+        dct: Arc<dyn TransformType2And3<f64>>,
+        /// `a_k` of the orthonormal forward transform; the inverse's input scale is
+        /// `a_0 * 2` for `k = 0` and `a_k` otherwise (rustdct's DCT-III halves its first term).
+        a: Vec<f64>,
+    },
     Matrix {
         n: usize,
         /// C (n x n) and C^T.
@@ -76,9 +106,41 @@ enum Axis {
     },
 }
 
+impl std::fmt::Debug for Axis {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let (path, n) = match self {
+            Axis::Planned { n, .. } => ("planned", n),
+            Axis::Matrix { n, .. } => ("matrix", n),
+            Axis::Fast { n, .. } => ("radix-2", n),
+        };
+        f.debug_struct("Axis")
+            .field("path", &path)
+            .field("n", n)
+            .finish()
+    }
+}
+
 impl Axis {
-    fn new(n: usize, allow_fast: bool) -> Axis {
-        if allow_fast && n.is_power_of_two() && n >= 2 {
+    fn new(n: usize, path: DctPath) -> Axis {
+        if path == DctPath::Planned || (path == DctPath::Radix2 && !(n.is_power_of_two() && n >= 2))
+        {
+            let nf = n as f64;
+            let a = (0..n)
+                .map(|k| {
+                    if k == 0 {
+                        (1.0 / nf).sqrt()
+                    } else {
+                        (2.0 / nf).sqrt()
+                    }
+                })
+                .collect();
+            return Axis::Planned {
+                n,
+                dct: DctPlanner::new().plan_dct2(n),
+                a,
+            };
+        }
+        if path == DctPath::Radix2 {
             let nf = n as f64;
             let a = |k: usize| {
                 if k == 0 {
@@ -111,7 +173,7 @@ impl Axis {
 
     fn n(&self) -> usize {
         match self {
-            Axis::Matrix { n, .. } | Axis::Fast { n, .. } => *n,
+            Axis::Planned { n, .. } | Axis::Matrix { n, .. } | Axis::Fast { n, .. } => *n,
         }
     }
 
@@ -121,6 +183,7 @@ impl Axis {
         let parallel = data.len() >= PARALLEL_MIN && rayon::current_num_threads() > 1;
         let task = |chunk: &mut [f64]| {
             let mut scratch = pool.take(match self {
+                Axis::Planned { dct, .. } => dct.get_scratch_len(),
                 Axis::Matrix { .. } => chunk.len(),
                 Axis::Fast { .. } => 3 * n,
             });
@@ -336,6 +399,18 @@ impl Axis {
 
     fn rows_serial(&self, data: &mut [f64], forward: bool, scratch: &mut [f64]) {
         match self {
+            Axis::Planned { n, dct, a } => {
+                for row in data.chunks_exact_mut(*n) {
+                    if forward {
+                        dct.process_dct2_with_scratch(row, scratch);
+                        row.iter_mut().zip(a).for_each(|(v, a)| *v *= a);
+                    } else {
+                        row.iter_mut().zip(a).for_each(|(v, a)| *v *= a);
+                        row[0] *= 2.0;
+                        dct.process_dct3_with_scratch(row, scratch);
+                    }
+                }
+            }
             Axis::Matrix { n, c, ct } => {
                 let out = &mut scratch[..data.len()];
                 // Forward: each row x -> C x = x^T C^T, i.e. out = data C^T; inverse: data C.
@@ -492,23 +567,25 @@ pub struct Dct2d {
 }
 
 impl Dct2d {
-    /// Fast path on power-of-two axes, cached matrices on the others.
+    /// The radix-2 path on power-of-two axes, rustdct's planned transform on the others.
     pub fn new(width: usize, height: usize) -> Self {
-        Self::build(width, height, true)
+        Self::with_paths(width, height, DctPath::Radix2)
     }
 
-    /// Matrix products on every axis (the reference for the fast path; benchmarks).
+    /// Matrix products on every axis (the reference for the fast paths; benchmarks).
     pub fn with_matrices(width: usize, height: usize) -> Self {
-        Self::build(width, height, false)
+        Self::with_paths(width, height, DctPath::Matrix)
     }
 
-    fn build(width: usize, height: usize, fast: bool) -> Self {
+    /// Every axis on `path` ([`DctPath::Radix2`] falls back to the planned transform on axes
+    /// that are not powers of two).
+    pub fn with_paths(width: usize, height: usize, path: DctPath) -> Self {
         assert!(width > 0 && height > 0, "dct needs a non-empty image");
         Dct2d {
             width,
             height,
-            x: Axis::new(width, fast),
-            y: Axis::new(height, fast),
+            x: Axis::new(width, path),
+            y: Axis::new(height, path),
             pool: Pool::new(),
         }
     }

@@ -9,7 +9,7 @@
 //! | identity | [`Identity`] | any | - | O(k) |
 //! | Haar | [`Wavelet2d::haar`] | any (unbalanced Haar on odd lengths) | none needed | O(k) |
 //! | db2 / db4 | [`Wavelet2d::db2`], [`Wavelet2d::db4`] | any (odd length: last sample passes) | periodic | O(k L) |
-//! | DCT-II | [`Dct2d`] | any | the DCT's own (even symmetric) | O(k log k) on power-of-two axes (FFT), else O(k N) cached matrix |
+//! | DCT-II | [`Dct2d`] | any | the DCT's own (even symmetric) | O(k log k): radix-2 FFT on power-of-two axes, rustdct on the others |
 //! | gradient (TV) | [`Gradient`] | any | Neumann | O(k), `\|\|D\|\|^2 <= 8` |
 //!
 //! Wavelets run to full depth (1 x 1 approximation) unless capped with `Wavelet2d::with_levels`;
@@ -23,6 +23,8 @@ pub mod wavelet;
 
 #[cfg(test)]
 mod bench;
+#[cfg(test)]
+mod dct_bench;
 #[cfg(test)]
 mod tests;
 

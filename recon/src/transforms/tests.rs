@@ -263,6 +263,77 @@ fn fast_dct_equals_the_matrix_dct() {
     }
 }
 
+/// `C_N` by its definition, `C[u][x] = a_u cos(pi (2x + 1) u / (2N))`, row-major.
+fn dct_definition(n: usize) -> Vec<f64> {
+    let pi = std::f64::consts::PI;
+    let mut c = vec![0.0; n * n];
+    for u in 0..n {
+        let a = if u == 0 {
+            1.0 / n as f64
+        } else {
+            2.0 / n as f64
+        }
+        .sqrt();
+        for x in 0..n {
+            c[u * n + x] = a * (pi * (2 * x + 1) as f64 * u as f64 / (2 * n) as f64).cos();
+        }
+    }
+    c
+}
+
+/// `Y = C_H X C_W^T` (forward) or `X = C_H^T Y C_W` (inverse) by the O(N^2)-per-axis sums.
+fn dct_by_definition(x: &[f64], w: usize, h: usize, forward: bool) -> Vec<f64> {
+    let (cw, ch) = (dct_definition(w), dct_definition(h));
+    let at = |c: &[f64], n: usize, i: usize, j: usize| {
+        if forward { c[i * n + j] } else { c[j * n + i] }
+    };
+    // Along rows, then along columns.
+    let mut r = vec![0.0; w * h];
+    for y in 0..h {
+        for u in 0..w {
+            r[y * w + u] = (0..w).map(|xx| at(&cw, w, u, xx) * x[y * w + xx]).sum();
+        }
+    }
+    let mut out = vec![0.0; w * h];
+    for v in 0..h {
+        for u in 0..w {
+            out[v * w + u] = (0..h).map(|y| at(&ch, h, v, y) * r[y * w + u]).sum();
+        }
+    }
+    out
+}
+
+#[test]
+fn dct_on_sides_that_are_not_powers_of_two_matches_the_definition() {
+    use super::dct::DctPath;
+    for (w, h, path) in [
+        (48usize, 100usize, DctPath::Radix2),
+        (100, 48, DctPath::Radix2),
+        (97, 97, DctPath::Radix2),
+        (200, 3, DctPath::Radix2),
+        (64, 96, DctPath::Radix2),
+        (1, 97, DctPath::Radix2),
+        // The planned transform forced on powers of two too.
+        (64, 32, DctPath::Planned),
+        (2, 1, DctPath::Planned),
+    ] {
+        let t = Dct2d::with_paths(w, h, path);
+        let x = test_vector(w * h, 11);
+        let mut c = vec![0.0; w * h];
+        t.apply(&x, &mut c);
+        let d = max_diff(&c, &dct_by_definition(&x, w, h, true));
+        assert!(d < 1e-12, "{w}x{h} {path:?} forward: {d:e}");
+        let mut back = vec![0.0; w * h];
+        t.adjoint(&x, &mut back);
+        let d = max_diff(&back, &dct_by_definition(&x, w, h, false));
+        assert!(d < 1e-12, "{w}x{h} {path:?} inverse: {d:e}");
+        // Orthonormal: the inverse undoes the forward transform.
+        t.adjoint(&c, &mut back);
+        let d = max_diff(&back, &x);
+        assert!(d < 1e-12, "{w}x{h} {path:?} round trip: {d:e}");
+    }
+}
+
 #[test]
 fn dct_of_a_constant_has_one_coefficient() {
     for (w, h) in SIZES {
