@@ -467,7 +467,9 @@ impl<R: Read> NpyReader<R> {
         let data = file
             .data::<N>()
             .map_err(|e| NpyError::Dtype(format!("{} ({e})", self.header.dtype)))?;
-        let mut out = Vec::with_capacity(count as usize);
+        // Grown as elements arrive, not sized from the header: a short file with a large shape
+        // ends in an error, not in a huge allocation.
+        let mut out = Vec::with_capacity(count.min(1 << 20) as usize);
         for (i, v) in data.take(count as usize).enumerate() {
             match v {
                 Ok(v) => out.push(v),
