@@ -4,13 +4,16 @@
 //!   detected from the first line). An optional first line of channel names (any field that is
 //!   not a number makes it a header). `#` starts a comment to the end of the line; blank lines are
 //!   skipped. Every value must be a finite number.
-//! - NPY (format 1.0, 2.0, 3.0): dtypes float64, float32, int8/16/32/64, uint8/16/32/64 of either
-//!   byte order, shape `(n,)` (one channel) or `(n, channels)`, C or Fortran order.
+//! - NPY (format 1.0, 2.0, 3.0; read by [`helmholtz_proto::npy`]): dtypes float64, float32,
+//!   int8/16/32/64, uint8/16/32/64 of either byte order, shape `(n,)` (one channel) or
+//!   `(n, channels)`, C or Fortran order. A 3-D array `(n, height, width)` is a camera rig's
+//!   frames ([`npy_frames`]), streamed a batch of rows at a time.
 //!
 //! Errors name the file and, for CSV, the line and column.
 
 use std::path::Path;
 
+use helmholtz_proto::npy;
 use thiserror::Error;
 
 /// Bucket values read from a file.
@@ -197,148 +200,41 @@ pub fn to_csv(names: &[String], values: &[f64]) -> String {
 
 const NPY_MAGIC: &[u8] = b"\x93NUMPY";
 
-#[derive(Clone, Copy, Debug, PartialEq)]
-enum Kind {
-    Float,
-    Int,
-    Uint,
-}
-
 /// Parses NPY bytes (see the module docs); `file` names it in errors.
 pub fn parse_npy(bytes: &[u8], file: &str) -> Result<Measurements, MeasurementsError> {
     let err = |message: String| MeasurementsError::Npy {
         file: file.to_string(),
         message,
     };
-    if !bytes.starts_with(NPY_MAGIC) {
-        return Err(err("missing the \\x93NUMPY magic bytes".into()));
-    }
-    if bytes.len() < 10 {
-        return Err(err("truncated before the header".into()));
-    }
-    let major = bytes[6];
-    let (header_len, start) = match major {
-        1 => (u16::from_le_bytes([bytes[8], bytes[9]]) as usize, 10),
-        2 | 3 => {
-            if bytes.len() < 12 {
-                return Err(err("truncated before the header".into()));
-            }
-            (
-                u32::from_le_bytes(bytes[8..12].try_into().unwrap()) as usize,
-                12,
-            )
-        }
-        v => return Err(err(format!("unsupported format version {v}.{}", bytes[7]))),
-    };
-    let header = bytes.get(start..start + header_len).ok_or_else(|| {
-        err(format!(
-            "header says {header_len} bytes but the file is shorter"
-        ))
-    })?;
-    let header = std::str::from_utf8(header).map_err(|_| err("header is not text".into()))?;
-    let descr = dict_value(header, "descr").ok_or_else(|| err("header has no 'descr'".into()))?;
-    let descr = unquote(descr).ok_or_else(|| {
-        err(format!(
-            "dtype {descr} is a structured/record dtype; save a plain numeric array"
-        ))
-    })?;
-    let fortran = match dict_value(header, "fortran_order") {
-        Some(v) if v.starts_with("True") => true,
-        Some(v) if v.starts_with("False") => false,
-        _ => return Err(err("header has no valid 'fortran_order'".into())),
-    };
-    let shape_src =
-        dict_value(header, "shape").ok_or_else(|| err("header has no 'shape'".into()))?;
-    let shape =
-        parse_shape(shape_src).ok_or_else(|| err(format!("cannot read shape {shape_src}")))?;
-
-    // dtype: byte order, kind, item size.
-    let mut chars = descr.chars();
-    let order = chars.next().unwrap_or('?');
-    let big_endian = match order {
-        '<' | '=' | '|' => false,
-        '>' => true,
-        _ => return Err(err(format!("cannot read dtype {descr:?}"))),
-    };
-    let kind_char = chars.next().unwrap_or('?');
-    if kind_char == 'O' {
-        return Err(err(
-            "object arrays (pickled Python objects) are not supported".into(),
-        ));
-    }
-    let size: usize = chars
-        .as_str()
-        .parse()
-        .map_err(|_| err(format!("cannot read dtype {descr:?}")))?;
-    let kind = match (kind_char, size) {
-        ('f', 4 | 8) => Kind::Float,
-        ('i', 1 | 2 | 4 | 8) => Kind::Int,
-        ('u', 1 | 2 | 4 | 8) => Kind::Uint,
-        _ => {
-            return Err(err(format!(
-                "dtype {descr:?} is not supported: use float64, float32 or an integer type"
-            )));
-        }
-    };
-
-    let (rows, channels) = match shape.as_slice() {
-        [n] => (*n, 1),
-        [n, c] => (*n, *c),
+    let header = npy::read_header(&mut &bytes[..]).map_err(|e| err(e.to_string()))?;
+    let shape = header.shape_text();
+    let (rows, channels) = match header.shape.as_slice() {
+        &[n] => (n, 1),
+        &[n, c] => (n, c),
         [] => return Err(err("a scalar, not an array of bucket values".into())),
         s => {
             return Err(err(format!(
-                "shape {s:?} has {} dimensions; expected (rows,) or (rows, channels)",
+                "shape {shape} has {} dimensions; expected (rows,) or (rows, channels)",
                 s.len()
             )));
         }
     };
     if rows == 0 || channels == 0 {
-        return Err(err(format!("shape {shape:?} holds no values")));
+        return Err(err(format!("shape {shape} holds no values")));
     }
-    let data = &bytes[start + header_len..];
-    let expected = rows
-        .checked_mul(channels)
-        .and_then(|n| n.checked_mul(size))
-        .ok_or_else(|| err("shape overflows".into()))?;
-    if data.len() != expected {
+    let (rows, channels) = (
+        usize::try_from(rows).map_err(|_| err(format!("shape {shape} overflows")))?,
+        usize::try_from(channels).map_err(|_| err(format!("shape {shape} overflows")))?,
+    );
+    // Values in C order (a Fortran-ordered file is transposed): values[row * channels + col].
+    let (_, values) = npy::decode_f64(bytes).map_err(|e| err(e.to_string()))?;
+    if let Some(i) = values.iter().position(|v| !v.is_finite()) {
         return Err(err(format!(
-            "shape {shape:?} of {descr} needs {expected} bytes of data, the file has {}",
-            data.len()
+            "value at row {}, channel {} is not finite ({})",
+            i / channels,
+            i % channels,
+            values[i]
         )));
-    }
-
-    let decode = |raw: &[u8]| -> f64 {
-        let mut buf = [0u8; 8];
-        buf[..size].copy_from_slice(raw);
-        if big_endian {
-            buf[..size].reverse();
-        }
-        match (kind, size) {
-            (Kind::Float, 8) => f64::from_le_bytes(buf),
-            (Kind::Float, 4) => f32::from_le_bytes(buf[..4].try_into().unwrap()) as f64,
-            (Kind::Int, 1) => buf[0] as i8 as f64,
-            (Kind::Int, 2) => i16::from_le_bytes(buf[..2].try_into().unwrap()) as f64,
-            (Kind::Int, 4) => i32::from_le_bytes(buf[..4].try_into().unwrap()) as f64,
-            (Kind::Int, 8) => i64::from_le_bytes(buf) as f64,
-            (Kind::Uint, _) => u64::from_le_bytes(buf) as f64,
-            _ => unreachable!("checked above"),
-        }
-    };
-    let mut values = vec![0.0f64; rows * channels];
-    for (idx, raw) in data.chunks_exact(size).enumerate() {
-        // Fortran order stores column by column.
-        let (row, col) = if fortran {
-            (idx % rows, idx / rows)
-        } else {
-            (idx / channels, idx % channels)
-        };
-        let v = decode(raw);
-        if !v.is_finite() {
-            return Err(err(format!(
-                "value at row {row}, channel {col} is not finite ({v})"
-            )));
-        }
-        values[row * channels + col] = v;
     }
     Ok(Measurements {
         rows,
@@ -348,61 +244,18 @@ pub fn parse_npy(bytes: &[u8], file: &str) -> Result<Measurements, MeasurementsE
     })
 }
 
-/// The text after `'key':` in a Python dict literal, up to the end of the header.
-fn dict_value<'a>(header: &'a str, key: &str) -> Option<&'a str> {
-    let pos = header
-        .find(&format!("'{key}'"))
-        .or_else(|| header.find(&format!("\"{key}\"")))?;
-    let rest = &header[pos + key.len() + 2..];
-    let rest = rest.trim_start().strip_prefix(':')?;
-    Some(rest.trim_start())
-}
-
-/// The first quoted string at the start of `s`.
-fn unquote(s: &str) -> Option<&str> {
-    let q = s.chars().next().filter(|c| *c == '\'' || *c == '"')?;
-    let end = s[1..].find(q)?;
-    Some(&s[1..1 + end])
-}
-
-fn parse_shape(s: &str) -> Option<Vec<usize>> {
-    let inner = s.strip_prefix('(')?;
-    let inner = &inner[..inner.find(')')?];
-    inner
-        .split(',')
-        .map(str::trim)
-        .filter(|p| !p.is_empty())
-        .map(|p| p.trim_end_matches('L').parse().ok())
-        .collect()
-}
-
 /// NPY 1.0 bytes of a little-endian float64 array of shape `(rows,)` (one channel) or
-/// `(rows, channels)`.
+/// `(rows, channels)` ([`helmholtz_proto::npy::write_f64`]).
 pub fn to_npy_f64(rows: usize, channels: usize, values: &[f64]) -> Vec<u8> {
-    assert_eq!(values.len(), rows * channels);
-    let shape = if channels == 1 {
-        format!("({rows},)")
+    if channels == 1 {
+        npy::write_f64(&[rows as u64], values)
     } else {
-        format!("({rows}, {channels})")
-    };
-    let mut header = format!("{{'descr': '<f8', 'fortran_order': False, 'shape': {shape}, }}");
-    // Magic (6) + version (2) + length (2) + header + '\n' is a multiple of 64.
-    let total = 10 + header.len() + 1;
-    header.push_str(&" ".repeat(total.next_multiple_of(64) - total));
-    header.push('\n');
-    let mut out = Vec::with_capacity(10 + header.len() + values.len() * 8);
-    out.extend_from_slice(NPY_MAGIC);
-    out.extend_from_slice(&[1, 0]);
-    out.extend_from_slice(&(header.len() as u16).to_le_bytes());
-    out.extend_from_slice(header.as_bytes());
-    for v in values {
-        out.extend_from_slice(&v.to_le_bytes());
+        npy::write_f64(&[rows as u64, channels as u64], values)
     }
-    out
 }
 
-/// A camera rig's frames in an NPY file of shape (rows, height, width), uint16 or float32
-/// (little-endian, C order), read a batch of rows at a time.
+/// A camera rig's frames in an NPY file of shape (rows, height, width), uint16 or float32 (either
+/// byte order, C order), read a batch of rows at a time ([`helmholtz_proto::npy::NpyReader`]).
 #[derive(Debug, Clone)]
 pub struct NpyFrames {
     pub path: std::path::PathBuf,
@@ -410,49 +263,35 @@ pub struct NpyFrames {
     pub height: u32,
     pub width: u32,
     pub format: crate::upload::SampleFormat,
-    data_offset: u64,
 }
 
 impl NpyFrames {
-    fn row_bytes(&self) -> usize {
-        self.width as usize * self.height as usize * self.format.bytes()
-    }
-
     /// Frames `start..end`.
     pub fn read(&self, start: u64, end: u64) -> anyhow::Result<crate::upload::SampleBuf> {
-        use std::io::{Read, Seek, SeekFrom};
-        let mut file = std::fs::File::open(&self.path)?;
-        file.seek(SeekFrom::Start(
-            self.data_offset + start * self.row_bytes() as u64,
-        ))?;
-        let mut bytes = vec![0u8; (end - start) as usize * self.row_bytes()];
-        file.read_exact(&mut bytes).map_err(|e| {
+        let context = |e: npy::NpyError| {
             anyhow::anyhow!(
                 "{}: reading frames {start}..{end}: {e}",
                 self.path.display()
             )
-        })?;
+        };
+        let file = std::fs::File::open(&self.path)
+            .map_err(|e| anyhow::anyhow!("{}: {e}", self.path.display()))?;
+        let mut reader = npy::NpyReader::new(std::io::BufReader::new(file)).map_err(context)?;
+        reader.seek_row(start).map_err(context)?;
+        let rows = end.saturating_sub(start);
         Ok(match self.format {
-            crate::upload::SampleFormat::U16 => crate::upload::SampleBuf::U16(
-                bytes
-                    .chunks_exact(2)
-                    .map(|b| u16::from_le_bytes([b[0], b[1]]))
-                    .collect(),
-            ),
-            _ => crate::upload::SampleBuf::F32(
-                bytes
-                    .chunks_exact(4)
-                    .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
-                    .collect(),
-            ),
+            crate::upload::SampleFormat::U16 => {
+                crate::upload::SampleBuf::U16(reader.read_rows_u16(rows).map_err(context)?)
+            }
+            _ => crate::upload::SampleBuf::F32(reader.read_rows_f32(rows).map_err(context)?),
         })
     }
 }
 
 /// `Some` when `path` is an NPY file holding a 3-D array (camera frames); `None` for anything
-/// else (CSV, 1-D or 2-D NPY: bucket rows). A 3-D array of another dtype is an error.
+/// else (CSV, 1-D or 2-D NPY: bucket rows, and NPY files whose header does not read, which
+/// [`read_measurements`] then refuses saying why). A 3-D array of another dtype is an error.
 pub fn npy_frames(path: &Path) -> anyhow::Result<Option<NpyFrames>> {
-    use std::io::Read;
     if path
         .extension()
         .and_then(|e| e.to_str())
@@ -461,79 +300,44 @@ pub fn npy_frames(path: &Path) -> anyhow::Result<Option<NpyFrames>> {
     {
         return Ok(None);
     }
-    let mut file =
-        std::fs::File::open(path).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
-    let mut head = vec![0u8; 12];
-    let n = file.read(&mut head)?;
-    if n < 10 || &head[..6] != b"\x93NUMPY" {
-        return Ok(None);
-    }
-    let (len, start) = match head[6] {
-        1 => (u16::from_le_bytes([head[8], head[9]]) as usize, 10usize),
-        _ => (
-            u32::from_le_bytes([head[8], head[9], head[10], head[11]]) as usize,
-            12usize,
-        ),
+    let file = std::fs::File::open(path).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+    let size = file.metadata()?.len();
+    let header = match npy::read_header(&mut std::io::BufReader::new(file)) {
+        Ok(header) => header,
+        Err(_) => return Ok(None),
     };
-    let mut header = vec![0u8; start + len];
-    let mut file = std::fs::File::open(path)?;
-    file.read_exact(&mut header)?;
-    let text = String::from_utf8_lossy(&header[start..]).to_string();
-    let shape_text = text
-        .split("'shape':")
-        .nth(1)
-        .and_then(|s| s.split('(').nth(1))
-        .and_then(|s| s.split(')').next())
-        .unwrap_or("");
-    let shape: Vec<u64> = shape_text
-        .split(',')
-        .map(str::trim)
-        .filter(|s| !s.is_empty())
-        .filter_map(|s| s.parse().ok())
-        .collect();
-    if shape.len() != 3 {
+    let &[rows, height, width] = header.shape.as_slice() else {
         return Ok(None);
-    }
-    let descr = text
-        .split("'descr':")
-        .nth(1)
-        .and_then(|s| s.split('\'').nth(1))
-        .unwrap_or("");
-    let format = match descr {
-        "<u2" => crate::upload::SampleFormat::U16,
-        "<f4" => crate::upload::SampleFormat::F32,
-        other => anyhow::bail!(
-            "{}: camera frames must be uint16 or float32 (little-endian), got dtype {other:?}",
-            path.display()
+    };
+    let format = match (header.dtype.kind, header.dtype.size) {
+        (npy::Kind::Uint, 2) => crate::upload::SampleFormat::U16,
+        (npy::Kind::Float, 4) => crate::upload::SampleFormat::F32,
+        _ => anyhow::bail!(
+            "{}: camera frames must be uint16 or float32, got dtype {:?}",
+            path.display(),
+            header.dtype.descr()
         ),
     };
     anyhow::ensure!(
-        !text.contains("'fortran_order': True"),
+        !header.fortran_order,
         "{}: save the frames in C order",
         path.display()
     );
-    let (rows, height, width) = (shape[0], shape[1], shape[2]);
     anyhow::ensure!(
         height > 0 && width > 0 && height <= u32::MAX as u64 && width <= u32::MAX as u64,
         "{}: frames of shape ({height}, {width})",
         path.display()
     );
-    let frames = NpyFrames {
+    header
+        .check_data_len(size.saturating_sub(header.data_offset), false)
+        .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+    Ok(Some(NpyFrames {
         path: path.to_path_buf(),
         rows,
         height: height as u32,
         width: width as u32,
         format,
-        data_offset: (start + len) as u64,
-    };
-    let size = std::fs::metadata(path)?.len();
-    let want = frames.data_offset + rows * frames.row_bytes() as u64;
-    anyhow::ensure!(
-        size >= want,
-        "{}: {size} bytes, but shape ({rows}, {height}, {width}) needs {want}",
-        path.display()
-    );
-    Ok(Some(frames))
+    }))
 }
 
 #[cfg(test)]

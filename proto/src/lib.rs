@@ -5,8 +5,10 @@
 //! - [`patterns`]: the seed -> pattern generator, defined in `PATTERNS.md` beside this crate.
 //! - [`wire`]: how rows travel in a `MeasurementChunk`: the sample formats (f64 buckets, f32/u16
 //!   camera frames), little-endian, with a CRC-32C.
+//! - [`npy`]: NumPy `.npy` files, read (header, then whole arrays or streamed rows) and written.
 //! - [`png`]: PNG to luminance and grey PNG out (scene files, pattern frames for a projector).
 
+pub mod npy;
 pub mod patterns;
 pub mod png;
 pub mod wire;

@@ -347,36 +347,11 @@ pub fn fault_seed() -> u64 {
         })
 }
 
-/// Parses a little-endian float NPY (`<f4` or `<f8`) into (shape, values as f64).
+/// Parses an NPY file ([`helmholtz_proto::npy`], the reader the service and the client use) into
+/// (shape, values as f64 in C order); the data must be exactly what the shape needs.
 pub fn parse_npy(bytes: &[u8]) -> anyhow::Result<(Vec<usize>, Vec<f64>)> {
-    if bytes.len() < 10 || &bytes[..6] != b"\x93NUMPY" {
-        bail!("not an NPY file");
-    }
-    let hlen = u16::from_le_bytes([bytes[8], bytes[9]]) as usize;
-    let header = std::str::from_utf8(&bytes[10..10 + hlen])?;
-    let shape_text = header
-        .split("'shape': (")
-        .nth(1)
-        .and_then(|s| s.split(')').next())
-        .context("shape")?;
-    let shape: Vec<usize> = shape_text
-        .split(',')
-        .map(str::trim)
-        .filter(|s| !s.is_empty())
-        .map(|s| s.parse())
-        .collect::<Result<_, _>>()?;
-    let data = &bytes[10 + hlen..];
-    let values = if header.contains("'<f4'") {
-        data.chunks_exact(4)
-            .map(|b| f32::from_le_bytes(b.try_into().unwrap()) as f64)
-            .collect()
-    } else if header.contains("'<f8'") {
-        data.chunks_exact(8)
-            .map(|b| f64::from_le_bytes(b.try_into().unwrap()))
-            .collect()
-    } else {
-        bail!("unsupported dtype in {header}");
-    };
+    let (header, values) = helmholtz_proto::npy::decode_f64(bytes)?;
+    let shape = header.shape.iter().map(|&d| d as usize).collect();
     Ok((shape, values))
 }
 

@@ -3,6 +3,8 @@
 
 use std::io::Cursor;
 
+use helmholtz_proto::npy;
+
 use crate::recon::photometric::NormalMap;
 
 /// How a float image maps to 8 bits for viewing.
@@ -65,22 +67,14 @@ pub fn tiff_f32(width: u32, height: u32, data: &[f32]) -> Vec<u8> {
     out.into_inner()
 }
 
-/// NPY format 1.0: little-endian float32, C order, shape (height, width).
+/// NPY: little-endian float32, C order, shape (height, width) ([`helmholtz_proto::npy`]).
 pub fn npy_f32(width: u32, height: u32, data: &[f32]) -> Vec<u8> {
-    let mut out = npy_header("<f4", &format!("({height}, {width})"), data.len() * 4);
-    for v in data {
-        out.extend_from_slice(&v.to_le_bytes());
-    }
-    out
+    npy::write_f32(&[height as u64, width as u64], data)
 }
 
-/// NPY format 1.0: little-endian float64, C order, shape (rows, channels).
+/// NPY: little-endian float64, C order, shape (rows, channels) ([`helmholtz_proto::npy`]).
 pub fn npy_f64(rows: u64, channels: usize, data: &[f64]) -> Vec<u8> {
-    let mut out = npy_header("<f8", &format!("({rows}, {channels})"), data.len() * 8);
-    for v in data {
-        out.extend_from_slice(&v.to_le_bytes());
-    }
-    out
+    npy::write_f64(&[rows, channels as u64], data)
 }
 
 /// 8-bit RGB PNG of an interleaved RGB image with values in [0, 1] (clamped; non-finite -> 0).
@@ -135,37 +129,29 @@ fn png_rgb8(width: u32, height: u32, bytes: &[u8]) -> Vec<u8> {
     out
 }
 
-/// NPY format 1.0: little-endian float32, C order, shape (height, width, channels), from
-/// pixel-interleaved `data` (e.g. [`NormalMap::normals_interleaved`] or an RGB composite).
+/// NPY: little-endian float32, C order, shape (height, width, channels), from pixel-interleaved
+/// `data` (e.g. [`NormalMap::normals_interleaved`] or an RGB composite).
 /// Panics if `data` does not hold `width * height * channels` values.
 pub fn npy_f32_hwc(width: u32, height: u32, channels: usize, data: &[f32]) -> Vec<u8> {
-    assert_eq!(
-        data.len(),
-        width as usize * height as usize * channels,
-        "data holds (h, w, c) values"
-    );
-    let mut out = npy_header(
-        "<f4",
-        &format!("({height}, {width}, {channels})"),
-        data.len() * 4,
-    );
-    for v in data {
-        out.extend_from_slice(&v.to_le_bytes());
-    }
-    out
+    npy::write_f32(&[height as u64, width as u64, channels as u64], data)
 }
 
-pub(crate) fn npy_header(descr: &str, shape: &str, payload: usize) -> Vec<u8> {
-    let mut header = format!("{{'descr': '{descr}', 'fortran_order': False, 'shape': {shape}, }}");
-    // Magic (6) + version (2) + header length (2) + header must be a multiple of 64, ending in '\n'.
-    let total = 10 + header.len() + 1;
-    header.push_str(&" ".repeat(total.next_multiple_of(64) - total));
-    header.push('\n');
-    let mut out = Vec::with_capacity(10 + header.len() + payload);
-    out.extend_from_slice(b"\x93NUMPY\x01\x00");
-    out.extend_from_slice(&(header.len() as u16).to_le_bytes());
-    out.extend_from_slice(header.as_bytes());
-    out
+/// The NPY header of an array of dtype `descr` (`<f8`, `<u2`, ...) and `shape` (a Python tuple,
+/// `(rows, channels)`), for a body whose data streams after it (`measurements.npy`). The header
+/// is [`helmholtz_proto::npy::header`]'s; `_payload` is the data's size, no longer needed.
+/// Panics on a dtype or shape the service does not write.
+pub(crate) fn npy_header(descr: &str, shape: &str, _payload: usize) -> Vec<u8> {
+    let dtype = npy::Dtype::parse(descr).expect("a numeric dtype");
+    let dims: Vec<u64> = shape
+        .trim()
+        .trim_start_matches('(')
+        .trim_end_matches(')')
+        .split(',')
+        .map(str::trim)
+        .filter(|d| !d.is_empty())
+        .map(|d| d.parse().expect("a dimension"))
+        .collect();
+    npy::header(dtype, &dims, false)
 }
 
 #[cfg(test)]
@@ -288,6 +274,22 @@ mod tests {
         assert_eq!(
             buf,
             vec![128, 128, 255, 218, 128, 218, 128, 37, 218, 0, 0, 0]
+        );
+    }
+
+    #[test]
+    fn measurement_headers_are_the_ones_served_before() {
+        // measurements.npy headers (rest.rs) as the hand-written writer produced them.
+        let header = npy_header("<u2", "(16, 5, 6)", 0);
+        let text = "{'descr': '<u2', 'fortran_order': False, 'shape': (16, 5, 6), }";
+        assert_eq!(header.len(), 128);
+        assert_eq!(&header[..10], b"\x93NUMPY\x01\x00\x76\x00");
+        assert_eq!(&header[10..10 + text.len()], text.as_bytes());
+        assert!(header[10 + text.len()..127].iter().all(|&b| b == b' '));
+        assert_eq!(header[127], b'\n');
+        assert_eq!(
+            npy_header("<f8", "(3, 2)", 48),
+            npy::header(npy::Dtype::F64, &[3, 2], false)
         );
     }
 

@@ -19,6 +19,7 @@ use std::time::Instant;
 use axum::body::{Body, Bytes};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
+use helmholtz_proto::npy;
 use serde_json::{Map, Value};
 use sha2::{Digest, Sha256};
 
@@ -285,96 +286,21 @@ fn decode_png(bytes: &[u8]) -> Result<(usize, usize, Vec<f32>), String> {
     Ok((w, h, values))
 }
 
-/// A 1-D or 2-D NPY array (little-endian f4, f8, u1 or u2; C order) as f32; 1-D arrays come back
-/// as width = len, height = 1.
+/// A 1-D or 2-D NPY array ([`helmholtz_proto::npy`]: float32/64 or an integer type, either byte
+/// order, C or Fortran order) as f32; 1-D arrays come back as width = len, height = 1.
 fn decode_npy(bytes: &[u8]) -> Result<(usize, usize, Vec<f32>), String> {
-    if bytes.len() < 10 || &bytes[..6] != b"\x93NUMPY" {
-        return Err("not an NPY array (no \\x93NUMPY magic)".into());
-    }
-    let (header_len, start) = match bytes[6] {
-        1 => (u16::from_le_bytes([bytes[8], bytes[9]]) as usize, 10),
-        2 | 3 if bytes.len() >= 12 => (
-            u32::from_le_bytes([bytes[8], bytes[9], bytes[10], bytes[11]]) as usize,
-            12,
-        ),
-        v => return Err(format!("NPY version {v} is not supported")),
-    };
-    let header = bytes
-        .get(start..start + header_len)
-        .ok_or("NPY header runs past the body")?;
-    let header = std::str::from_utf8(header).map_err(|_| "NPY header is not text")?;
-    let field = |name: &str| -> Option<&str> {
-        let at = header.find(&format!("'{name}'"))?;
-        Some(
-            header[at + name.len() + 2..]
-                .trim_start()
-                .trim_start_matches(':')
-                .trim_start(),
-        )
-    };
-    let descr = field("descr")
-        .and_then(|s| s.strip_prefix('\''))
-        .and_then(|s| s.split('\'').next())
-        .ok_or("NPY header has no descr")?;
-    if field("fortran_order").is_some_and(|s| s.starts_with("True")) {
-        return Err("Fortran-ordered NPY arrays are not supported; save in C order".into());
-    }
-    let shape_text = field("shape")
-        .and_then(|s| s.strip_prefix('('))
-        .and_then(|s| s.split(')').next())
-        .ok_or("NPY header has no shape")?;
-    let shape: Vec<usize> = shape_text
-        .split(',')
-        .map(str::trim)
-        .filter(|s| !s.is_empty())
-        .map(|s| {
-            s.parse::<usize>()
-                .map_err(|_| format!("bad NPY shape ({shape_text})"))
-        })
-        .collect::<Result<_, _>>()?;
-    let (height, width) = match shape.as_slice() {
-        [n] => (1, *n),
-        [h, w] => (*h, *w),
+    let header = npy::read_header(&mut &bytes[..]).map_err(|e| e.to_string())?;
+    let (height, width) = match header.shape.as_slice() {
+        &[n] => (1, n as usize),
+        &[h, w] => (h as usize, w as usize),
         _ => {
             return Err(format!(
-                "the array must be 1-D or 2-D, got shape ({shape_text})"
+                "the array must be 1-D or 2-D, got shape {}",
+                header.shape_text()
             ));
         }
     };
-    let data = &bytes[start + header_len..];
-    let n = width * height;
-    let size = match descr {
-        "<f4" => 4,
-        "<f8" => 8,
-        "|u1" | "<u1" => 1,
-        "<u2" => 2,
-        other => {
-            return Err(format!(
-                "dtype {other:?} is not supported; use float32, float64, uint8 or uint16"
-            ));
-        }
-    };
-    if data.len() != n * size {
-        return Err(format!(
-            "the array holds {} bytes, not {n} values of {size} bytes",
-            data.len()
-        ));
-    }
-    let values: Vec<f32> = match size {
-        4 => data
-            .chunks_exact(4)
-            .map(|b| f32::from_le_bytes(b.try_into().expect("4")))
-            .collect(),
-        8 => data
-            .chunks_exact(8)
-            .map(|b| f64::from_le_bytes(b.try_into().expect("8")) as f32)
-            .collect(),
-        1 => data.iter().map(|&b| b as f32).collect(),
-        _ => data
-            .chunks_exact(2)
-            .map(|b| u16::from_le_bytes(b.try_into().expect("2")) as f32)
-            .collect(),
-    };
+    let (_, values) = npy::decode_f32(bytes).map_err(|e| e.to_string())?;
     if let Some(i) = values.iter().position(|v| !v.is_finite()) {
         return Err(format!("value {i} is not finite"));
     }
@@ -1111,6 +1037,22 @@ mod tests {
         let mut short = bytes.clone();
         short.pop();
         assert!(decode_npy(&short).unwrap_err().contains("bytes"));
+        let cube = npy::write_f32(&[1, 1, 2], &[1.0, 2.0]);
+        assert!(decode_npy(&cube).unwrap_err().contains("1-D or 2-D"));
+        let u16_be = npy::Dtype {
+            kind: npy::Kind::Uint,
+            size: 2,
+            big_endian: true,
+        };
+        let mut be = npy::header(u16_be, &[2], false);
+        be.extend_from_slice(&[0, 1, 1, 0]);
+        assert_eq!(decode_npy(&be).unwrap(), (2, 1, vec![1.0, 256.0]));
+        let nan = npy::write_f64(&[2], &[1.0, f64::NAN]);
+        assert!(
+            decode_npy(&nan)
+                .unwrap_err()
+                .contains("value 1 is not finite")
+        );
     }
 
     #[test]
