@@ -5,9 +5,9 @@
 use std::time::Duration;
 
 use anyhow::Context;
+use helmholtz_client::{NewSession, PatternSpec, UploadOptions};
 use helmholtz_sim::Target;
 use helmholtz_sim::simulate::{self, NoiseModel};
-use helmholtz_client::{NewSession, PatternSpec, UploadOptions};
 use tokio::sync::oneshot;
 
 use helmholtz_server::app::{Application, Config};

@@ -3,7 +3,9 @@
 
 /// How one measured value is stored and sent: f64 for bucket sessions, f32 or u16 (counts) for
 /// camera frames.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
+#[derive(
+    Clone, Copy, Debug, Default, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize,
+)]
 #[serde(rename_all = "lowercase")]
 pub enum SampleFormat {
     #[default]
@@ -79,7 +81,6 @@ impl SampleFormat {
             ),
         }
     }
-
 
     /// Decodes little-endian values of this format into f64 (exact for every format).
     pub fn decode_f64(self, bytes: &[u8]) -> Vec<f64> {
@@ -188,7 +189,6 @@ impl SampleBuf {
         }
     }
 }
-
 
 /// Row-major f64 values as little-endian bytes, and their CRC-32C.
 pub fn encode_values(values: &[f64]) -> (Vec<u8>, u32) {

@@ -250,7 +250,11 @@ pub fn dual_quality(
                 &truth[..k]
             };
             let (a, b) = fit_affine(&img.data, truth);
-            let fitted: Vec<f32> = img.data.iter().map(|&v| (a * v as f64 + b) as f32).collect();
+            let fitted: Vec<f32> = img
+                .data
+                .iter()
+                .map(|&v| (a * v as f64 + b) as f32)
+                .collect();
             let (w, h) = (w as usize, h as usize);
             ChannelQuality {
                 channel: name.clone(),

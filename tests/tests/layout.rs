@@ -11,7 +11,15 @@ fn linked(package: &str) -> BTreeSet<String> {
     let root = concat!(env!("CARGO_MANIFEST_DIR"), "/..");
     let out = Command::new(env!("CARGO"))
         .current_dir(root)
-        .args(["tree", "--locked", "--offline", "-e", "normal", "--prefix", "none"])
+        .args([
+            "tree",
+            "--locked",
+            "--offline",
+            "-e",
+            "normal",
+            "--prefix",
+            "none",
+        ])
         .args(["--format", "{p}", "-p", package])
         .output()
         .expect("running cargo tree");
@@ -25,7 +33,10 @@ fn linked(package: &str) -> BTreeSet<String> {
         .lines()
         .filter_map(|l| l.split_whitespace().next().map(str::to_string))
         .collect();
-    assert!(names.contains(package), "{package} not in its own tree: {names:?}");
+    assert!(
+        names.contains(package),
+        "{package} not in its own tree: {names:?}"
+    );
     names
 }
 
@@ -47,7 +58,12 @@ fn the_numerics_know_nothing_of_async_sql_or_http() {
     assert_links_none("helmholtz-recon", &ASYNC_SQL_HTTP);
     assert_links_none(
         "helmholtz-recon",
-        &["helmholtz-server", "helmholtz-client", "helmholtz-sim", "indicatif"],
+        &[
+            "helmholtz-server",
+            "helmholtz-client",
+            "helmholtz-sim",
+            "indicatif",
+        ],
     );
     // Without its `grpc` feature the contract is messages, patterns and codecs only.
     assert_links_none("helmholtz-proto", &ASYNC_SQL_HTTP);

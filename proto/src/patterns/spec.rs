@@ -179,7 +179,9 @@ impl PatternSpec {
                 if scans == 0 || scans as u64 > max_scans {
                     return Err(err(
                         "scans",
-                        format!("must be 1..={max_scans} (up to {MAX_COUNT} patterns), got {scans}"),
+                        format!(
+                            "must be 1..={max_scans} (up to {MAX_COUNT} patterns), got {scans}"
+                        ),
                     ));
                 }
                 if count > scans as u64 * blocks {
@@ -407,9 +409,10 @@ mod tests {
     #[test]
     fn raster_repeats_only_when_declared() {
         // 10 x 7 with block 3: 12 blocks per scan.
-        let one: PatternSpec =
-            serde_json::from_str(r#"{"family":"raster","width":10,"height":7,"block":3,"count":12}"#)
-                .unwrap();
+        let one: PatternSpec = serde_json::from_str(
+            r#"{"family":"raster","width":10,"height":7,"block":3,"count":12}"#,
+        )
+        .unwrap();
         assert_eq!(one.family(), &Family::Raster { block: 3, scans: 1 });
         let e = one.with_count(13).unwrap_err();
         assert_eq!(e.field, "count");
@@ -421,8 +424,17 @@ mod tests {
         assert_eq!(back, rep);
         assert!(rep.to_json().contains(r#""scans":3"#));
         // The scan count is bounded by MAX_COUNT patterns.
-        let e = PatternSpec::new(Family::Raster { block: 1, scans: u32::MAX }, 8, 8, 64, 0)
-            .unwrap_err();
+        let e = PatternSpec::new(
+            Family::Raster {
+                block: 1,
+                scans: u32::MAX,
+            },
+            8,
+            8,
+            64,
+            0,
+        )
+        .unwrap_err();
         assert_eq!(e.field, "scans");
     }
 }

@@ -50,6 +50,7 @@
 
 pub mod batch;
 mod config;
+pub mod light;
 mod matrix;
 #[cfg(test)]
 mod tests;
@@ -62,6 +63,7 @@ use serde_json::{Value, json};
 
 pub use config::{CANDIDATE_TRANSFORMS, DEFAULT_MEMORY_BUDGET, LAMBDA_PATH, TransportConfig};
 use matrix::Builder;
+pub use light::{Light, LightError};
 pub use matrix::{TransportDecodeError, TransportMatrix};
 
 use super::holdout::{self, Score};

@@ -136,24 +136,6 @@ pub fn npy_f32_hwc(width: u32, height: u32, channels: usize, data: &[f32]) -> Ve
     npy::write_f32(&[height as u64, width as u64, channels as u64], data)
 }
 
-/// The NPY header of an array of dtype `descr` (`<f8`, `<u2`, ...) and `shape` (a Python tuple,
-/// `(rows, channels)`), for a body whose data streams after it (`measurements.npy`). The header
-/// is [`helmholtz_proto::npy::header`]'s; `_payload` is the data's size, no longer needed.
-/// Panics on a dtype or shape the service does not write.
-pub(crate) fn npy_header(descr: &str, shape: &str, _payload: usize) -> Vec<u8> {
-    let dtype = npy::Dtype::parse(descr).expect("a numeric dtype");
-    let dims: Vec<u64> = shape
-        .trim()
-        .trim_start_matches('(')
-        .trim_end_matches(')')
-        .split(',')
-        .map(str::trim)
-        .filter(|d| !d.is_empty())
-        .map(|d| d.parse().expect("a dimension"))
-        .collect();
-    npy::header(dtype, &dims, false)
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -280,17 +262,13 @@ mod tests {
     #[test]
     fn measurement_headers_are_the_ones_served_before() {
         // measurements.npy headers (rest.rs) as the hand-written writer produced them.
-        let header = npy_header("<u2", "(16, 5, 6)", 0);
+        let header = npy::header(npy::Dtype::U16, &[16, 5, 6], false);
         let text = "{'descr': '<u2', 'fortran_order': False, 'shape': (16, 5, 6), }";
         assert_eq!(header.len(), 128);
         assert_eq!(&header[..10], b"\x93NUMPY\x01\x00\x76\x00");
         assert_eq!(&header[10..10 + text.len()], text.as_bytes());
         assert!(header[10 + text.len()..127].iter().all(|&b| b == b' '));
         assert_eq!(header[127], b'\n');
-        assert_eq!(
-            npy_header("<f8", "(3, 2)", 48),
-            npy::header(npy::Dtype::F64, &[3, 2], false)
-        );
     }
 
     #[test]

@@ -10,7 +10,6 @@ pub mod validate;
 
 use std::sync::Arc;
 
-
 pub use error::ApiError;
 
 use crate::auth::{self, CredentialError, Principal, Role};

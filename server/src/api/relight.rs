@@ -26,6 +26,7 @@ use sha2::{Digest, Sha256};
 use super::images::{self, Scale};
 use super::{ApiError, AppState};
 use crate::auth::Principal;
+use crate::recon::transport::Light;
 use crate::recon::transport::TransportMatrix;
 use crate::store::{ReconstructionRow, SessionRow, StoredImage};
 
@@ -458,66 +459,25 @@ fn camera_light(input: Input, cw: usize, ch: usize) -> Result<Vec<f32>, ApiError
                     ));
                 }
             };
-            match preset {
+            let light = match preset {
                 "full" => {
                     only_keys(light, &["preset"], "light")?;
-                    vec![1.0; m]
+                    Light::Full
                 }
                 "disc" => {
                     only_keys(light, &["preset", "x", "y", "radius"], "light")?;
-                    let (x, y, r) = (
-                        number(light, "x", "light")?,
-                        number(light, "y", "light")?,
-                        number(light, "radius", "light")?,
-                    );
-                    if r <= 0.0 {
-                        return Err(ApiError::invalid(
-                            "light.radius",
-                            format!("must be positive, got {r}"),
-                        ));
+                    Light::Disc {
+                        x: number(light, "x", "light")?,
+                        y: number(light, "y", "light")?,
+                        radius: number(light, "radius", "light")?,
                     }
-                    let out: Vec<f32> = (0..m)
-                        .map(|j| {
-                            let (px, py) = ((j % cw) as f64 + 0.5, (j / cw) as f64 + 0.5);
-                            if (px - x).powi(2) + (py - y).powi(2) <= r * r {
-                                1.0
-                            } else {
-                                0.0
-                            }
-                        })
-                        .collect();
-                    if out.iter().all(|&v| v == 0.0) {
-                        return Err(ApiError::invalid(
-                            "light",
-                            format!(
-                                "the disc at ({x}, {y}) of radius {r} covers no pixel of the {cw}x{ch} camera"
-                            ),
-                        ));
-                    }
-                    out
                 }
                 "stripe" => {
                     only_keys(light, &["preset", "x0", "x1"], "light")?;
-                    let (x0, x1) = (number(light, "x0", "light")?, number(light, "x1", "light")?);
-                    if x1 <= x0 {
-                        return Err(ApiError::invalid(
-                            "light.x1",
-                            format!("must exceed x0 ({x0}), got {x1}"),
-                        ));
+                    Light::Stripe {
+                        x0: number(light, "x0", "light")?,
+                        x1: number(light, "x1", "light")?,
                     }
-                    let out: Vec<f32> = (0..m)
-                        .map(|j| {
-                            let c = (j % cw) as f64;
-                            if c >= x0 && c < x1 { 1.0 } else { 0.0 }
-                        })
-                        .collect();
-                    if out.iter().all(|&v| v == 0.0) {
-                        return Err(ApiError::invalid(
-                            "light",
-                            format!("columns {x0} <= x < {x1} miss the {cw}-column camera"),
-                        ));
-                    }
-                    out
                 }
                 other => {
                     return Err(ApiError::invalid(
@@ -525,7 +485,10 @@ fn camera_light(input: Input, cw: usize, ch: usize) -> Result<Vec<f32>, ApiError
                         format!("must be full, disc or stripe, got {other:?}"),
                     ));
                 }
-            }
+            };
+            light
+                .weights(cw, ch)
+                .map_err(|e| ApiError::invalid(e.field, e.message))?
         }
     };
     Ok(light)

@@ -332,12 +332,13 @@ async fn measurements_npy(
     let session = state.own_session(caller, id).await?;
     let rows = session.committed_rows;
     let format = session.sample_format();
-    let (descr, shape) = match (session.camera, format) {
-        (Some(c), SampleFormat::U16) => ("<u2", format!("({rows}, {}, {})", c.height, c.width)),
-        (Some(c), _) => ("<f4", format!("({rows}, {}, {})", c.height, c.width)),
-        (None, _) => ("<f8", format!("({rows}, {})", session.channels.len())),
+    use helmholtz_proto::npy::{self, Dtype};
+    let (dtype, shape) = match (session.camera, format) {
+        (Some(c), SampleFormat::U16) => (Dtype::U16, vec![rows, c.height as u64, c.width as u64]),
+        (Some(c), _) => (Dtype::F32, vec![rows, c.height as u64, c.width as u64]),
+        (None, _) => (Dtype::F64, vec![rows, session.channels.len() as u64]),
     };
-    let header = images::npy_header(descr, &shape, 0);
+    let header = npy::header(dtype, &shape, false);
     let length = header.len() as u64 + rows * session.row_bytes() as u64;
     let store = state.store.clone();
     let (sid, sample_bytes) = (session.id.clone(), format.bytes());

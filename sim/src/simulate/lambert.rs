@@ -9,8 +9,8 @@
 
 use std::sync::Mutex;
 
-use helmholtz_proto::{PatternGenerator, PatternSpec};
 use crate::scene::{Camera, CameraView, Scene};
+use helmholtz_proto::{PatternGenerator, PatternSpec};
 use serde::Serialize;
 
 use super::random::SplitMix64;
