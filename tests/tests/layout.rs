@@ -14,7 +14,6 @@ fn linked(package: &str) -> BTreeSet<String> {
         .args([
             "tree",
             "--locked",
-            "--offline",
             "-e",
             "normal",
             "--prefix",
