@@ -355,6 +355,16 @@ pub fn parse_npy(bytes: &[u8]) -> anyhow::Result<(Vec<usize>, Vec<f64>)> {
     Ok((shape, values))
 }
 
+/// The session ids of a `GET /v1/sessions` body, in its order.
+pub fn session_ids(listed: &serde_json::Value) -> Vec<&str> {
+    listed["sessions"]
+        .as_array()
+        .expect("a sessions array")
+        .iter()
+        .map(|s| s["id"].as_str().expect("a session id"))
+        .collect()
+}
+
 /// Pearson correlation.
 pub fn correlation(a: &[f64], b: &[f64]) -> f64 {
     let n = a.len() as f64;

@@ -675,12 +675,7 @@ async fn every_route_and_rpc_by_role_and_lab() {
         .json()
         .await
         .unwrap();
-    let ids: Vec<&str> = listed["sessions"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|s| s["id"].as_str().unwrap())
-        .collect();
+    let ids = helmholtz_tests::session_ids(&listed);
     assert!(
         ids.contains(&"sa") && !ids.contains(&"sb") && !ids.contains(&"open-b"),
         "{ids:?}"

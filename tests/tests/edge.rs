@@ -309,12 +309,7 @@ async fn a_raster_past_one_scan_is_refused_unless_it_declares_its_repeats() {
         .json()
         .await
         .unwrap();
-    let ids: Vec<&str> = listed["sessions"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|s| s["id"].as_str().unwrap())
-        .collect();
+    let ids = helmholtz_tests::session_ids(&listed);
     assert_eq!(ids, ["twice"], "{listed}");
     // The CLI refuses it before calling, saying what to declare.
     let out = std::process::Command::new(helmholtz_tests::binary("helmholtz"))
