@@ -5,10 +5,10 @@
 
 use std::time::Instant;
 
-use helmholtz_sim::Target;
-use helmholtz_sim::simulate;
 use helmholtz_bench::{Case, Noise};
 use helmholtz_recon::{self as recon, Control, MethodConfig, Problem, SliceSource, metrics};
+use helmholtz_sim::Target;
+use helmholtz_sim::simulate;
 
 fn main() {
     helmholtz_alloc::retain_freed_memory();

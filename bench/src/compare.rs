@@ -27,9 +27,9 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 use anyhow::{Context, bail, ensure};
+use helmholtz_proto::{Family, PatternSpec};
 use helmholtz_sim::Target;
 use helmholtz_sim::simulate;
-use helmholtz_proto::{Family, PatternSpec};
 use ndarray::{Array1, Array2};
 use ndarray_npy::{read_npy, write_npy};
 use serde::Serialize;

@@ -2,8 +2,8 @@
 
 use std::str::FromStr;
 
-use helmholtz_sim::simulate::NoiseModel;
 use helmholtz_proto::{Family, HadamardOrdering, PatternSpec};
+use helmholtz_sim::simulate::NoiseModel;
 use serde::Serialize;
 
 use super::frames_for;

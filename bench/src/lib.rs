@@ -18,9 +18,9 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use clap::Parser;
+use helmholtz_proto::{Family, PatternSpec};
 use helmholtz_sim::Target;
 use helmholtz_sim::simulate;
-use helmholtz_proto::{Family, PatternSpec};
 use serde::Serialize;
 
 use helmholtz_recon::{self as recon, Control, MethodConfig, Problem, SliceSource, metrics};
@@ -259,7 +259,8 @@ pub(crate) fn measure_with_image(
     let started = Instant::now();
     let result = recon::reconstruct(&problem, &config, &mut source, &control);
     let seconds = started.elapsed().as_secs_f64();
-    let peak = helmholtz_alloc::installed().then(|| helmholtz_alloc::peak_bytes().saturating_sub(base));
+    let peak =
+        helmholtz_alloc::installed().then(|| helmholtz_alloc::peak_bytes().saturating_sub(base));
     let k = spec.pixels() as f64;
     match result {
         Ok(mut r) => {

@@ -31,9 +31,7 @@ pub fn write_with(
     } else {
         String::new()
     };
-    let command = format!(
-        "cargo run {release}-p helmholtz-bench -- --preset {preset}{repeat_arg}"
-    );
+    let command = format!("cargo run {release}-p helmholtz-bench -- --preset {preset}{repeat_arg}");
     let mut machine = json!({
         "cores": std::thread::available_parallelism().map(|n| n.get()).unwrap_or(1),
         "rayon_threads": rayon::current_num_threads(),

@@ -37,8 +37,7 @@ pub fn write_frames(
     let generator = PatternGenerator::new(spec);
     (first..end)
         .map(|i| {
-            let png =
-                png::encode_grey8(spec.width(), spec.height(), &frame_pixels(&generator, i))?;
+            let png = png::encode_grey8(spec.width(), spec.height(), &frame_pixels(&generator, i))?;
             let path = dir.join(frame_name(i));
             std::fs::write(&path, png).with_context(|| format!("writing {}", path.display()))?;
             Ok(path)

@@ -628,8 +628,8 @@ fn finite(v: f64) -> Value {
 
 #[cfg(test)]
 mod tests {
-    use helmholtz_sim::Target;
     use helmholtz_proto::{Family, HadamardOrdering, PatternGenerator, PatternSpec};
+    use helmholtz_sim::Target;
     use serde_json::json;
 
     use crate::Control;

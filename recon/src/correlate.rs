@@ -1209,9 +1209,7 @@ fn finish(
 #[allow(clippy::needless_range_loop)] // index loops read best in the reference computations
 mod tests {
     use super::*;
-    use crate::testutil::{
-        self, BlockList, CancelAfter, Rng, pearson, random_scene, simulate,
-    };
+    use crate::testutil::{self, BlockList, CancelAfter, Rng, pearson, random_scene, simulate};
     use crate::{BucketBlock, SliceSource};
     use helmholtz_proto::{HadamardOrdering, PatternSpec};
 

@@ -365,7 +365,8 @@ mod tests {
     fn raster_block_one_returns_t() {
         let (w, h) = (12u32, 7u32);
         let k = (w * h) as usize;
-        let spec = PatternSpec::new(Family::Raster { block: 1, scans: 1 }, w, h, k as u64, 0).unwrap();
+        let spec =
+            PatternSpec::new(Family::Raster { block: 1, scans: 1 }, w, h, k as u64, 0).unwrap();
         let t = random_scene(k, 0.0, 1.0, 1);
         let buckets = simulate(&spec, std::slice::from_ref(&t), k as u64, |_| 1.0, 0.0);
         let r = solve(&spec, &buckets, 1, 10);

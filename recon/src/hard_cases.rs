@@ -13,8 +13,8 @@
 //!
 //! Run: `cargo test -p helmholtz-recon --lib hard_cases` (~10 s of tests on 2 cores, dev profile).
 
-use helmholtz_sim::simulate::{NoiseModel, apply_noise, bucket_signals};
 use helmholtz_proto::{Family, HadamardOrdering, PatternGenerator, PatternSpec};
+use helmholtz_sim::simulate::{NoiseModel, apply_noise, bucket_signals};
 use serde_json::{Value, json};
 
 use super::linop::LinearOperator;

@@ -28,8 +28,13 @@ use crate::store::Store;
 pub struct Config {
     /// Address for gRPC and REST together; port 0 picks a free port.
     pub listen: SocketAddr,
-    /// Holds `helmholtz.sqlite` (and its WAL).
+    /// Holds `helmholtz.sqlite` (and its WAL) when no `database_url` is given.
     pub data_dir: PathBuf,
+    /// A PostgreSQL database shared with other processes (`postgres://...`), instead of the
+    /// embedded SQLite.
+    pub database_url: Option<String>,
+    /// Most pooled connections to PostgreSQL.
+    pub database_connections: u32,
     /// Reconstruction worker threads.
     pub workers: usize,
     /// Job lease length.
@@ -51,6 +56,8 @@ impl Default for Config {
         Config {
             listen: "127.0.0.1:8080".parse().expect("address"),
             data_dir: PathBuf::from("helmholtz-data"),
+            database_url: None,
+            database_connections: 16,
             workers: std::thread::available_parallelism()
                 .map(|n| n.get())
                 .unwrap_or(2),
@@ -108,9 +115,16 @@ impl Application {
                 Some((l, a, crate::telemetry::recorder()?))
             }
         };
-        let store = Store::open(&config.data_dir)
-            .await
-            .with_context(|| format!("opening the database in {}", config.data_dir.display()))?;
+        let store = Store::connect(
+            config.database_url.as_deref(),
+            &config.data_dir,
+            config.database_connections,
+        )
+        .await
+        .with_context(|| match &config.database_url {
+            Some(_) => "opening the PostgreSQL database (--database-url)".to_string(),
+            None => format!("opening the database in {}", config.data_dir.display()),
+        })?;
         let workers = WorkerPool::start(
             store.clone(),
             tokio::runtime::Handle::current(),

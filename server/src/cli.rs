@@ -31,9 +31,8 @@ pub struct ServeArgs {
     /// Address for gRPC and REST (one port serves both); port 0 picks a free port.
     #[arg(long, env = "HELMHOLTZ_LISTEN", default_value = "127.0.0.1:8080")]
     listen: SocketAddr,
-    /// Directory of the SQLite database (created if missing).
-    #[arg(long, env = "HELMHOLTZ_DATA_DIR", default_value = "helmholtz-data")]
-    data_dir: PathBuf,
+    #[command(flatten)]
+    database: DatabaseArgs,
     /// Reconstruction worker threads (default: the number of CPU cores). 0: none (API only:
     /// requests queue in the database for the workers of other server processes sharing it).
     #[arg(long, env = "HELMHOLTZ_WORKERS")]
@@ -57,6 +56,50 @@ pub struct ServeArgs {
     limits: LimitArgs,
     #[command(flatten)]
     edge: EdgeArgs,
+}
+
+/// Where the service keeps its data: the embedded SQLite database in a directory, or a
+/// PostgreSQL database shared by every API node and worker.
+#[derive(clap::Args, Debug, Clone)]
+pub struct DatabaseArgs {
+    /// Directory of the embedded SQLite database (created if missing); not used with
+    /// --database-url.
+    #[arg(
+        long,
+        env = "HELMHOLTZ_DATA_DIR",
+        default_value = "helmholtz-data",
+        global = true
+    )]
+    data_dir: PathBuf,
+    /// PostgreSQL database shared by every API node and worker process, e.g.
+    /// postgres://helmholtz@db.lab.example:5432/helmholtz (migrated at start). Without it the
+    /// embedded SQLite database in --data-dir is used.
+    #[arg(
+        long,
+        env = "HELMHOLTZ_DATABASE_URL",
+        value_name = "URL",
+        global = true
+    )]
+    database_url: Option<String>,
+    /// Most pooled connections this process opens to PostgreSQL.
+    #[arg(long, env = "HELMHOLTZ_DATABASE_CONNECTIONS", default_value_t = 16, value_parser = clap::value_parser!(u32).range(2..), global = true)]
+    database_connections: u32,
+}
+
+impl DatabaseArgs {
+    async fn open(&self) -> anyhow::Result<crate::store::Store> {
+        use anyhow::Context;
+        crate::store::Store::connect(
+            self.database_url.as_deref(),
+            &self.data_dir,
+            self.database_connections,
+        )
+        .await
+        .with_context(|| match &self.database_url {
+            Some(_) => "opening the PostgreSQL database (--database-url)".to_string(),
+            None => format!("opening the database in {}", self.data_dir.display()),
+        })
+    }
 }
 
 /// The network edge: timeouts, the connection cap, the shutdown deadline, TLS and CORS
@@ -239,15 +282,42 @@ enum Command {
     Token {
         #[command(subcommand)]
         command: TokenCommand,
-        /// Directory of the SQLite database.
-        #[arg(
-            long,
-            env = "HELMHOLTZ_DATA_DIR",
-            default_value = "helmholtz-data",
-            global = true
-        )]
-        data_dir: PathBuf,
+        #[command(flatten)]
+        database: DatabaseArgs,
     },
+    /// Run reconstruction workers only (no listener) until Ctrl-C (or SIGTERM): they take jobs
+    /// from the database that API nodes (`serve --workers 0`) queue, on this or any machine.
+    Worker(WorkerArgs),
+    /// Apply the database's pending migrations and exit (`serve` and `worker` also do this at
+    /// start).
+    Migrate {
+        #[command(flatten)]
+        database: DatabaseArgs,
+    },
+}
+
+/// A worker process's options.
+#[derive(clap::Args, Debug, Clone)]
+pub struct WorkerArgs {
+    #[command(flatten)]
+    database: DatabaseArgs,
+    /// Reconstruction worker threads (default: the number of CPU cores).
+    #[arg(long, env = "HELMHOLTZ_WORKERS", value_parser = clap::value_parser!(u64).range(1..))]
+    workers: Option<u64>,
+    /// Job lease in seconds: a job whose worker stops heart-beating for this long is taken up again.
+    #[arg(long, default_value_t = 30)]
+    lease_seconds: u64,
+    /// Working-set budget of one camera-session reconstruction in MiB.
+    #[arg(long, env = "HELMHOLTZ_WORKER_MEMORY_MIB", default_value_t = 1024, value_parser = clap::value_parser!(u64).range(1..))]
+    worker_memory_mib: u64,
+    /// Memory the reconstructions running in this process may take together, in MiB [default:
+    /// three quarters of the machine's memory].
+    #[arg(long, env = "HELMHOLTZ_MEMORY_BUDGET_MIB", value_parser = clap::value_parser!(u64).range(1..))]
+    memory_budget_mib: Option<u64>,
+    /// Most reconstructions of one lab running at once across all workers sharing the
+    /// database (0: no cap). Give every process the same value.
+    #[arg(long, default_value_t = Limits::default().max_running_jobs_per_lab)]
+    max_running_jobs_per_lab: u32,
 }
 
 impl ServeArgs {
@@ -255,7 +325,9 @@ impl ServeArgs {
     pub fn config(&self) -> Config {
         let mut config = Config {
             listen: self.listen,
-            data_dir: self.data_dir.clone(),
+            data_dir: self.database.data_dir.clone(),
+            database_url: self.database.database_url.clone(),
+            database_connections: self.database.database_connections,
             lease: Duration::from_secs(self.lease_seconds.max(1)),
             limits: self.limits.limits(),
             metrics_listen: self.metrics_listen,
@@ -281,7 +353,14 @@ pub fn main() {
     let result = runtime.block_on(async move {
         match cli.command {
             Command::Serve(args) => serve(args.config()).await,
-            Command::Token { command, data_dir } => token(command, &data_dir).await,
+            Command::Token { command, database } => token(command, &database).await,
+            Command::Worker(args) => worker(args).await,
+            Command::Migrate { database } => {
+                let store = database.open().await?;
+                println!("{}: migrations applied", store.describe());
+                store.close().await;
+                Ok(())
+            }
         }
     });
     if let Err(e) = result {
@@ -322,11 +401,40 @@ pub async fn shutdown_signal() {
     tracing::info!("shutting down: finishing requests, giving running jobs' leases back");
 }
 
-async fn token(command: TokenCommand, data_dir: &std::path::Path) -> anyhow::Result<()> {
-    use anyhow::Context;
-    let store = crate::store::Store::open(data_dir)
-        .await
-        .with_context(|| format!("opening the database in {}", data_dir.display()))?;
+/// Workers without a listener, until Ctrl-C or SIGTERM; running jobs give their leases back.
+async fn worker(args: WorkerArgs) -> anyhow::Result<()> {
+    let store = args.database.open().await?;
+    let workers = args.workers.map_or_else(
+        || std::thread::available_parallelism().map_or(2, |n| n.get()),
+        |w| w as usize,
+    );
+    let pool = crate::jobs::WorkerPool::start(
+        store.clone(),
+        tokio::runtime::Handle::current(),
+        crate::jobs::PoolConfig {
+            workers,
+            lease: Duration::from_secs(args.lease_seconds.max(1)),
+            max_running_per_lab: args.max_running_jobs_per_lab,
+            memory_budget: (args.worker_memory_mib as usize) << 20,
+            process_memory: args
+                .memory_budget_mib
+                .map_or_else(crate::limits::default_memory_budget, |m| m << 20),
+            ..crate::jobs::PoolConfig::default()
+        },
+    );
+    tracing::info!(database = %store.describe(), workers, "workers started");
+    println!(
+        "helmholtz-server worker: {workers} workers on {}",
+        store.describe()
+    );
+    shutdown_signal().await;
+    tokio::task::spawn_blocking(move || pool.shutdown()).await?;
+    store.close().await;
+    Ok(())
+}
+
+async fn token(command: TokenCommand, database: &DatabaseArgs) -> anyhow::Result<()> {
+    let store = database.open().await?;
     let result = async {
         match command {
             TokenCommand::Create {
@@ -401,7 +509,7 @@ pub fn announce(app: &Application, config: &Config) {
     println!(
         "helmholtz-server listening on {} (gRPC + REST){metrics}, data in {}, {} workers",
         app.base_url(),
-        config.data_dir.display(),
+        app.store().describe(),
         config.workers
     );
     let _ = std::io::stdout().flush();

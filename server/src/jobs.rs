@@ -57,6 +57,8 @@ pub struct WorkerPool {
     stop: Arc<AtomicBool>,
     wake: Arc<Notify>,
     running: Running,
+    /// Forwards other processes' job notifications to `wake` (PostgreSQL).
+    wakeups: Option<tokio::task::JoinHandle<()>>,
 }
 
 /// The jobs this process is computing, by id, with their cancellation handles.
@@ -93,10 +95,16 @@ impl WorkerPool {
         let wake = Arc::new(Notify::new());
         let running: Running = Arc::default();
         let reserved: Reserved = Arc::default();
+        // Jobs queued by other processes sharing the database wake the idle workers.
+        let wakeups = (config.workers > 0).then(|| {
+            let (store, wake) = (store.clone(), wake.clone());
+            runtime.spawn(async move { store.forward_job_wakeups(wake).await })
+        });
         let threads = (0..config.workers)
             .map(|n| {
                 let worker = Worker {
-                    id: format!("{}-{n}", std::process::id()),
+                    // Unique across processes and machines sharing the database.
+                    id: format!("{}-w{n}", crate::store::WriterLease::new_holder()),
                     store: store.clone(),
                     runtime: runtime.clone(),
                     config: config.clone(),
@@ -116,6 +124,7 @@ impl WorkerPool {
             stop,
             wake,
             running,
+            wakeups,
         }
     }
 
@@ -130,6 +139,9 @@ impl WorkerPool {
     /// an attempt), so the next start picks them up again.
     pub fn shutdown(self) {
         self.stop.store(true, Ordering::SeqCst);
+        if let Some(w) = &self.wakeups {
+            w.abort();
+        }
         for control in self.running.lock().expect("running lock").values() {
             control.cancel();
         }

@@ -9,6 +9,8 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, bail};
 use helmholtz_client::auth::Grpc;
 
+pub mod pg;
+
 /// Path of a workspace binary built beside this test executable (`cargo test --workspace`
 /// builds them: the server and client packages each have an integration test). Note that
 /// `cargo test -p helmholtz-tests` alone does not rebuild them: it runs whatever binaries the
@@ -135,13 +137,45 @@ impl ServerProcess {
                 t
             }
         };
+        let mut args: Vec<std::ffi::OsString> = vec![
+            "serve".into(),
+            "--listen".into(),
+            format!("127.0.0.1:{port}").into(),
+            "--data-dir".into(),
+            data_dir.into(),
+        ];
+        args.extend(extra.iter().map(Into::into));
+        Self::launch(server_bin, &args, token, data_dir)
+    }
+
+    /// `helmholtz-server serve` on 127.0.0.1 port 0 against the PostgreSQL database `db`,
+    /// accepting `token` (made with [`pg::TestDatabase::create_token`]).
+    pub fn start_on_postgres(
+        db: &pg::TestDatabase,
+        token: &str,
+        extra: &[&str],
+    ) -> anyhow::Result<ServerProcess> {
+        let dir = std::env::temp_dir().join(format!("helmholtz-pg-node-{}", std::process::id()));
+        let mut args: Vec<std::ffi::OsString> = vec![
+            "serve".into(),
+            "--listen".into(),
+            "127.0.0.1:0".into(),
+            "--database-url".into(),
+            db.url().into(),
+        ];
+        args.extend(extra.iter().map(Into::into));
+        Self::launch(&binary("helmholtz-server"), &args, token.to_string(), &dir)
+    }
+
+    /// Runs `server_bin` with `args` and waits for the address on its first line.
+    fn launch(
+        server_bin: &Path,
+        args: &[std::ffi::OsString],
+        token: String,
+        data_dir: &Path,
+    ) -> anyhow::Result<ServerProcess> {
         let mut child = Command::new(server_bin)
-            .arg("serve")
-            .arg("--listen")
-            .arg(format!("127.0.0.1:{port}"))
-            .arg("--data-dir")
-            .arg(data_dir)
-            .args(extra)
+            .args(args)
             .env("RUST_LOG", "warn")
             .stdin(Stdio::null())
             .stdout(Stdio::piped())

@@ -264,9 +264,11 @@ async fn a_raster_past_one_scan_is_refused_unless_it_declares_its_repeats() {
     let raster = |id: &str, block: u32, scans: u32, count: u64| {
         let mut req =
             helmholtz_tests::bucket_session(id, v1::PatternFamily::Raster, 8, 8, count, &["a"]);
-        req.patterns.as_mut().unwrap().params = Some(v1::pattern_spec::Params::Raster(
-            v1::RasterParams { block, scans },
-        ));
+        req.patterns.as_mut().unwrap().params =
+            Some(v1::pattern_spec::Params::Raster(v1::RasterParams {
+                block,
+                scans,
+            }));
         req
     };
     // More patterns than pixels (64 blocks of 1 pixel), and more than the 16 blocks of 2x2.
@@ -315,7 +317,10 @@ async fn a_raster_past_one_scan_is_refused_unless_it_declares_its_repeats() {
     let out = std::process::Command::new(helmholtz_tests::binary("helmholtz"))
         .args(["patterns", "--out"])
         .arg(dir.path().join("frames"))
-        .args(["--spec-json", r#"{"family":"raster","width":8,"height":8,"count":65}"#])
+        .args([
+            "--spec-json",
+            r#"{"family":"raster","width":8,"height":8,"count":65}"#,
+        ])
         .output()
         .unwrap();
     let stderr = String::from_utf8_lossy(&out.stderr);

@@ -9,10 +9,10 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::{Duration, Instant};
 
-use helmholtz_sim::Target;
-use helmholtz_sim::simulate::{self, NoiseModel};
 use helmholtz_client::spool::{self, SpoolDir};
 use helmholtz_client::{Backoff, NewSession, PatternSpec, UploadOptions};
+use helmholtz_sim::Target;
+use helmholtz_sim::simulate::{self, NoiseModel};
 use helmholtz_tests::{FaultyProxy, ServerProcess, SplitMix64, binary, fault_seed, parse_npy};
 
 /// Server flags of the tests that poll the API to time their faults: no per-token rate limit

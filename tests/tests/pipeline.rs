@@ -3,9 +3,9 @@
 
 use std::time::Duration;
 
+use helmholtz_client::{NewSession, PatternSpec, UploadOptions};
 use helmholtz_sim::Target;
 use helmholtz_sim::simulate::{self, NoiseModel};
-use helmholtz_client::{NewSession, PatternSpec, UploadOptions};
 use helmholtz_tests::{ServerProcess, correlation, parse_npy, relative_error};
 
 /// Simulates `spec` on a built-in scene (noise-free), uploads it as a finished session and

@@ -4,10 +4,10 @@
 
 use std::time::{Duration, Instant};
 
-use helmholtz_sim::Target;
-use helmholtz_sim::simulate::{self, NoiseModel};
 use helmholtz_client::{NewSession, PatternSpec, UploadOptions};
 use helmholtz_proto::v1;
+use helmholtz_sim::Target;
+use helmholtz_sim::simulate::{self, NoiseModel};
 use helmholtz_tests::{OpenUpload, ServerProcess};
 use serde_json::Value;
 use tonic::Code;

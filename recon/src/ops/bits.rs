@@ -286,10 +286,7 @@ impl BitMatrix {
         );
         let (mut done, rows, cols) = (0, self.rows, self.cols);
         if kernel == Kernel::Nibbles {
-            assert!(
-                crate::simd::avx512(),
-                "the nibble kernel needs AVX-512F"
-            );
+            assert!(crate::simd::avx512(), "the nibble kernel needs AVX-512F");
             // One vector per pass: a vector's product is the same alone or in a batch.
             for l in 0..batch {
                 let o = &mut out[l * rows..(l + 1) * rows];

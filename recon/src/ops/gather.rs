@@ -368,7 +368,8 @@ mod tests {
             PatternSpec::new(Family::Bernoulli { fill: 0.5 }, side, side, rows, 3).unwrap()
         };
         let speckle = PatternSpec::new(Family::Speckle { grain: 2 }, 24, 24, 90, 5).unwrap();
-        let raster = PatternSpec::new(Family::Raster { block: 1, scans: 1 }, 12, 12, 100, 0).unwrap();
+        let raster =
+            PatternSpec::new(Family::Raster { block: 1, scans: 1 }, 12, 12, 100, 0).unwrap();
         let cases = [
             (bern(16, 37), 37),
             (bern(64, 100), 100),

@@ -54,12 +54,12 @@ mod tests;
 pub use cgls::cgls;
 pub use condition::{Deflation, MeanDeflated};
 pub use fista::{fista, lambda_max_l1, lambda_max_l1_free, tv_fista};
+pub use grid::{Grid, gradient_magnitudes, lambda_max_tv, tv_value};
 pub use path::{
     PathPoint, PathRunner, Penalty, RegPath, geometric_fractions, lambda_max, solve_path,
     solve_path_until,
 };
 pub use poisson::{poisson_irls, poisson_weights};
-pub use grid::{Grid, gradient_magnitudes, lambda_max_tv, tv_value};
 pub use tv::tv;
 
 /// The regularisation weight.

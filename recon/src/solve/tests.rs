@@ -1,7 +1,7 @@
 //! Solver tests on small problems built here (Gaussian / 0-1 matrices, a test-only Haar).
 
-use super::testkit::*;
 use super::grid::Grid;
+use super::testkit::*;
 use super::*;
 use crate::linop::{DenseOperator, LinearOperator, adjoint_mismatch};
 use crate::testutil::Rng;
@@ -948,8 +948,7 @@ fn explore_convergence() {
         .unwrap_or(128);
     let k = side * side;
     let n = k / 10;
-    let scene =
-        helmholtz_sim::Target::builtin("camera", side as u32, side as u32).unwrap();
+    let scene = helmholtz_sim::Target::builtin("camera", side as u32, side as u32).unwrap();
     let x0: Vec<f64> = scene.pixels.iter().map(|&v| v as f64).collect();
     let a = FastBinary::new(n, k, 3);
     let b = measure(&a, &x0);

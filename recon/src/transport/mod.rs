@@ -62,8 +62,8 @@ use helmholtz_proto::{Family, PatternSpec};
 use serde_json::{Value, json};
 
 pub use config::{CANDIDATE_TRANSFORMS, DEFAULT_MEMORY_BUDGET, LAMBDA_PATH, TransportConfig};
-use matrix::Builder;
 pub use light::{Light, LightError};
+use matrix::Builder;
 pub use matrix::{TransportDecodeError, TransportMatrix};
 
 use super::holdout::{self, Score};

@@ -141,9 +141,10 @@ impl From<StoreError> for ApiError {
             StoreError::Finished(_) | StoreError::Incomplete { .. } => {
                 ApiError::FailedPrecondition(e.to_string())
             }
-            StoreError::Corrupt(_) | StoreError::Db(_) | StoreError::Migrate(_) => {
-                ApiError::Internal(e.to_string())
-            }
+            StoreError::Corrupt(_)
+            | StoreError::Db(_)
+            | StoreError::Migrate(_)
+            | StoreError::UnsupportedUrl => ApiError::Internal(e.to_string()),
         }
     }
 }

@@ -1,16 +1,13 @@
 //! The job queue (lease + heartbeat + fencing) and reconstruction results.
 //!
 //! A claim moves one queued job, or a running job whose lease expired and has attempts left, to
-//! `running` with `attempt + 1`. Every later write for that run carries `AND attempt = ?`: a worker
-//! that lost its lease (it stalled, or another worker took the job over) can never overwrite.
+//! `running` with `attempt + 1`. Every later write for that run carries the attempt as its
+//! fence: a worker that lost its lease (it stalled, or another worker took the job over) can
+//! never overwrite.
 
-use sqlx::Row;
-use sqlx::sqlite::SqliteRow;
+use async_trait::async_trait;
 
-use super::{Store, StoreError, f32_to_le, le_to_f32, now_ms};
-
-/// Largest blob of one stored transport part.
-const TRANSPORT_PART_BYTES: usize = 64 << 20;
+use super::StoreError;
 
 /// A reconstruction and the state of its job.
 #[derive(Clone, Debug, PartialEq)]
@@ -53,32 +50,106 @@ pub struct StoredImage {
     pub data: Vec<f32>,
 }
 
-const RECON_COLUMNS: &str = "r.id, j.lab, r.session_id, r.method, r.params_json, r.rows_used, j.state, \
-     j.progress, j.attempt, j.last_error, r.report_json, r.seconds, j.created_ms, j.started_ms, j.finished_ms";
+/// The job queue and results as a backend stores them.
+#[async_trait]
+pub trait Jobs: Send + Sync {
+    /// Queues a reconstruction of the first `rows_used` rows of a session unless the lab already
+    /// has `max_pending` jobs queued or running ([`StoreError::Cap`]): the count and the insert
+    /// are atomic, so concurrent requests never pass the cap together. `memory_bytes`: the
+    /// job's estimated peak memory, which a worker must have room for to claim it.
+    #[allow(clippy::too_many_arguments)]
+    async fn enqueue_reconstruction_capped(
+        &self,
+        lab: &str,
+        session_id: &str,
+        method: &str,
+        params_json: &str,
+        rows_used: u64,
+        max_attempts: u32,
+        max_pending: u64,
+        memory_bytes: u64,
+    ) -> Result<ReconstructionRow, StoreError>;
 
-fn recon_from_row(row: &SqliteRow) -> ReconstructionRow {
-    ReconstructionRow {
-        id: row.get("id"),
-        lab: row.get("lab"),
-        session_id: row.get("session_id"),
-        method: row.get("method"),
-        params_json: row.get("params_json"),
-        rows_used: row.get::<i64, _>("rows_used") as u64,
-        state: row.get("state"),
-        progress: row.get("progress"),
-        attempt: row.get("attempt"),
-        last_error: row.get("last_error"),
-        report_json: row.get("report_json"),
-        seconds: row.get("seconds"),
-        created_ms: row.get("created_ms"),
-        started_ms: row.get("started_ms"),
-        finished_ms: row.get("finished_ms"),
-    }
-}
+    async fn get_reconstruction(&self, id: i64) -> Result<Option<ReconstructionRow>, StoreError>;
 
-impl Store {
-    /// Queues a reconstruction of the first `rows_used` rows of a session.
-    pub async fn enqueue_reconstruction(
+    /// A session's reconstructions, newest first.
+    async fn session_reconstructions(
+        &self,
+        session_id: &str,
+    ) -> Result<Vec<ReconstructionRow>, StoreError>;
+
+    /// The newest finished reconstruction of a session.
+    async fn latest_done(&self, session_id: &str) -> Result<Option<i64>, StoreError>;
+
+    /// Claims the next runnable job whose memory estimate is at most `max_memory` bytes (what
+    /// the claiming process's budget has left), fairly across labs: among runnable jobs, the
+    /// lab with the fewest running jobs goes first, then the lab served least recently (so one
+    /// lab's backlog alternates with every other lab's jobs instead of draining first), then
+    /// priority and age. A lab already running `max_running_per_lab` jobs (0: no cap) is
+    /// skipped. Running jobs whose lease expired are taken over while they have attempts left;
+    /// those out of attempts are marked failed here.
+    async fn claim_job_within(
+        &self,
+        worker_id: &str,
+        lease_ms: i64,
+        max_running_per_lab: u32,
+        max_memory: u64,
+    ) -> Result<Option<ClaimedJob>, StoreError>;
+
+    /// Extends the lease and records progress. False means the job is no longer ours (fenced
+    /// out or cancelled): stop computing.
+    async fn heartbeat(
+        &self,
+        id: i64,
+        attempt: i64,
+        lease_ms: i64,
+        progress: f64,
+    ) -> Result<bool, StoreError>;
+
+    /// Stores the result and marks the job done, atomically, if this run still holds the job.
+    async fn complete_reconstruction(
+        &self,
+        id: i64,
+        attempt: i64,
+        images: &[StoredImage],
+        transport: Option<&[u8]>,
+        report_json: &str,
+        seconds: f64,
+    ) -> Result<bool, StoreError>;
+
+    /// A camera reconstruction's encoded transport matrix, if it has one.
+    async fn transport(&self, id: i64) -> Result<Option<Vec<u8>>, StoreError>;
+
+    /// Records a failed run. `retry` puts the job back in the queue if attempts are left
+    /// (transient causes); otherwise it fails for good (the input cannot be solved).
+    async fn fail_job(
+        &self,
+        id: i64,
+        attempt: i64,
+        error: &str,
+        retry: bool,
+    ) -> Result<bool, StoreError>;
+
+    /// Gives a running job back to the queue without counting the attempt (graceful shutdown).
+    async fn release_job(&self, id: i64, attempt: i64) -> Result<bool, StoreError>;
+
+    /// Cancels a queued or running job; a running worker notices at its next heartbeat.
+    async fn cancel_job(&self, id: i64) -> Result<bool, StoreError>;
+
+    /// A lab's jobs waiting or running.
+    async fn pending_jobs_for_lab(&self, lab: &str) -> Result<u64, StoreError>;
+
+    /// Jobs by state: (queued, running).
+    async fn queue_depth(&self) -> Result<(u64, u64), StoreError>;
+
+    /// Number of jobs waiting or running.
+    async fn pending_jobs(&self) -> Result<i64, StoreError>;
+
+    /// Dual images of a reconstruction, by channel.
+    async fn dual_images(&self, reconstruction_id: i64) -> Result<Vec<StoredImage>, StoreError>;
+
+    /// [`Jobs::enqueue_reconstruction_capped`] without a cap or a memory estimate.
+    async fn enqueue_reconstruction(
         &self,
         lab: &str,
         session_id: &str,
@@ -100,119 +171,14 @@ impl Store {
         .await
     }
 
-    /// [`Store::enqueue_reconstruction`] unless the lab already has `max_pending` jobs queued or
-    /// running ([`StoreError::Cap`]): the count and the insert are one transaction, so
-    /// concurrent requests never pass the cap together. `memory_bytes`: the job's estimated
-    /// peak memory, which a worker must have room for to claim it.
-    #[allow(clippy::too_many_arguments)]
-    pub async fn enqueue_reconstruction_capped(
-        &self,
-        lab: &str,
-        session_id: &str,
-        method: &str,
-        params_json: &str,
-        rows_used: u64,
-        max_attempts: u32,
-        max_pending: u64,
-        memory_bytes: u64,
-    ) -> Result<ReconstructionRow, StoreError> {
-        let now = now_ms();
-        let mut tx = self.pool.begin_with("BEGIN IMMEDIATE").await?;
-        let pending: i64 = sqlx::query(
-            "SELECT COUNT(*) FROM jobs WHERE lab = $1 AND state IN ('queued', 'running')",
-        )
-        .bind(lab)
-        .fetch_one(&mut *tx)
-        .await?
-        .get(0);
-        if pending as u64 >= max_pending {
-            return Err(StoreError::Cap {
-                limit: "max_pending_jobs_per_lab",
-                message: format!(
-                    "lab {lab:?} has {pending} reconstructions queued or running (limit {max_pending}); wait for some to finish or cancel them"
-                ),
-            });
-        }
-        let id: i64 = sqlx::query(
-            "INSERT INTO jobs (kind, state, run_at_ms, max_attempts, created_ms, lab, memory_bytes) \
-             VALUES ('reconstruction', 'queued', $1, $2, $1, $3, $4) RETURNING id",
-        )
-        .bind(now)
-        .bind(max_attempts as i64)
-        .bind(lab)
-        .bind(memory_bytes.min(i64::MAX as u64) as i64)
-        .fetch_one(&mut *tx)
-        .await?
-        .get(0);
-        sqlx::query(
-            "INSERT INTO reconstructions (id, session_id, method, params_json, rows_used) VALUES ($1, $2, $3, $4, $5)",
-        )
-        .bind(id)
-        .bind(session_id)
-        .bind(method)
-        .bind(params_json)
-        .bind(rows_used as i64)
-        .execute(&mut *tx)
-        .await?;
-        tx.commit().await?;
-        self.reconstruction(id).await
-    }
-
-    pub async fn get_reconstruction(
-        &self,
-        id: i64,
-    ) -> Result<Option<ReconstructionRow>, StoreError> {
-        let sql = format!(
-            "SELECT {RECON_COLUMNS} FROM reconstructions r JOIN jobs j ON j.id = r.id WHERE r.id = $1"
-        );
-        let row = sqlx::query(sqlx::AssertSqlSafe(sql))
-            .bind(id)
-            .fetch_optional(&self.pool)
-            .await?;
-        Ok(row.as_ref().map(recon_from_row))
-    }
-
-    pub async fn reconstruction(&self, id: i64) -> Result<ReconstructionRow, StoreError> {
+    async fn reconstruction(&self, id: i64) -> Result<ReconstructionRow, StoreError> {
         self.get_reconstruction(id)
             .await?
             .ok_or(StoreError::ReconstructionNotFound(id))
     }
 
-    /// A session's reconstructions, newest first.
-    pub async fn session_reconstructions(
-        &self,
-        session_id: &str,
-    ) -> Result<Vec<ReconstructionRow>, StoreError> {
-        let sql = format!(
-            "SELECT {RECON_COLUMNS} FROM reconstructions r JOIN jobs j ON j.id = r.id \
-             WHERE r.session_id = $1 ORDER BY r.id DESC"
-        );
-        let rows = sqlx::query(sqlx::AssertSqlSafe(sql))
-            .bind(session_id)
-            .fetch_all(&self.pool)
-            .await?;
-        Ok(rows.iter().map(recon_from_row).collect())
-    }
-
-    /// The newest finished reconstruction of a session.
-    pub async fn latest_done(&self, session_id: &str) -> Result<Option<i64>, StoreError> {
-        let row = sqlx::query(
-            "SELECT r.id FROM reconstructions r JOIN jobs j ON j.id = r.id \
-             WHERE r.session_id = $1 AND j.state = 'done' ORDER BY j.finished_ms DESC, r.id DESC LIMIT 1",
-        )
-        .bind(session_id)
-        .fetch_optional(&self.pool)
-        .await?;
-        Ok(row.map(|r| r.get(0)))
-    }
-
-    /// Claims the next runnable job, fairly across labs: among runnable jobs, the lab with the
-    /// fewest running jobs goes first, then the lab served least recently (so one lab's backlog
-    /// alternates with every other lab's jobs instead of draining first), then priority and age.
-    /// A lab already running `max_running_per_lab` jobs (0: no cap) is skipped. Running jobs
-    /// whose lease expired are taken over while they have attempts left; those out of attempts
-    /// are marked failed here.
-    pub async fn claim_job(
+    /// [`Jobs::claim_job_within`] whatever the job's memory estimate.
+    async fn claim_job(
         &self,
         worker_id: &str,
         lease_ms: i64,
@@ -220,279 +186,5 @@ impl Store {
     ) -> Result<Option<ClaimedJob>, StoreError> {
         self.claim_job_within(worker_id, lease_ms, max_running_per_lab, u64::MAX)
             .await
-    }
-
-    /// [`Store::claim_job`] among the jobs whose memory estimate is at most `max_memory` bytes
-    /// (what the claiming process's budget has left).
-    pub async fn claim_job_within(
-        &self,
-        worker_id: &str,
-        lease_ms: i64,
-        max_running_per_lab: u32,
-        max_memory: u64,
-    ) -> Result<Option<ClaimedJob>, StoreError> {
-        let now = now_ms();
-        let mut tx = self.pool.begin_with("BEGIN IMMEDIATE").await?;
-        sqlx::query(
-            "UPDATE jobs SET state = 'failed', finished_ms = $1, \
-             last_error = COALESCE(last_error, 'worker lost its lease') || ' (no attempts left)' \
-             WHERE state = 'running' AND lease_until_ms < $1 AND attempt >= max_attempts",
-        )
-        .bind(now)
-        .execute(&mut *tx)
-        .await?;
-        let claimed = sqlx::query(
-            "WITH lab_load AS ( \
-                 SELECT lab, \
-                        SUM(state = 'running' AND lease_until_ms >= $1) AS running, \
-                        MAX(started_ms) AS last_start \
-                 FROM jobs WHERE lab IN (SELECT DISTINCT lab FROM jobs WHERE state IN ('queued', 'running')) \
-                 GROUP BY lab) \
-             UPDATE jobs SET state = 'running', attempt = attempt + 1, lease_until_ms = $1 + $2, \
-             worker_id = $3, started_ms = $1, progress = 0 \
-             WHERE id = (SELECT j.id FROM jobs j JOIN lab_load l ON l.lab = j.lab \
-                 WHERE j.run_at_ms <= $1 AND \
-                 (j.state = 'queued' OR (j.state = 'running' AND j.lease_until_ms < $1 AND j.attempt < j.max_attempts)) \
-                 AND ($4 <= 0 OR l.running < $4) AND j.memory_bytes <= $5 \
-                 ORDER BY l.running, COALESCE(l.last_start, 0), j.priority DESC, j.run_at_ms, j.id LIMIT 1) \
-             RETURNING id, attempt, memory_bytes",
-        )
-        .bind(now)
-        .bind(lease_ms)
-        .bind(worker_id)
-        .bind(max_running_per_lab as i64)
-        .bind(max_memory.min(i64::MAX as u64) as i64)
-        .fetch_optional(&mut *tx)
-        .await?;
-        tx.commit().await?;
-        let Some(row) = claimed else { return Ok(None) };
-        let id: i64 = row.get("id");
-        let attempt: i64 = row.get("attempt");
-        let memory_bytes: i64 = row.get("memory_bytes");
-        Ok(Some(ClaimedJob {
-            id,
-            attempt,
-            memory_bytes: memory_bytes.max(0) as u64,
-            reconstruction: self.reconstruction(id).await?,
-        }))
-    }
-
-    /// Extends the lease and records progress. False means the job is no longer ours (fenced out
-    /// or cancelled): stop computing.
-    pub async fn heartbeat(
-        &self,
-        id: i64,
-        attempt: i64,
-        lease_ms: i64,
-        progress: f64,
-    ) -> Result<bool, StoreError> {
-        let now = now_ms();
-        let changed = sqlx::query(
-            "UPDATE jobs SET lease_until_ms = $3 + $4, progress = $5 \
-             WHERE id = $1 AND attempt = $2 AND state = 'running'",
-        )
-        .bind(id)
-        .bind(attempt)
-        .bind(now)
-        .bind(lease_ms)
-        .bind(progress)
-        .execute(&self.pool)
-        .await?
-        .rows_affected();
-        Ok(changed == 1)
-    }
-
-    /// Stores the result and marks the job done, atomically, if this run still holds the job.
-    pub async fn complete_reconstruction(
-        &self,
-        id: i64,
-        attempt: i64,
-        images: &[StoredImage],
-        transport: Option<&[u8]>,
-        report_json: &str,
-        seconds: f64,
-    ) -> Result<bool, StoreError> {
-        let mut tx = self.pool.begin_with("BEGIN IMMEDIATE").await?;
-        let fenced = sqlx::query(
-            "UPDATE jobs SET state = 'done', progress = 1, finished_ms = $3, lease_until_ms = NULL \
-             WHERE id = $1 AND attempt = $2 AND state = 'running'",
-        )
-        .bind(id)
-        .bind(attempt)
-        .bind(now_ms())
-        .execute(&mut *tx)
-        .await?
-        .rows_affected();
-        if fenced != 1 {
-            tx.rollback().await?;
-            return Ok(false);
-        }
-        sqlx::query("UPDATE reconstructions SET report_json = $2, seconds = $3 WHERE id = $1")
-            .bind(id)
-            .bind(report_json)
-            .bind(seconds)
-            .execute(&mut *tx)
-            .await?;
-        for image in images {
-            sqlx::query(
-                "INSERT INTO dual_images (reconstruction_id, channel_index, channel_name, width, height, data) \
-                 VALUES ($1, $2, $3, $4, $5, $6)",
-            )
-            .bind(id)
-            .bind(image.channel_index as i64)
-            .bind(&image.channel_name)
-            .bind(image.width as i64)
-            .bind(image.height as i64)
-            .bind(f32_to_le(&image.data))
-            .execute(&mut *tx)
-            .await?;
-        }
-        for (part, data) in transport
-            .unwrap_or_default()
-            .chunks(TRANSPORT_PART_BYTES)
-            .enumerate()
-        {
-            sqlx::query(
-                "INSERT INTO transports (reconstruction_id, part, data) VALUES ($1, $2, $3)",
-            )
-            .bind(id)
-            .bind(part as i64)
-            .bind(data)
-            .execute(&mut *tx)
-            .await?;
-        }
-        tx.commit().await?;
-        Ok(true)
-    }
-
-    /// A camera reconstruction's encoded transport matrix (its parts joined), if it has one.
-    pub async fn transport(&self, id: i64) -> Result<Option<Vec<u8>>, StoreError> {
-        let parts =
-            sqlx::query("SELECT data FROM transports WHERE reconstruction_id = $1 ORDER BY part")
-                .bind(id)
-                .fetch_all(&self.pool)
-                .await?;
-        if parts.is_empty() {
-            return Ok(None);
-        }
-        let mut out = Vec::new();
-        for p in parts {
-            out.extend_from_slice(&p.get::<Vec<u8>, _>("data"));
-        }
-        Ok(Some(out))
-    }
-
-    /// Records a failed run. `retry` puts the job back in the queue if attempts are left
-    /// (transient causes); otherwise it fails for good (the input cannot be solved).
-    pub async fn fail_job(
-        &self,
-        id: i64,
-        attempt: i64,
-        error: &str,
-        retry: bool,
-    ) -> Result<bool, StoreError> {
-        let now = now_ms();
-        let changed = sqlx::query(
-            "UPDATE jobs SET last_error = $3, lease_until_ms = NULL, \
-             state = CASE WHEN $4 AND attempt < max_attempts THEN 'queued' ELSE 'failed' END, \
-             finished_ms = CASE WHEN $4 AND attempt < max_attempts THEN NULL ELSE $5 END, \
-             run_at_ms = $5 + 1000 * attempt \
-             WHERE id = $1 AND attempt = $2 AND state = 'running'",
-        )
-        .bind(id)
-        .bind(attempt)
-        .bind(error)
-        .bind(retry)
-        .bind(now)
-        .execute(&self.pool)
-        .await?
-        .rows_affected();
-        Ok(changed == 1)
-    }
-
-    /// Gives a running job back to the queue without counting the attempt (graceful shutdown).
-    pub async fn release_job(&self, id: i64, attempt: i64) -> Result<bool, StoreError> {
-        let changed = sqlx::query(
-            "UPDATE jobs SET state = 'queued', attempt = attempt - 1, lease_until_ms = NULL, worker_id = NULL \
-             WHERE id = $1 AND attempt = $2 AND state = 'running'",
-        )
-        .bind(id)
-        .bind(attempt)
-        .execute(&self.pool)
-        .await?
-        .rows_affected();
-        Ok(changed == 1)
-    }
-
-    /// Cancels a queued or running job; a running worker notices at its next heartbeat.
-    pub async fn cancel_job(&self, id: i64) -> Result<bool, StoreError> {
-        let changed = sqlx::query(
-            "UPDATE jobs SET state = 'cancelled', finished_ms = $2, lease_until_ms = NULL \
-             WHERE id = $1 AND state IN ('queued', 'running')",
-        )
-        .bind(id)
-        .bind(now_ms())
-        .execute(&self.pool)
-        .await?
-        .rows_affected();
-        Ok(changed == 1)
-    }
-
-    /// A lab's jobs waiting or running.
-    pub async fn pending_jobs_for_lab(&self, lab: &str) -> Result<u64, StoreError> {
-        let n: i64 = sqlx::query(
-            "SELECT COUNT(*) FROM jobs WHERE lab = $1 AND state IN ('queued', 'running')",
-        )
-        .bind(lab)
-        .fetch_one(&self.pool)
-        .await?
-        .get(0);
-        Ok(n as u64)
-    }
-
-    /// Jobs by state: (queued, running).
-    pub async fn queue_depth(&self) -> Result<(u64, u64), StoreError> {
-        let row = sqlx::query(
-            "SELECT COALESCE(SUM(state = 'queued'), 0), COALESCE(SUM(state = 'running'), 0) FROM jobs \
-             WHERE state IN ('queued', 'running')",
-        )
-        .fetch_one(&self.pool)
-        .await?;
-        Ok((row.get::<i64, _>(0) as u64, row.get::<i64, _>(1) as u64))
-    }
-
-    /// Number of jobs waiting or running.
-    pub async fn pending_jobs(&self) -> Result<i64, StoreError> {
-        Ok(
-            sqlx::query("SELECT COUNT(*) FROM jobs WHERE state IN ('queued', 'running')")
-                .fetch_one(&self.pool)
-                .await?
-                .get(0),
-        )
-    }
-
-    /// Dual images of a reconstruction, by channel.
-    pub async fn dual_images(
-        &self,
-        reconstruction_id: i64,
-    ) -> Result<Vec<StoredImage>, StoreError> {
-        let rows = sqlx::query(
-            "SELECT channel_index, channel_name, width, height, data FROM dual_images \
-             WHERE reconstruction_id = $1 ORDER BY channel_index",
-        )
-        .bind(reconstruction_id)
-        .fetch_all(&self.pool)
-        .await?;
-        rows.iter()
-            .map(|row| {
-                Ok(StoredImage {
-                    channel_index: row.get::<i64, _>("channel_index") as u32,
-                    channel_name: row.get("channel_name"),
-                    width: row.get::<i64, _>("width") as u32,
-                    height: row.get::<i64, _>("height") as u32,
-                    data: le_to_f32(&row.get::<Vec<u8>, _>("data"))?,
-                })
-            })
-            .collect()
     }
 }

@@ -1,25 +1,28 @@
-//! The only place that speaks SQL: sessions, bucket rows, the job queue and results, in SQLite.
-//!
-//! SQLite runs in WAL mode with `synchronous = FULL`, so a committed transaction survives a crash
-//! of the process or of the machine: rows are acknowledged only after their commit returns.
+//! What the service keeps: sessions, bucket rows, the job queue and results, tokens. The
+//! domain's types and the [`Database`] trait (in parts: [`Sessions`], [`Rows`], [`Jobs`],
+//! [`Tokens`]) live here with the rules every backend shares; the SQL lives in a backend
+//! ([`sqlite`], embedded; [`postgres`], shared by many nodes). Rows are acknowledged only after their commit returns.
 
-use std::path::{Path, PathBuf};
-use std::str::FromStr;
-use std::time::{Duration, SystemTime, UNIX_EPOCH};
+use std::path::Path;
+use std::sync::Arc;
+use std::time::{SystemTime, UNIX_EPOCH};
 
+use async_trait::async_trait;
 use helmholtz_proto::PatternSpec;
-use sqlx::sqlite::{SqliteConnectOptions, SqliteJournalMode, SqlitePoolOptions, SqliteSynchronous};
-use sqlx::{Row, SqlitePool};
 
 mod jobs;
+pub mod postgres;
 mod rows;
 mod sessions;
+pub mod sqlite;
 mod tokens;
 
-pub use jobs::{ClaimedJob, ReconstructionRow, StoredImage};
-pub use rows::{AppendOutcome, WriterLease};
-pub use sessions::{CameraLayout, NewSession, SampleFormat, SessionRow, SessionState};
-pub use tokens::TokenInfo;
+pub use jobs::{ClaimedJob, Jobs, ReconstructionRow, StoredImage};
+pub use postgres::Postgres;
+pub use rows::{AppendOutcome, RawChunk, Rows, WriterLease};
+pub use sessions::{CameraLayout, NewSession, SampleFormat, SessionRow, SessionState, Sessions};
+pub use sqlite::Sqlite;
+pub use tokens::{TokenInfo, Tokens};
 
 /// Storage errors, by what the caller should tell its user.
 #[derive(Debug, thiserror::Error)]
@@ -68,6 +71,11 @@ pub enum StoreError {
         committed: u64,
         expected: u64,
     },
+    #[error(
+        "the database URL must start with postgres:// or postgresql:// (leave it out for the \
+         embedded SQLite database in the data directory)"
+    )]
+    UnsupportedUrl,
     #[error("stored data is corrupt: {0}")]
     Corrupt(String),
     #[error(transparent)]
@@ -76,11 +84,72 @@ pub enum StoreError {
     Migrate(#[from] sqlx::migrate::MigrateError),
 }
 
-/// Handle to the database; cheap to clone.
+/// Everything the service keeps, as one backend stores it: sessions and their rows, the job
+/// queue and results, tokens. SQLite ([`Sqlite`]) is the embedded implementation; a backend
+/// implements the four parts and these.
+#[async_trait]
+pub trait Database:
+    Sessions + Rows + Jobs + Tokens + std::fmt::Debug + Send + Sync + 'static
+{
+    /// True when the database answers (health checks).
+    async fn ping(&self) -> bool;
+
+    /// Closes the connections (after the last request).
+    async fn close(&self);
+
+    /// Where the data lives, for logs and the operator (never a password).
+    fn describe(&self) -> String;
+
+    /// Runs until dropped: wakes `wake`'s waiters whenever any process sharing the database
+    /// queues a job (a hint: idle workers also look every so often). The default never wakes:
+    /// an embedded database has no other process, and this one wakes its workers directly.
+    async fn forward_job_wakeups(&self, wake: Arc<tokio::sync::Notify>) {
+        let _ = wake;
+        std::future::pending::<()>().await
+    }
+}
+
+/// Handle to the database the process uses; cheap to clone. Dereferences to [`Database`], so
+/// every part's methods are called on it directly.
 #[derive(Clone, Debug)]
-pub struct Store {
-    pool: SqlitePool,
-    path: PathBuf,
+pub struct Store(Arc<dyn Database>);
+
+impl std::ops::Deref for Store {
+    type Target = dyn Database;
+    fn deref(&self) -> &Self::Target {
+        &*self.0
+    }
+}
+
+impl Store {
+    /// Opens (creating if needed) the embedded SQLite database in `data_dir` and applies
+    /// pending migrations.
+    pub async fn open(data_dir: &Path) -> Result<Store, StoreError> {
+        Ok(Store::from(Sqlite::open(data_dir).await?))
+    }
+
+    /// The database a process was told to use: PostgreSQL at `database_url`
+    /// (`postgres://...`, with at most `max_connections` pooled connections), or without a URL
+    /// the embedded SQLite in `data_dir`. Applies pending migrations either way.
+    pub async fn connect(
+        database_url: Option<&str>,
+        data_dir: &Path,
+        max_connections: u32,
+    ) -> Result<Store, StoreError> {
+        match database_url {
+            None => Store::open(data_dir).await,
+            Some(url) if url.starts_with("postgres://") || url.starts_with("postgresql://") => {
+                Ok(Store::from(Postgres::connect(url, max_connections).await?))
+            }
+            Some(_) => Err(StoreError::UnsupportedUrl),
+        }
+    }
+}
+
+impl<D: Database> From<D> for Store {
+    fn from(db: D) -> Store {
+        Store(Arc::new(db))
+    }
 }
 
 pub(crate) fn now_ms() -> i64 {
@@ -88,100 +157,6 @@ pub(crate) fn now_ms() -> i64 {
         .duration_since(UNIX_EPOCH)
         .map(|d| d.as_millis() as i64)
         .unwrap_or(0)
-}
-
-impl Store {
-    /// Opens (creating if needed) `data_dir/helmholtz.sqlite` and applies pending migrations.
-    pub async fn open(data_dir: &Path) -> Result<Store, StoreError> {
-        let path = data_dir.join("helmholtz.sqlite");
-        private_files(data_dir, &path).map_err(|e| {
-            StoreError::Corrupt(format!(
-                "cannot create data directory {}: {e}",
-                data_dir.display()
-            ))
-        })?;
-        let options = SqliteConnectOptions::from_str(&format!("sqlite://{}", path.display()))?
-            .create_if_missing(true)
-            .journal_mode(SqliteJournalMode::Wal)
-            .synchronous(SqliteSynchronous::Full)
-            .busy_timeout(Duration::from_secs(10))
-            .foreign_keys(true);
-        let pool = SqlitePoolOptions::new()
-            .max_connections(8)
-            .connect_with(options)
-            .await?;
-        sqlx::migrate!("../migrations").run(&pool).await?;
-        Ok(Store { pool, path })
-    }
-
-    pub fn path(&self) -> &Path {
-        &self.path
-    }
-
-    pub async fn close(&self) {
-        self.pool.close().await;
-    }
-
-    /// True when the database answers (health checks).
-    pub async fn ping(&self) -> bool {
-        sqlx::query("SELECT 1")
-            .fetch_one(&self.pool)
-            .await
-            .map(|r| r.get::<i64, _>(0) == 1)
-            .unwrap_or(false)
-    }
-}
-
-/// The data directory (mode 0700) and the database (0600) are the server's alone: tokens'
-/// hashes and every lab's measurements live there. Modes are set explicitly, whatever the umask;
-/// an existing directory or database open to others is narrowed, with a warning. SQLite gives its
-/// `-wal` and `-shm` files the database's mode.
-fn private_files(data_dir: &Path, db: &Path) -> std::io::Result<()> {
-    #[cfg(unix)]
-    {
-        use std::os::unix::fs::{DirBuilderExt, OpenOptionsExt, PermissionsExt};
-        if !data_dir.exists() {
-            std::fs::DirBuilder::new()
-                .recursive(true)
-                .mode(0o700)
-                .create(data_dir)?;
-            std::fs::set_permissions(data_dir, std::fs::Permissions::from_mode(0o700))?;
-        }
-        narrow(data_dir, 0o700)?;
-        if !db.exists() {
-            std::fs::OpenOptions::new()
-                .create(true)
-                .append(true)
-                .mode(0o600)
-                .open(db)?;
-            std::fs::set_permissions(db, std::fs::Permissions::from_mode(0o600))?;
-        }
-        for suffix in ["", "-wal", "-shm"] {
-            let file = PathBuf::from(format!("{}{suffix}", db.display()));
-            if file.exists() {
-                narrow(&file, 0o600)?;
-            }
-        }
-        fn narrow(path: &Path, mode: u32) -> std::io::Result<()> {
-            let current = std::fs::metadata(path)?.permissions().mode() & 0o777;
-            if current & !mode != 0 {
-                tracing::warn!(
-                    path = %path.display(),
-                    from = format!("{current:o}"),
-                    to = format!("{mode:o}"),
-                    "narrowing permissions: the data directory and database are the server's alone"
-                );
-                std::fs::set_permissions(path, std::fs::Permissions::from_mode(current & mode))?;
-            }
-            Ok(())
-        }
-        Ok(())
-    }
-    #[cfg(not(unix))]
-    {
-        let _ = db;
-        std::fs::create_dir_all(data_dir)
-    }
 }
 
 pub(crate) fn parse_spec(json: &str) -> Result<PatternSpec, StoreError> {

@@ -2,11 +2,10 @@
 
 use std::collections::BTreeMap;
 
+use async_trait::async_trait;
 use helmholtz_proto::PatternSpec;
-use sqlx::Row;
-use sqlx::sqlite::SqliteRow;
 
-use super::{Store, StoreError, f32_to_le, le_to_f32, now_ms, parse_spec};
+use super::StoreError;
 
 pub use helmholtz_proto::wire::SampleFormat;
 
@@ -86,239 +85,86 @@ impl SessionRow {
     }
 }
 
-const SESSION_COLUMNS: &str = "id, lab, rig, spec_json, channels_json, metadata_json, expected_rows, \
-     committed_rows, state, gt_transport IS NOT NULL AS has_gt, created_ms, finished_ms, \
-     camera_width, camera_height, sample_format, directions_json";
-
-fn session_from_row(row: &SqliteRow) -> Result<SessionRow, StoreError> {
-    let corrupt = |what: &str, e: serde_json::Error| StoreError::Corrupt(format!("{what}: {e}"));
-    let name: &str = row.get("sample_format");
-    let format = SampleFormat::parse(name)
-        .ok_or_else(|| StoreError::Corrupt(format!("unknown sample format {name:?}")))?;
-    let camera = match (
-        row.get::<Option<i64>, _>("camera_width"),
-        row.get::<Option<i64>, _>("camera_height"),
-    ) {
-        (Some(w), Some(h)) => Some(CameraLayout {
-            width: w as u32,
-            height: h as u32,
-            format,
-        }),
-        _ => None,
+/// Whether a stored session answers a repeated creation: `Ok` when `new` declares what is
+/// stored, else the error naming what differs (or that the id is another lab's: ids are
+/// global, and another lab's session is not described, not even that it differs).
+pub(crate) fn same_declaration(existing: &SessionRow, new: &NewSession) -> Result<(), StoreError> {
+    if existing.lab != new.lab {
+        return Err(StoreError::SessionIdTaken(new.id.clone()));
+    }
+    let differs = if existing.rig != new.rig {
+        Some("rig")
+    } else if existing.spec != new.spec {
+        Some("patterns")
+    } else if existing.channels != new.channels
+        || existing.camera != new.camera
+        || existing.directions != new.directions
+    {
+        Some("detector")
+    } else if existing.metadata != new.metadata {
+        Some("metadata")
+    } else if existing.has_ground_truth != new.ground_truth.is_some() {
+        Some("ground_truth")
+    } else {
+        None
     };
-    Ok(SessionRow {
-        directions: serde_json::from_str(row.get("directions_json"))
-            .map_err(|e| corrupt("directions", e))?,
-        camera,
-        id: row.get("id"),
-        lab: row.get("lab"),
-        rig: row.get("rig"),
-        spec: parse_spec(row.get("spec_json"))?,
-        channels: serde_json::from_str(row.get("channels_json"))
-            .map_err(|e| corrupt("channels", e))?,
-        metadata: serde_json::from_str(row.get("metadata_json"))
-            .map_err(|e| corrupt("metadata", e))?,
-        expected_rows: row.get::<i64, _>("expected_rows") as u64,
-        committed_rows: row.get::<i64, _>("committed_rows") as u64,
-        state: if row.get::<String, _>("state") == "finished" {
-            SessionState::Finished
-        } else {
-            SessionState::Open
-        },
-        has_ground_truth: row.get::<bool, _>("has_gt"),
-        created_ms: row.get("created_ms"),
-        finished_ms: row.get("finished_ms"),
-    })
+    match differs {
+        Some(field) => Err(StoreError::SessionConflict(new.id.clone(), field)),
+        None => Ok(()),
+    }
 }
 
-impl Store {
-    /// Creates the session, or returns the existing one if `new` declares the same thing.
-    /// Returns `(session, created)`.
-    pub async fn create_session(&self, new: &NewSession) -> Result<(SessionRow, bool), StoreError> {
-        self.create_session_capped(new, u64::MAX).await
+/// The error for a session that cannot be finished yet, if any.
+pub(crate) fn finishable(session: &SessionRow) -> Result<(), StoreError> {
+    if session.committed_rows != session.expected_rows {
+        return Err(StoreError::Incomplete {
+            id: session.id.clone(),
+            committed: session.committed_rows,
+            expected: session.expected_rows,
+        });
     }
+    Ok(())
+}
 
-    /// [`Store::create_session`], refusing a new session when its lab already holds
-    /// `max_per_lab` ([`StoreError::Cap`]). The count and the insert are one transaction (the
-    /// write lock is taken first), so concurrent creations never pass the cap together.
-    pub async fn create_session_capped(
+/// Sessions as a backend stores them.
+#[async_trait]
+pub trait Sessions: Send + Sync {
+    /// Creates the session, or returns the existing one if `new` declares the same thing
+    /// ([`same_declaration`]), refusing a new session when its lab already holds `max_per_lab`
+    /// ([`StoreError::Cap`]). The count and the insert are atomic, so concurrent creations never
+    /// pass the cap together. Returns `(session, created)`.
+    async fn create_session_capped(
         &self,
         new: &NewSession,
         max_per_lab: u64,
-    ) -> Result<(SessionRow, bool), StoreError> {
-        let (gt_w, gt_h, gt_blob) = match &new.ground_truth {
-            Some((w, h, data)) => (Some(*w as i64), Some(*h as i64), Some(f32_to_le(data))),
-            None => (None, None, None),
-        };
-        let mut tx = self.pool.begin_with("BEGIN IMMEDIATE").await?;
-        let exists = sqlx::query("SELECT 1 FROM sessions WHERE id = $1")
-            .bind(&new.id)
-            .fetch_optional(&mut *tx)
-            .await?
-            .is_some();
-        if !exists {
-            let held: i64 = sqlx::query("SELECT COUNT(*) FROM sessions WHERE lab = $1")
-                .bind(&new.lab)
-                .fetch_one(&mut *tx)
-                .await?
-                .get(0);
-            if held as u64 >= max_per_lab {
-                return Err(StoreError::Cap {
-                    limit: "max_sessions_per_lab",
-                    message: format!(
-                        "lab {:?} holds {held} sessions (limit {max_per_lab}); no new session was created",
-                        new.lab
-                    ),
-                });
-            }
-        }
-        let inserted = sqlx::query(
-            "INSERT INTO sessions (id, rig, spec_json, channels_json, metadata_json, expected_rows, \
-             gt_width, gt_height, gt_transport, created_ms, lab, camera_width, camera_height, sample_format, directions_json) \
-             VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $12, $13, $14, $15) \
-             ON CONFLICT (id) DO NOTHING",
-        )
-        .bind(&new.id)
-        .bind(&new.rig)
-        .bind(new.spec.to_json())
-        .bind(serde_json::to_string(&new.channels).expect("json"))
-        .bind(serde_json::to_string(&new.metadata).expect("json"))
-        .bind(new.spec.count() as i64)
-        .bind(gt_w)
-        .bind(gt_h)
-        .bind(gt_blob)
-        .bind(now_ms())
-        .bind(&new.lab)
-        .bind(new.camera.map(|c| c.width as i64))
-        .bind(new.camera.map(|c| c.height as i64))
-        .bind(new.camera.map(|c| c.format).unwrap_or(SampleFormat::F64).name())
-        .bind(serde_json::to_string(&new.directions).expect("json"))
-        .execute(&mut *tx)
-        .await?
-        .rows_affected()
-            == 1;
-        tx.commit().await?;
-        let existing = self
-            .get_session(&new.id)
-            .await?
-            .ok_or_else(|| StoreError::SessionNotFound(new.id.clone()))?;
-        if !inserted {
-            if existing.lab != new.lab {
-                // Ids are global; another lab's session is not described (not even that it differs).
-                return Err(StoreError::SessionIdTaken(new.id.clone()));
-            }
-            let differs = if existing.rig != new.rig {
-                Some("rig")
-            } else if existing.spec != new.spec {
-                Some("patterns")
-            } else if existing.channels != new.channels
-                || existing.camera != new.camera
-                || existing.directions != new.directions
-            {
-                Some("detector")
-            } else if existing.metadata != new.metadata {
-                Some("metadata")
-            } else if existing.has_ground_truth != new.ground_truth.is_some() {
-                Some("ground_truth")
-            } else {
-                None
-            };
-            if let Some(field) = differs {
-                return Err(StoreError::SessionConflict(new.id.clone(), field));
-            }
-        }
-        Ok((existing, inserted))
+    ) -> Result<(SessionRow, bool), StoreError>;
+
+    async fn get_session(&self, id: &str) -> Result<Option<SessionRow>, StoreError>;
+
+    /// A lab's sessions, newest first.
+    async fn list_sessions(&self, lab: &str, limit: u32) -> Result<Vec<SessionRow>, StoreError>;
+
+    /// How many sessions a lab has.
+    async fn count_sessions(&self, lab: &str) -> Result<u64, StoreError>;
+
+    /// (sessions, rows) stored in all labs (for the operator's metrics).
+    async fn count_all(&self) -> Result<(u64, u64), StoreError>;
+
+    /// Marks the session finished once every declared row is committed ([`finishable`]).
+    /// Idempotent.
+    async fn finish_session(&self, id: &str) -> Result<SessionRow, StoreError>;
+
+    /// The simulator's transport for a simulated session.
+    async fn ground_truth(&self, id: &str) -> Result<Option<(u32, u32, Vec<f32>)>, StoreError>;
+
+    /// [`Sessions::create_session_capped`] without a cap.
+    async fn create_session(&self, new: &NewSession) -> Result<(SessionRow, bool), StoreError> {
+        self.create_session_capped(new, u64::MAX).await
     }
 
-    pub async fn get_session(&self, id: &str) -> Result<Option<SessionRow>, StoreError> {
-        let sql = format!("SELECT {SESSION_COLUMNS} FROM sessions WHERE id = $1");
-        let row = sqlx::query(sqlx::AssertSqlSafe(sql))
-            .bind(id)
-            .fetch_optional(&self.pool)
-            .await?;
-        row.as_ref().map(session_from_row).transpose()
-    }
-
-    pub async fn session(&self, id: &str) -> Result<SessionRow, StoreError> {
+    async fn session(&self, id: &str) -> Result<SessionRow, StoreError> {
         self.get_session(id)
             .await?
             .ok_or_else(|| StoreError::SessionNotFound(id.to_string()))
-    }
-
-    /// A lab's sessions, newest first.
-    pub async fn list_sessions(
-        &self,
-        lab: &str,
-        limit: u32,
-    ) -> Result<Vec<SessionRow>, StoreError> {
-        let sql = format!(
-            "SELECT {SESSION_COLUMNS} FROM sessions WHERE lab = $2 ORDER BY created_ms DESC, id LIMIT $1"
-        );
-        let rows = sqlx::query(sqlx::AssertSqlSafe(sql))
-            .bind(limit as i64)
-            .bind(lab)
-            .fetch_all(&self.pool)
-            .await?;
-        rows.iter().map(session_from_row).collect()
-    }
-
-    /// How many sessions a lab has.
-    pub async fn count_sessions(&self, lab: &str) -> Result<u64, StoreError> {
-        let n: i64 = sqlx::query("SELECT COUNT(*) FROM sessions WHERE lab = $1")
-            .bind(lab)
-            .fetch_one(&self.pool)
-            .await?
-            .get(0);
-        Ok(n as u64)
-    }
-
-    /// Total rows stored in all sessions (for the operator's metrics).
-    pub async fn count_all(&self) -> Result<(u64, u64), StoreError> {
-        let row = sqlx::query("SELECT COUNT(*), COALESCE(SUM(committed_rows), 0) FROM sessions")
-            .fetch_one(&self.pool)
-            .await?;
-        Ok((row.get::<i64, _>(0) as u64, row.get::<i64, _>(1) as u64))
-    }
-
-    /// Marks the session finished once every declared row is committed. Idempotent.
-    pub async fn finish_session(&self, id: &str) -> Result<SessionRow, StoreError> {
-        let session = self.session(id).await?;
-        if session.state == SessionState::Finished {
-            return Ok(session);
-        }
-        if session.committed_rows != session.expected_rows {
-            return Err(StoreError::Incomplete {
-                id: id.to_string(),
-                committed: session.committed_rows,
-                expected: session.expected_rows,
-            });
-        }
-        sqlx::query("UPDATE sessions SET state = 'finished', finished_ms = $2 WHERE id = $1 AND state = 'open'")
-            .bind(id)
-            .bind(now_ms())
-            .execute(&self.pool)
-            .await?;
-        self.session(id).await
-    }
-
-    /// The simulator's transport for a simulated session.
-    pub async fn ground_truth(&self, id: &str) -> Result<Option<(u32, u32, Vec<f32>)>, StoreError> {
-        let row =
-            sqlx::query("SELECT gt_width, gt_height, gt_transport FROM sessions WHERE id = $1")
-                .bind(id)
-                .fetch_optional(&self.pool)
-                .await?;
-        let Some(row) = row else {
-            return Err(StoreError::SessionNotFound(id.to_string()));
-        };
-        let blob: Option<Vec<u8>> = row.get("gt_transport");
-        match blob {
-            None => Ok(None),
-            Some(blob) => Ok(Some((
-                row.get::<i64, _>("gt_width") as u32,
-                row.get::<i64, _>("gt_height") as u32,
-                le_to_f32(&blob)?,
-            ))),
-        }
     }
 }

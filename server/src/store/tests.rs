@@ -3,12 +3,46 @@ use std::collections::BTreeMap;
 use helmholtz_proto::{Family, PatternSpec};
 
 use super::*;
+use sqlx::Row;
 
-async fn store() -> (tempfile::TempDir, Store) {
-    let dir = tempfile::tempdir().unwrap();
-    let store = Store::open(dir.path()).await.unwrap();
-    (dir, store)
+/// Each test below runs on both backends: SQLite in a fresh data directory, PostgreSQL in a
+/// fresh database that the test creates and drops ([`TestPostgres`]).
+macro_rules! on_both_backends {
+    ($($name:ident),* $(,)?) => {
+        mod on_sqlite {
+            $(
+                #[tokio::test]
+                async fn $name() {
+                    let dir = tempfile::tempdir().unwrap();
+                    super::$name(super::Store::open(dir.path()).await.unwrap()).await;
+                }
+            )*
+        }
+        mod on_postgres {
+            $(
+                #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+                async fn $name() {
+                    let db = crate::store::postgres::testing::TestPostgres::create().await;
+                    super::$name(db.store()).await;
+                }
+            )*
+        }
+    };
 }
+
+on_both_backends!(
+    create_is_idempotent_and_conflicts_name_the_field,
+    appends_compare_overlap_reject_gaps_and_read_back_exactly,
+    leases_expire_and_fencing_stops_stale_workers,
+    failures_retry_then_give_up,
+    claims_alternate_between_labs_and_respect_the_per_lab_cap,
+    sessions_belong_to_labs_and_ids_are_not_shared,
+    an_overlap_that_differs_is_refused_and_stores_nothing,
+    a_finished_session_refuses_new_rows_but_confirms_equal_ones,
+    one_writer_lease_per_session_with_fencing,
+    lab_caps_hold_under_concurrent_callers,
+    claims_skip_jobs_that_do_not_fit_the_memory_left,
+);
 
 fn new_session(id: &str, count: u64) -> NewSession {
     NewSession {
@@ -30,9 +64,7 @@ fn rows(start: u64, n: u64) -> Vec<f64> {
         .collect()
 }
 
-#[tokio::test]
-async fn create_is_idempotent_and_conflicts_name_the_field() {
-    let (_d, s) = store().await;
+async fn create_is_idempotent_and_conflicts_name_the_field(s: Store) {
     let (a, created) = s.create_session(&new_session("s1", 10)).await.unwrap();
     assert!(created);
     let (b, created) = s.create_session(&new_session("s1", 10)).await.unwrap();
@@ -51,9 +83,7 @@ async fn create_is_idempotent_and_conflicts_name_the_field() {
     ));
 }
 
-#[tokio::test]
-async fn appends_compare_overlap_reject_gaps_and_read_back_exactly() {
-    let (_d, s) = store().await;
+async fn appends_compare_overlap_reject_gaps_and_read_back_exactly(s: Store) {
     s.create_session(&new_session("s", 10)).await.unwrap();
     let out = s.append_rows("s", 0, 2, &rows(0, 4)).await.unwrap();
     assert_eq!(
@@ -125,9 +155,7 @@ async fn appends_compare_overlap_reject_gaps_and_read_back_exactly() {
     ));
 }
 
-#[tokio::test]
-async fn leases_expire_and_fencing_stops_stale_workers() {
-    let (_d, s) = store().await;
+async fn leases_expire_and_fencing_stops_stale_workers(s: Store) {
     s.create_session(&new_session("s", 10)).await.unwrap();
     let r = s
         .enqueue_reconstruction("default", "s", "gi", "{}", 10, 3)
@@ -176,9 +204,7 @@ async fn leases_expire_and_fencing_stops_stale_workers() {
     assert!(s.claim_job("w3", 60_000, 0).await.unwrap().is_none());
 }
 
-#[tokio::test]
-async fn failures_retry_then_give_up() {
-    let (_d, s) = store().await;
+async fn failures_retry_then_give_up(s: Store) {
     s.create_session(&new_session("s", 10)).await.unwrap();
     let r = s
         .enqueue_reconstruction("default", "s", "gi", "{}", 10, 2)
@@ -220,9 +246,7 @@ fn lab_session(lab: &str, id: &str) -> NewSession {
     }
 }
 
-#[tokio::test]
-async fn claims_alternate_between_labs_and_respect_the_per_lab_cap() {
-    let (_d, s) = store().await;
+async fn claims_alternate_between_labs_and_respect_the_per_lab_cap(s: Store) {
     s.create_session(&lab_session("a", "sa")).await.unwrap();
     s.create_session(&lab_session("b", "sb")).await.unwrap();
     let mut a_jobs = Vec::new();
@@ -296,9 +320,7 @@ async fn claims_alternate_between_labs_and_respect_the_per_lab_cap() {
     assert_eq!(s.queue_depth().await.unwrap(), (1, 2));
 }
 
-#[tokio::test]
-async fn sessions_belong_to_labs_and_ids_are_not_shared() {
-    let (_d, s) = store().await;
+async fn sessions_belong_to_labs_and_ids_are_not_shared(s: Store) {
     s.create_session(&lab_session("a", "x")).await.unwrap();
     let err = s.create_session(&lab_session("b", "x")).await.unwrap_err();
     assert!(matches!(err, StoreError::SessionIdTaken(_)), "{err}");
@@ -315,7 +337,9 @@ async fn sessions_belong_to_labs_and_ids_are_not_shared() {
 #[tokio::test]
 async fn tokens_are_stored_hashed_and_revocable() {
     use crate::auth::{Role, Roles};
-    let (_d, s) = store().await;
+    let d = tempfile::tempdir().unwrap();
+    // The SQLite backend itself: the test reads its token table.
+    let s = Sqlite::open(d.path()).await.unwrap();
     let (info, secret) = s
         .create_token("optics", Roles::of(&[Role::Rig, Role::Reader]), "bench")
         .await
@@ -366,7 +390,7 @@ async fn upgrading_a_database_keeps_its_sessions_and_jobs_in_the_default_lab() {
     std::fs::create_dir_all(&first).unwrap();
     std::fs::write(
         first.join("0001_sessions_jobs.sql"),
-        include_str!("../../../migrations/0001_sessions_jobs.sql"),
+        include_str!("../../../migrations/sqlite/0001_sessions_jobs.sql"),
     )
     .unwrap();
     let data = dir.path().join("data");
@@ -430,9 +454,7 @@ async fn upgrading_a_database_keeps_its_sessions_and_jobs_in_the_default_lab() {
     );
 }
 
-#[tokio::test]
-async fn an_overlap_that_differs_is_refused_and_stores_nothing() {
-    let (_d, s) = store().await;
+async fn an_overlap_that_differs_is_refused_and_stores_nothing(s: Store) {
     s.create_session(&new_session("s", 10)).await.unwrap();
     s.append_rows("s", 0, 2, &rows(0, 6)).await.unwrap();
     // Rows 4..8: row 5 differs in its second value; rows 6 and 7 would be new.
@@ -480,9 +502,7 @@ async fn an_overlap_that_differs_is_refused_and_stores_nothing() {
     ));
 }
 
-#[tokio::test]
-async fn a_finished_session_refuses_new_rows_but_confirms_equal_ones() {
-    let (_d, s) = store().await;
+async fn a_finished_session_refuses_new_rows_but_confirms_equal_ones(s: Store) {
     s.create_session(&new_session("s", 4)).await.unwrap();
     s.append_rows("s", 0, 2, &rows(0, 4)).await.unwrap();
     s.finish_session("s").await.unwrap();
@@ -507,10 +527,8 @@ async fn a_finished_session_refuses_new_rows_but_confirms_equal_ones() {
     assert_eq!(s.session("t").await.unwrap().committed_rows, 10);
 }
 
-#[tokio::test]
-async fn one_writer_lease_per_session_with_fencing() {
+async fn one_writer_lease_per_session_with_fencing(s: Store) {
     use std::time::Duration;
-    let (_d, s) = store().await;
     s.create_session(&new_session("s", 10)).await.unwrap();
     let ttl = Duration::from_millis(300);
     let lease = |holder: &str| WriterLease {
@@ -585,9 +603,7 @@ async fn one_writer_lease_per_session_with_fencing() {
     );
 }
 
-#[tokio::test]
-async fn lab_caps_hold_under_concurrent_callers() {
-    let (_d, s) = store().await;
+async fn lab_caps_hold_under_concurrent_callers(s: Store) {
     let creates: Vec<_> = (0..30)
         .map(|i| {
             let s = s.clone();
@@ -640,9 +656,7 @@ async fn lab_caps_hold_under_concurrent_callers() {
     assert_eq!(s.pending_jobs_for_lab("a").await.unwrap(), 5);
 }
 
-#[tokio::test]
-async fn claims_skip_jobs_that_do_not_fit_the_memory_left() {
-    let (_d, s) = store().await;
+async fn claims_skip_jobs_that_do_not_fit_the_memory_left(s: Store) {
     s.create_session(&new_session("m", 10)).await.unwrap();
     let big = s
         .enqueue_reconstruction_capped("default", "m", "gi", "{}", 10, 3, u64::MAX, 900)

@@ -14,10 +14,10 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, bail};
 use clap::Parser;
-use helmholtz_sim::Target;
-use helmholtz_sim::simulate::{self, NoiseModel};
 use helmholtz_client::spool::{self, SpoolDir};
 use helmholtz_client::{NewSession, PatternSpec, UploadOptions};
+use helmholtz_sim::Target;
+use helmholtz_sim::simulate::{self, NoiseModel};
 use helmholtz_tests::ServerProcess;
 
 #[derive(Parser, Debug, Clone)]
@@ -222,8 +222,7 @@ async fn main() -> anyhow::Result<()> {
             frames.extend(view.render(&p64).into_iter().map(|v| v as f32));
         }
         let id = "ref-camera";
-        let session =
-            NewSession::camera(id, s, 32, 32, helmholtz_proto::wire::SampleFormat::F32);
+        let session = NewSession::camera(id, s, 32, 32, helmholtz_proto::wire::SampleFormat::F32);
         helmholtz_client::create_session(&base, &session).await?;
         helmholtz_client::upload_samples(
             &base,

@@ -1,0 +1,138 @@
+//! The shared backend: PostgreSQL, for API nodes and workers on many machines.
+//!
+//! Every read-check-write that SQLite serialises with its single write lock is serialised here
+//! by a row lock (a session's appends: `SELECT .. FOR UPDATE` on the session) or by a
+//! transaction-scoped advisory lock (a lab's session and job caps, the fair claim), so the rules
+//! hold across every node that shares the database. Times come from the database's clock
+//! (`helmholtz_now_ms()`, migrations/postgres), never a node's.
+
+use std::str::FromStr;
+use std::sync::Arc;
+use std::time::Duration;
+
+use async_trait::async_trait;
+use sqlx::postgres::{PgConnectOptions, PgListener, PgPoolOptions};
+use sqlx::{PgPool, Postgres as Pg, Row, Transaction};
+
+use super::{Database, StoreError};
+
+mod jobs;
+mod rows;
+mod sessions;
+#[cfg(test)]
+pub(crate) mod testing;
+mod tokens;
+
+/// A PostgreSQL database; cheap to clone.
+#[derive(Clone, Debug)]
+pub struct Postgres {
+    pub(crate) pool: PgPool,
+    /// host:port/database, for logs (never the password).
+    name: String,
+}
+
+impl Postgres {
+    /// Connects to `url` (`postgres://user@host:port/database`), with at most `max_connections`
+    /// pooled connections, and applies pending migrations.
+    pub async fn connect(url: &str, max_connections: u32) -> Result<Postgres, StoreError> {
+        Postgres::connect_with(PgConnectOptions::from_str(url)?, max_connections).await
+    }
+
+    pub async fn connect_with(
+        options: PgConnectOptions,
+        max_connections: u32,
+    ) -> Result<Postgres, StoreError> {
+        let name = format!(
+            "postgres://{}@{}:{}/{}",
+            options.get_username(),
+            options.get_host(),
+            options.get_port(),
+            options.get_database().unwrap_or("")
+        );
+        let pool = PgPoolOptions::new()
+            .max_connections(max_connections.max(2))
+            .acquire_timeout(Duration::from_secs(30))
+            .connect_with(options)
+            .await?;
+        sqlx::migrate!("../migrations/postgres").run(&pool).await?;
+        Ok(Postgres { pool, name })
+    }
+}
+
+#[async_trait]
+impl Database for Postgres {
+    async fn ping(&self) -> bool {
+        sqlx::query("SELECT 1::BIGINT")
+            .fetch_one(&self.pool)
+            .await
+            .map(|r| r.get::<i64, _>(0) == 1)
+            .unwrap_or(false)
+    }
+
+    async fn close(&self) {
+        self.pool.close().await;
+    }
+
+    fn describe(&self) -> String {
+        self.name.clone()
+    }
+
+    /// LISTEN on the channel every enqueue notifies; after a lost connection, listens again
+    /// with a growing pause (notifications sent meanwhile are lost: workers also poll).
+    async fn forward_job_wakeups(&self, wake: Arc<tokio::sync::Notify>) {
+        let mut pause = Duration::from_millis(100);
+        loop {
+            let listening = async {
+                let mut listener = PgListener::connect_with(&self.pool).await?;
+                listener.listen(JOBS_CHANNEL).await?;
+                Ok::<_, sqlx::Error>(listener)
+            };
+            match listening.await {
+                Ok(mut listener) => {
+                    pause = Duration::from_millis(100);
+                    // Whatever was queued while not listening.
+                    wake.notify_waiters();
+                    loop {
+                        match listener.recv().await {
+                            Ok(_) => wake.notify_waiters(),
+                            Err(e) => {
+                                tracing::warn!(error = %e, "lost the job notifications; listening again");
+                                break;
+                            }
+                        }
+                    }
+                }
+                Err(e) => {
+                    tracing::warn!(error = %e, retry_in = ?pause, "cannot listen for job notifications");
+                }
+            }
+            tokio::time::sleep(pause).await;
+            pause = (pause * 2).min(Duration::from_secs(10));
+        }
+    }
+}
+
+/// The channel an enqueue notifies (`pg_notify`) and idle workers listen on.
+pub(crate) const JOBS_CHANNEL: &str = "helmholtz_jobs";
+
+/// Takes the transaction-scoped advisory lock named `helmholtz.{what}` (released at commit or
+/// rollback).
+pub(crate) async fn advisory_lock(
+    tx: &mut Transaction<'_, Pg>,
+    what: &str,
+) -> Result<(), StoreError> {
+    sqlx::query("SELECT pg_advisory_xact_lock(hashtextextended($1, 0))")
+        .bind(format!("helmholtz.{what}"))
+        .execute(&mut **tx)
+        .await?;
+    Ok(())
+}
+
+/// [`advisory_lock`] for one lab's `what` (its sessions, its jobs).
+pub(crate) async fn lab_lock(
+    tx: &mut Transaction<'_, Pg>,
+    what: &str,
+    lab: &str,
+) -> Result<(), StoreError> {
+    advisory_lock(tx, &format!("{what}:{lab}")).await
+}
