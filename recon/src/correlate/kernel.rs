@@ -175,6 +175,7 @@ pub(super) fn dot_values(values: &[f32], t: &[f64]) -> f64 {
 }
 
 #[cfg(test)]
+#[allow(clippy::needless_range_loop)] // index loops read best in the reference computations
 mod tests {
     use super::*;
     use crate::testutil::{Rng, random_scene};
