@@ -10,7 +10,7 @@ use std::path::Path;
 use std::time::Instant;
 
 use helmholtz_proto::{Family, HadamardOrdering, PatternGenerator, PatternSpec};
-use helmholtz_sim::{Camera, CameraView, Scene};
+use helmholtz_sim::{Camera, CameraView, Relief};
 use serde::Serialize;
 use serde_json::json;
 
@@ -107,7 +107,7 @@ pub fn run(
 ) -> anyhow::Result<()> {
     let contention = super::machine::Contention::start();
     let (pw, ph, cw, chh) = (64u32, 64u32, 32u32, 32u32);
-    let scene = Scene::demo(pw, ph, 7);
+    let scene = Relief::demo(pw, ph, 7);
     let view = scene.view(&Camera::tilted(cw, chh, 25.0));
     let truth = view.dense();
     let camera = CameraGrid {
@@ -192,8 +192,8 @@ pub fn run(
         let result =
             reconstruct_transport(&spec, camera, count, &config, &mut source, &Control::new());
         let seconds = started.elapsed().as_secs_f64();
-        let peak = helmholtz_alloc::installed()
-            .then(|| helmholtz_alloc::peak_bytes().saturating_sub(base));
+        let peak =
+            helmholtz_alloc::installed().then(|| helmholtz_alloc::peak_bytes().saturating_sub(base));
         let row = match result {
             Ok((t, report)) => {
                 let d = &report.details;
@@ -259,7 +259,7 @@ pub fn run(
     }
 
     // Interactive latency: the scene's exact rows at 256x256 x 64x64, stored sparse.
-    let big = Scene::demo(256, 256, 7);
+    let big = Relief::demo(256, 256, 7);
     let big_view = big.view(&Camera::tilted(64, 64, 25.0));
     let m = big_view.pixels();
     let mut latencies = Vec::new();
@@ -338,8 +338,10 @@ fn write(
     )?;
     let mut md = String::new();
     md.push_str("# Transport matrix benchmarks\n\n");
-    md.push_str("`cargo run -p helmholtz-bench -- --preset transport --out docs` ");
-    md.push_str(&format!("({} threads; {}). Scene: `helmholtz_sim::Scene::demo(64, 64, 7)`, camera `Camera::tilted(32, 32, 25)`; noise-free frames `c_i = T p_i`. ", rayon::current_num_threads(), super::machine::sentence(machine)));
+    md.push_str(
+        "`cargo run -p helmholtz-bench -- --preset transport --out docs` ",
+    );
+    md.push_str(&format!("({} threads; {}). Scene: `helmholtz_sim::Relief::demo(64, 64, 7)`, camera `Camera::tilted(32, 32, 25)`; noise-free frames `c_i = T p_i`. ", rayon::current_num_threads(), super::machine::sentence(machine)));
     md.push_str("Error: relative Frobenius error of T; relit PSNR over three camera-side lights (uniform, checkerboard, random) against the scene's own relight.\n\n");
     md.push_str("| case | frames | coarse-to-fine | seconds | peak heap MiB | transform | lambda | stored KiB (dense KiB) | nnz/row | rel. error T | relit PSNR dB | held-out | iterations/row |\n");
     md.push_str("|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
@@ -364,7 +366,7 @@ fn write(
         ));
     }
     md.push_str("\n## relight / primal latency, 256x256 projector x 64x64 camera\n\n");
-    md.push_str("The scene's exact rows (`Scene::demo(256, 256, 7)`, `Camera::tilted(64, 64, 25)`), each stored with the coefficients above 1e-3 of its largest; error on every 37th row.\n\n");
+    md.push_str("The scene's exact rows (`Relief::demo(256, 256, 7)`, `Camera::tilted(64, 64, 25)`), each stored with the coefficients above 1e-3 of its largest; error on every 37th row.\n\n");
     md.push_str("| transform | nonzeros | stored MiB | rel. error | relight median ms | relight p99 ms | primal median ms | primal p99 ms | calls |\n|---|---|---|---|---|---|---|---|---|\n");
     for l in latencies {
         md.push_str(&format!(

@@ -186,7 +186,7 @@ async fn camera_rig(base: &str, rig: &str, reader: &str) -> anyhow::Result<()> {
     let (frames, truth) = tokio::task::spawn_blocking({
         let spec = spec.clone();
         move || {
-            let scene = helmholtz_sim::Scene::demo(32, 32, 1);
+            let scene = helmholtz_sim::Relief::demo(32, 32, 1);
             let view = scene.view(&helmholtz_sim::Camera::tilted(32, 24, 25.0));
             let generator = helmholtz_proto::PatternGenerator::new(&spec);
             let mut p = vec![0f32; spec.pixels()];

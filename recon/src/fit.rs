@@ -1,13 +1,15 @@
 //! One fit of the iterative methods, shared by the fixed-weight methods ([`super::compressive`])
 //! and `auto` ([`super::auto`]): the operator and data a fit runs on (the offset-free form
-//! `P A` when a constant offset of the buckets is fitted), the offset itself, the prediction of
-//! held-out buckets, and one regularised solve with the method's data term.
+//! `P A`, the centred rows, when a constant offset of the buckets is fitted), the offset
+//! itself, the prediction of held-out buckets, and one regularised solve with the method's data
+//! term.
 //!
 //! The dependency goes one way: `compressive` (the driver: loads the rows, plans the operator,
 //! hands `auto` its channels) uses `auto` and this module; `auto` uses this module only.
 
 use super::linop::LinearOperator;
 use super::method::{Model, Noise};
+use super::ops::CentredOperator;
 use super::solve::{self, Grid, Penalty, Solution, SolveOptions};
 use super::transforms::{TransformKind, sparsifying_transform};
 use super::{Control, ReconError};
@@ -15,49 +17,20 @@ use super::{Control, ReconError};
 /// IRLS rounds of the Poisson data term (the weights settle in 3-4; measured in solve's tests).
 const POISSON_ROUNDS: usize = 4;
 
-/// `P A`, `P = I - 1 1^T / n`: the rows centred, so that a constant added to every bucket (a
-/// dark level, ambient light) drops out of `||P (A t - c)||`. With 0/1 patterns whose sums vary
-/// (Bernoulli) the image mean stays determined by the centred rows (through the spread of the
-/// pattern sums), as well as any other image direction.
-pub(crate) struct OffsetFree<'a> {
-    a: &'a dyn LinearOperator,
-}
-
-impl LinearOperator for OffsetFree<'_> {
-    fn rows(&self) -> usize {
-        self.a.rows()
-    }
-    fn cols(&self) -> usize {
-        self.a.cols()
-    }
-    fn apply(&self, x: &[f64], y: &mut [f64]) {
-        self.a.apply(x, y);
-        centre(y);
-    }
-    fn adjoint(&self, y: &[f64], x: &mut [f64]) {
-        let mut z = y.to_vec();
-        centre(&mut z);
-        self.a.adjoint(&z, x);
-    }
-}
-
-fn centre(v: &mut [f64]) {
-    if !v.is_empty() {
-        let m = v.iter().sum::<f64>() / v.len() as f64;
-        v.iter_mut().for_each(|x| *x -= m);
-    }
-}
-
-/// The operator and data a fit runs on: `(A, b)`, or `(P A, P b)` when the offset is fitted.
+/// The operator and data a fit runs on: `(A, b)`, or `(P A, P b)` when the offset is fitted,
+/// `P = I - 1 1^T / n`: the rows centred ([`CentredOperator`] without its mean row), so that a
+/// constant added to every bucket (a dark level, ambient light) drops out of `||P (A t - c)||`.
+/// With 0/1 patterns whose sums vary (Bernoulli) the image mean stays determined by the
+/// centred rows (through the spread of the pattern sums), as well as any other image direction.
 pub(crate) fn fitting<'a>(
     op: &'a dyn LinearOperator,
     b: &[f64],
     offset: bool,
 ) -> (Box<dyn LinearOperator + 'a>, Vec<f64>) {
     if offset {
-        let mut c = b.to_vec();
-        centre(&mut c);
-        (Box::new(OffsetFree { a: op }), c)
+        let centred = CentredOperator::new(Box::new(op));
+        let c = centred.centre_data(b);
+        (Box::new(centred), c)
     } else {
         (Box::new(op), b.to_vec())
     }
@@ -162,8 +135,12 @@ mod tests {
     fn the_offset_free_operator_passes_the_adjoint_test_and_ignores_a_constant() {
         use crate::linop::{DenseOperator, adjoint_mismatch, test_vector};
         let a = DenseOperator::new(13, 7, test_vector(91, 4));
-        let p = OffsetFree { a: &a };
-        assert!(adjoint_mismatch(&p, 5) < 1e-12);
+        let b = test_vector(13, 5);
+        let (p, pb) = fitting(&a, &b, true);
+        assert!(adjoint_mismatch(p.as_ref(), 5) < 1e-12);
+        // P b: the data centred.
+        let mean = b.iter().sum::<f64>() / 13.0;
+        assert!(pb.iter().zip(&b).all(|(p, b)| (p - (b - mean)).abs() < 1e-15));
         // P (A t + d 1) = P A t: a constant added to every bucket is invisible.
         let t = test_vector(7, 6);
         let mut y = vec![0.0; 13];
@@ -171,7 +148,13 @@ mod tests {
         let mut at = vec![0.0; 13];
         a.apply(&t, &mut at);
         let mut shifted: Vec<f64> = at.iter().map(|v| v + 5.0).collect();
-        centre(&mut shifted);
+        let m = shifted.iter().sum::<f64>() / 13.0;
+        shifted.iter_mut().for_each(|v| *v -= m);
         assert!(y.iter().zip(&shifted).all(|(a, b)| (a - b).abs() < 1e-12));
+        // Without the offset: A and b as they are.
+        let (q, qb) = fitting(&a, &b, false);
+        let mut z = vec![0.0; 13];
+        q.apply(&t, &mut z);
+        assert_eq!((z, qb), (at, b));
     }
 }

@@ -5,7 +5,7 @@
 use std::path::Path;
 use std::process::Command;
 
-use helmholtz_sim::Scene;
+use helmholtz_sim::Relief;
 use helmholtz_tests::{ServerProcess, binary, parse_npy};
 
 fn helmholtz(server: &ServerProcess, spool: &Path, args: &[&str]) -> String {
@@ -91,7 +91,7 @@ async fn four_photodiodes_give_normals_and_colour_filters_a_composite() {
     let (shape, normals) = parse_npy(&std::fs::read(&out).unwrap()).unwrap();
     assert_eq!(shape, vec![32, 32, 3]);
     // Against the scene's true normals, over the pixels photometric stereo determined.
-    let scene = Scene::demo(32, 32, 3);
+    let scene = Relief::demo(32, 32, 3);
     let mut angles: Vec<f64> = scene
         .normals()
         .iter()
@@ -293,7 +293,7 @@ async fn a_camera_rigs_frames_upload_from_an_npy_file() {
     // driver would: an NPY of shape (frames, height, width).
     let spec_json = r#"{"family":"hadamard","width":16,"height":16,"count":512,"seed":0,"ordering":"sequency"}"#;
     let spec: helmholtz_proto::PatternSpec = serde_json::from_str(spec_json).unwrap();
-    let scene = Scene::demo(16, 16, 8);
+    let scene = Relief::demo(16, 16, 8);
     let view = scene.view(&helmholtz_sim::Camera::tilted(10, 8, 15.0));
     let generator = helmholtz_proto::PatternGenerator::new(&spec);
     let mut p = vec![0f32; 256];

@@ -5,7 +5,7 @@
 use std::time::Duration;
 
 use helmholtz_proto::{PatternGenerator, PatternSpec, v1};
-use helmholtz_sim::{Camera, Scene};
+use helmholtz_sim::{Camera, Relief};
 use helmholtz_tests::{ServerProcess, parse_npy, relative_error};
 
 /// An f32 camera session of `scene` under the first `count` frames of a Hadamard spec; every
@@ -14,7 +14,7 @@ use helmholtz_tests::{ServerProcess, parse_npy, relative_error};
 async fn camera_session(
     server: &ServerProcess,
     id: &str,
-    scene: &Scene,
+    scene: &Relief,
     camera: Camera,
     count: u64,
     ambient: f32,
@@ -153,7 +153,7 @@ fn truth_relight(t: &[f32], m: usize, k: usize, light: &[f64]) -> Vec<f64> {
 async fn a_complete_hadamard_camera_session_recovers_t_relights_and_predicts_frames() {
     let dir = tempfile::tempdir().unwrap();
     let server = ServerProcess::start(dir.path(), 0, &[]).unwrap();
-    let scene = Scene::demo(16, 16, 4);
+    let scene = Relief::demo(16, 16, 4);
     let camera = Camera::tilted(12, 10, 25.0);
     let (m, k) = (120usize, 256usize);
     let ambient = 0.02f32;
@@ -362,7 +362,7 @@ async fn a_complete_hadamard_camera_session_recovers_t_relights_and_predicts_fra
 async fn reciprocity_the_camera_summed_equals_one_bucket_detector_where_it_stands() {
     let dir = tempfile::tempdir().unwrap();
     let server = ServerProcess::start(dir.path(), 0, &[]).unwrap();
-    let scene = Scene::demo(16, 16, 9);
+    let scene = Relief::demo(16, 16, 9);
     let camera = Camera::tilted(8, 8, 30.0);
     let k = 256;
     camera_session(&server, "cam", &scene, camera, 2 * k as u64, 0.0, false).await;
@@ -456,7 +456,7 @@ async fn a_session_larger_than_the_worker_memory_budget_reconstructs_in_blocks()
         &["--worker-memory-mib", "1", "--workers", "1"],
     )
     .unwrap();
-    let scene = Scene::demo(32, 16, 2);
+    let scene = Relief::demo(32, 16, 2);
     let camera = Camera::tilted(32, 32, 20.0);
     camera_session(&server, "big", &scene, camera, 1024, 0.0, true).await;
     let frames_bytes = 1024 * 32 * 32 * 4;
@@ -497,7 +497,7 @@ async fn a_session_larger_than_the_worker_memory_budget_reconstructs_in_blocks()
 async fn half_a_hadamard_set_gives_t_and_relit_images_within_stated_tolerances() {
     let dir = tempfile::tempdir().unwrap();
     let server = ServerProcess::start(dir.path(), 0, &[]).unwrap();
-    let scene = Scene::demo(16, 16, 6);
+    let scene = Relief::demo(16, 16, 6);
     let camera = Camera::tilted(8, 8, 20.0);
     let (m, k) = (64usize, 256usize);
     // 50 % of the split pairs in Russian-doll order: the complete 8x8 block level and half of

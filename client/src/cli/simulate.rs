@@ -5,7 +5,7 @@ use std::time::Instant;
 
 use anyhow::{Context, bail};
 use clap::Args;
-use helmholtz_sim::Target;
+use helmholtz_sim::scene::{self, Scene, Target};
 use helmholtz_sim::simulate::lambert;
 use helmholtz_sim::simulate::{self, NoiseModel};
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
@@ -245,7 +245,7 @@ pub(super) async fn simulate_cmd(
         a.noise.gain > 0.0 && a.noise.gain.is_finite(),
         "--gain must be > 0"
     );
-    let is_lambert = a.scene == "lambert";
+    let is_lambert = a.scene == scene::LAMBERT;
     if is_lambert {
         anyhow::ensure!(
             a.channels == ["bucket"],
@@ -319,7 +319,7 @@ pub(super) async fn simulate_cmd(
             a.camera_tilt.is_finite() && a.camera_tilt.abs() < 90.0,
             "--camera-tilt must be within (-90, 90) degrees"
         );
-        let scene = helmholtz_sim::Scene::demo(spec.width(), spec.height(), a.scene_seed);
+        let scene = helmholtz_sim::Relief::demo(spec.width(), spec.height(), a.scene_seed);
         let rig = helmholtz_sim::Camera::tilted(cw, ch, a.camera_tilt);
         let t0 = Instant::now();
         let sim =
@@ -422,23 +422,26 @@ pub(super) async fn simulate_cmd(
     }
 
     // Bucket detectors: names, directions and one transport per channel.
-    let (names, directions, mut transports, ground_truth) = if is_lambert {
-        let plan = lambert::detector_plan(a.detectors.as_deref(), a.detector_elevation, a.colour)?;
-        let scene = helmholtz_sim::Scene::demo(spec.width(), spec.height(), a.scene_seed);
-        let transports = lambert::plan_transports(&scene, &plan, a.noise.gain as f64);
-        (plan.names, plan.directions, transports, None)
-    } else {
-        let scene = Target::load(&a.scene, spec.width(), spec.height())?;
-        let transport = scene.transport(a.noise.gain);
-        if let Some(path) = &a.scene_out {
-            rest::write_atomically(path, &scene.to_png()?)?;
+    let scene = Scene::load(&a.scene, spec.width(), spec.height(), a.scene_seed)?;
+    let (names, directions, mut transports, ground_truth) = match &scene {
+        Scene::Relief(relief) => {
+            let plan =
+                lambert::detector_plan(a.detectors.as_deref(), a.detector_elevation, a.colour)?;
+            let transports = lambert::plan_transports(relief, &plan, a.noise.gain as f64);
+            (plan.names, plan.directions, transports, None)
         }
-        (
-            a.channels.clone(),
-            Vec::new(),
-            vec![transport.clone(); a.channels.len()],
-            Some(transport),
-        )
+        Scene::Flat(target) => {
+            let transport = target.transport(a.noise.gain);
+            if let Some(path) = &a.scene_out {
+                rest::write_atomically(path, &target.to_png()?)?;
+            }
+            (
+                a.channels.clone(),
+                Vec::new(),
+                vec![transport.clone(); a.channels.len()],
+                Some(transport),
+            )
+        }
     };
     if !a.channel_gains.is_empty() {
         anyhow::ensure!(

@@ -44,6 +44,8 @@
 //!
 //! The solvers' automatic mean deflation ([`crate::solve::condition`]) is this operator too:
 //! `[A_c; alpha m^T]` of the row-weighted operator `W^1/2 P`, with the weight `alpha` it measures.
+//! And the iterative methods' fit of a constant bucket offset (`fit::fitting`) runs on `A_c`
+//! alone (no mean row), with the data `c - cbar` of [`CentredOperator::centre_data`].
 //!
 //! # Arithmetic
 //!

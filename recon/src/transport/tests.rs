@@ -584,9 +584,9 @@ fn params_parse_refuse_unknown_keys_and_round_trip() {
 #[test]
 #[ignore = "a study run by hand (minutes): prints, asserts nothing"]
 fn study_model_choice() {
-    use helmholtz_sim::{Camera, Scene};
+    use helmholtz_sim::{Camera, Relief};
     let (pw, ph) = (64u32, 64u32);
-    let scene = Scene::demo(pw, ph, 7);
+    let scene = Relief::demo(pw, ph, 7);
     let view = scene.view(&Camera::tilted(32, 32, 25.0));
     let m = view.pixels();
     let k = (pw * ph) as usize;

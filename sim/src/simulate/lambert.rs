@@ -1,4 +1,4 @@
-//! Simulated rigs on the analytic Lambertian scene of [`helmholtz_sim`] (`--scene lambert`):
+//! Simulated rigs on the analytic Lambertian [`Relief`] (`--scene lambert`):
 //! bucket detectors in chosen directions (photometric-stereo rigs), colour-filtered buckets, and
 //! cameras whose frames are `T p` ([`CameraView::render`]) plus noise.
 //!
@@ -9,7 +9,7 @@
 
 use std::sync::Mutex;
 
-use crate::scene::{Camera, CameraView, Scene};
+use crate::scene::{Camera, CameraView, Relief};
 use helmholtz_proto::{PatternGenerator, PatternSpec};
 use serde::Serialize;
 
@@ -113,7 +113,7 @@ pub fn detector_plan(
 
 /// Each channel's dual image (`k` values, times `gain`): `scene.detector_transport(d)`, or
 /// `detector_transport_colour(d, c)` for a colour channel.
-pub fn plan_transports(scene: &Scene, plan: &DetectorPlan, gain: f64) -> Vec<Vec<f32>> {
+pub fn plan_transports(scene: &Relief, plan: &DetectorPlan, gain: f64) -> Vec<Vec<f32>> {
     plan.directions
         .iter()
         .zip(&plan.colours)
@@ -192,7 +192,7 @@ pub struct FrameSimulator<'a> {
 impl<'a> FrameSimulator<'a> {
     /// Prepares the rig; renders every noiseless frame once for the noise figures.
     pub fn new(
-        scene: &'a Scene,
+        scene: &'a Relief,
         camera: Camera,
         spec: &PatternSpec,
         gain: f64,
@@ -461,7 +461,7 @@ mod tests {
     #[test]
     fn noiseless_frames_are_the_rendered_patterns() {
         let s = spec(16, 16, 40);
-        let scene = Scene::demo(16, 16, 5);
+        let scene = Relief::demo(16, 16, 5);
         let camera = Camera::tilted(12, 10, 20.0);
         let view = scene.view(&camera);
         let generator = PatternGenerator::new(&s);
@@ -505,7 +505,7 @@ mod tests {
     #[test]
     fn frame_noise_has_the_requested_snr_and_is_batch_independent() {
         let s = spec(16, 16, 64);
-        let scene = Scene::demo(16, 16, 2);
+        let scene = Relief::demo(16, 16, 2);
         let model = NoiseModel {
             snr_db: Some(20.0),
             seed: 9,
@@ -593,7 +593,7 @@ mod tests {
         let plan = detector_plan(None, 45.0, true).unwrap();
         assert_eq!(plan.names, ["r", "g", "b"]);
         assert!(plan.directions.iter().all(|d| *d == [0.0, 0.0, 1.0]));
-        let scene = Scene::demo(16, 16, 4);
+        let scene = Relief::demo(16, 16, 4);
         let t = plan_transports(&scene, &plan, 1.0);
         for (c, got) in t.iter().enumerate() {
             let want: Vec<f32> = scene
@@ -623,7 +623,7 @@ mod tests {
     #[test]
     fn camera_ground_truth_is_dense_t_within_the_limit() {
         let s = spec(8, 8, 16);
-        let scene = Scene::demo(8, 8, 1);
+        let scene = Relief::demo(8, 8, 1);
         let camera = Camera::tilted(4, 4, 10.0);
         let sim = FrameSimulator::new(
             &scene,

@@ -208,7 +208,7 @@ async fn main() -> anyhow::Result<()> {
     // a 64x64 projector (complete Hadamard set, 8192 frames) seen by a 32x32 camera.
     eprintln!("reconstructing the camera reference session...");
     let camera_rec = {
-        let scene = helmholtz_sim::Scene::demo(64, 64, 1);
+        let scene = helmholtz_sim::Relief::demo(64, 64, 1);
         let view = scene.view(&helmholtz_sim::Camera::tilted(32, 32, 25.0));
         let s: PatternSpec = serde_json::from_str(
             r#"{"family":"hadamard","width":64,"height":64,"count":8192,"seed":1}"#,

@@ -115,7 +115,7 @@ async fn main() -> anyhow::Result<()> {
         r#"{{"family":"hadamard","ordering":"russian_doll","width":{pw},"height":{pw},"count":{},"seed":1}}"#,
         args.frames
     ))?;
-    let scene = helmholtz_sim::Scene::demo(pw, pw, 7);
+    let scene = helmholtz_sim::Relief::demo(pw, pw, 7);
     let view = scene.view(&helmholtz_sim::Camera::tilted(cw, cw, 25.0));
     eprintln!(
         "rendering {} frames of {pw}x{pw} patterns on a {cw}x{cw} camera...",
@@ -237,7 +237,7 @@ async fn main() -> anyhow::Result<()> {
         if cfg!(debug_assertions) { "dev profile: optimised, with debug assertions" } else { "release build" },
     ));
     md.push_str(&format!(
-        "Session: `helmholtz_sim::Scene::demo({pw}, {pw}, 7)` seen by `Camera::tilted({cw}, {cw}, 25)`, the first {} frames of a Russian-doll Hadamard set (f32, {upload_mib:.0} MiB, rendered in {render_seconds:.1} s, uploaded through the client library in {upload_seconds:.1} s), reconstructed by the server with `transport` (params `{}`); the server runs with `--rate-per-second 1000000` (queries go one at a time, faster than the default per-token limit).\n\n",
+        "Session: `helmholtz_sim::Relief::demo({pw}, {pw}, 7)` seen by `Camera::tilted({cw}, {cw}, 25)`, the first {} frames of a Russian-doll Hadamard set (f32, {upload_mib:.0} MiB, rendered in {render_seconds:.1} s, uploaded through the client library in {upload_seconds:.1} s), reconstructed by the server with `transport` (params `{}`); the server runs with `--rate-per-second 1000000` (queries go one at a time, faster than the default per-token limit).\n\n",
         args.frames, args.params
     ));
     md.push_str("| T: seconds | transform | lambda | stored MiB | dense f32 MiB | nonzeros/row | held-out |\n|---|---|---|---|---|---|---|\n");

@@ -1,8 +1,9 @@
-//! Analytic scenes with a known light transport, for simulated rigs, tests and benchmarks.
+//! Reliefs: analytic Lambertian height fields with a known light transport, for simulated rigs,
+//! tests and benchmarks (the [`Relief`](super::Scene::Relief) kind of [`Scene`](super::Scene)).
 //!
-//! A scene is a height field over the projector's pixel grid (`W x H`, `k = W H`): projector pixel
+//! A relief is a height field over the projector's pixel grid (`W x H`, `k = W H`): projector pixel
 //! `x = (col, row)` lights the surface point `P(x) = (col + 1/2, row + 1/2, z(x))` (an orthographic
-//! projector looking down `-z`). Scene coordinates: x along the projector image's rows (right), y
+//! projector looking down `-z`). Coordinates: x along the projector image's rows (right), y
 //! down its columns, z from the scene toward the projector; lengths in projector pixels. Every
 //! surface is Lambertian with a known unit normal `n(x)` and albedo `rho(x)` (grey, or per colour).
 //!
@@ -23,11 +24,12 @@
 //! ([`CameraView::row`]) is a relight by one camera pixel: dense `T` is never needed (but
 //! [`CameraView::dense`] builds it for small sizes).
 
+use std::borrow::Cow;
 use std::f64::consts::PI;
 
 /// A height field with normals and albedo on the projector grid.
 #[derive(Clone, Debug)]
-pub struct Scene {
+pub struct Relief {
     width: usize,
     height: usize,
     depth: Vec<f64>,
@@ -42,11 +44,11 @@ pub struct Scene {
 /// Rec. 709 luma weights: the grey albedo of a colour albedo.
 const LUMA: [f64; 3] = [0.2126, 0.7152, 0.0722];
 
-impl Scene {
+impl Relief {
     /// The demo scene: a textured ground plane, a hemisphere and a raised box (which casts
     /// shadows for oblique detectors and hides ground from an oblique camera). `seed` varies the
     /// albedo texture (coloured discs on the ground).
-    pub fn demo(width: u32, height: u32, seed: u64) -> Scene {
+    pub fn demo(width: u32, height: u32, seed: u64) -> Relief {
         let (w, h) = (width.max(4) as usize, height.max(4) as usize);
         let s = w.min(h) as f64;
         let mut depth = vec![0.0; w * h];
@@ -105,7 +107,7 @@ impl Scene {
                 }
             }
         }
-        Scene {
+        Relief {
             width: w,
             height: h,
             depth,
@@ -113,6 +115,24 @@ impl Scene {
             albedo_rgb,
             indirect: 0.3,
             blur_radius: (w.min(h) / 24).max(1),
+        }
+    }
+
+    /// A level plane at height 0 facing the projector (normals +z), unit albedo, no indirect
+    /// light: the geometry of a flat scene, whose albedo (its image) is passed to
+    /// [`Relief::detector_transport_with`] and [`CameraView::new`] as is (the grey albedo of
+    /// [`Relief::albedo`] is a luma sum, which would round it).
+    pub(super) fn level(width: usize, height: usize) -> Relief {
+        assert!(width > 0 && height > 0, "a scene needs at least one pixel");
+        let k = width * height;
+        Relief {
+            width,
+            height,
+            depth: vec![0.0; k],
+            normal: vec![[0.0, 0.0, 1.0]; k],
+            albedo_rgb: vec![[1.0; 3]; k],
+            indirect: 0.0,
+            blur_radius: 1,
         }
     }
 
@@ -209,12 +229,12 @@ impl Scene {
         self.detector_transport_with(d, &self.albedo())
     }
 
-    /// [`Scene::detector_transport`] for a colour filter (`channel` 0 red, 1 green, 2 blue).
+    /// [`Relief::detector_transport`] for a colour filter (`channel` 0 red, 1 green, 2 blue).
     pub fn detector_transport_colour(&self, d: [f64; 3], channel: usize) -> Vec<f64> {
         self.detector_transport_with(d, &self.albedo_channel(channel))
     }
 
-    fn detector_transport_with(&self, d: [f64; 3], albedo: &[f64]) -> Vec<f64> {
+    pub(super) fn detector_transport_with(&self, d: [f64; 3], albedo: &[f64]) -> Vec<f64> {
         let e = self.exitance(d);
         self.reflect_adjoint(albedo, &e)
     }
@@ -246,12 +266,12 @@ impl Scene {
 
     /// An orthographic camera's view of the scene.
     pub fn view(&self, camera: &Camera) -> CameraView<'_> {
-        CameraView::new(self, camera, self.albedo())
+        CameraView::new(Cow::Borrowed(self), camera, self.albedo())
     }
 
-    /// [`Scene::view`] through a colour filter.
+    /// [`Relief::view`] through a colour filter.
     pub fn view_colour(&self, camera: &Camera, channel: usize) -> CameraView<'_> {
-        CameraView::new(self, camera, self.albedo_channel(channel))
+        CameraView::new(Cow::Borrowed(self), camera, self.albedo_channel(channel))
     }
 }
 
@@ -279,7 +299,8 @@ impl Camera {
 /// The transport `T = S W_v (R + g R G R)` of one camera, applied without forming it.
 #[derive(Clone, Debug)]
 pub struct CameraView<'a> {
-    scene: &'a Scene,
+    /// The relief seen: borrowed, or owned for a flat scene's level plane ([`super::Scene::view`]).
+    scene: Cow<'a, Relief>,
     albedo: Vec<f64>,
     width: usize,
     height: usize,
@@ -289,7 +310,8 @@ pub struct CameraView<'a> {
 }
 
 impl<'a> CameraView<'a> {
-    fn new(scene: &'a Scene, camera: &Camera, albedo: Vec<f64>) -> Self {
+    pub(super) fn new(scene: Cow<'a, Relief>, camera: &Camera, albedo: Vec<f64>) -> Self {
+        let relief: &Relief = &scene;
         let v = unit_vector(camera.direction);
         // Image-plane basis: e1 = x projected off v, e2 = v x e1.
         let e1 = unit_vector([1.0 - v[0] * v[0], -v[0] * v[1], -v[0] * v[2]]);
@@ -298,8 +320,8 @@ impl<'a> CameraView<'a> {
             v[2] * e1[0] - v[0] * e1[2],
             v[0] * e1[1] - v[1] * e1[0],
         ];
-        let (w, h) = (scene.width as f64, scene.height as f64);
-        let top = scene.depth.iter().cloned().fold(0.0, f64::max);
+        let (w, h) = (relief.width as f64, relief.height as f64);
+        let top = relief.depth.iter().cloned().fold(0.0, f64::max);
         // Frame: the projection of the scene's bounding box, so every point lands inside.
         let (mut u0, mut u1, mut v0, mut v1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
         for &x in &[0.0, w] {
@@ -316,12 +338,12 @@ impl<'a> CameraView<'a> {
         }
         let (cw, ch) = (camera.width.max(1) as usize, camera.height.max(1) as usize);
         let (su, sv) = ((u1 - u0) / cw as f64, (v1 - v0) / ch as f64);
-        let splat = (0..scene.pixels())
+        let splat = (0..relief.pixels())
             .map(|i| {
                 let p = [
-                    (i % scene.width) as f64 + 0.5,
-                    (i / scene.width) as f64 + 0.5,
-                    scene.depth[i],
+                    (i % relief.width) as f64 + 0.5,
+                    (i / relief.width) as f64 + 0.5,
+                    relief.depth[i],
                 ];
                 // Camera pixel centres at (c + 1/2); bilinear weights, clamped into the frame.
                 let cu = ((dot(p, e1) - u0) / su - 0.5).clamp(0.0, (cw - 1) as f64);
@@ -337,12 +359,13 @@ impl<'a> CameraView<'a> {
                 ]
             })
             .collect();
+        let exitance = relief.exitance(v);
         CameraView {
             scene,
             albedo,
             width: cw,
             height: ch,
-            exitance: scene.exitance(v),
+            exitance,
             splat,
         }
     }
@@ -482,7 +505,7 @@ mod tests {
 
     #[test]
     fn render_and_relight_are_adjoint() {
-        let scene = Scene::demo(24, 20, 3);
+        let scene = Relief::demo(24, 20, 3);
         let view = scene.view(&Camera::tilted(12, 10, 30.0));
         let (p, c) = (pseudo(scene.pixels(), 1), pseudo(view.pixels(), 2));
         let lhs: f64 = view.render(&p).iter().zip(&c).map(|(a, b)| a * b).sum();
@@ -502,7 +525,7 @@ mod tests {
 
     #[test]
     fn camera_summed_over_pixels_is_the_bucket_detector_where_it_stands() {
-        let scene = Scene::demo(32, 32, 7);
+        let scene = Relief::demo(32, 32, 7);
         let camera = Camera::tilted(16, 16, 25.0);
         let view = scene.view(&camera);
         let summed = view.relight(&vec![1.0; view.pixels()]);
@@ -518,7 +541,7 @@ mod tests {
 
     #[test]
     fn the_box_casts_a_shadow_for_a_low_detector_and_normals_are_unit() {
-        let scene = Scene::demo(64, 64, 1);
+        let scene = Relief::demo(64, 64, 1);
         for n in scene.normals() {
             assert!((dot(*n, *n) - 1.0).abs() < 1e-12 && n[2] >= 0.0);
         }
@@ -542,7 +565,7 @@ mod tests {
 
     #[test]
     fn direct_transport_is_albedo_times_cosine_without_indirect_light() {
-        let mut scene = Scene::demo(32, 32, 2);
+        let mut scene = Relief::demo(32, 32, 2);
         scene.indirect = 0.0;
         let d = direction(45.0, 60.0);
         let t = scene.detector_transport(d);

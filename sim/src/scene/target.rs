@@ -1,5 +1,6 @@
-//! Flat test targets: the transport `t` one bucket detector measures of a flat target is its grey
-//! image on the pattern grid (values in [0, 1]), so the image is the dual image to recover.
+//! Flat test targets (the [`Flat`](super::Scene::Flat) kind of [`Scene`](super::Scene)): the
+//! transport `t` one bucket detector measures of a flat target is its grey image on the pattern
+//! grid (values in [0, 1]), so the image is the dual image to recover.
 //!
 //! Sources: any PNG file, the embedded photos `camera` and
 //! `shapes` (see `sim/images/README.md`), and two procedural targets drawn analytically at any
@@ -12,8 +13,8 @@ use anyhow::{Context, bail};
 
 use helmholtz_proto::png as pngio;
 
-const CAMERA_PNG: &[u8] = include_bytes!("../images/camera-256.png");
-const SHAPES_PNG: &[u8] = include_bytes!("../images/shapes-256.png");
+const CAMERA_PNG: &[u8] = include_bytes!("../../images/camera-256.png");
+const SHAPES_PNG: &[u8] = include_bytes!("../../images/shapes-256.png");
 
 /// Names accepted by [`Target::builtin`].
 pub const BUILTIN_TARGETS: [&str; 4] = ["camera", "shapes", "usaf", "double-slit"];
