@@ -343,9 +343,8 @@ async fn token(command: TokenCommand, data_dir: &std::path::Path) -> anyhow::Res
                 }
                 let (info, secret) = store.create_token(&lab, roles, &note).await?;
                 if json {
-                    let mut v = serde_json::to_value(&info)?;
-                    v["token"] = serde_json::json!(secret);
-                    println!("{v}");
+                    let view = crate::api::rest::token_view(&info, Some(secret));
+                    println!("{}", serde_json::to_string(&view)?);
                 } else {
                     println!("{secret}");
                     eprintln!(
