@@ -9,7 +9,6 @@ use std::time::{Duration, Instant};
 
 use anyhow::Context;
 use helmholtz_proto::rest::{self, LightPreset, LightRequest, Problem, Report};
-use helmholtz_proto::v1;
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use serde::{Deserialize, Serialize};
 
@@ -646,6 +645,7 @@ pub fn write_atomically(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use helmholtz_proto::v1;
 
     #[test]
     fn session_and_reconstruction_json() {
