@@ -8,7 +8,7 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use anyhow::Context;
-use helmholtz_proto::v1;
+use helmholtz_proto::rest::{self, LightPreset, LightRequest, Problem, Report};
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use serde::{Deserialize, Serialize};
 
@@ -48,86 +48,13 @@ fn field_suffix(field: &Option<String>) -> String {
         .unwrap_or_default()
 }
 
-/// A session as `GET /v1/sessions/{id}` returns it. Unknown fields are kept in `extra`.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
-pub struct SessionView {
-    pub id: String,
-    pub rig: String,
-    /// The pattern spec in its JSON form.
-    pub patterns: serde_json::Value,
-    pub channels: Vec<String>,
-    pub metadata: serde_json::Map<String, serde_json::Value>,
-    pub committed_rows: u64,
-    pub expected_rows: u64,
-    /// "open" or "finished".
-    pub state: String,
-    pub created_unix_ms: i64,
-    pub has_ground_truth: bool,
-    pub latest_reconstruction: Option<i64>,
-    #[serde(flatten)]
-    pub extra: serde_json::Map<String, serde_json::Value>,
-}
+/// A session as `GET /v1/sessions/{id}` returns it (the contract's type). Unknown fields are
+/// kept in `extra`.
+pub use helmholtz_proto::rest::SessionView;
 
-/// A reconstruction job as `GET /v1/reconstructions/{id}` returns it.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
-pub struct Reconstruction {
-    pub id: i64,
-    pub session_id: String,
-    pub method: String,
-    pub params: serde_json::Value,
-    /// "queued", "running", "done", "failed" or "cancelled".
-    pub state: String,
-    /// In [0, 1].
-    pub progress: f64,
-    /// Rows of the session it uses.
-    pub rows: u64,
-    /// Compute time; 0 until the reconstruction is done (the server sends null meanwhile).
-    #[serde(deserialize_with = "null_as_zero")]
-    pub seconds: f64,
-    pub error: Option<String>,
-    /// Method, parameters, iterations, timings, quality figures (PSNR/SSIM with ground truth).
-    pub report: serde_json::Value,
-    #[serde(flatten)]
-    pub extra: serde_json::Map<String, serde_json::Value>,
-}
-
-impl Reconstruction {
-    pub fn is_done(&self) -> bool {
-        self.state == "done"
-    }
-
-    /// Done, failed or cancelled: it will not change any more.
-    pub fn is_terminal(&self) -> bool {
-        matches!(self.state.as_str(), "done" | "failed" | "cancelled")
-    }
-}
-
-impl From<v1::Reconstruction> for Reconstruction {
-    fn from(r: v1::Reconstruction) -> Self {
-        let json = |s: &str| {
-            if s.trim().is_empty() {
-                serde_json::Value::Object(Default::default())
-            } else {
-                serde_json::from_str(s).unwrap_or(serde_json::Value::String(s.to_string()))
-            }
-        };
-        Reconstruction {
-            id: r.reconstruction_id,
-            session_id: r.session_id,
-            method: r.method,
-            params: json(&r.params_json),
-            state: r.state,
-            progress: r.progress,
-            rows: r.rows,
-            seconds: r.seconds,
-            error: (!r.error.is_empty()).then_some(r.error),
-            report: json(&r.report_json),
-            extra: Default::default(),
-        }
-    }
-}
+/// A reconstruction job as `GET /v1/reconstructions/{id}` returns it, its report typed
+/// ([`Report`]); gRPC answers convert to it (`Reconstruction::from(v1::Reconstruction)`).
+pub type Reconstruction = rest::ReconstructionView<Report>;
 
 fn http() -> anyhow::Result<reqwest::Client> {
     let builder = reqwest::Client::builder()
@@ -181,17 +108,24 @@ async fn check(
         .and_then(|v| v.to_str().ok())
         .map(str::to_string);
     let body = response.text().await.unwrap_or_default();
-    let problem: serde_json::Value = serde_json::from_str(&body).unwrap_or_default();
-    let text = |k: &str| problem.get(k).and_then(|v| v.as_str()).map(str::to_string);
-    let fallback = (!body.trim().is_empty()).then(|| body.chars().take(300).collect::<String>());
+    // A problem+json body, or (from something in between, say a proxy) any other text.
+    let (problem, fallback) = match serde_json::from_str::<Problem>(&body) {
+        Ok(problem) => (problem, None),
+        Err(_) => (
+            Problem::default(),
+            (!body.trim().is_empty()).then(|| body.chars().take(300).collect::<String>()),
+        ),
+    };
     Err(ApiError {
         method: method.to_string(),
         url: url.to_string(),
         status: status.as_u16(),
-        title: text("title").unwrap_or_else(|| status.canonical_reason().unwrap_or("").to_string()),
-        detail: text("detail").or(if problem.is_object() { None } else { fallback }),
-        field: text("field"),
-        problem_type: text("type"),
+        title: problem
+            .title
+            .unwrap_or_else(|| status.canonical_reason().unwrap_or("").to_string()),
+        detail: problem.detail.or(fallback),
+        field: problem.field,
+        problem_type: problem.problem_type,
         request_id,
     }
     .into())
@@ -212,11 +146,9 @@ async fn get_json<T: serde::de::DeserializeOwned>(server: &str, path: &str) -> a
 
 /// `GET /v1/sessions`.
 pub async fn list_sessions(server: &str) -> anyhow::Result<Vec<SessionView>> {
-    #[derive(Deserialize)]
-    struct List {
-        sessions: Vec<SessionView>,
-    }
-    Ok(get_json::<List>(server, "/v1/sessions").await?.sessions)
+    Ok(get_json::<rest::SessionList>(server, "/v1/sessions")
+        .await?
+        .sessions)
 }
 
 /// `GET /v1/sessions/{id}`.
@@ -248,7 +180,10 @@ pub async fn request_reconstruction_rest(
             encode_component(session_id)
         ),
     );
-    let body = serde_json::json!({ "method": method, "params": params });
+    let body = rest::ReconstructionRequest {
+        method: method.to_string(),
+        params: params.clone(),
+    };
     let response = auth(http()?.post(&u), server)
         .json(&body)
         .send()
@@ -451,7 +386,7 @@ pub struct Body {
 }
 
 impl Body {
-    fn json(value: serde_json::Value) -> Body {
+    fn json(value: impl Serialize) -> Body {
         Body {
             content_type: "application/json".to_string(),
             bytes: serde_json::to_vec(&value).expect("JSON serialises"),
@@ -489,14 +424,14 @@ fn finite(value: f64, what: &str) -> anyhow::Result<f64> {
 
 /// The body of `POST /v1/reconstructions/{id}/relight` for `light`.
 pub fn light_body(light: &Light) -> anyhow::Result<Body> {
-    use serde_json::json;
+    let json = |light: LightRequest| Body::json(rest::RelightRequest { light });
     Ok(match light {
-        Light::Full => Body::json(json!({"light": {"preset": "full"}})),
+        Light::Full => json(LightRequest::Preset(LightPreset::Full)),
         Light::Disc { x, y, radius } => {
             let (x, y) = (finite(*x, "--disc X")?, finite(*y, "--disc Y")?);
             let radius = finite(*radius, "--disc R")?;
             anyhow::ensure!(radius > 0.0, "--disc R must be > 0, got {radius}");
-            Body::json(json!({"light": {"preset": "disc", "x": x, "y": y, "radius": radius}}))
+            json(LightRequest::Preset(LightPreset::Disc { x, y, radius }))
         }
         Light::Stripe { x0, x1 } => {
             let (x0, x1) = (finite(*x0, "--stripe X0")?, finite(*x1, "--stripe X1")?);
@@ -504,20 +439,20 @@ pub fn light_body(light: &Light) -> anyhow::Result<Body> {
                 x0 < x1,
                 "--stripe X0,X1 lights columns X0 <= x < X1: X0 must be below X1, got {x0},{x1}"
             );
-            Body::json(json!({"light": {"preset": "stripe", "x0": x0, "x1": x1}}))
+            json(LightRequest::Preset(LightPreset::Stripe { x0, x1 }))
         }
         Light::Weights(weights) => {
             anyhow::ensure!(!weights.is_empty(), "--weights: name at least one channel");
-            let mut map = serde_json::Map::new();
+            let mut map = std::collections::BTreeMap::new();
             for (name, w) in weights {
                 anyhow::ensure!(!name.is_empty(), "--weights: empty channel name");
                 let w = finite(*w, &format!("--weights {name}"))?;
                 anyhow::ensure!(
-                    map.insert(name.clone(), json!(w)).is_none(),
+                    map.insert(name.clone(), w).is_none(),
                     "--weights: channel {name:?} given twice"
                 );
             }
-            Body::json(json!({"light": {"weights": map}}))
+            json(LightRequest::Weights { weights: map })
         }
         Light::Image(path) => Body::image_file(path, "--light")?,
     })
@@ -543,7 +478,7 @@ pub fn parse_weights(text: &str) -> anyhow::Result<Vec<(String, f64)>> {
 /// The body of `POST /v1/reconstructions/{id}/primal` for `pattern`.
 pub fn pattern_body(pattern: &PatternInput) -> anyhow::Result<Body> {
     Ok(match pattern {
-        PatternInput::Index(i) => Body::json(serde_json::json!({ "pattern_index": i })),
+        PatternInput::Index(i) => Body::json(rest::PrimalRequest { pattern_index: *i }),
         PatternInput::Image(path) => Body::image_file(path, "--pattern")?,
     })
 }
@@ -707,13 +642,10 @@ pub fn write_atomically(path: &Path, bytes: &[u8]) -> anyhow::Result<()> {
     Ok(())
 }
 
-fn null_as_zero<'de, D: serde::Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
-    Ok(<Option<f64> as serde::Deserialize>::deserialize(d)?.unwrap_or(0.0))
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use helmholtz_proto::v1;
 
     #[test]
     fn session_and_reconstruction_json() {
@@ -744,7 +676,7 @@ mod tests {
             (r.id, r.is_terminal(), r.params["lambda"].as_f64()),
             (9, false, Some(0.1))
         );
-        assert_eq!(r.report, serde_json::json!({}));
+        assert_eq!(r.report, None);
         assert_eq!(r.error, None);
     }
 

@@ -6,6 +6,7 @@ use std::time::Duration;
 
 use anyhow::Context;
 use helmholtz_client::{NewSession, PatternSpec, UploadOptions};
+use helmholtz_proto::rest::{Figure, TransportQuality};
 use helmholtz_sim::Target;
 use helmholtz_sim::simulate::{self, NoiseModel};
 use tokio::sync::oneshot;
@@ -152,15 +153,18 @@ async fn run_rigs(base: &str, rig: &str, reader: &str) -> anyhow::Result<()> {
             rec.state,
             rec.error
         );
-        let q = &rec.report["quality"][0];
+        let q = rec
+            .report
+            .as_ref()
+            .and_then(|r| r.channel_quality().first());
         println!(
             "   {} reconstruction {} in {:.3} s: PSNR {} dB, SSIM {} (after scale/offset fit: {} dB)",
             rec.method,
             rec.id,
-            rec.seconds,
-            fmt(&q["psnr_db"]),
-            fmt(&q["ssim"]),
-            fmt(&q["psnr_fitted_db"])
+            rec.seconds.unwrap_or(0.0),
+            figure(q.map(|q| q.psnr_db)),
+            figure(q.map(|q| q.ssim)),
+            figure(q.map(|q| q.psnr_fitted_db))
         );
         println!("   session:    {base}/v1/sessions/{}", rig.session_id);
         println!("   report:     {base}/v1/reconstructions/{}", rec.id);
@@ -240,9 +244,21 @@ async fn camera_rig(base: &str, rig: &str, reader: &str) -> anyhow::Result<()> {
     println!(
         "   transport reconstruction {} in {:.3} s: relative error of T {}, stored {} bytes",
         rec.id,
-        rec.seconds,
-        fmt(&rec.report["quality"]["transport_relative_error"]),
-        fmt(&rec.report["details"]["stored_bytes"])
+        rec.seconds.unwrap_or(0.0),
+        figure(
+            match rec.report.as_ref().and_then(|r| r.transport_quality()) {
+                Some(TransportQuality::Scored {
+                    transport_relative_error,
+                    ..
+                }) => Some(*transport_relative_error),
+                _ => None,
+            }
+        ),
+        fmt(rec
+            .report
+            .as_ref()
+            .and_then(|r| r.recon.details.get("stored_bytes"))
+            .unwrap_or(&serde_json::Value::Null))
     );
     println!("   report:     {base}/v1/reconstructions/{}", rec.id);
     println!(
@@ -254,6 +270,15 @@ async fn camera_rig(base: &str, rig: &str, reader: &str) -> anyhow::Result<()> {
         rec.id
     );
     Ok(())
+}
+
+/// A report's figure: two decimals, "inf" for a perfect PSNR, "null" when there is none.
+fn figure(f: Option<Figure>) -> String {
+    match f {
+        Some(Figure(x)) if x.is_finite() => format!("{x:.2}"),
+        Some(Figure(x)) if x == f64::INFINITY => "\"inf\"".into(),
+        _ => "null".into(),
+    }
 }
 
 fn fmt(v: &serde_json::Value) -> String {

@@ -7,10 +7,13 @@
 //!   camera frames), little-endian, with a CRC-32C.
 //! - [`npy`]: NumPy `.npy` files, read (header, then whole arrays or streamed rows) and written.
 //! - [`png`]: PNG to luminance and grey PNG out (scene files, pattern frames for a projector).
+//! - [`rest`]: the REST API's JSON bodies (sessions, reconstructions and their reports, relight
+//!   and token requests, problem+json errors), written by the server and read by the client.
 
 pub mod npy;
 pub mod patterns;
 pub mod png;
+pub mod rest;
 pub mod wire;
 
 #[allow(clippy::all, missing_docs)]

@@ -22,7 +22,6 @@
 //! every method; and hashing, unlike every-tenth-row, does not alias with pattern orderings.
 
 use helmholtz_proto::patterns::rng::stream_word;
-use serde::Serialize;
 
 /// Default fraction of rows held out (raised for small sessions, [`default_fraction`]).
 pub const DEFAULT_FRACTION: f64 = 0.1;
@@ -189,21 +188,8 @@ impl Score {
     }
 }
 
-/// The held-out error estimate as reported (`Report::held_out`).
-#[derive(Clone, Debug, PartialEq, Serialize)]
-pub struct HeldOut {
-    /// Held-out rows scored: patterns; for the iterative methods on Hadamard, split pairs; for
-    /// the correlators on Hadamard, frames (both frames of a held-out pair).
-    pub rows: usize,
-    /// Fraction of rows held out.
-    pub fraction: f64,
-    /// `||c_H - c_hat_H|| / ||c_H - mean(c_H)||`, channels pooled; `None` (JSON null) when the
-    /// held-out buckets are all equal but not predicted exactly (no scale to compare with).
-    pub relative_residual: Option<f64>,
-    pub per_channel: Vec<Option<f64>>,
-    /// Root-mean-square residual in bucket units.
-    pub rms_residual: f64,
-}
+/// The held-out error estimate as reported (`Report::held_out`): the contract's type.
+pub use helmholtz_proto::rest::HeldOut;
 
 /// `||obs - pred|| / ||obs - mean(obs)||` of one vector (see the module docs); `None` as in
 /// [`HeldOut::relative_residual`].

@@ -12,7 +12,6 @@
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 
 use helmholtz_proto::PatternSpec;
-use serde::Serialize;
 
 pub mod auto;
 pub mod colour;
@@ -152,22 +151,9 @@ pub struct Reconstruction {
     pub report: Report,
 }
 
-/// What every reconstruction reports (served on `GET /v1/reconstructions/{id}`).
-#[derive(Clone, Debug, Default, Serialize)]
-pub struct Report {
-    pub method: String,
-    pub params: serde_json::Value,
-    pub rows_used: u64,
-    pub iterations: u64,
-    /// Method-specific figures (e.g. Hadamard split-pair sums: dark level, drift).
-    pub details: serde_json::Map<String, serde_json::Value>,
-    /// The error estimate: how well the method, fitted without a fixed subset of the rows,
-    /// predicts those rows ([`holdout`]). `None` when it cannot be had, with the reason in
-    /// `held_out_unavailable`.
-    pub held_out: Option<holdout::HeldOut>,
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub held_out_unavailable: Option<String>,
-}
+/// What every reconstruction reports (served on `GET /v1/reconstructions/{id}`, inside the
+/// service's report): the contract's [`helmholtz_proto::rest::ReconReport`].
+pub use helmholtz_proto::rest::ReconReport as Report;
 
 #[derive(Debug, Clone, thiserror::Error)]
 pub enum ReconError {

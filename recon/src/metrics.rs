@@ -192,41 +192,8 @@ pub fn pearson(estimate: &[f32], truth: &[f32]) -> f64 {
 // Scores of a finished reconstruction against a simulated session's ground truth (the report's
 // `quality`).
 
-/// A figure in a report: finite values as numbers, `+inf` (a perfect PSNR) as `"inf"`, anything
-/// else as `null`.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Figure(pub f64);
-
-impl serde::Serialize for Figure {
-    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
-        if self.0.is_finite() {
-            s.serialize_f64(self.0)
-        } else if self.0 == f64::INFINITY {
-            s.serialize_str("inf")
-        } else {
-            s.serialize_none()
-        }
-    }
-}
-
-/// One channel's dual image against its truth, raw and after the least-squares affine fit
-/// (correlation methods estimate t only up to scale and offset).
-#[derive(Clone, Debug, PartialEq, serde::Serialize)]
-pub struct ChannelQuality {
-    pub channel: String,
-    pub psnr_db: Figure,
-    pub ssim: Figure,
-    pub relative_error: Figure,
-    pub psnr_fitted_db: Figure,
-    pub ssim_fitted: Figure,
-    pub fit: AffineFit,
-}
-
-#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
-pub struct AffineFit {
-    pub scale: f64,
-    pub offset: f64,
-}
+// The report's figures are the contract's types (`helmholtz_proto::rest`).
+pub use helmholtz_proto::rest::{AffineFit, ChannelQuality, Figure, TransportQuality};
 
 /// Every channel whose image is `w x h` against `truth`: one image shared by every channel, or
 /// one per channel (row-major, concatenated).
@@ -272,24 +239,6 @@ pub fn dual_quality(
         .collect()
 }
 
-/// A transport matrix against the simulator's (`m x k`, row-major).
-#[derive(Clone, Debug, PartialEq, serde::Serialize)]
-#[serde(untagged)]
-pub enum TransportQuality {
-    Scored {
-        /// Relative Frobenius error of T.
-        transport_relative_error: Figure,
-        /// The worst camera pixel's (row's) relative error.
-        worst_row_relative_error: Figure,
-        /// The dual image under the whole camera (`T^T 1`) against the truth's column sums.
-        camera_dual_psnr_db: Figure,
-        camera_dual_ssim: Figure,
-    },
-    Unavailable {
-        unavailable: &'static str,
-    },
-}
-
 /// `t` against `truth` (`w x h` projector pixels, `truth.len() / (w h)` camera pixels);
 /// `summed` is `T^T 1`.
 pub fn transport_quality(
@@ -303,7 +252,7 @@ pub fn transport_quality(
     let m = truth.len() / k.max(1);
     if k == 0 || truth.len() != m * k || t.camera().0 as usize * t.camera().1 as usize != m {
         return TransportQuality::Unavailable {
-            unavailable: "the ground truth does not match the camera and pattern sizes",
+            unavailable: "the ground truth does not match the camera and pattern sizes".into(),
         };
     }
     let (mut err2, mut norm2, mut worst) = (0.0f64, 0.0f64, 0.0f64);

@@ -451,9 +451,8 @@ async fn token(command: TokenCommand, database: &DatabaseArgs) -> anyhow::Result
                 }
                 let (info, secret) = store.create_token(&lab, roles, &note).await?;
                 if json {
-                    let mut v = serde_json::to_value(&info)?;
-                    v["token"] = serde_json::json!(secret);
-                    println!("{v}");
+                    let view = crate::api::rest::token_view(&info, Some(secret));
+                    println!("{}", serde_json::to_string(&view)?);
                 } else {
                     println!("{secret}");
                     eprintln!(

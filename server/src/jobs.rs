@@ -9,7 +9,8 @@ use std::sync::{Arc, Mutex};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
-use serde_json::{Value, json};
+use helmholtz_proto::rest::{Quality, Report};
+use serde_json::Value;
 use tokio::runtime::Handle;
 use tokio::sync::Notify;
 
@@ -275,23 +276,28 @@ impl Worker {
                 transport,
                 mut report,
             }) => {
-                if crate::alloc::installed() {
-                    // Process-wide: includes other jobs' live memory if several run at once.
-                    report["peak_memory_bytes"] =
-                        json!(crate::alloc::peak_bytes().saturating_sub(heap_base));
-                }
-                report["seconds"] = json!(seconds);
+                // Process-wide: includes other jobs' live memory if several run at once.
+                report.peak_memory_bytes = crate::alloc::installed()
+                    .then(|| crate::alloc::peak_bytes().saturating_sub(heap_base) as u64);
+                report.seconds = Some(seconds);
                 // What the request estimated (and the workers reserved) against the budget.
-                report["memory_estimate_bytes"] = json!(job.memory_bytes);
-                let report = report.to_string();
-                self.runtime.block_on(store.complete_reconstruction(
-                    id,
-                    attempt,
-                    &images,
-                    transport.as_deref(),
-                    &report,
-                    seconds,
-                ))
+                report.memory_estimate_bytes = Some(job.memory_bytes);
+                match serde_json::to_string(&report) {
+                    Ok(report) => self.runtime.block_on(store.complete_reconstruction(
+                        id,
+                        attempt,
+                        &images,
+                        transport.as_deref(),
+                        &report,
+                        seconds,
+                    )),
+                    Err(e) => self.runtime.block_on(store.fail_job(
+                        id,
+                        attempt,
+                        &format!("internal error: writing the report: {e}"),
+                        false,
+                    )),
+                }
             }
             Err(JobError::Recon(ReconError::Cancelled)) if self.stop.load(Ordering::SeqCst) => {
                 self.runtime.block_on(store.release_job(id, attempt))
@@ -400,21 +406,23 @@ impl Worker {
         };
         let result =
             recon::reconstruct(&problem, config, &mut source, control).map_err(JobError::Recon)?;
-        let mut report =
-            serde_json::to_value(&result.report).map_err(|e| JobError::Internal(e.to_string()))?;
+        let mut report = Report {
+            recon: result.report,
+            ..Report::default()
+        };
         if session.has_ground_truth {
             let truth = self
                 .runtime
                 .block_on(self.store.ground_truth(&r.session_id))
                 .map_err(|e| JobError::Source(SourceError(e.to_string())))?;
             if let Some((w, h, truth)) = truth {
-                report["quality"] = json!(recon::metrics::dual_quality(
+                report.quality = Some(Quality::Channels(recon::metrics::dual_quality(
                     &result.images,
                     &session.channels,
                     w,
                     h,
                     &truth,
-                ));
+                )));
             }
         }
         let images = result
@@ -480,22 +488,27 @@ impl Worker {
         // The reconstruction's own peak, before the ground truth (m x k) is loaded to score it.
         let working_peak =
             crate::alloc::installed().then(|| crate::alloc::peak_bytes().saturating_sub(heap_base));
-        let mut report =
-            serde_json::to_value(&result_report).map_err(|e| JobError::Internal(e.to_string()))?;
+        let mut report = Report {
+            recon: result_report,
+            ..Report::default()
+        };
+        // The service's figures of a transport run, beside the solver's own details.
+        let details = &mut report.recon.details;
         if let Some(peak) = working_peak {
-            report["details"]["reconstruction_peak_bytes"] = json!(peak);
+            details.insert("reconstruction_peak_bytes".into(), peak.into());
         }
-        report["details"]["ambient_mean"] =
-            json!(ambient.iter().map(|&v| v as f64).sum::<f64>() / m as f64);
-        report["details"]["frame_passes"] = json!(source.passes);
+        let ambient_mean = ambient.iter().map(|&v| v as f64).sum::<f64>() / m as f64;
+        details.insert("ambient_mean".into(), ambient_mean.into());
+        details.insert("frame_passes".into(), source.passes.into());
         if session.has_ground_truth {
             let truth = self
                 .runtime
                 .block_on(self.store.ground_truth(&r.session_id))
                 .map_err(|e| JobError::Source(SourceError(e.to_string())))?;
             if let Some((w, h, truth)) = truth {
-                report["quality"] =
-                    json!(recon::metrics::transport_quality(&t, &summed, w, h, &truth));
+                report.quality = Some(Quality::Transport(recon::metrics::transport_quality(
+                    &t, &summed, w, h, &truth,
+                )));
             }
         }
         let (pw, ph) = t.projector();
@@ -528,7 +541,8 @@ struct Computed {
     images: Vec<StoredImage>,
     /// A camera session's encoded T.
     transport: Option<Vec<u8>>,
-    report: Value,
+    /// The numerics' report and the quality; the job adds its time and memory.
+    report: Report,
 }
 
 /// A camera session's stored frames, read a block of camera pixels at a time (one pass over

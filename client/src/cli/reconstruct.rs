@@ -65,18 +65,24 @@ fn recon_text(r: &Reconstruction) -> String {
         r.id, r.method, r.session_id, r.state
     );
     if r.is_terminal() {
-        s.push_str(&format!(", {} rows, {:.2} s", r.rows, r.seconds));
+        s.push_str(&format!(
+            ", {} rows, {:.2} s",
+            r.rows,
+            r.seconds.unwrap_or(0.0)
+        ));
     } else {
         s.push_str(&format!(" ({:.0}%)", r.progress * 100.0));
     }
     if let Some(e) = &r.error {
         s.push_str(&format!("\n  error: {e}"));
     }
-    if let Some(obj) = r.report.as_object() {
-        let figures: Vec<String> = ["psnr_db", "psnr", "ssim", "iterations"]
+    if let Some(report) = &r.report {
+        // Figures a report of an earlier version carried at its top level, and the iterations.
+        let mut figures: Vec<String> = ["psnr_db", "psnr", "ssim"]
             .iter()
-            .filter_map(|k| obj.get(*k).map(|v| format!("{k} {v}")))
+            .filter_map(|k| report.extra.get(*k).map(|v| format!("{k} {v}")))
             .collect();
+        figures.push(format!("iterations {}", report.recon.iterations));
         if !figures.is_empty() {
             s.push_str(&format!("\n  {}", figures.join(", ")));
         }
@@ -163,10 +169,7 @@ pub(super) async fn status_cmd(server: &str, a: &StatusArgs) -> anyhow::Result<O
                     s.state,
                     s.committed_rows,
                     s.expected_rows,
-                    s.patterns
-                        .get("family")
-                        .and_then(Value::as_str)
-                        .unwrap_or("?"),
+                    s.patterns.family().name(),
                     s.latest_reconstruction
                         .map(|r| format!("  latest reconstruction {r}"))
                         .unwrap_or_default()
@@ -183,7 +186,7 @@ pub(super) async fn status_cmd(server: &str, a: &StatusArgs) -> anyhow::Result<O
                 "session {} ({}): {}, {}/{} rows committed ({:.1}%)\n  rig {:?}, channels {}, ground truth: {}\n  patterns {}\n",
                 s.id,
                 s.state,
-                if s.state == "finished" {
+                if s.state == helmholtz_proto::rest::SessionState::Finished {
                     "finished"
                 } else {
                     "accepting rows"
@@ -198,7 +201,7 @@ pub(super) async fn status_cmd(server: &str, a: &StatusArgs) -> anyhow::Result<O
                 s.rig,
                 s.channels.join(","),
                 if s.has_ground_truth { "yes" } else { "no" },
-                s.patterns
+                serde_json::to_value(&s.patterns)?
             );
             let mut out = json!({ "session": s });
             if let Some(rid) = s.latest_reconstruction {

@@ -1,9 +1,10 @@
 //! One error type for the API layer, mapped once to HTTP problem+json (RFC 9457) and once to
-//! `tonic::Status`. Internal causes are logged, never sent.
+//! `tonic::Status`. Internal causes are logged, never sent. The HTTP body is the contract's
+//! [`Problem`].
 
 use axum::http::{HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
-use serde_json::json;
+use helmholtz_proto::rest::{PROBLEM_JSON, Problem};
 
 use crate::store::StoreError;
 
@@ -154,30 +155,23 @@ impl IntoResponse for ApiError {
         self.log_internal();
         let status = self.http_status();
         let (slug, title) = self.slug();
-        let mut body = json!({
-            "type": format!("/problems/{slug}"),
-            "title": title,
-            "status": status.as_u16(),
-            "detail": self.to_string(),
-        });
+        let mut body = Problem::new(slug, title, status.as_u16(), self.to_string());
         if let ApiError::InvalidArgument { field, .. } = &self {
-            body["field"] = json!(field);
+            body.field = Some(field.clone());
         }
         if let ApiError::ResourceExhausted { limit, .. } | ApiError::TooLarge { limit, .. } = &self
         {
-            body["limit"] = json!(limit);
+            body.limit = Some(limit.to_string());
         }
         if let ApiError::MemoryBudget { estimate, budget } = &self {
-            body["limit"] = json!("memory_budget");
-            body["estimate_bytes"] = json!(estimate);
-            body["limit_bytes"] = json!(budget);
+            body.limit = Some("memory_budget".into());
+            body.estimate_bytes = Some(*estimate);
+            body.limit_bytes = Some(*budget);
         }
-        let mut response = (status, body.to_string()).into_response();
+        let body = serde_json::to_string(&body).expect("a problem serializes");
+        let mut response = (status, body).into_response();
         let headers = response.headers_mut();
-        headers.insert(
-            header::CONTENT_TYPE,
-            HeaderValue::from_static("application/problem+json"),
-        );
+        headers.insert(header::CONTENT_TYPE, HeaderValue::from_static(PROBLEM_JSON));
         if let ApiError::ResourceExhausted {
             retry_after: Some(s),
             ..

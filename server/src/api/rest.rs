@@ -10,12 +10,17 @@ use axum::http::request::Parts;
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
-use serde_json::{Value, json};
+use helmholtz_proto::rest::{
+    CameraView, Health, Problem, ReconstructionLinks, ReconstructionList, ReconstructionView,
+    ServiceIndex, SessionLinks, SessionList, SessionState, SessionView, TokenList, TokenView,
+};
+use serde_json::Value;
+use serde_json::value::RawValue;
 
 use super::images::{self, Scale};
 use super::{ApiError, AppState, validate};
 use crate::auth::{Principal, Role, Roles};
-use crate::store::{ReconstructionRow, SampleFormat, SessionRow, StoredImage, TokenInfo};
+use crate::store::{self, ReconstructionRow, SampleFormat, SessionRow, StoredImage, TokenInfo};
 use futures::StreamExt;
 
 pub fn router(state: AppState) -> Router {
@@ -53,12 +58,17 @@ async fn not_found() -> ApiError {
 }
 
 async fn method_not_allowed() -> Response {
-    let body = json!({"type": "/problems/method-not-allowed", "title": "Method not allowed", "status": 405,
-        "detail": "this route does not take that HTTP method"});
-    let mut r = (StatusCode::METHOD_NOT_ALLOWED, body.to_string()).into_response();
+    let body = Problem::new(
+        "method-not-allowed",
+        "Method not allowed",
+        405,
+        "this route does not take that HTTP method",
+    );
+    let body = serde_json::to_string(&body).expect("a problem serializes");
+    let mut r = (StatusCode::METHOD_NOT_ALLOWED, body).into_response();
     r.headers_mut().insert(
         header::CONTENT_TYPE,
-        HeaderValue::from_static("application/problem+json"),
+        HeaderValue::from_static(helmholtz_proto::rest::PROBLEM_JSON),
     );
     r
 }
@@ -122,12 +132,12 @@ async fn read_body(state: &AppState, body: Body) -> Result<Bytes, ApiError> {
     })
 }
 
-async fn index(Caller(_caller): Caller) -> axum::Json<Value> {
-    axum::Json(json!({
-        "service": "helmholtz",
-        "version": env!("CARGO_PKG_VERSION"),
-        "grpc": "helmholtz.v1.Acquisition on this same address (HTTP/2)",
-        "routes": [
+async fn index(Caller(_caller): Caller) -> axum::Json<ServiceIndex> {
+    axum::Json(ServiceIndex {
+        service: "helmholtz".into(),
+        version: env!("CARGO_PKG_VERSION").into(),
+        grpc: "helmholtz.v1.Acquisition on this same address (HTTP/2)".into(),
+        routes: [
             "GET /v1/sessions", "GET /v1/sessions/{id}", "GET /v1/sessions/{id}/reconstructions",
             "POST /v1/sessions/{id}/reconstructions {\"method\": \"gi|dgi|ngi|direct|lsq|cs|tv\", \"params\": {}}",
             "GET /v1/sessions/{id}/dual.png|dual.tiff|dual.npy (latest finished reconstruction)",
@@ -140,73 +150,81 @@ async fn index(Caller(_caller): Caller) -> axum::Json<Value> {
             "POST /v1/reconstructions/{id}/relight?format=png|tiff|npy {\"light\": {\"preset\": \"full\"|\"disc\"|\"stripe\", ...} | {\"weights\": {CHANNEL: W}}} or a camera-sized PNG/NPY body: the dual image T^T c'",
             "POST /v1/reconstructions/{id}/primal?format=png|tiff|npy&ambient=include|exclude {\"pattern_index\": I} or a projector-sized PNG/NPY body: the camera image T p (+ ambient), with x-helmholtz-relative-error for a measured pattern",
             "GET /v1/tokens, POST /v1/tokens {\"roles\": [\"rig\"], \"note\": \"...\"}, DELETE /v1/tokens/{id} (admin)",
-            "GET /healthz (no token needed)"
-        ],
-        "auth": "every route but /healthz needs \"Authorization: Bearer <token>\"; tokens belong to one lab and carry roles rig, reader, admin"
-    }))
+            "GET /healthz (no token needed)",
+        ]
+        .map(String::from)
+        .to_vec(),
+        auth: "every route but /healthz needs \"Authorization: Bearer <token>\"; tokens belong to one lab and carry roles rig, reader, admin".into(),
+    })
 }
 
 /// Open (no token): load balancers and probes call it.
 async fn healthz(State(state): State<AppState>) -> Response {
+    let health = |status: &str| {
+        axum::Json(Health {
+            status: status.into(),
+        })
+    };
     if state.store.ping().await {
-        axum::Json(json!({"status": "serving"})).into_response()
+        health(Health::SERVING).into_response()
     } else {
-        (
-            StatusCode::SERVICE_UNAVAILABLE,
-            axum::Json(json!({"status": "not serving"})),
-        )
-            .into_response()
+        (StatusCode::SERVICE_UNAVAILABLE, health(Health::NOT_SERVING)).into_response()
     }
 }
 
-pub fn session_json(s: &SessionRow, latest: Option<i64>) -> Value {
-    json!({
-        "id": s.id,
-        "rig": s.rig,
-        "patterns": serde_json::to_value(&s.spec).expect("spec json"),
-        "channels": s.channels,
-        "directions": s.directions,
-        "camera": s.camera,
-        "metadata": s.metadata,
-        "committed_rows": s.committed_rows,
-        "expected_rows": s.expected_rows,
-        "state": s.state,
-        "created_unix_ms": s.created_ms,
-        "finished_unix_ms": s.finished_ms,
-        "has_ground_truth": s.has_ground_truth,
-        "latest_reconstruction": latest,
-        "links": {
-            "self": format!("/v1/sessions/{}", s.id),
-            "reconstructions": format!("/v1/sessions/{}/reconstructions", s.id),
-            "dual_png": format!("/v1/sessions/{}/dual.png", s.id),
-        }
-    })
+pub fn session_view(s: &SessionRow, latest: Option<i64>) -> SessionView {
+    SessionView {
+        id: s.id.clone(),
+        rig: s.rig.clone(),
+        patterns: s.spec.clone(),
+        channels: s.channels.clone(),
+        directions: s.directions.clone(),
+        camera: s.camera.map(|c| CameraView {
+            width: c.width,
+            height: c.height,
+            format: c.format,
+        }),
+        metadata: s.metadata.clone(),
+        committed_rows: s.committed_rows,
+        expected_rows: s.expected_rows,
+        state: match s.state {
+            store::SessionState::Open => SessionState::Open,
+            store::SessionState::Finished => SessionState::Finished,
+        },
+        created_unix_ms: s.created_ms,
+        finished_unix_ms: s.finished_ms,
+        has_ground_truth: s.has_ground_truth,
+        latest_reconstruction: latest,
+        links: SessionLinks::of(&s.id),
+        extra: Default::default(),
+    }
 }
 
-pub fn reconstruction_json(r: &ReconstructionRow) -> Value {
-    let parse = |s: &str| serde_json::from_str::<Value>(s).unwrap_or(Value::Null);
-    json!({
-        "id": r.id,
-        "session_id": r.session_id,
-        "method": r.method,
-        "params": parse(&r.params_json),
-        "state": r.state,
-        "progress": r.progress,
-        "rows": r.rows_used,
-        "attempt": r.attempt,
-        "seconds": r.seconds,
-        "error": r.last_error,
-        "report": r.report_json.as_deref().map(parse),
-        "created_unix_ms": r.created_ms,
-        "started_unix_ms": r.started_ms,
-        "finished_unix_ms": r.finished_ms,
-        "links": {
-            "self": format!("/v1/reconstructions/{}", r.id),
-            "dual_png": format!("/v1/reconstructions/{}/dual.png", r.id),
-            "dual_tiff": format!("/v1/reconstructions/{}/dual.tiff", r.id),
-            "dual_npy": format!("/v1/reconstructions/{}/dual.npy", r.id),
-        }
-    })
+/// A reconstruction as served. Its report goes out as it was stored (a `rest::Report` the job
+/// wrote, or a report of an earlier version), not parsed and written again; stored text that
+/// is not JSON is served as null.
+pub fn reconstruction_view(r: &ReconstructionRow) -> ReconstructionView<Box<RawValue>> {
+    ReconstructionView {
+        id: r.id,
+        session_id: r.session_id.clone(),
+        method: r.method.clone(),
+        params: serde_json::from_str(&r.params_json).unwrap_or(Value::Null),
+        state: r.state.clone(),
+        progress: r.progress,
+        rows: r.rows_used,
+        attempt: r.attempt,
+        seconds: r.seconds,
+        error: r.last_error.clone(),
+        report: r
+            .report_json
+            .as_deref()
+            .and_then(|s| RawValue::from_string(s.to_string()).ok()),
+        created_unix_ms: r.created_ms,
+        started_unix_ms: r.started_ms,
+        finished_unix_ms: r.finished_ms,
+        links: ReconstructionLinks::of(r.id),
+        extra: Default::default(),
+    }
 }
 
 fn session_path(id: &str) -> Result<(), ApiError> {
@@ -226,7 +244,7 @@ async fn list_sessions(
     Caller(caller): Caller,
     State(state): State<AppState>,
     Query(query): Query<HashMap<String, String>>,
-) -> Result<axum::Json<Value>, ApiError> {
+) -> Result<axum::Json<SessionList>, ApiError> {
     caller.require(Role::Reader)?;
     let limit = match query.get("limit") {
         None => 100,
@@ -244,35 +262,35 @@ async fn list_sessions(
     let sessions = state.store.list_sessions(&caller.lab, limit).await?;
     let mut out = Vec::with_capacity(sessions.len());
     for s in &sessions {
-        out.push(session_json(s, state.store.latest_done(&s.id).await?));
+        out.push(session_view(s, state.store.latest_done(&s.id).await?));
     }
-    Ok(axum::Json(json!({ "sessions": out })))
+    Ok(axum::Json(SessionList { sessions: out }))
 }
 
 async fn get_session(
     Caller(caller): Caller,
     State(state): State<AppState>,
     Path(id): Path<String>,
-) -> Result<axum::Json<Value>, ApiError> {
+) -> Result<axum::Json<SessionView>, ApiError> {
     caller.require(Role::Reader)?;
     session_path(&id)?;
     let s = state.own_session(&caller, &id).await?;
     let latest = state.store.latest_done(&id).await?;
-    Ok(axum::Json(session_json(&s, latest)))
+    Ok(axum::Json(session_view(&s, latest)))
 }
 
 async fn list_reconstructions(
     Caller(caller): Caller,
     State(state): State<AppState>,
     Path(id): Path<String>,
-) -> Result<axum::Json<Value>, ApiError> {
+) -> Result<axum::Json<ReconstructionList<Box<RawValue>>>, ApiError> {
     caller.require(Role::Reader)?;
     session_path(&id)?;
     state.own_session(&caller, &id).await?;
     let rows = state.store.session_reconstructions(&id).await?;
-    Ok(axum::Json(
-        json!({ "reconstructions": rows.iter().map(reconstruction_json).collect::<Vec<_>>() }),
-    ))
+    Ok(axum::Json(ReconstructionList {
+        reconstructions: rows.iter().map(reconstruction_view).collect(),
+    }))
 }
 
 async fn post_reconstruction(
@@ -313,7 +331,7 @@ async fn post_reconstruction(
     let row = state.request_reconstruction(&caller, &id, &request).await?;
     let location = format!("/v1/reconstructions/{}", row.id);
     let mut response =
-        (StatusCode::ACCEPTED, axum::Json(reconstruction_json(&row))).into_response();
+        (StatusCode::ACCEPTED, axum::Json(reconstruction_view(&row))).into_response();
     response.headers_mut().insert(
         header::LOCATION,
         HeaderValue::from_str(&location).expect("ascii"),
@@ -414,10 +432,10 @@ async fn get_reconstruction(
     Caller(caller): Caller,
     State(state): State<AppState>,
     Path(id): Path<String>,
-) -> Result<axum::Json<Value>, ApiError> {
+) -> Result<axum::Json<ReconstructionView<Box<RawValue>>>, ApiError> {
     caller.require(Role::Reader)?;
     let id = recon_path(&id)?;
-    Ok(axum::Json(reconstruction_json(
+    Ok(axum::Json(reconstruction_view(
         &state.own_reconstruction(&caller, id).await?,
     )))
 }
@@ -428,28 +446,37 @@ async fn cancel_reconstruction(
     Caller(caller): Caller,
     State(state): State<AppState>,
     Path(id): Path<String>,
-) -> Result<axum::Json<Value>, ApiError> {
+) -> Result<axum::Json<ReconstructionView<Box<RawValue>>>, ApiError> {
     caller.require(Role::Reader)?;
     let id = recon_path(&id)?;
-    Ok(axum::Json(reconstruction_json(
+    Ok(axum::Json(reconstruction_view(
         &state.cancel_reconstruction(&caller, id).await?,
     )))
 }
 
-fn token_json(t: &TokenInfo) -> Value {
-    serde_json::to_value(t).expect("token json")
+/// A token as served; `secret` only in the answer to its creation.
+pub fn token_view(t: &TokenInfo, secret: Option<String>) -> TokenView {
+    TokenView {
+        id: t.id,
+        lab: t.lab.clone(),
+        roles: t.roles.clone(),
+        note: t.note.clone(),
+        created_unix_ms: t.created_unix_ms,
+        revoked_unix_ms: t.revoked_unix_ms,
+        token: secret,
+    }
 }
 
 /// `GET /v1/tokens`: the admin's lab's tokens (never their secrets).
 async fn list_tokens(
     Caller(caller): Caller,
     State(state): State<AppState>,
-) -> Result<axum::Json<Value>, ApiError> {
+) -> Result<axum::Json<TokenList>, ApiError> {
     caller.require(Role::Admin)?;
     let tokens = state.store.list_tokens(Some(&caller.lab)).await?;
-    Ok(axum::Json(
-        json!({ "tokens": tokens.iter().map(token_json).collect::<Vec<_>>() }),
-    ))
+    Ok(axum::Json(TokenList {
+        tokens: tokens.iter().map(|t| token_view(t, None)).collect(),
+    }))
 }
 
 /// `POST /v1/tokens {"roles": ["rig"], "note": "..."}`: a new token of the admin's lab; 201 with
@@ -518,9 +545,11 @@ async fn create_token(
     };
     let (info, secret) = state.store.create_token(&caller.lab, roles, note).await?;
     tracing::info!(token = info.id, lab = %info.lab, roles = %info.roles, by = caller.token_id, "token created");
-    let mut out = token_json(&info);
-    out["token"] = json!(secret);
-    Ok((StatusCode::CREATED, axum::Json(out)).into_response())
+    Ok((
+        StatusCode::CREATED,
+        axum::Json(token_view(&info, Some(secret))),
+    )
+        .into_response())
 }
 
 /// `DELETE /v1/tokens/{id}`: revokes a token of the admin's lab (another lab's is 404).
@@ -528,7 +557,7 @@ async fn revoke_token(
     Caller(caller): Caller,
     State(state): State<AppState>,
     Path(id): Path<String>,
-) -> Result<axum::Json<Value>, ApiError> {
+) -> Result<axum::Json<TokenView>, ApiError> {
     caller.require(Role::Admin)?;
     let id = id
         .parse::<i64>()
@@ -539,7 +568,7 @@ async fn revoke_token(
         .await?
         .ok_or_else(|| ApiError::NotFound(format!("token {id} not found")))?;
     tracing::info!(token = id, lab = %info.lab, by = caller.token_id, "token revoked");
-    Ok(axum::Json(token_json(&info)))
+    Ok(axum::Json(token_view(&info, None)))
 }
 
 #[derive(Clone, Copy)]

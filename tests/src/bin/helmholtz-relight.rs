@@ -164,8 +164,12 @@ async fn main() -> anyhow::Result<()> {
         rec.is_done(),
         "the transport reconstruction failed: {rec:?}"
     );
-    let details = &rec.report["details"];
-    eprintln!("T in {:.1} s: {}", rec.seconds, details["transform"]);
+    let report = rec.report.clone().unwrap_or_default();
+    let details = &report.recon.details;
+    let seconds = rec.seconds.unwrap_or(0.0);
+    let null = serde_json::Value::Null;
+    let detail = |key: &str| details.get(key).unwrap_or(&null);
+    eprintln!("T in {seconds:.1} s: {}", detail("transform"));
 
     // Queries: each light / pattern differs from every other (no response-cache hits).
     let http = reqwest::Client::new();
@@ -243,15 +247,13 @@ async fn main() -> anyhow::Result<()> {
     md.push_str("| T: seconds | transform | lambda | stored MiB | dense f32 MiB | nonzeros/row | held-out |\n|---|---|---|---|---|---|---|\n");
     md.push_str(&format!(
         "| {:.1} | {} | {} | {:.1} | {:.0} | {:.1} | {:.4} |\n\n",
-        rec.seconds,
-        details["transform"].as_str().unwrap_or("-"),
-        details["lambda"],
-        details["stored_bytes"].as_f64().unwrap_or(0.0) / (1 << 20) as f64,
-        details["dense_f32_bytes"].as_f64().unwrap_or(0.0) / (1 << 20) as f64,
-        details["nonzeros_per_row"].as_f64().unwrap_or(0.0),
-        rec.report["held_out"]["relative_residual"]
-            .as_f64()
-            .unwrap_or(f64::NAN),
+        seconds,
+        detail("transform").as_str().unwrap_or("-"),
+        detail("lambda"),
+        report.detail_f64("stored_bytes").unwrap_or(0.0) / (1 << 20) as f64,
+        report.detail_f64("dense_f32_bytes").unwrap_or(0.0) / (1 << 20) as f64,
+        report.detail_f64("nonzeros_per_row").unwrap_or(0.0),
+        report.held_out_error().unwrap_or(f64::NAN),
     ));
     md.push_str(&format!(
         "Queries: {} of each kind, one at a time; every disc light (a moving centre, radius 2-6 camera pixels) and every stored pattern index differs from the previous ones, so no answer comes from the response cache. \"Server\" is the compute time the server reports in `server-timing` (light parsed, `T^T c'` or `T p` on the decoded T, which is in the server's cache after the first query); \"round trip\" adds the database lookup of the reconstruction, the image encoding and HTTP on loopback.\n\n",

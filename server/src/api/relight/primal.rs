@@ -1,0 +1,180 @@
+//! `POST /v1/reconstructions/{id}/primal`: the camera image `T p (+ ambient)` a projector
+//! pattern would give, with the error against the measured frame for one of the session's own.
+
+use std::collections::HashMap;
+use std::time::Instant;
+
+use axum::body::Bytes;
+use axum::http::{HeaderMap, header};
+use axum::response::Response;
+use serde_json::Value;
+
+use super::super::{ApiError, AppState};
+use super::body::{Input, only_keys, parse_input};
+use super::cache::CachedResponse;
+use super::response::{Format, not_modified, respond, strong_etag};
+use super::{finished, finite_result};
+use crate::auth::Principal;
+
+pub async fn primal(
+    state: &AppState,
+    caller: &Principal,
+    id: i64,
+    query: &HashMap<String, String>,
+    headers: &HeaderMap,
+    body: Bytes,
+) -> Result<Response, ApiError> {
+    let format = Format::parse(query, &["format", "scale", "ambient"])?;
+    let with_ambient = match query.get("ambient").map(String::as_str) {
+        None | Some("include") => true,
+        Some("exclude") => false,
+        Some(other) => {
+            return Err(ApiError::invalid(
+                "ambient",
+                format!("must be include or exclude, got {other:?}"),
+            ));
+        }
+    };
+    let (_, session) = finished(state, caller, id).await?;
+    let Some(camera) = session.camera else {
+        return Err(ApiError::FailedPrecondition(format!(
+            "session {:?} has bucket detectors: a primal image needs a camera session's transport matrix",
+            session.id
+        )));
+    };
+    let content_type = headers
+        .get(header::CONTENT_TYPE)
+        .map(|v| v.as_bytes())
+        .unwrap_or(b"");
+    let etag = strong_etag(&[
+        b"primal-v1",
+        &id.to_le_bytes(),
+        format.tag().as_bytes(),
+        &[with_ambient as u8],
+        content_type,
+        &body,
+    ]);
+    if let Some(r) = not_modified(headers, &etag) {
+        return Ok(r);
+    }
+    if let Some(hit) = state.responses.get(&etag) {
+        return Ok(respond(&etag, hit, None));
+    }
+    let (pw, ph) = (
+        session.spec.width() as usize,
+        session.spec.height() as usize,
+    );
+    let k = pw * ph;
+    let (pattern, measured_row) = match parse_input(headers, &body, "body")? {
+        Input::Image {
+            width,
+            height,
+            values,
+        } => {
+            if values.len() != k || (height != 1 && (width, height) != (pw, ph)) {
+                return Err(ApiError::invalid(
+                    "body",
+                    format!(
+                        "the pattern is {width}x{height} but the projector is {pw}x{ph} (or send {k} values as a 1-D array)"
+                    ),
+                ));
+            }
+            (values, None)
+        }
+        Input::Json(map) => {
+            only_keys(&map, &["pattern_index"], "")?;
+            let i = match map.get("pattern_index") {
+                Some(Value::Number(n)) if n.as_u64().is_some() => n.as_u64().expect("checked"),
+                Some(other) => {
+                    return Err(ApiError::invalid(
+                        "pattern_index",
+                        format!("must be a non-negative integer, got {other}"),
+                    ));
+                }
+                None => {
+                    return Err(ApiError::invalid(
+                        "pattern_index",
+                        "is required (or send the pattern as a PNG or NPY body)",
+                    ));
+                }
+            };
+            if i >= session.spec.count() {
+                return Err(ApiError::invalid(
+                    "pattern_index",
+                    format!(
+                        "the session declares {} patterns (0..{}), got {i}",
+                        session.spec.count(),
+                        session.spec.count()
+                    ),
+                ));
+            }
+            let mut pattern = vec![0f32; k];
+            helmholtz_proto::PatternGenerator::new(&session.spec).fill_values(i, &mut pattern);
+            (pattern, Some(i))
+        }
+    };
+    let started = Instant::now();
+    let t = state.transports.get(state, id).await?;
+    let mut predicted = tokio::task::spawn_blocking(move || t.primal(&pattern))
+        .await
+        .map_err(|e| ApiError::Internal(e.to_string()))?;
+    if with_ambient {
+        let images = state.store.dual_images(id).await?;
+        if let Some(ambient) = images
+            .iter()
+            .find(|i| i.channel_name == "ambient" && i.data.len() == predicted.len())
+        {
+            predicted
+                .iter_mut()
+                .zip(&ambient.data)
+                .for_each(|(p, a)| *p += a);
+        }
+    }
+    finite_result(
+        &predicted,
+        if measured_row.is_some() {
+            "pattern_index"
+        } else {
+            "body"
+        },
+    )?;
+    let ms = started.elapsed().as_secs_f64() * 1e3;
+    metrics::histogram!("helmholtz_relight_seconds", "kind" => "primal").record(ms / 1e3);
+    let mut extra = Vec::new();
+    if let Some(i) = measured_row {
+        // Only rows the reconstruction used are "measured" for it; later rows are still real
+        // frames, so compare against them too when they are stored.
+        if let Some(bytes) = state
+            .store
+            .read_row(&session.id, i, session.row_bytes())
+            .await?
+        {
+            let mut measured = Vec::with_capacity(predicted.len());
+            session.sample_format().decode_f32(&bytes, &mut measured);
+            let (mut e2, mut n2, mut peak) = (0f64, 0f64, 0f64);
+            for (p, m) in predicted.iter().zip(&measured) {
+                e2 += (*p as f64 - *m as f64).powi(2);
+                n2 += (*m as f64).powi(2);
+                peak = peak.max(*m as f64);
+            }
+            let mse = e2 / measured.len().max(1) as f64;
+            extra.push((
+                "x-helmholtz-relative-error",
+                format!("{:.6e}", (e2 / n2).sqrt()),
+            ));
+            extra.push((
+                "x-helmholtz-psnr-db",
+                format!("{:.3}", 10.0 * (peak * peak / mse).log10()),
+            ));
+            extra.push(("x-helmholtz-measured-row", i.to_string()));
+        }
+    }
+    let (bytes, mime) = format.encode(camera.width, camera.height, &predicted);
+    let cached = CachedResponse {
+        bytes: Bytes::from(bytes),
+        mime,
+        headers: extra,
+    };
+    state.responses.put(etag.clone(), cached.clone());
+    Ok(respond(&etag, cached, Some(ms)))
+}
