@@ -192,8 +192,8 @@ pub fn run(
         let result =
             reconstruct_transport(&spec, camera, count, &config, &mut source, &Control::new());
         let seconds = started.elapsed().as_secs_f64();
-        let peak =
-            helmholtz_alloc::installed().then(|| helmholtz_alloc::peak_bytes().saturating_sub(base));
+        let peak = helmholtz_alloc::installed()
+            .then(|| helmholtz_alloc::peak_bytes().saturating_sub(base));
         let row = match result {
             Ok((t, report)) => {
                 let d = &report.details;
@@ -338,9 +338,7 @@ fn write(
     )?;
     let mut md = String::new();
     md.push_str("# Transport matrix benchmarks\n\n");
-    md.push_str(
-        "`cargo run -p helmholtz-bench -- --preset transport --out docs` ",
-    );
+    md.push_str("`cargo run -p helmholtz-bench -- --preset transport --out docs` ");
     md.push_str(&format!("({} threads; {}). Scene: `helmholtz_sim::Relief::demo(64, 64, 7)`, camera `Camera::tilted(32, 32, 25)`; noise-free frames `c_i = T p_i`. ", rayon::current_num_threads(), super::machine::sentence(machine)));
     md.push_str("Error: relative Frobenius error of T; relit PSNR over three camera-side lights (uniform, checkerboard, random) against the scene's own relight.\n\n");
     md.push_str("| case | frames | coarse-to-fine | seconds | peak heap MiB | transform | lambda | stored KiB (dense KiB) | nnz/row | rel. error T | relit PSNR dB | held-out | iterations/row |\n");

@@ -140,7 +140,11 @@ mod tests {
         assert!(adjoint_mismatch(p.as_ref(), 5) < 1e-12);
         // P b: the data centred.
         let mean = b.iter().sum::<f64>() / 13.0;
-        assert!(pb.iter().zip(&b).all(|(p, b)| (p - (b - mean)).abs() < 1e-15));
+        assert!(
+            pb.iter()
+                .zip(&b)
+                .all(|(p, b)| (p - (b - mean)).abs() < 1e-15)
+        );
         // P (A t + d 1) = P A t: a constant added to every bucket is invisible.
         let t = test_vector(7, 6);
         let mut y = vec![0.0; 13];

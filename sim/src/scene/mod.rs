@@ -130,7 +130,10 @@ mod tests {
     fn a_flat_target_is_its_own_transport_at_the_projector() {
         let target = Target::builtin("usaf", 24, 16).unwrap();
         let scene = Scene::from(target.clone());
-        assert_eq!((scene.width(), scene.height(), scene.pixels()), (24, 16, 384));
+        assert_eq!(
+            (scene.width(), scene.height(), scene.pixels()),
+            (24, 16, 384)
+        );
         let image: Vec<f64> = target.pixels.iter().map(|&v| v as f64).collect();
         assert_eq!(scene.detector_transport([0.0, 0.0, 1.0]), image);
         // Oblique: the image times the cosine; below the horizon, dark.
@@ -138,7 +141,12 @@ mod tests {
         let t = scene.detector_transport(d);
         let want: Vec<f64> = image.iter().map(|v| v * d[2]).collect();
         assert!(max_diff(&t, &want) < 1e-12);
-        assert!(scene.detector_transport([1.0, 0.0, -1.0]).iter().all(|&v| v == 0.0));
+        assert!(
+            scene
+                .detector_transport([1.0, 0.0, -1.0])
+                .iter()
+                .all(|&v| v == 0.0)
+        );
     }
 
     #[test]
