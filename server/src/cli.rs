@@ -294,6 +294,14 @@ enum Command {
         #[command(flatten)]
         database: DatabaseArgs,
     },
+    /// Check the database before starting processes on it: reachable, schema applied (pending
+    /// migrations are applied, as `migrate` does), and the clock skew between this machine and
+    /// the database (leases use the database's clock; a large skew only affects log times).
+    /// Exits non-zero when the database cannot be used.
+    Check {
+        #[command(flatten)]
+        database: DatabaseArgs,
+    },
 }
 
 /// A worker process's options.
@@ -355,6 +363,7 @@ pub fn main() {
             Command::Serve(args) => serve(args.config()).await,
             Command::Token { command, database } => token(command, &database).await,
             Command::Worker(args) => worker(args).await,
+            Command::Check { database } => check(&database).await,
             Command::Migrate { database } => {
                 let store = database.open().await?;
                 println!("{}: migrations applied", store.describe());
@@ -399,6 +408,25 @@ pub async fn shutdown_signal() {
     let term = std::future::pending::<()>();
     tokio::select! { _ = ctrl_c => {}, _ = term => {} }
     tracing::info!("shutting down: finishing requests, giving running jobs' leases back");
+}
+
+/// `helmholtz-server check`: what an operator wants to know before starting nodes.
+async fn check(database: &DatabaseArgs) -> anyhow::Result<()> {
+    let store = database.open().await?;
+    anyhow::ensure!(store.ping().await, "{}: does not answer", store.describe());
+    let version = store.schema_version().await?;
+    let sent = std::time::SystemTime::now();
+    let db_ms = store.clock_ms().await?;
+    let round_trip = sent.elapsed().unwrap_or_default();
+    let local_ms = crate::store::now_ms() - round_trip.as_millis() as i64 / 2;
+    println!(
+        "{}: reachable, schema at migration {version}, clock skew {:+} ms (round trip {} ms)",
+        store.describe(),
+        db_ms - local_ms,
+        round_trip.as_millis()
+    );
+    store.close().await;
+    Ok(())
 }
 
 /// Workers without a listener, until Ctrl-C or SIGTERM; running jobs give their leases back.

@@ -78,6 +78,29 @@ fn chunk(id: &str, start: u64, values: &[f64]) -> v1::MeasurementChunk {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn api_nodes_and_worker_processes_share_one_postgres_database() {
     let db = TestDatabase::create();
+    // The operator's checks: migrate, then check (reachable, schema, clock).
+    let run = |args: &[&str]| {
+        std::process::Command::new(helmholtz_tests::binary("helmholtz-server"))
+            .args(args)
+            .env("RUST_LOG", "warn")
+            .output()
+            .unwrap()
+    };
+    let migrated = run(&["migrate", "--database-url", db.url()]);
+    assert!(migrated.status.success(), "{migrated:?}");
+    let checked = run(&["check", "--database-url", db.url()]);
+    let text = String::from_utf8_lossy(&checked.stdout);
+    assert!(checked.status.success(), "{checked:?}");
+    assert!(
+        text.contains("reachable, schema at migration 1, clock skew"),
+        "{text}"
+    );
+    let refused = run(&["check", "--database-url", "mysql://root@127.0.0.1/x"]);
+    assert!(!refused.status.success());
+    assert!(
+        String::from_utf8_lossy(&refused.stderr).contains("must start with postgres://"),
+        "{refused:?}"
+    );
     let token = db.create_token("e2e", "rig,reader").unwrap();
     let a = ServerProcess::start_on_postgres(&db, &token, &["--workers", "0"]).unwrap();
     let b = ServerProcess::start_on_postgres(&db, &token, &["--workers", "0"]).unwrap();

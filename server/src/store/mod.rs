@@ -100,6 +100,15 @@ pub trait Database:
     /// Where the data lives, for logs and the operator (never a password).
     fn describe(&self) -> String;
 
+    /// The newest migration applied to the database.
+    async fn schema_version(&self) -> Result<i64, StoreError>;
+
+    /// The clock leases are measured on, Unix milliseconds: the database's own (PostgreSQL), or
+    /// this process's (SQLite, one machine).
+    async fn clock_ms(&self) -> Result<i64, StoreError> {
+        Ok(now_ms())
+    }
+
     /// Runs until dropped: wakes `wake`'s waiters whenever any process sharing the database
     /// queues a job (a hint: idle workers also look every so often). The default never wakes:
     /// an embedded database has no other process, and this one wakes its workers directly.

@@ -77,6 +77,22 @@ impl Database for Postgres {
         self.name.clone()
     }
 
+    async fn schema_version(&self) -> Result<i64, StoreError> {
+        Ok(sqlx::query(
+            "SELECT CAST(COALESCE(MAX(version), 0) AS BIGINT) FROM _sqlx_migrations WHERE success",
+        )
+        .fetch_one(&self.pool)
+        .await?
+        .get::<i64, _>(0))
+    }
+
+    async fn clock_ms(&self) -> Result<i64, StoreError> {
+        Ok(sqlx::query("SELECT helmholtz_now_ms()")
+            .fetch_one(&self.pool)
+            .await?
+            .get::<i64, _>(0))
+    }
+
     /// LISTEN on the channel every enqueue notifies; after a lost connection, listens again
     /// with a growing pause (notifications sent meanwhile are lost: workers also poll).
     async fn forward_job_wakeups(&self, wake: Arc<tokio::sync::Notify>) {

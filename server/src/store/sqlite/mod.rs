@@ -72,6 +72,15 @@ impl Database for Sqlite {
     fn describe(&self) -> String {
         format!("sqlite:{}", self.path.display())
     }
+
+    async fn schema_version(&self) -> Result<i64, StoreError> {
+        Ok(sqlx::query(
+            "SELECT CAST(COALESCE(MAX(version), 0) AS BIGINT) FROM _sqlx_migrations WHERE success",
+        )
+        .fetch_one(&self.pool)
+        .await?
+        .get::<i64, _>(0))
+    }
 }
 
 /// The data directory (mode 0700) and the database (0600) are the server's alone: tokens'
