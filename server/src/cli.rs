@@ -15,7 +15,7 @@ use crate::limits::Limits;
 #[command(
     name = "helmholtz-server",
     version,
-    about = "Helmholtz: dual photography and ghost imaging reconstruction service.\n\nServes the gRPC acquisition API (helmholtz.v1.Acquisition) and the REST API on one address, stores sessions in SQLite and reconstructs on a pool of CPU workers.\n\nEvery call but the health checks needs a lab's token (Authorization: Bearer hz_...); create the first with `helmholtz-server token create --lab LAB --role admin` (or rig, reader)."
+    about = "Helmholtz: dual photography and ghost imaging reconstruction service.\n\nServes the gRPC acquisition API (helmholtz.v1.Acquisition) and the REST API on one address, stores sessions in SQLite (embedded, in --data-dir) or PostgreSQL (--database-url, shared by API nodes and `worker` processes on many machines) and reconstructs on a pool of CPU workers.\n\nEvery call but the health checks needs a lab's token (Authorization: Bearer hz_...); create the first with `helmholtz-server token create --lab LAB --role admin` (or rig, reader)."
 )]
 struct Cli {
     #[command(subcommand)]
