@@ -6,9 +6,9 @@
 //!   in [`ReconstructionList`]), [`TokenView`] (in [`TokenList`]), [`Health`], [`ServiceIndex`],
 //!   and every error as [`Problem`] (`application/problem+json`, RFC 9457).
 //! - Request bodies: [`ReconstructionRequest`], [`RelightRequest`] (a [`LightRequest`]),
-//!   [`PrimalRequest`], [`TokenRequest`]. The server checks these by hand, field by field, so
-//!   that a bad body is a problem naming the field (`light.radius`, `roles[1]`); these types are
-//!   what a valid body is, and what the client sends.
+//!   [`PrimalRequest`], [`TokenRequest`]. The server decodes bodies into these types (and the
+//!   client sends them), so a valid body is what these types say; a bad body is a problem
+//!   naming the field serde stopped at (`light.radius`, `roles[1]`).
 //! - The reconstruction report ([`Report`]): what the numerics found ([`ReconReport`]: method,
 //!   iterations, method-specific details, the held-out error estimate) and what the service adds
 //!   (quality against a simulated ground truth, compute seconds, memory). It is stored as JSON
@@ -196,6 +196,7 @@ pub struct SessionList {
 /// `POST /v1/sessions/{id}/reconstructions`: a method and its parameters (method-specific, see
 /// the method's documentation; `{}` or absent for the defaults).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct ReconstructionRequest {
     pub method: String,
     #[serde(default)]
@@ -318,14 +319,122 @@ pub struct RelightRequest {
     pub light: LightRequest,
 }
 
-/// A virtual light at the detector side.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+/// A virtual light at the detector side: `{"preset": ...}` or `{"weights": {...}}` (decoded by
+/// the key present, so an error names the field, not "no variant matched").
+#[derive(Clone, Debug, PartialEq, Serialize)]
 #[serde(untagged)]
 pub enum LightRequest {
     /// A camera session's preset (a bucket session takes only `full`).
     Preset(LightPreset),
     /// A bucket session: a weight per channel name (channels not named weigh 0).
     Weights { weights: BTreeMap<String, f64> },
+}
+
+impl<'de> Deserialize<'de> for LightRequest {
+    fn deserialize<D: Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
+        use serde::de::{Error, MapAccess, Visitor};
+        const FIELDS: &[&str] = &["preset", "x", "y", "radius", "x0", "x1", "weights"];
+        struct Light;
+        impl<'de> Visitor<'de> for Light {
+            type Value = LightRequest;
+            fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+                f.write_str(r#"an object such as {"preset": "full"} or {"weights": {"r": 1.0}}"#)
+            }
+            fn visit_map<A: MapAccess<'de>>(self, mut map: A) -> Result<LightRequest, A::Error> {
+                /// A preset's name, read as a string (a derived enum would call any other
+                /// JSON type a syntax error).
+                enum Preset {
+                    Full,
+                    Disc,
+                    Stripe,
+                }
+                impl<'de> Deserialize<'de> for Preset {
+                    fn deserialize<D: Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+                        const NAMES: &[&str] = &["full", "disc", "stripe"];
+                        match String::deserialize(d)?.as_str() {
+                            "full" => Ok(Preset::Full),
+                            "disc" => Ok(Preset::Disc),
+                            "stripe" => Ok(Preset::Stripe),
+                            other => Err(D::Error::unknown_variant(other, NAMES)),
+                        }
+                    }
+                }
+                let mut preset: Option<Preset> = None;
+                let mut weights: Option<BTreeMap<String, f64>> = None;
+                let mut numbers: BTreeMap<&'static str, f64> = BTreeMap::new();
+                while let Some(key) = map.next_key::<String>()? {
+                    let Some(&name) = FIELDS.iter().find(|f| **f == key) else {
+                        return Err(A::Error::unknown_field(&key, FIELDS));
+                    };
+                    if preset.is_some() && name == "preset"
+                        || weights.is_some() && name == "weights"
+                        || numbers.contains_key(name)
+                    {
+                        return Err(A::Error::duplicate_field(name));
+                    }
+                    match name {
+                        "preset" => preset = Some(map.next_value()?),
+                        "weights" => weights = Some(map.next_value()?),
+                        _ => {
+                            numbers.insert(name, map.next_value()?);
+                        }
+                    }
+                }
+                fn take<E: Error>(
+                    numbers: &BTreeMap<&'static str, f64>,
+                    allowed: &'static [&'static str],
+                ) -> Result<(), E> {
+                    match numbers.keys().find(|k| !allowed.contains(k)) {
+                        Some(extra) => Err(E::unknown_field(extra, allowed)),
+                        None => Ok(()),
+                    }
+                }
+                let need = |name: &'static str| {
+                    numbers
+                        .get(name)
+                        .copied()
+                        .ok_or_else(|| A::Error::missing_field(name))
+                };
+                match (preset, weights) {
+                    (Some(_), Some(_)) => {
+                        Err(A::Error::custom("give either preset or weights, not both"))
+                    }
+                    (None, Some(weights)) => {
+                        take::<A::Error>(&numbers, &["weights"])?;
+                        Ok(LightRequest::Weights { weights })
+                    }
+                    (Some(preset), None) => {
+                        let light = match preset {
+                            Preset::Full => {
+                                take::<A::Error>(&numbers, &["preset"])?;
+                                LightPreset::Full
+                            }
+                            Preset::Disc => {
+                                take::<A::Error>(&numbers, &["preset", "x", "y", "radius"])?;
+                                LightPreset::Disc {
+                                    x: need("x")?,
+                                    y: need("y")?,
+                                    radius: need("radius")?,
+                                }
+                            }
+                            Preset::Stripe => {
+                                take::<A::Error>(&numbers, &["preset", "x0", "x1"])?;
+                                LightPreset::Stripe {
+                                    x0: need("x0")?,
+                                    x1: need("x1")?,
+                                }
+                            }
+                        };
+                        Ok(LightRequest::Preset(light))
+                    }
+                    (None, None) => Err(A::Error::custom(
+                        r#"give a preset or weights: {"preset": "full"} or {"weights": {"r": 1.0}}"#,
+                    )),
+                }
+            }
+        }
+        deserializer.deserialize_map(Light)
+    }
 }
 
 /// `{"preset": "full" | "disc" | "stripe", ...}`, in camera pixel units.

@@ -4,6 +4,7 @@
 pub mod error;
 pub mod grpc;
 pub mod images;
+pub mod json;
 pub mod relight;
 pub mod rest;
 pub mod validate;

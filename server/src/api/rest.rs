@@ -11,8 +11,9 @@ use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
 use helmholtz_proto::rest::{
-    CameraView, Health, Problem, ReconstructionLinks, ReconstructionList, ReconstructionView,
-    ServiceIndex, SessionLinks, SessionList, SessionState, SessionView, TokenList, TokenView,
+    CameraView, Health, Problem, ReconstructionLinks, ReconstructionList, ReconstructionRequest,
+    ReconstructionView, ServiceIndex, SessionLinks, SessionList, SessionState, SessionView,
+    TokenList, TokenRequest, TokenView,
 };
 use serde_json::Value;
 use serde_json::value::RawValue;
@@ -302,31 +303,9 @@ async fn post_reconstruction(
     caller.require(Role::Reader)?;
     session_path(&id)?;
     let body = read_body(&state, body).await?;
-    let body: Value = serde_json::from_slice(&body).map_err(|e| {
-        ApiError::invalid(
-            "body",
-            format!("must be a JSON object like {{\"method\": \"dgi\", \"params\": {{}}}}: {e}"),
-        )
-    })?;
-    let Value::Object(body) = body else {
-        return Err(ApiError::invalid("body", "must be a JSON object"));
-    };
-    if let Some(key) = body
-        .keys()
-        .find(|k| !matches!(k.as_str(), "method" | "params"))
-    {
-        return Err(ApiError::invalid(
-            key.clone(),
-            "unknown field; expected \"method\" and \"params\"",
-        ));
-    }
-    let method = match body.get("method") {
-        Some(Value::String(m)) => m.clone(),
-        Some(_) => return Err(ApiError::invalid("method", "must be a string")),
-        None => return Err(ApiError::invalid("method", "is required")),
-    };
-    let params = body.get("params").cloned().unwrap_or(Value::Null);
-    let request = crate::recon::Request::parse(&method, &params)
+    let body: ReconstructionRequest =
+        super::json::decode(&body, r#"{"method": "dgi", "params": {}}"#)?;
+    let request = crate::recon::Request::parse(&body.method, &body.params)
         .map_err(|e| ApiError::invalid(e.field, e.message))?;
     let row = state.request_reconstruction(&caller, &id, &request).await?;
     let location = format!("/v1/reconstructions/{}", row.id);
@@ -488,61 +467,25 @@ async fn create_token(
 ) -> Result<Response, ApiError> {
     caller.require(Role::Admin)?;
     let body = read_body(&state, body).await?;
-    let body: Value = serde_json::from_slice(&body).map_err(|e| {
-        ApiError::invalid(
-            "body",
-            format!("must be a JSON object like {{\"roles\": [\"rig\"]}}: {e}"),
-        )
-    })?;
-    let Value::Object(body) = body else {
-        return Err(ApiError::invalid("body", "must be a JSON object"));
-    };
-    if let Some(key) = body
-        .keys()
-        .find(|k| !matches!(k.as_str(), "roles" | "note"))
-    {
+    let body: TokenRequest = super::json::decode(&body, r#"{"roles": ["rig"], "note": "..."}"#)?;
+    let mut roles = Vec::new();
+    for (i, name) in body.roles.iter().enumerate() {
+        roles.push(Role::parse(name).map_err(|e| ApiError::invalid(format!("roles[{i}]"), e))?);
+    }
+    if roles.is_empty() {
         return Err(ApiError::invalid(
-            key.clone(),
-            "unknown field; expected \"roles\" and \"note\"",
+            "roles",
+            "name at least one of rig, reader, admin",
         ));
     }
-    let roles = match body.get("roles") {
-        Some(Value::Array(items)) => {
-            let mut names = Vec::new();
-            for (i, item) in items.iter().enumerate() {
-                let name = item
-                    .as_str()
-                    .ok_or_else(|| ApiError::invalid(format!("roles[{i}]"), "must be a string"))?;
-                let role =
-                    Role::parse(name).map_err(|e| ApiError::invalid(format!("roles[{i}]"), e))?;
-                names.push(role);
-            }
-            if names.is_empty() {
-                return Err(ApiError::invalid(
-                    "roles",
-                    "name at least one of rig, reader, admin",
-                ));
-            }
-            Roles::of(&names)
-        }
-        Some(_) => {
-            return Err(ApiError::invalid(
-                "roles",
-                "must be an array like [\"rig\", \"reader\"]",
-            ));
-        }
-        None => return Err(ApiError::invalid("roles", "is required")),
-    };
-    let note = match body.get("note") {
-        None => "",
-        Some(Value::String(s)) if s.len() <= 256 && !s.chars().any(char::is_control) => s.as_str(),
-        Some(_) => {
-            return Err(ApiError::invalid(
-                "note",
-                "must be a string of at most 256 characters without control characters",
-            ));
-        }
-    };
+    let roles = Roles::of(&roles);
+    let note = body.note.as_str();
+    if note.len() > 256 || note.chars().any(char::is_control) {
+        return Err(ApiError::invalid(
+            "note",
+            "must be a string of at most 256 characters without control characters",
+        ));
+    }
     let (info, secret) = state.store.create_token(&caller.lab, roles, note).await?;
     tracing::info!(token = info.id, lab = %info.lab, roles = %info.roles, by = caller.token_id, "token created");
     Ok((

@@ -1,15 +1,16 @@
 //! Request bodies: a JSON object, or an image as PNG or NPY (the light of a relight, the
-//! pattern of a primal), chosen by `content-type`; and the field checks of JSON bodies.
+//! pattern of a primal), chosen by `content-type`.
 
+use axum::body::Bytes;
 use axum::http::{HeaderMap, header};
 use helmholtz_proto::npy;
-use serde_json::{Map, Value};
 
 use super::super::ApiError;
 
-/// A request body: a JSON object or an image (PNG, NPY).
+/// A request body: JSON (decoded by its handler into the contract's request type) or an image
+/// (PNG, NPY).
 pub(super) enum Input {
-    Json(Map<String, Value>),
+    Json(Bytes),
     Image {
         width: usize,
         height: usize,
@@ -17,7 +18,11 @@ pub(super) enum Input {
     },
 }
 
-pub(super) fn parse_input(headers: &HeaderMap, body: &[u8], what: &str) -> Result<Input, ApiError> {
+pub(super) fn parse_input(
+    headers: &HeaderMap,
+    body: &Bytes,
+    what: &str,
+) -> Result<Input, ApiError> {
     let content_type = headers
         .get(header::CONTENT_TYPE)
         .and_then(|v| v.to_str().ok())
@@ -29,14 +34,7 @@ pub(super) fn parse_input(headers: &HeaderMap, body: &[u8], what: &str) -> Resul
         .trim()
         .to_ascii_lowercase();
     match mime.as_str() {
-        "application/json" | "" => {
-            let value: Value = serde_json::from_slice(body)
-                .map_err(|e| ApiError::invalid("body", format!("not JSON: {e}")))?;
-            match value {
-                Value::Object(map) => Ok(Input::Json(map)),
-                _ => Err(ApiError::invalid("body", "must be a JSON object")),
-            }
-        }
+        "application/json" | "" => Ok(Input::Json(body.clone())),
         "image/png" => {
             let (width, height, values) = decode_png(body)
                 .map_err(|e| ApiError::invalid(what, format!("not a readable PNG: {e}")))?;
@@ -120,39 +118,6 @@ pub(super) fn decode_npy(bytes: &[u8]) -> Result<(usize, usize, Vec<f32>), Strin
         return Err(format!("value {i} is not finite"));
     }
     Ok((width, height, values))
-}
-
-/// `map[key]` as a finite number; `field` prefixes the problem's field name.
-pub(super) fn number(map: &Map<String, Value>, key: &str, field: &str) -> Result<f64, ApiError> {
-    match map.get(key) {
-        Some(Value::Number(n)) if n.as_f64().is_some_and(f64::is_finite) => {
-            Ok(n.as_f64().expect("checked"))
-        }
-        Some(other) => Err(ApiError::invalid(
-            format!("{field}.{key}"),
-            format!("must be a finite number, got {other}"),
-        )),
-        None => Err(ApiError::invalid(format!("{field}.{key}"), "is required")),
-    }
-}
-
-/// Refuses any key of `map` not in `allowed`, naming it under `field`.
-pub(super) fn only_keys(
-    map: &Map<String, Value>,
-    allowed: &[&str],
-    field: &str,
-) -> Result<(), ApiError> {
-    match map.keys().find(|k| !allowed.contains(&k.as_str())) {
-        Some(k) => Err(ApiError::invalid(
-            if field.is_empty() {
-                k.clone()
-            } else {
-                format!("{field}.{k}")
-            },
-            format!("unknown field; expected {}", allowed.join(", ")),
-        )),
-        None => Ok(()),
-    }
 }
 
 #[cfg(test)]

@@ -7,10 +7,10 @@ use std::time::Instant;
 use axum::body::Bytes;
 use axum::http::{HeaderMap, header};
 use axum::response::Response;
-use serde_json::Value;
+use helmholtz_proto::rest::{LightPreset, LightRequest, RelightRequest};
 
-use super::super::{ApiError, AppState};
-use super::body::{Input, number, only_keys, parse_input};
+use super::super::{ApiError, AppState, json};
+use super::body::{Input, parse_input};
 use super::cache::CachedResponse;
 use super::response::{Format, not_modified, respond, strong_etag};
 use super::{finished, finite_result};
@@ -38,55 +38,19 @@ fn camera_light(input: Input, cw: usize, ch: usize) -> Result<Vec<f32>, ApiError
             values
         }
         Input::Json(body) => {
-            only_keys(&body, &["light"], "")?;
-            let Some(Value::Object(light)) = body.get("light") else {
-                return Err(ApiError::invalid(
-                    "light",
-                    "is required: an object such as {\"preset\": \"full\"}",
-                ));
-            };
-            if light.contains_key("weights") {
-                return Err(ApiError::invalid(
-                    "light.weights",
-                    "per-channel weights relight bucket sessions; this is a camera session: use a preset or a camera-sized image",
-                ));
-            }
-            let preset = match light.get("preset") {
-                Some(Value::String(p)) => p.as_str(),
-                Some(_) => return Err(ApiError::invalid("light.preset", "must be a string")),
-                None => {
+            let body: RelightRequest = json::decode(&body, r#"{"light": {"preset": "full"}}"#)?;
+            let light = match body.light {
+                LightRequest::Weights { .. } => {
                     return Err(ApiError::invalid(
-                        "light.preset",
-                        "is required: full, disc or stripe",
+                        "light.weights",
+                        "per-channel weights relight bucket sessions; this is a camera session: use a preset or a camera-sized image",
                     ));
                 }
-            };
-            let light = match preset {
-                "full" => {
-                    only_keys(light, &["preset"], "light")?;
-                    Light::Full
+                LightRequest::Preset(LightPreset::Full) => Light::Full,
+                LightRequest::Preset(LightPreset::Disc { x, y, radius }) => {
+                    Light::Disc { x, y, radius }
                 }
-                "disc" => {
-                    only_keys(light, &["preset", "x", "y", "radius"], "light")?;
-                    Light::Disc {
-                        x: number(light, "x", "light")?,
-                        y: number(light, "y", "light")?,
-                        radius: number(light, "radius", "light")?,
-                    }
-                }
-                "stripe" => {
-                    only_keys(light, &["preset", "x0", "x1"], "light")?;
-                    Light::Stripe {
-                        x0: number(light, "x0", "light")?,
-                        x1: number(light, "x1", "light")?,
-                    }
-                }
-                other => {
-                    return Err(ApiError::invalid(
-                        "light.preset",
-                        format!("must be full, disc or stripe, got {other:?}"),
-                    ));
-                }
+                LightRequest::Preset(LightPreset::Stripe { x0, x1 }) => Light::Stripe { x0, x1 },
             };
             light
                 .weights(cw, ch)
@@ -111,25 +75,17 @@ fn bucket_relight(
             ),
         ));
     };
-    only_keys(&body, &["light"], "")?;
-    let Some(Value::Object(light)) = body.get("light") else {
-        return Err(ApiError::invalid(
-            "light",
-            "is required: {\"weights\": {CHANNEL: WEIGHT, ...}} or {\"preset\": \"full\"}",
-        ));
-    };
-    let weights: Vec<f64> = match (light.get("weights"), light.get("preset")) {
-        (Some(Value::Object(w)), None) => {
-            only_keys(light, &["weights"], "light")?;
+    let body: RelightRequest = json::decode(&body, r#"{"light": {"weights": {"r": 1.0}}}"#)?;
+    let weights: Vec<f64> = match body.light {
+        LightRequest::Weights { weights } => {
             let mut out = vec![0.0; channels.len()];
-            for name in w.keys() {
-                let i = channels.iter().position(|c| c == name).ok_or_else(|| {
+            for (name, v) in weights {
+                let i = channels.iter().position(|c| *c == name).ok_or_else(|| {
                     ApiError::invalid(
                         format!("light.weights.{name}"),
                         format!("no such channel; this session has {}", channels.join(", ")),
                     )
                 })?;
-                let v = number(w, name, "light.weights")?;
                 if v.abs() > f32::MAX as f64 {
                     return Err(ApiError::invalid(
                         format!("light.weights.{name}"),
@@ -143,19 +99,19 @@ fn bucket_relight(
             }
             out
         }
-        (None, Some(Value::String(p))) if p == "full" => {
-            only_keys(light, &["preset"], "light")?;
-            vec![1.0; channels.len()]
-        }
-        (None, Some(p)) => {
+        LightRequest::Preset(LightPreset::Full) => vec![1.0; channels.len()],
+        LightRequest::Preset(p) => {
+            let name = match p {
+                LightPreset::Disc { .. } => "disc",
+                _ => "stripe",
+            };
             return Err(ApiError::invalid(
                 "light.preset",
                 format!(
-                    "a bucket session has no camera: the only preset is \"full\" (all channels), got {p}"
+                    "a bucket session has no camera: the only preset is \"full\" (all channels), got {name:?}"
                 ),
             ));
         }
-        _ => return Err(ApiError::invalid("light", "give either weights or preset")),
     };
     let first = images
         .first()
@@ -262,12 +218,9 @@ mod tests {
     #[test]
     fn presets_light_the_pixels_they_name() {
         let disc = camera_light(
-            Input::Json(
-                serde_json::from_str(
-                    r#"{"light": {"preset": "disc", "x": 2, "y": 2, "radius": 1}}"#,
-                )
-                .unwrap(),
-            ),
+            Input::Json(Bytes::from_static(
+                br#"{"light": {"preset": "disc", "x": 2, "y": 2, "radius": 1}}"#,
+            )),
             4,
             4,
         )
@@ -276,19 +229,18 @@ mod tests {
         assert_eq!(disc.iter().sum::<f32>(), 4.0);
         assert_eq!(disc[5] + disc[6] + disc[9] + disc[10], 4.0);
         let stripe = camera_light(
-            Input::Json(
-                serde_json::from_str(r#"{"light": {"preset": "stripe", "x0": 1, "x1": 3}}"#)
-                    .unwrap(),
-            ),
+            Input::Json(Bytes::from_static(
+                br#"{"light": {"preset": "stripe", "x0": 1, "x1": 3}}"#,
+            )),
             4,
             2,
         )
         .unwrap();
         assert_eq!(stripe, vec![0.0, 1.0, 1.0, 0.0, 0.0, 1.0, 1.0, 0.0]);
         let err = camera_light(
-            Input::Json(
-                serde_json::from_str(r#"{"light": {"preset": "disc", "x": 2, "y": 2}}"#).unwrap(),
-            ),
+            Input::Json(Bytes::from_static(
+                br#"{"light": {"preset": "disc", "x": 2, "y": 2}}"#,
+            )),
             4,
             4,
         );

@@ -7,10 +7,10 @@ use std::time::Instant;
 use axum::body::Bytes;
 use axum::http::{HeaderMap, header};
 use axum::response::Response;
-use serde_json::Value;
+use helmholtz_proto::rest::PrimalRequest;
 
-use super::super::{ApiError, AppState};
-use super::body::{Input, only_keys, parse_input};
+use super::super::{ApiError, AppState, json};
+use super::body::{Input, parse_input};
 use super::cache::CachedResponse;
 use super::response::{Format, not_modified, respond, strong_etag};
 use super::{finished, finite_result};
@@ -81,23 +81,9 @@ pub async fn primal(
             }
             (values, None)
         }
-        Input::Json(map) => {
-            only_keys(&map, &["pattern_index"], "")?;
-            let i = match map.get("pattern_index") {
-                Some(Value::Number(n)) if n.as_u64().is_some() => n.as_u64().expect("checked"),
-                Some(other) => {
-                    return Err(ApiError::invalid(
-                        "pattern_index",
-                        format!("must be a non-negative integer, got {other}"),
-                    ));
-                }
-                None => {
-                    return Err(ApiError::invalid(
-                        "pattern_index",
-                        "is required (or send the pattern as a PNG or NPY body)",
-                    ));
-                }
-            };
+        Input::Json(body) => {
+            let body: PrimalRequest = json::decode(&body, r#"{"pattern_index": 0}"#)?;
+            let i = body.pattern_index;
             if i >= session.spec.count() {
                 return Err(ApiError::invalid(
                     "pattern_index",
