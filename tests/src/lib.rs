@@ -1,5 +1,6 @@
 //! Harness for end-to-end tests: the real `helmholtz-server` binary on 127.0.0.1 port 0 with a
-//! real SQLite file in a temporary directory, talked to by the real client library and binary.
+//! real SQLite file in a temporary directory, or a real PostgreSQL database made for the test
+//! ([`backend`]: `HELMHOLTZ_TEST_BACKEND`), talked to by the real client library and binary.
 
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
@@ -9,7 +10,10 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, bail};
 use helmholtz_client::auth::Grpc;
 
+pub mod backend;
 pub mod pg;
+
+pub use backend::{Backend, backend, server_command, store_args, store_args_on};
 
 /// Path of a workspace binary built beside this test executable (`cargo test --workspace`
 /// builds them: the server and client packages each have an integration test). Note that
@@ -65,17 +69,19 @@ pub fn create_token_with(
     lab: &str,
     roles: &str,
 ) -> anyhow::Result<String> {
+    create_token_on(backend(), server_bin, data_dir, lab, roles)
+}
+
+fn create_token_on(
+    backend: Backend,
+    server_bin: &Path,
+    data_dir: &Path,
+    lab: &str,
+    roles: &str,
+) -> anyhow::Result<String> {
     let out = Command::new(server_bin)
-        .args([
-            "token",
-            "create",
-            "--lab",
-            lab,
-            "--role",
-            roles,
-            "--data-dir",
-        ])
-        .arg(data_dir)
+        .args(["token", "create", "--lab", lab, "--role", roles])
+        .args(store_args_on(backend, data_dir))
         .env("RUST_LOG", "warn")
         .output()
         .context("running helmholtz-server token create")?;
@@ -112,7 +118,8 @@ pub struct ServerProcess {
 }
 
 impl ServerProcess {
-    /// Starts `helmholtz-server serve` on 127.0.0.1 port 0 (or `port`) with `data_dir`, after
+    /// Starts `helmholtz-server serve` on 127.0.0.1 port 0 (or `port`) with `data_dir` (and on
+    /// PostgreSQL, `data_dir`'s database: [`backend`]), after
     /// making sure `data_dir` holds the harness's token (kept in `data_dir/.e2e-token` so a
     /// restarted server on the same data accepts the same token).
     pub fn start(data_dir: &Path, port: u16, extra: &[&str]) -> anyhow::Result<ServerProcess> {
@@ -127,12 +134,38 @@ impl ServerProcess {
         port: u16,
         extra: &[&str],
     ) -> anyhow::Result<ServerProcess> {
+        Self::start_binary_on(backend(), server_bin, data_dir, port, extra)
+    }
+
+    /// [`ServerProcess::start`] on SQLite whatever this process's backend is (a test of the
+    /// SQLite file itself).
+    pub fn start_sqlite(
+        data_dir: &Path,
+        port: u16,
+        extra: &[&str],
+    ) -> anyhow::Result<ServerProcess> {
+        Self::start_binary_on(
+            Backend::Sqlite,
+            &binary("helmholtz-server"),
+            data_dir,
+            port,
+            extra,
+        )
+    }
+
+    fn start_binary_on(
+        backend: Backend,
+        server_bin: &Path,
+        data_dir: &Path,
+        port: u16,
+        extra: &[&str],
+    ) -> anyhow::Result<ServerProcess> {
         std::fs::create_dir_all(data_dir)?;
         let token_file = data_dir.join(".e2e-token");
         let token = match std::fs::read_to_string(&token_file) {
             Ok(t) => t.trim().to_string(),
             Err(_) => {
-                let t = create_token_with(server_bin, data_dir, E2E_LAB, "rig,reader")?;
+                let t = create_token_on(backend, server_bin, data_dir, E2E_LAB, "rig,reader")?;
                 std::fs::write(&token_file, &t)?;
                 t
             }
@@ -141,9 +174,8 @@ impl ServerProcess {
             "serve".into(),
             "--listen".into(),
             format!("127.0.0.1:{port}").into(),
-            "--data-dir".into(),
-            data_dir.into(),
         ];
+        args.extend(store_args_on(backend, data_dir));
         args.extend(extra.iter().map(Into::into));
         Self::launch(server_bin, &args, token, data_dir)
     }

@@ -43,7 +43,8 @@ impl TestDatabase {
     /// Creates the database. Panics, saying how to provide PostgreSQL, when there is none.
     pub fn create() -> TestDatabase {
         let admin = admin_url();
-        let name = format!("helmholtz_e2e_{:016x}", rand_u64());
+        sweep_orphans(&admin);
+        let name = format!("helmholtz_e2e_{}_{:016x}", std::process::id(), rand_u64());
         let (admin_, name_) = (admin.clone(), name.clone());
         on_own_runtime(async move {
             let (admin, name) = (admin_, name_);
@@ -108,6 +109,45 @@ impl TestDatabase {
             v
         })
     }
+}
+
+/// Drops the test databases (`helmholtz_e2e_PID_...`) of test processes that are gone (killed
+/// before their databases were dropped), once per process.
+fn sweep_orphans(admin: &str) {
+    static SWEPT: std::sync::Once = std::sync::Once::new();
+    let admin = admin.to_string();
+    // Process ids name processes of this machine only.
+    if !(admin.contains("@127.0.0.1") || admin.contains("@localhost") || admin.contains("@[::1]")) {
+        return;
+    }
+    SWEPT.call_once(move || {
+        on_own_runtime(async move {
+            let Ok(mut conn) = PgConnection::connect(&admin).await else {
+                return; // create() says how to provide PostgreSQL
+            };
+            let names: Vec<String> = sqlx::query_scalar(
+                "SELECT datname FROM pg_database WHERE datname LIKE 'helmholtz_e2e_%'",
+            )
+            .fetch_all(&mut conn)
+            .await
+            .unwrap_or_default();
+            for name in names {
+                let pid = name
+                    .strip_prefix("helmholtz_e2e_")
+                    .and_then(|rest| rest.split('_').next())
+                    .and_then(|p| p.parse::<u32>().ok());
+                // Only databases named by a process that no longer runs on this machine.
+                if pid.is_some_and(|p| !std::path::Path::new(&format!("/proc/{p}")).exists()) {
+                    let _ = conn
+                        .execute(sqlx::AssertSqlSafe(format!(
+                            "DROP DATABASE IF EXISTS \"{name}\" WITH (FORCE)"
+                        )))
+                        .await;
+                }
+            }
+            conn.close().await.ok();
+        });
+    });
 }
 
 impl Drop for TestDatabase {

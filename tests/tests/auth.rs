@@ -146,20 +146,14 @@ async fn world() -> (tempfile::TempDir, World, Vec<Caller>) {
     assert_eq!(r.status(), 200);
     // Tokens the admin matrix revokes (revoking is idempotent, so every admin call sees 200).
     let victim = |lab: &str| {
-        let out = std::process::Command::new(helmholtz_tests::binary("helmholtz-server"))
-            .args([
-                "token",
-                "create",
-                "--lab",
-                lab,
-                "--role",
-                "reader",
-                "--json",
-                "--data-dir",
-            ])
-            .arg(&server.data_dir)
-            .output()
-            .unwrap();
+        let out = helmholtz_tests::server_command(
+            &server.data_dir,
+            &[
+                "token", "create", "--lab", lab, "--role", "reader", "--json",
+            ],
+        )
+        .output()
+        .unwrap();
         let v: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
         assert!(v["token"].as_str().unwrap().starts_with("hz_"));
         v["id"].as_i64().unwrap()
@@ -807,11 +801,12 @@ async fn tokens_are_made_listed_and_revoked_by_the_cli_and_the_admin_api() {
         bad.json::<serde_json::Value>().await.unwrap()["field"],
         "roles[1]"
     );
-    let out = std::process::Command::new(helmholtz_tests::binary("helmholtz-server"))
-        .args(["token", "revoke", &made["id"].to_string(), "--data-dir"])
-        .arg(&server.data_dir)
-        .output()
-        .unwrap();
+    let out = helmholtz_tests::server_command(
+        &server.data_dir,
+        &["token", "revoke", &made["id"].to_string()],
+    )
+    .output()
+    .unwrap();
     assert!(
         out.status.success(),
         "{}",

@@ -366,7 +366,7 @@ fn the_data_directory_is_0700_and_the_database_0600_whatever_the_umask() {
     let wide = dir.path().join("wide");
     std::fs::create_dir_all(&wide).unwrap();
     std::fs::set_permissions(&wide, std::fs::Permissions::from_mode(0o755)).unwrap();
-    let server = ServerProcess::start(&wide, 0, &[]).unwrap();
+    let server = ServerProcess::start_sqlite(&wide, 0, &[]).unwrap();
     drop(server);
     std::fs::set_permissions(&wide, std::fs::Permissions::from_mode(0o755)).unwrap();
     std::fs::set_permissions(
@@ -374,7 +374,7 @@ fn the_data_directory_is_0700_and_the_database_0600_whatever_the_umask() {
         std::fs::Permissions::from_mode(0o644),
     )
     .unwrap();
-    let _server = ServerProcess::start(&wide, 0, &[]).unwrap();
+    let _server = ServerProcess::start_sqlite(&wide, 0, &[]).unwrap();
     assert_eq!(mode(&wide), 0o700);
     for suffix in ["", "-wal", "-shm"] {
         let f = std::path::PathBuf::from(format!("{}/helmholtz.sqlite{suffix}", wide.display()));
