@@ -771,11 +771,17 @@ impl Worker {
                     failed.last_error.as_deref().unwrap_or("no error recorded")
                 ))));
             }
+            if rows.is_empty() {
+                return Err(JobError::Internal(format!(
+                    "transport reconstruction {} has a model but no shards",
+                    job.id
+                )));
+            }
             let done = rows.iter().filter(|s| s.state == "done").count();
             control.set_progress(
                 progress0 + (1.0 - progress0) * done as f64 / rows.len().max(1) as f64,
             );
-            if !rows.is_empty() && done == rows.len() {
+            if done == rows.len() {
                 break rows;
             }
             let wake = self.wake.clone();
