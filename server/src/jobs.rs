@@ -1080,3 +1080,148 @@ impl BucketSource for StoreSource<'_> {
         }))
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use std::collections::BTreeMap;
+
+    use helmholtz_proto::{Family, PatternGenerator, PatternSpec};
+
+    use super::*;
+    use crate::store::{NewSession, SampleFormat};
+
+    /// Frames of a camera whose pixel `j` sees a blob of the projector near its own place.
+    fn frames(spec: &PatternSpec, cw: usize, ch: usize) -> Vec<f32> {
+        let (pw, ph) = (spec.width() as usize, spec.height() as usize);
+        let k = pw * ph;
+        let mut t = vec![0f32; cw * ch * k];
+        for cy in 0..ch {
+            for cx in 0..cw {
+                let (px, py) = (
+                    (cx as f64 + 0.5) * pw as f64 / cw as f64,
+                    (cy as f64 + 0.5) * ph as f64 / ch as f64,
+                );
+                for y in 0..ph {
+                    for x in 0..pw {
+                        let d2 = (x as f64 - px).powi(2) + (y as f64 - py).powi(2);
+                        t[(cy * cw + cx) * k + y * pw + x] = (-d2 / 2.0).exp() as f32;
+                    }
+                }
+            }
+        }
+        let g = PatternGenerator::new(spec);
+        let mut p = vec![0f32; k];
+        let mut out = Vec::new();
+        for i in 0..spec.count() {
+            g.fill_values(i, &mut p);
+            for row in t.chunks_exact(k) {
+                out.push(row.iter().zip(&p).map(|(a, b)| a * b).sum::<f32>());
+            }
+        }
+        out
+    }
+
+    /// On the embedded database, two worker threads of one process: the transport job runs in
+    /// shards (the other worker, woken by the in-process notifier, takes some), and the stored T
+    /// is the one `reconstruct_transport` makes in one call, bit for bit.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_transport_job_in_shards_stores_the_single_call_t() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = Store::open(dir.path()).await.unwrap();
+        let spec = PatternSpec::new(Family::Bernoulli { fill: 0.5 }, 16, 16, 192, 3).unwrap();
+        let (cw, ch) = (16usize, 8usize);
+        let f = frames(&spec, cw, ch);
+        let camera = CameraLayout {
+            width: cw as u32,
+            height: ch as u32,
+            format: SampleFormat::F32,
+        };
+        store
+            .create_session(&NewSession {
+                id: "cam".into(),
+                lab: "default".into(),
+                rig: "bench".into(),
+                spec: spec.clone(),
+                channels: Vec::new(),
+                directions: Vec::new(),
+                camera: Some(camera),
+                metadata: BTreeMap::new(),
+                ground_truth: None,
+            })
+            .await
+            .unwrap();
+        let bytes: Vec<u8> = f.iter().flat_map(|v| v.to_le_bytes()).collect();
+        store
+            .append_raw("cam", None, 0, cw * ch * 4, &bytes)
+            .await
+            .unwrap();
+        store.finish_session("cam").await.unwrap();
+        let params = r#"{"sample_pixels": 8}"#;
+        let r = store
+            .enqueue_reconstruction("default", "cam", "transport", params, 192, 3)
+            .await
+            .unwrap();
+        let config = PoolConfig {
+            workers: 2,
+            idle_poll: Duration::from_millis(50),
+            transport_shard_pixels: 16,
+            ..PoolConfig::default()
+        };
+        let memory_budget = config.memory_budget;
+        let pool = WorkerPool::start(store.clone(), Handle::current(), config);
+        let deadline = Instant::now() + Duration::from_secs(120);
+        let done = loop {
+            let row = store.reconstruction(r.id).await.unwrap();
+            if row.state == "done" || row.state == "failed" {
+                break row;
+            }
+            assert!(Instant::now() < deadline, "still {}", row.state);
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        };
+        tokio::task::spawn_blocking(move || pool.shutdown())
+            .await
+            .unwrap();
+        assert_eq!(done.state, "done", "{:?}", done.last_error);
+        let shards = store.shards(r.id).await.unwrap();
+        assert_eq!(shards.len(), 8, "{shards:?}");
+        assert!(
+            shards
+                .iter()
+                .all(|s| s.state == "done" && s.part_bytes.is_none())
+        );
+        let workers: std::collections::BTreeSet<_> =
+            shards.iter().filter_map(|s| s.worker_id.clone()).collect();
+        assert_eq!(workers.len(), 2, "{workers:?}");
+        let stored = store.transport(r.id).await.unwrap().unwrap();
+
+        let config = TransportConfig::parse(&serde_json::from_str(params).unwrap())
+            .unwrap()
+            .with_memory_budget(memory_budget);
+        let mut source = transport::SliceFrames::new(&f, cw * ch);
+        let grid = CameraGrid {
+            width: cw as u32,
+            height: ch as u32,
+        };
+        let (t, report) = transport::reconstruct_transport(
+            &spec,
+            grid,
+            192,
+            &config,
+            &mut source,
+            &Control::new(),
+        )
+        .unwrap();
+        assert!(
+            stored == t.encode(),
+            "the sharded T differs from one call's"
+        );
+        let stored_report: Report =
+            serde_json::from_str(done.report_json.as_deref().unwrap()).unwrap();
+        assert_eq!(
+            stored_report.recon.details["selection"],
+            report.details["selection"]
+        );
+        assert_eq!(stored_report.recon.iterations, report.iterations);
+        assert_eq!(stored_report.recon.held_out, report.held_out);
+    }
+}
