@@ -47,6 +47,18 @@
 //! - **Coarse-to-fine** (Peers et al. 2009, optional): each block (whole pairs of camera lines)
 //!   first solves its 2x2-binned camera pixels (data averaged) down the continuation path, then
 //!   every pixel starts from its parent's solution at the final weight only.
+//! - **Three steps, one code path** (`shard.rs`): [`plan_transport`] validates, plans the memory
+//!   (the blocks) and chooses the model, once, into a [`TransportModel`] (stored as JSON);
+//!   [`solve_transport_blocks`] solves any run of its blocks into a [`TransportPart`] (stored as
+//!   bytes); [`assemble_transport`] appends the parts in block order into `T` and the report.
+//!   [`reconstruct_transport`] is the three in one process; a server runs the middle one in
+//!   shards on many workers. A row of `T` depends only on its own camera pixel's frames and on
+//!   the model (transform, weight, refit, `L`, solver chunk, iteration limits), never on the
+//!   block or shard it is solved in, so the assembled `T` is the single call's bit for bit. The
+//!   one process-dependent factor, the number of rayon threads (the bit-matrix products split
+//!   their partial sums over threads), is recorded in the model and every part is solved on a
+//!   pool of that size; the SIMD kernel (AVX-512 or portable, `HELMHOLTZ_SIMD`) must also be the
+//!   same on every machine.
 
 pub mod batch;
 mod config;
