@@ -47,6 +47,8 @@ pub struct Config {
     pub worker_memory: usize,
     /// Decoded transport matrices kept in memory for relighting, bytes.
     pub transport_cache: usize,
+    /// Camera pixels per shard of a transport job (any worker sharing the database takes one).
+    pub transport_shard_pixels: usize,
     /// Timeouts, the connection cap, the shutdown deadline, TLS and CORS.
     pub edge: EdgeConfig,
 }
@@ -65,6 +67,7 @@ impl Default for Config {
             limits: Limits::default(),
             worker_memory: crate::recon::transport::DEFAULT_MEMORY_BUDGET,
             transport_cache: 2 << 30,
+            transport_shard_pixels: crate::jobs::DEFAULT_TRANSPORT_SHARD_PIXELS,
             metrics_listen: None,
             edge: EdgeConfig::default(),
         }
@@ -134,6 +137,7 @@ impl Application {
                 max_running_per_lab: config.limits.max_running_jobs_per_lab,
                 memory_budget: config.worker_memory,
                 process_memory: config.limits.memory_budget,
+                transport_shard_pixels: config.transport_shard_pixels,
                 ..PoolConfig::default()
             },
         );

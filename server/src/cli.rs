@@ -44,6 +44,11 @@ pub struct ServeArgs {
     /// camera pixels at a time, the block sized to stay within it.
     #[arg(long, env = "HELMHOLTZ_WORKER_MEMORY_MIB", default_value_t = 1024, value_parser = clap::value_parser!(u64).range(1..))]
     worker_memory_mib: u64,
+    /// Camera pixels per shard of a camera session's transport matrix: the job's blocks of
+    /// camera pixels are cut to at most this many and run in shards that any worker sharing the
+    /// database takes (each shard re-reads the frames of its blocks).
+    #[arg(long, env = "HELMHOLTZ_TRANSPORT_SHARD_PIXELS", default_value_t = crate::jobs::DEFAULT_TRANSPORT_SHARD_PIXELS as u64, value_parser = clap::value_parser!(u64).range(1..))]
+    transport_shard_pixels: u64,
     /// Memory for decoded transport matrices kept for relighting, in MiB (least recently used
     /// ones are dropped first).
     #[arg(long, default_value_t = 2048)]
@@ -318,6 +323,11 @@ pub struct WorkerArgs {
     /// Working-set budget of one camera-session reconstruction in MiB.
     #[arg(long, env = "HELMHOLTZ_WORKER_MEMORY_MIB", default_value_t = 1024, value_parser = clap::value_parser!(u64).range(1..))]
     worker_memory_mib: u64,
+    /// Camera pixels per shard of a camera session's transport matrix: the job's blocks of
+    /// camera pixels are cut to at most this many and run in shards that any worker sharing the
+    /// database takes (each shard re-reads the frames of its blocks).
+    #[arg(long, env = "HELMHOLTZ_TRANSPORT_SHARD_PIXELS", default_value_t = crate::jobs::DEFAULT_TRANSPORT_SHARD_PIXELS as u64, value_parser = clap::value_parser!(u64).range(1..))]
+    transport_shard_pixels: u64,
     /// Memory the reconstructions running in this process may take together, in MiB [default:
     /// three quarters of the machine's memory].
     #[arg(long, env = "HELMHOLTZ_MEMORY_BUDGET_MIB", value_parser = clap::value_parser!(u64).range(1..))]
@@ -341,6 +351,7 @@ impl ServeArgs {
             metrics_listen: self.metrics_listen,
             worker_memory: (self.worker_memory_mib as usize) << 20,
             transport_cache: (self.transport_cache_mib as usize) << 20,
+            transport_shard_pixels: self.transport_shard_pixels as usize,
             edge: self.edge.edge(),
             ..Config::default()
         };
@@ -447,6 +458,7 @@ async fn worker(args: WorkerArgs) -> anyhow::Result<()> {
             process_memory: args
                 .memory_budget_mib
                 .map_or_else(crate::limits::default_memory_budget, |m| m << 20),
+            transport_shard_pixels: args.transport_shard_pixels as usize,
             ..crate::jobs::PoolConfig::default()
         },
     );

@@ -150,6 +150,39 @@ fn sweep_orphans(admin: &str) {
     });
 }
 
+impl TestDatabase {
+    /// Runs one SQL query returning rows of one TEXT column (NULLs skipped).
+    pub fn strings(&self, sql: &str) -> Vec<String> {
+        let (url, sql) = (self.url.clone(), sql.to_string());
+        on_own_runtime(async move {
+            let mut conn = PgConnection::connect(&url).await.expect("connect");
+            let v: Vec<Option<String>> = sqlx::query_scalar(sqlx::AssertSqlSafe(sql.clone()))
+                .fetch_all(&mut conn)
+                .await
+                .unwrap_or_else(|e| panic!("{sql}: {e}"));
+            conn.close().await.ok();
+            v.into_iter().flatten().collect()
+        })
+    }
+
+    /// A reconstruction's stored transport matrix (its parts joined), as the server wrote it.
+    pub fn transport(&self, reconstruction_id: i64) -> Vec<u8> {
+        let url = self.url.clone();
+        on_own_runtime(async move {
+            let mut conn = PgConnection::connect(&url).await.expect("connect");
+            let parts: Vec<Vec<u8>> = sqlx::query_scalar(
+                "SELECT data FROM transports WHERE reconstruction_id = $1 ORDER BY part",
+            )
+            .bind(reconstruction_id)
+            .fetch_all(&mut conn)
+            .await
+            .expect("reading the stored transport matrix");
+            conn.close().await.ok();
+            parts.concat()
+        })
+    }
+}
+
 impl Drop for TestDatabase {
     fn drop(&mut self) {
         let name = self.name.clone();
@@ -215,6 +248,11 @@ impl WorkerProcess {
             "unexpected first line from the worker: {line:?}"
         );
         Ok(WorkerProcess { child })
+    }
+
+    /// The process id (a worker's id in the database starts with it).
+    pub fn pid(&self) -> u32 {
+        self.child.id()
     }
 
     /// SIGKILL.

@@ -1,7 +1,10 @@
 //! Past one machine: API nodes (`serve --workers 0`) and worker processes (`worker`) share one
 //! PostgreSQL database. Any node answers any request, rows uploaded through two nodes are stored
 //! exactly, one writer per session holds across nodes, jobs queued on one node run in a worker
-//! process, and a killed worker's job is taken up by another. Needs PostgreSQL (see
+//! process, and a killed worker's job is taken up by another; a camera session's transport
+//! matrix is solved in shards by several worker processes, a killed worker's shard is taken up
+//! again, and the T assembled from the shards is the single-process T bit for bit. Needs
+//! PostgreSQL (see
 //! `helmholtz_tests::pg`); each test creates and drops its own database.
 
 use std::time::{Duration, Instant};
@@ -92,7 +95,7 @@ async fn api_nodes_and_worker_processes_share_one_postgres_database() {
     let text = String::from_utf8_lossy(&checked.stdout);
     assert!(checked.status.success(), "{checked:?}");
     assert!(
-        text.contains("reachable, schema at migration 1, clock skew"),
+        text.contains("reachable, schema at migration 2, clock skew"),
         "{text}"
     );
     let refused = run(&["check", "--database-url", "mysql://root@127.0.0.1/x"]);
@@ -229,5 +232,212 @@ async fn a_killed_worker_process_s_job_is_taken_up_by_another() {
             "SELECT COUNT(*) FROM dual_images WHERE reconstruction_id = {job}"
         )),
         1
+    );
+}
+
+/// A simulated camera session (Lambertian scene, Bernoulli patterns), uploaded and finished by
+/// the real client through `api`.
+fn simulate_camera_session(api: &ServerProcess, id: &str, camera: &str, side: u32, count: u64) {
+    let spool = tempfile::tempdir().unwrap();
+    let out = std::process::Command::new(helmholtz_tests::binary("helmholtz"))
+        .args(["--server", &api.address, "--token", &api.token, "--spool"])
+        .arg(spool.path())
+        .args([
+            "simulate",
+            "--scene",
+            "lambert",
+            "--camera",
+            camera,
+            "--camera-tilt",
+            "20",
+            "--family",
+            "bernoulli",
+            "--width",
+            &side.to_string(),
+            "--height",
+            &side.to_string(),
+            "--count",
+            &count.to_string(),
+            "--seed",
+            "4",
+            "--session-id",
+            id,
+        ])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "helmholtz simulate failed:\n{}\n{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+const TRANSPORT: &str = r#"{"method": "transport", "params": {"sample_pixels": 16}}"#;
+
+/// The shards of a reconstruction: (count, distinct worker processes, most attempts).
+fn shard_figures(db: &TestDatabase, id: i64) -> (i64, i64, i64) {
+    (
+        db.scalar(&format!(
+            "SELECT COUNT(*) FROM transport_shards WHERE reconstruction_id = {id} AND state = 'done'"
+        )),
+        db.scalar(&format!(
+            "SELECT COUNT(DISTINCT split_part(worker_id, '-', 1)) FROM transport_shards WHERE reconstruction_id = {id}"
+        )),
+        db.scalar(&format!(
+            "SELECT COALESCE(MAX(attempt), 0) FROM transport_shards WHERE reconstruction_id = {id}"
+        )),
+    )
+}
+
+/// The same session's T from one worker process with sharding effectively off (one shard of
+/// all its blocks): the single-process T.
+async fn single_process_t(
+    db: &TestDatabase,
+    api: &ServerProcess,
+    session: &str,
+) -> (Vec<u8>, Value) {
+    let _worker = WorkerProcess::start(db, 1, &[]).unwrap();
+    let job = request(api, session, TRANSPORT).await;
+    let done = wait_state(api, job, &["done", "failed"], Duration::from_secs(300)).await;
+    assert_eq!(done["state"], "done", "{done}");
+    assert_eq!(shard_figures(db, job).0, 1, "one shard");
+    (db.transport(job), done)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_transport_in_shards_on_two_worker_processes_is_the_single_process_t() {
+    let db = TestDatabase::create();
+    let token = db.create_token("e2e", "rig,reader").unwrap();
+    let api = ServerProcess::start_on_postgres(&db, &token, &["--workers", "0"]).unwrap();
+    simulate_camera_session(&api, "cam", "16x12", 32, 384);
+    // Shards of 32 camera pixels: 6 of the 192.
+    let shards = ["--transport-shard-pixels", "32"];
+    let a = WorkerProcess::start(&db, 1, &shards).unwrap();
+    let b = WorkerProcess::start(&db, 1, &shards).unwrap();
+    let job = request(&api, "cam", TRANSPORT).await;
+    let done = wait_state(&api, job, &["done", "failed"], Duration::from_secs(300)).await;
+    assert_eq!(done["state"], "done", "{done}");
+    let (count, workers, _) = shard_figures(&db, job);
+    assert_eq!(count, 6, "{done}");
+    // Both processes took shards (the worker ids on the shard rows start with the pid).
+    assert_eq!(
+        workers,
+        2,
+        "shards by one process only: {:?}",
+        db.strings(&format!(
+            "SELECT worker_id FROM transport_shards WHERE reconstruction_id = {job}"
+        ))
+    );
+    let pids: Vec<String> = [a.pid(), b.pid()].iter().map(|p| p.to_string()).collect();
+    for w in db.strings(&format!(
+        "SELECT worker_id FROM transport_shards WHERE reconstruction_id = {job}"
+    )) {
+        assert!(
+            pids.iter().any(|p| w.starts_with(&format!("{p}-"))),
+            "{w} of {pids:?}"
+        );
+    }
+    // The parts are dropped once T is stored whole.
+    assert_eq!(
+        db.scalar(&format!(
+            "SELECT COUNT(*) FROM transport_shards WHERE reconstruction_id = {job} AND part IS NOT NULL"
+        )),
+        0
+    );
+    let report = &done["report"];
+    println!(
+        "shards: {}, seconds {}",
+        report["details"]["shards"], report["seconds"]
+    );
+    assert_eq!(report["details"]["shards"]["count"], 6, "{report}");
+    let sharded = db.transport(job);
+    assert!(sharded.len() > 64, "{} bytes of T", sharded.len());
+    drop((a, b));
+
+    let (single, single_done) = single_process_t(&db, &api, "cam").await;
+    assert!(
+        sharded == single,
+        "the sharded T differs from the single-process T"
+    );
+    // The same model, chosen once on the same sample: the same figures.
+    for key in [
+        "transform",
+        "lambda",
+        "refit",
+        "selection",
+        "nonzeros",
+        "iterations_max",
+    ] {
+        assert_eq!(
+            report["details"][key], single_done["report"]["details"][key],
+            "{key}"
+        );
+    }
+    assert_eq!(report["held_out"], single_done["report"]["held_out"]);
+    assert_eq!(report["iterations"], single_done["report"]["iterations"]);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_killed_worker_s_shard_is_leased_again_and_t_is_unchanged() {
+    let db = TestDatabase::create();
+    let token = db.create_token("e2e", "rig,reader").unwrap();
+    let api = ServerProcess::start_on_postgres(&db, &token, &["--workers", "0"]).unwrap();
+    simulate_camera_session(&api, "cam", "16x16", 32, 384);
+    // Shards of 16 camera pixels: 16 of the 256; leases of 2 s.
+    let args = ["--transport-shard-pixels", "16", "--lease-seconds", "2"];
+    let mut workers = vec![
+        WorkerProcess::start(&db, 1, &args).unwrap(),
+        WorkerProcess::start(&db, 1, &args).unwrap(),
+    ];
+    let job = request(&api, "cam", TRANSPORT).await;
+    // As soon as a worker holds a shard (not the last one), SIGKILL its process.
+    let deadline = Instant::now() + Duration::from_secs(120);
+    let (victim, shard) = loop {
+        let holders = db.strings(&format!(
+            "SELECT worker_id || ' ' || shard FROM transport_shards WHERE reconstruction_id = {job} \
+             AND state = 'running' AND shard < 15 ORDER BY shard"
+        ));
+        if let Some(w) = holders.first() {
+            let (worker, shard) = w.split_once(' ').unwrap();
+            let pid: u32 = worker.split('-').next().unwrap().parse().unwrap();
+            let victim = workers
+                .iter()
+                .position(|p| p.pid() == pid)
+                .expect("a worker of ours");
+            break (victim, shard.parse::<i64>().unwrap());
+        }
+        assert!(Instant::now() < deadline, "no shard ever ran");
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    };
+    let killed_pid = workers[victim].pid();
+    workers[victim].kill();
+    // A fresh worker process takes the place of the killed one.
+    workers.push(WorkerProcess::start(&db, 1, &args).unwrap());
+    let done = wait_state(&api, job, &["done", "failed"], Duration::from_secs(300)).await;
+    assert_eq!(done["state"], "done", "{done}");
+    let (count, _, _) = shard_figures(&db, job);
+    assert_eq!(count, 16);
+    // The killed worker's shard was leased again (a second attempt) and solved by another.
+    let again = db.strings(&format!(
+        "SELECT attempt || ' ' || worker_id FROM transport_shards WHERE reconstruction_id = {job} AND shard = {shard}"
+    ));
+    let (attempt, worker) = again[0].split_once(' ').unwrap();
+    assert!(
+        attempt.parse::<i64>().unwrap() >= 2,
+        "shard {shard}: {}",
+        again[0]
+    );
+    assert!(
+        !worker.starts_with(&format!("{killed_pid}-")),
+        "shard {shard} done by the killed worker: {}",
+        again[0]
+    );
+    let sharded = db.transport(job);
+    drop(workers);
+    let (single, _) = single_process_t(&db, &api, "cam").await;
+    assert!(
+        sharded == single,
+        "the T after a killed shard differs from the single-process T"
     );
 }

@@ -137,6 +137,25 @@ impl Builder {
         self.row_ptr.len() - 1
     }
 
+    /// The rows so far as CSR (`row_ptr` from 0, `index`, `value`): a part of `T`.
+    pub fn into_rows(self) -> (Vec<u64>, Vec<u32>, Vec<f32>) {
+        (self.row_ptr, self.index, self.value)
+    }
+
+    /// Appends rows as [`Builder::into_rows`] gave them (every row kept as it is).
+    pub fn append_rows(&mut self, row_ptr: &[u64], index: &[u32], value: &[f32]) {
+        let base = self.value.len() as u64;
+        let first = row_ptr.first().copied().unwrap_or(0);
+        self.row_ptr
+            .extend(row_ptr.iter().skip(1).map(|p| base + p - first));
+        let (a, b) = (
+            first as usize,
+            row_ptr.last().copied().unwrap_or(0) as usize,
+        );
+        self.index.extend_from_slice(&index[a..b]);
+        self.value.extend_from_slice(&value[a..b]);
+    }
+
     pub fn finish(self) -> TransportMatrix {
         let m = self.camera.0 as usize * self.camera.1 as usize;
         assert_eq!(self.rows(), m, "every camera pixel needs a row");

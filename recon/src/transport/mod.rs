@@ -47,11 +47,24 @@
 //! - **Coarse-to-fine** (Peers et al. 2009, optional): each block (whole pairs of camera lines)
 //!   first solves its 2x2-binned camera pixels (data averaged) down the continuation path, then
 //!   every pixel starts from its parent's solution at the final weight only.
+//! - **Three steps, one code path** (`shard.rs`): [`plan_transport`] validates, plans the memory
+//!   (the blocks) and chooses the model, once, into a [`TransportModel`] (stored as JSON);
+//!   [`solve_transport_blocks`] solves any run of its blocks into a [`TransportPart`] (stored as
+//!   bytes); [`assemble_transport`] appends the parts in block order into `T` and the report.
+//!   [`reconstruct_transport`] is the three in one process; a server runs the middle one in
+//!   shards on many workers. A row of `T` depends only on its own camera pixel's frames and on
+//!   the model (transform, weight, refit, `L`, solver chunk, iteration limits), never on the
+//!   block or shard it is solved in, so the assembled `T` is the single call's bit for bit. The
+//!   one process-dependent factor, the number of rayon threads (the bit-matrix products split
+//!   their partial sums over threads), is recorded in the model and every part is solved on a
+//!   pool of that size; the SIMD kernel (AVX-512 or portable, `HELMHOLTZ_SIMD`) must also be the
+//!   same on every machine.
 
 pub mod batch;
 mod config;
 pub mod light;
 mod matrix;
+mod shard;
 #[cfg(test)]
 mod tests;
 
@@ -65,6 +78,7 @@ pub use config::{CANDIDATE_TRANSFORMS, DEFAULT_MEMORY_BUDGET, LAMBDA_PATH, Trans
 pub use light::{Light, LightError};
 use matrix::Builder;
 pub use matrix::{TransportDecodeError, TransportMatrix};
+pub use shard::{MemoryFigures, PartDecodeError, TransportModel, TransportPart};
 
 use super::holdout::{self, Score};
 use super::linop::{LinearOperator, spectral_norm};
@@ -388,12 +402,6 @@ struct MemoryPlan {
     chunk: usize,
 }
 
-impl MemoryPlan {
-    fn working_set(&self) -> usize {
-        self.fixed + self.scratch + self.per_pixel * self.block_pixels
-    }
-}
-
 /// Splits `budget` into the fixed part (operator, twice while the model is chosen on held-out
 /// rows; transform and per-thread operator scratch), the solver scratch of every thread
 /// (`threads x chunk` rows iterating at once) and the per-camera-pixel part of a block (its
@@ -591,7 +599,10 @@ struct Tally {
     refit_iterations: u64,
 }
 
-/// Reconstructs `T` from the first `rows` frames of a camera session (module docs).
+/// Reconstructs `T` from the first `rows` frames of a camera session (module docs): the model
+/// ([`plan_transport`]), every block solved ([`solve_transport_blocks`]), then assembled
+/// ([`assemble_transport`]). A sharded reconstruction runs the same three steps, the blocks in
+/// shards on any number of workers.
 pub fn reconstruct_transport(
     spec: &PatternSpec,
     camera: CameraGrid,
@@ -600,10 +611,15 @@ pub fn reconstruct_transport(
     source: &mut dyn FrameSource,
     control: &Control,
 ) -> Result<(TransportMatrix, Report), ReconError> {
-    let start = Instant::now();
+    let plan = validate(spec, camera, rows)?;
+    let model = plan_with(&plan, camera, config, source, control)?;
+    let part = solve_with(&plan, &model, 0..model.blocks.len(), source, control)?;
+    assemble_transport(&model, std::slice::from_ref(&part))
+}
+
+/// Checks the request and plans the family's operator.
+fn validate(spec: &PatternSpec, camera: CameraGrid, rows: u64) -> Result<Plan<'_>, ReconError> {
     let m = camera.pixels();
-    let k = spec.pixels();
-    let (pw, ph) = (spec.width() as usize, spec.height() as usize);
     if m == 0 {
         return Err(ReconError::Unsolvable(format!(
             "the camera grid {}x{} has no pixels",
@@ -619,19 +635,49 @@ pub fn reconstruct_transport(
             spec.count()
         )));
     }
-    let plan = Plan::new(spec, rows as usize)?;
-    let n_read = rows as usize;
+    Plan::new(spec, rows as usize)
+}
+
+/// The first step of a reconstruction of `T` (module docs): validation, the memory plan (the
+/// blocks of camera pixels), and the model chosen on the sample pixels. The model is chosen
+/// once; every block is then solved with it ([`solve_transport_blocks`]), in one process or in
+/// shards on many.
+pub fn plan_transport(
+    spec: &PatternSpec,
+    camera: CameraGrid,
+    rows: u64,
+    config: &TransportConfig,
+    source: &mut dyn FrameSource,
+    control: &Control,
+) -> Result<TransportModel, ReconError> {
+    let plan = validate(spec, camera, rows)?;
+    plan_with(&plan, camera, config, source, control)
+}
+
+fn plan_with(
+    plan: &Plan,
+    camera: CameraGrid,
+    config: &TransportConfig,
+    source: &mut dyn FrameSource,
+    control: &Control,
+) -> Result<TransportModel, ReconError> {
+    let start = Instant::now();
+    let spec = plan.spec;
+    let m = camera.pixels();
+    let k = spec.pixels();
+    let (pw, ph) = (spec.width() as usize, spec.height() as usize);
+    let n_read = plan.rows_read;
     let selecting = !plan.exact;
     let mut coarse = config.coarse_to_fine && !plan.exact && m > 1;
     let mut notes: Vec<String> = Vec::new();
-    let mut mem = plan_memory(&plan, config.memory_budget_bytes, m, selecting, coarse)?;
+    let mut mem = plan_memory(plan, config.memory_budget_bytes, m, selecting, coarse)?;
     if coarse && mem.block_pixels < (2 * camera.width as usize).min(m) {
         notes.push(format!(
             "coarse_to_fine off: a block of {} camera pixels under the memory budget is less than two camera lines",
             mem.block_pixels
         ));
         coarse = false;
-        mem = plan_memory(&plan, config.memory_budget_bytes, m, selecting, false)?;
+        mem = plan_memory(plan, config.memory_budget_bytes, m, selecting, false)?;
     }
     let mut largest = 0usize;
     // At most half a block: the model choice also holds each sample pixel's image and
@@ -643,7 +689,6 @@ pub fn reconstruct_transport(
     let mut details = serde_json::Map::new();
     let mut held_out = None;
     let mut held_out_unavailable = None;
-    let mut tally = Tally::default();
 
     let (transform, lambda, refit) = if plan.exact {
         let transform = match config.transform {
@@ -690,7 +735,7 @@ pub fn reconstruct_transport(
     } else {
         control.set_progress(0.0);
         let (transform, lambda, refit) = choose_model(
-            &plan,
+            plan,
             config,
             source,
             m,
@@ -707,39 +752,134 @@ pub fn reconstruct_transport(
     if control.is_cancelled() {
         return Err(ReconError::Cancelled);
     }
-    let progress0 = if plan.exact { 0.0 } else { 0.2 };
-    control.set_progress(progress0);
-
-    let psi = transform.build(pw, ph);
     let lipschitz = if plan.exact {
         1.0
     } else {
         plan.lipschitz(plan.op())
     };
+    control.set_progress(if plan.exact { 0.0 } else { 0.2 });
+    let blocks = blocks(m, mem.block_pixels, coarse.then_some(camera.width as usize))
+        .into_iter()
+        .map(|r| (r.start, r.end))
+        .collect();
+    Ok(TransportModel {
+        version: TransportModel::VERSION,
+        projector: (spec.width(), spec.height()),
+        camera: (camera.width, camera.height),
+        rows: plan.rows_read as u64,
+        exact: plan.exact,
+        transform,
+        lambda,
+        refit,
+        lipschitz,
+        coarse,
+        coarse_requested: config.coarse_to_fine,
+        chunk: mem.chunk,
+        threads: rayon::current_num_threads().max(1),
+        max_iter: config.max_iter,
+        tol: config.tol,
+        blocks,
+        memory: MemoryFigures {
+            budget: mem.budget,
+            fixed: mem.fixed,
+            per_pixel: mem.per_pixel,
+            scratch: mem.scratch,
+            block_pixels: mem.block_pixels,
+        },
+        params: config.params_json(),
+        details,
+        notes,
+        held_out,
+        held_out_unavailable,
+        largest_read_bytes: largest as u64,
+        seconds: start.elapsed().as_secs_f64(),
+    })
+}
+
+/// The second step (module docs): solves blocks `blocks` (indices into the model's blocks) of
+/// camera pixels with the model, reading their frames from `source`. Parts of disjoint blocks
+/// can be solved in any order, in any process; each row depends only on its own block's frames
+/// and the model. Runs on as many rayon threads as the planning process had (the split of a
+/// sum over threads is part of the arithmetic), in a pool of its own when this process has
+/// another number. Progress goes from the model's start (0.2 after a model choice) to 1 over
+/// these blocks.
+pub fn solve_transport_blocks(
+    spec: &PatternSpec,
+    model: &TransportModel,
+    blocks: Range<usize>,
+    source: &mut (dyn FrameSource + Send),
+    control: &Control,
+) -> Result<TransportPart, ReconError> {
+    model.check_spec(spec)?;
+    let plan = validate(spec, model.camera_grid(), model.rows)?;
+    if plan.exact != model.exact {
+        return Err(ReconError::Unsolvable(
+            "the stored transport model does not fit this session's frames (exact inverse or not)"
+                .into(),
+        ));
+    }
+    if rayon::current_num_threads().max(1) == model.threads {
+        return solve_with(&plan, model, blocks, source, control);
+    }
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(model.threads)
+        .build()
+        .map_err(|e| ReconError::Unsolvable(format!("a pool of {} threads: {e}", model.threads)))?;
+    pool.install(|| {
+        let source: &mut dyn FrameSource = source;
+        solve_with(&plan, model, blocks, source, control)
+    })
+}
+
+fn solve_with(
+    plan: &Plan,
+    model: &TransportModel,
+    blocks: Range<usize>,
+    source: &mut dyn FrameSource,
+    control: &Control,
+) -> Result<TransportPart, ReconError> {
+    let start = Instant::now();
+    if blocks.start >= blocks.end || blocks.end > model.blocks.len() {
+        return Err(ReconError::Unsolvable(format!(
+            "blocks {blocks:?} of a transport model with {} blocks",
+            model.blocks.len()
+        )));
+    }
+    let spec = plan.spec;
+    let k = spec.pixels();
+    let (pw, ph) = (spec.width() as usize, spec.height() as usize);
+    let n_read = plan.rows_read;
+    let camera = model.camera_grid();
+    let transform = model.transform;
+    let psi = transform.build(pw, ph);
     let shared = Shared {
         op: plan.op(),
         psi: psi.as_ref(),
         identity: transform == TransformKind::Identity,
-        lipschitz,
+        lipschitz: model.lipschitz,
         free: free_coefficients(transform),
-        max_iter: config.max_iter,
-        tol: config.tol,
+        max_iter: model.max_iter,
+        tol: model.tol,
     };
     let mut builder = Builder::new(
         (spec.width(), spec.height()),
         (camera.width, camera.height),
         transform,
     );
-    let block_list = blocks(m, mem.block_pixels, coarse.then_some(camera.width as usize));
-    let largest_block = block_list.iter().map(|b| b.len()).max().unwrap_or(0);
+    let progress0 = if model.exact { 0.0 } else { 0.2 };
+    let mut tally = Tally::default();
+    let mut largest = 0usize;
     let mut sigmas = Vec::new();
-    for (bi, range) in block_list.iter().enumerate() {
+    let count = blocks.len();
+    for (done, bi) in blocks.clone().enumerate() {
         if control.is_cancelled() {
             return Err(ReconError::Cancelled);
         }
+        let (b0, b1) = model.blocks[bi];
+        let range = b0..b1;
         let frames = read(source, range.clone(), n_read, &mut largest)?;
         let len = range.len();
-        if plan.exact {
+        if model.exact {
             let mut s = vec![0.0; k];
             for c in 0..len {
                 let t = plan.exact_inverse(&plan.raw_column(&frames, len, c));
@@ -758,36 +898,111 @@ pub fn reconstruct_transport(
             let mut s = solve_block(
                 &shared,
                 &bs,
-                lambda.expect("iterative"),
-                coarse.then_some(camera.width as usize),
-                mem.chunk,
+                model.lambda.ok_or_else(|| {
+                    ReconError::Unsolvable("the stored transport model has no weight".into())
+                })?,
+                model.coarse.then_some(camera.width as usize),
+                model.chunk,
                 &mut tally,
                 control,
             )?;
-            if refit {
-                let it = batch::refit_rows(&shared, &bs, &mut s, mem.chunk, control)?;
+            if model.refit {
+                let it = batch::refit_rows(&shared, &bs, &mut s, model.chunk, control)?;
                 tally.refit_iterations += it.iter().sum::<usize>() as u64;
             }
             for row in s.chunks_exact(k) {
                 builder.push_row(row, 0.0);
             }
         }
-        control.set_progress(
-            progress0 + (1.0 - progress0) * (bi + 1) as f64 / block_list.len() as f64,
-        );
+        control.set_progress(progress0 + (1.0 - progress0) * (done + 1) as f64 / count as f64);
+    }
+    let (row_ptr, index, value) = builder.into_rows();
+    Ok(TransportPart {
+        blocks,
+        row_ptr,
+        index,
+        value,
+        sigmas,
+        iterations: tally.iterations,
+        iterations_max: tally.iterations_max as u64,
+        parent_iterations: tally.parent_iterations,
+        parent_rows: tally.parent_rows,
+        refit_iterations: tally.refit_iterations,
+        largest_read_bytes: largest as u64,
+        seconds: start.elapsed().as_secs_f64(),
+    })
+}
+
+/// The third step (module docs): the model and the parts of all its blocks, in block order
+/// (parts may group blocks in any way), into `T` and the report. The report's `seconds` is the
+/// planning's plus every part's (compute time, whatever ran in parallel).
+pub fn assemble_transport(
+    model: &TransportModel,
+    parts: &[TransportPart],
+) -> Result<(TransportMatrix, Report), ReconError> {
+    let m = model.camera.0 as usize * model.camera.1 as usize;
+    let k = model.projector.0 as usize * model.projector.1 as usize;
+    let inconsistent = |why: String| ReconError::Unsolvable(format!("assembling T: {why}"));
+    let mut next = 0usize;
+    for p in parts {
+        if p.blocks.start != next || p.blocks.end <= p.blocks.start {
+            return Err(inconsistent(format!(
+                "a part of blocks {:?} where block {next} was due",
+                p.blocks
+            )));
+        }
+        let pixels = model
+            .blocks
+            .get(p.blocks.start..p.blocks.end)
+            .ok_or_else(|| inconsistent(format!("blocks {:?} out of range", p.blocks)))?
+            .iter()
+            .map(|(a, b)| b - a)
+            .sum::<usize>();
+        if p.rows() != pixels {
+            return Err(inconsistent(format!(
+                "the part of blocks {:?} has {} rows for {pixels} camera pixels",
+                p.blocks,
+                p.rows()
+            )));
+        }
+        next = p.blocks.end;
+    }
+    if next != model.blocks.len() {
+        return Err(inconsistent(format!(
+            "parts cover blocks 0..{next} of {}",
+            model.blocks.len()
+        )));
+    }
+    let mut builder = Builder::new(model.projector, model.camera, model.transform);
+    let mut tally = Tally::default();
+    let mut largest = model.largest_read_bytes;
+    let mut sigmas = Vec::new();
+    let mut seconds = model.seconds;
+    for p in parts {
+        builder.append_rows(&p.row_ptr, &p.index, &p.value);
+        tally.iterations += p.iterations;
+        tally.iterations_max = tally.iterations_max.max(p.iterations_max as usize);
+        tally.parent_iterations += p.parent_iterations;
+        tally.parent_rows += p.parent_rows;
+        tally.refit_iterations += p.refit_iterations;
+        largest = largest.max(p.largest_read_bytes);
+        sigmas.extend_from_slice(&p.sigmas);
+        seconds += p.seconds;
     }
     let matrix = builder.finish();
-    control.set_progress(1.0);
-
+    let mut details = model.details.clone();
     let stored = matrix.stored_bytes();
-    details.insert("transform".into(), json!(transform.name()));
-    details.insert("lambda".into(), json!(lambda));
-    details.insert("refit".into(), json!(refit));
-    details.insert("projector".into(), json!([spec.width(), spec.height()]));
-    details.insert("camera".into(), json!([camera.width, camera.height]));
+    details.insert("transform".into(), json!(model.transform.name()));
+    details.insert("lambda".into(), json!(model.lambda));
+    details.insert("refit".into(), json!(model.refit));
+    details.insert(
+        "projector".into(),
+        json!([model.projector.0, model.projector.1]),
+    );
+    details.insert("camera".into(), json!([model.camera.0, model.camera.1]));
     details.insert(
         "path".into(),
-        json!(if plan.exact {
+        json!(if model.exact {
             "exact inverse of a complete set, coefficients below the noise dropped"
         } else {
             "l1 in an orthonormal transform, batched FISTA over the camera pixels"
@@ -800,8 +1015,8 @@ pub fn reconstruct_transport(
         "nonzeros_per_row".into(),
         json!(matrix.nonzeros() as f64 / m as f64),
     );
-    details.insert("seconds".into(), json!(start.elapsed().as_secs_f64()));
-    if plan.exact {
+    details.insert("seconds".into(), json!(seconds));
+    if model.exact {
         sigmas.sort_by(|a, b| a.total_cmp(b));
         details.insert(
             "noise_sigma_median".into(),
@@ -817,45 +1032,43 @@ pub fn reconstruct_transport(
             "refit_iterations_mean".into(),
             json!(tally.refit_iterations as f64 / m as f64),
         );
-        details.insert("lipschitz".into(), json!(lipschitz));
+        details.insert("lipschitz".into(), json!(model.lipschitz));
     }
     details.insert(
         "coarse_to_fine".into(),
         json!({
-            "requested": config.coarse_to_fine,
-            "used": coarse,
+            "requested": model.coarse_requested,
+            "used": model.coarse,
             "parent_rows": tally.parent_rows,
             "parent_iterations": tally.parent_iterations,
         }),
     );
-    let working = MemoryPlan {
-        block_pixels: largest_block,
-        ..mem.clone()
-    };
+    let mem = &model.memory;
+    let largest_block = model.blocks.iter().map(|(a, b)| b - a).max().unwrap_or(0);
     details.insert(
         "memory".into(),
         json!({
             "budget_bytes": mem.budget,
-            "working_set_bytes": working.working_set(),
+            "working_set_bytes": mem.fixed + mem.scratch + mem.per_pixel * largest_block,
             "fixed_bytes": mem.fixed,
             "solver_scratch_bytes": mem.scratch,
             "bytes_per_camera_pixel": mem.per_pixel,
             "block_pixels": mem.block_pixels,
-            "blocks": block_list.len(),
+            "blocks": model.blocks.len(),
             "largest_read_bytes": largest,
         }),
     );
-    if !notes.is_empty() {
-        details.insert("notes".into(), json!(notes));
+    if !model.notes.is_empty() {
+        details.insert("notes".into(), json!(model.notes));
     }
     let report = Report {
         method: "transport".into(),
-        params: config.params_json(),
-        rows_used: rows,
+        params: model.params.clone(),
+        rows_used: model.rows,
         iterations: tally.iterations + tally.parent_iterations + tally.refit_iterations,
         details,
-        held_out,
-        held_out_unavailable,
+        held_out: model.held_out.clone(),
+        held_out_unavailable: model.held_out_unavailable.clone(),
     };
     Ok((matrix, report))
 }

@@ -869,3 +869,271 @@ fn the_refit_is_least_squares_on_the_lasso_support() {
         "the lasso is shrunk: relative error {lasso_err:e}"
     );
 }
+
+/// Plans once, then solves the blocks in every grouping given (each shard from a fresh frame
+/// source, in a shuffled order, its part through bytes), assembles, and checks `T` and the
+/// report against one `reconstruct_transport` call. Returns the model.
+fn shards_assemble_to_the_single_call(
+    spec: &PatternSpec,
+    camera: CameraGrid,
+    f: &[f32],
+    config: &TransportConfig,
+    groupings: &dyn Fn(usize) -> Vec<Vec<Range<usize>>>,
+) -> TransportModel {
+    let (single, single_report, _) = run(spec, camera, f, config);
+    let single_bytes = single.encode();
+    let mut source = SliceFrames::new(f, camera.pixels());
+    let model = plan_transport(
+        spec,
+        camera,
+        spec.count(),
+        config,
+        &mut source,
+        &Control::new(),
+    )
+    .unwrap();
+    // The model is stored as JSON between the steps: it comes back the same, floats and all.
+    let stored = TransportModel::from_json(&model.to_json()).unwrap();
+    assert_eq!(stored, model);
+    assert_eq!(stored.lipschitz.to_bits(), model.lipschitz.to_bits());
+    let n = stored.block_count();
+    let without_seconds = |r: &Report| {
+        let mut r = r.clone();
+        r.details.remove("seconds");
+        serde_json::to_string(&r).unwrap()
+    };
+    let mut rng = crate::testutil::Rng::new(7);
+    for grouping in groupings(n) {
+        // Solved in a shuffled order, each in a process of its own as far as the numerics go.
+        let mut order: Vec<usize> = (0..grouping.len()).collect();
+        for i in (1..order.len()).rev() {
+            let j = (rng.uniform() * (i + 1) as f64) as usize % (i + 1);
+            order.swap(i, j);
+        }
+        let mut parts: Vec<TransportPart> = Vec::new();
+        for &g in &order {
+            let mut source = SliceFrames::new(f, camera.pixels());
+            let part = solve_transport_blocks(
+                spec,
+                &stored,
+                grouping[g].clone(),
+                &mut source,
+                &Control::new(),
+            )
+            .unwrap();
+            // Only its own blocks' camera pixels were read.
+            let pixels = stored.block_pixels(grouping[g].clone());
+            assert!(
+                source
+                    .reads
+                    .iter()
+                    .all(|r| r.start >= pixels.start && r.end <= pixels.end),
+                "{:?} read outside {pixels:?}",
+                source.reads
+            );
+            let bytes = part.encode();
+            let back = TransportPart::decode(&bytes).unwrap();
+            assert_eq!(back, part);
+            parts.push(back);
+        }
+        parts.sort_by_key(|p| p.blocks.start);
+        let (t, report) = assemble_transport(&stored, &parts).unwrap();
+        let bytes = t.encode();
+        assert!(
+            bytes == single_bytes,
+            "grouping {grouping:?}: T differs from the single call"
+        );
+        assert_eq!(
+            without_seconds(&report),
+            without_seconds(&single_report),
+            "grouping {grouping:?}"
+        );
+        // Parts missing or out of order are refused.
+        if parts.len() > 1 {
+            assert!(assemble_transport(&stored, &parts[1..]).is_err());
+            let mut swapped = parts.clone();
+            swapped.swap(0, 1);
+            assert!(assemble_transport(&stored, &swapped).is_err());
+        }
+    }
+    stored
+}
+
+/// One shard of everything; one block per shard; uneven runs (1, 3, 2, 1, 3, ...).
+fn groupings(n: usize) -> Vec<Vec<Range<usize>>> {
+    let mut uneven = Vec::new();
+    let mut s = 0;
+    for len in [1usize, 3, 2].iter().cycle() {
+        if s >= n {
+            break;
+        }
+        let e = (s + len).min(n);
+        uneven.push(s..e);
+        s = e;
+    }
+    vec![vec![0..n], (0..n).map(|b| b..b + 1).collect(), uneven]
+}
+
+#[test]
+fn shards_of_an_exact_hadamard_set_assemble_to_the_single_process_t() {
+    let spec = PatternSpec::new(
+        Family::Hadamard {
+            ordering: HadamardOrdering::Sequency,
+        },
+        32,
+        32,
+        2048,
+        0,
+    )
+    .unwrap();
+    let truth = synthetic_t(CAM, 32, 32);
+    let f = frames(&spec, &truth, CAM.pixels(), 1e-3);
+    let config = TransportConfig::default().with_memory_budget(300_000);
+    let model = shards_assemble_to_the_single_call(&spec, CAM, &f, &config, &groupings);
+    assert!(model.exact);
+    assert!(model.block_count() >= 4, "{} blocks", model.block_count());
+}
+
+#[test]
+fn shards_of_a_compressive_bernoulli_subset_assemble_to_the_single_process_t() {
+    let (spec, camera, _, f) = small_session();
+    let config = TransportConfig {
+        sample_pixels: 4,
+        ..TransportConfig::default()
+    }
+    .with_memory_budget(100_000);
+    let model = shards_assemble_to_the_single_call(&spec, camera, &f, &config, &groupings);
+    assert!(!model.exact && model.lambda.is_some());
+    assert!(model.block_count() >= 4, "{} blocks", model.block_count());
+}
+
+#[test]
+fn shards_of_a_coarse_to_fine_solve_assemble_to_the_single_process_t() {
+    let (spec, camera, _, f) = small_session();
+    let config = TransportConfig {
+        transform: Some(TransformKind::Haar),
+        lambda: Some(1e-3),
+        coarse_to_fine: true,
+        ..TransportConfig::default()
+    }
+    .with_memory_budget(700_000);
+    let model = shards_assemble_to_the_single_call(&spec, camera, &f, &config, &groupings);
+    assert!(model.coarse, "{:?}", model.notes);
+    assert!(model.block_count() >= 3, "{} blocks", model.block_count());
+}
+
+#[test]
+fn smaller_blocks_and_shards_of_them_give_the_same_t() {
+    let (spec, camera, _, f) = small_session();
+    for coarse_to_fine in [false, true] {
+        let config = TransportConfig {
+            transform: Some(TransformKind::Haar),
+            lambda: Some(1e-3),
+            coarse_to_fine,
+            sample_pixels: 4,
+            ..TransportConfig::default()
+        };
+        let (single, _, _) = run(&spec, camera, &f, &config);
+        let mut source = SliceFrames::new(&f, camera.pixels());
+        let mut model =
+            plan_transport(&spec, camera, 128, &config, &mut source, &Control::new()).unwrap();
+        assert_eq!(model.block_count(), 1);
+        model.limit_block_pixels(40);
+        let shards = model.shards(100);
+        assert!(shards.len() >= 3, "{shards:?} of {:?}", model.blocks);
+        assert!(
+            model
+                .blocks
+                .iter()
+                .all(|(a, b)| b - a <= 40 || coarse_to_fine)
+        );
+        if coarse_to_fine {
+            // Whole pairs of 16-pixel lines.
+            assert!(model.blocks.iter().all(|(a, b)| (b - a) % 32 == 0));
+        }
+        let parts: Vec<TransportPart> = shards
+            .iter()
+            .map(|s| {
+                let mut source = SliceFrames::new(&f, camera.pixels());
+                solve_transport_blocks(&spec, &model, s.clone(), &mut source, &Control::new())
+                    .unwrap()
+            })
+            .collect();
+        let (t, report) = assemble_transport(&model, &parts).unwrap();
+        assert!(
+            t.encode() == single.encode(),
+            "coarse_to_fine {coarse_to_fine}"
+        );
+        assert_eq!(
+            report.details["memory"]["blocks"].as_u64().unwrap() as usize,
+            model.block_count()
+        );
+    }
+}
+
+#[test]
+fn a_corrupt_part_is_refused() {
+    let (spec, camera, _, f) = small_session();
+    let config = TransportConfig {
+        transform: Some(TransformKind::Haar),
+        lambda: Some(1e-2),
+        sample_pixels: 2,
+        max_iter: 20,
+        ..TransportConfig::default()
+    };
+    let mut source = SliceFrames::new(&f, camera.pixels());
+    let model = plan_transport(&spec, camera, 128, &config, &mut source, &Control::new()).unwrap();
+    let part = solve_transport_blocks(&spec, &model, 0..1, &mut source, &Control::new()).unwrap();
+    let mut bytes = part.encode();
+    assert_eq!(TransportPart::decode(&bytes).unwrap(), part);
+    let mid = bytes.len() / 2;
+    bytes[mid] ^= 1;
+    assert!(matches!(
+        TransportPart::decode(&bytes),
+        Err(PartDecodeError::Checksum { .. })
+    ));
+    assert!(matches!(
+        TransportPart::decode(b"HZTX\x01abcdabcd"),
+        Err(PartDecodeError::BadMagic)
+    ));
+    // A model of another projector does not solve this session.
+    let other = PatternSpec::new(Family::Bernoulli { fill: 0.5 }, 8, 8, 128, 5).unwrap();
+    assert!(solve_transport_blocks(&other, &model, 0..1, &mut source, &Control::new()).is_err());
+    // Blocks outside the model are refused.
+    assert!(solve_transport_blocks(&spec, &model, 0..2, &mut source, &Control::new()).is_err());
+}
+
+#[test]
+fn a_part_solved_from_a_process_with_other_threads_is_the_same() {
+    let (spec, camera, _, f) = small_session();
+    let config = TransportConfig {
+        transform: Some(TransformKind::Haar),
+        lambda: Some(1e-3),
+        sample_pixels: 4,
+        ..TransportConfig::default()
+    }
+    .with_memory_budget(100_000);
+    let mut source = SliceFrames::new(&f, camera.pixels());
+    let model = plan_transport(&spec, camera, 128, &config, &mut source, &Control::new()).unwrap();
+    let here = solve_transport_blocks(&spec, &model, 0..2, &mut source, &Control::new()).unwrap();
+    // A caller on a pool of another size: the part is solved on a pool of the model's size.
+    let threads = if model.threads == 1 { 2 } else { 1 };
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()
+        .unwrap();
+    let there = pool.install(|| {
+        let mut source = SliceFrames::new(&f, camera.pixels());
+        solve_transport_blocks(&spec, &model, 0..2, &mut source, &Control::new()).unwrap()
+    });
+    assert_eq!(
+        TransportPart {
+            seconds: 0.0,
+            ..here
+        },
+        TransportPart {
+            seconds: 0.0,
+            ..there
+        }
+    );
+}

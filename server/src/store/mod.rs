@@ -1,6 +1,6 @@
 //! What the service keeps: sessions, bucket rows, the job queue and results, tokens. The
 //! domain's types and the [`Database`] trait (in parts: [`Sessions`], [`Rows`], [`Jobs`],
-//! [`Tokens`]) live here with the rules every backend shares; the SQL lives in a backend
+//! [`Shards`], [`Tokens`]) live here with the rules every backend shares; the SQL lives in a backend
 //! ([`sqlite`], embedded; [`postgres`], shared by many nodes). Rows are acknowledged only after their commit returns.
 
 use std::path::Path;
@@ -14,6 +14,7 @@ mod jobs;
 pub mod postgres;
 mod rows;
 mod sessions;
+mod shards;
 pub mod sqlite;
 mod tokens;
 
@@ -21,6 +22,7 @@ pub use jobs::{ClaimedJob, Jobs, ReconstructionRow, StoredImage};
 pub use postgres::Postgres;
 pub use rows::{AppendOutcome, RawChunk, Rows, WriterLease};
 pub use sessions::{CameraLayout, NewSession, SampleFormat, SessionRow, SessionState, Sessions};
+pub use shards::{ClaimedShard, ShardRow, Shards};
 pub use sqlite::Sqlite;
 pub use tokens::{TokenInfo, Tokens};
 
@@ -89,7 +91,7 @@ pub enum StoreError {
 /// implements the four parts and these.
 #[async_trait]
 pub trait Database:
-    Sessions + Rows + Jobs + Tokens + std::fmt::Debug + Send + Sync + 'static
+    Sessions + Rows + Jobs + Shards + Tokens + std::fmt::Debug + Send + Sync + 'static
 {
     /// True when the database answers (health checks).
     async fn ping(&self) -> bool;

@@ -42,6 +42,8 @@ on_both_backends!(
     one_writer_lease_per_session_with_fencing,
     lab_caps_hold_under_concurrent_callers,
     claims_skip_jobs_that_do_not_fit_the_memory_left,
+    transport_shards_are_leased_fenced_and_listed_in_order,
+    a_shard_out_of_attempts_fails_and_a_cancelled_job_s_shards_stop,
 );
 
 fn new_session(id: &str, count: u64) -> NewSession {
@@ -685,4 +687,271 @@ async fn claims_skip_jobs_that_do_not_fit_the_memory_left(s: Store) {
         .unwrap()
         .unwrap();
     assert_eq!((job.id, job.memory_bytes), (big.id, 900));
+}
+
+/// A running transport job with its shards started: (reconstruction id, job attempt).
+async fn running_transport(s: &Store, session: &str, max_attempts: u32, memory: u64) -> (i64, i64) {
+    s.create_session(&new_session(session, 10)).await.unwrap();
+    let r = s
+        .enqueue_reconstruction_capped(
+            "default",
+            session,
+            "transport",
+            "{}",
+            10,
+            max_attempts,
+            u64::MAX,
+            memory,
+        )
+        .await
+        .unwrap();
+    let job = s.claim_job("holder", 60_000, 0).await.unwrap().unwrap();
+    assert_eq!(job.id, r.id);
+    (r.id, job.attempt)
+}
+
+async fn transport_shards_are_leased_fenced_and_listed_in_order(s: Store) {
+    let (id, attempt) = running_transport(&s, "cam", 3, 1000).await;
+    // Nothing to claim before the holder stores the model and its shards.
+    assert!(
+        s.claim_shard("w1", 60_000, u64::MAX, None)
+            .await
+            .unwrap()
+            .is_none()
+    );
+    assert_eq!(s.transport_model(id).await.unwrap(), None);
+    // Only the run that holds the job stores the model.
+    assert_eq!(
+        s.start_shards(id, attempt + 1, r#"{"m":0}"#, &[(0, 5)])
+            .await
+            .unwrap(),
+        None
+    );
+    let first = s
+        .start_shards(id, attempt, r#"{"m":1}"#, &[(0, 2), (2, 3), (3, 5)])
+        .await
+        .unwrap();
+    assert_eq!(first.as_deref(), Some(r#"{"m":1}"#));
+    // The model is chosen once: a second start (a later holder) gets the stored one back and
+    // the shards stay as they were.
+    let again = s
+        .start_shards(id, attempt, r#"{"m":2}"#, &[(0, 5)])
+        .await
+        .unwrap();
+    assert_eq!(again.as_deref(), Some(r#"{"m":1}"#));
+    assert_eq!(
+        s.transport_model(id).await.unwrap().as_deref(),
+        Some(r#"{"m":1}"#)
+    );
+    let listed = s.shards(id).await.unwrap();
+    assert_eq!(
+        listed
+            .iter()
+            .map(|r| (
+                r.shard,
+                r.first_block,
+                r.end_block,
+                r.state.as_str(),
+                r.attempt
+            ))
+            .collect::<Vec<_>>(),
+        vec![
+            (0, 0, 2, "queued", 0),
+            (1, 2, 3, "queued", 0),
+            (2, 3, 5, "queued", 0)
+        ]
+    );
+    // The job's memory estimate must fit; shards of another reconstruction only when asked.
+    assert!(s.claim_shard("w1", 200, 999, None).await.unwrap().is_none());
+    assert!(
+        s.claim_shard("w1", 200, u64::MAX, Some(id + 1))
+            .await
+            .unwrap()
+            .is_none()
+    );
+    let a = s
+        .claim_shard("w1", 200, 1000, Some(id))
+        .await
+        .unwrap()
+        .unwrap();
+    assert_eq!(
+        (
+            a.reconstruction_id,
+            a.shard,
+            a.attempt,
+            a.first_block,
+            a.end_block
+        ),
+        (id, 0, 1, 0, 2)
+    );
+    assert_eq!(
+        (
+            a.session_id.as_str(),
+            a.rows_used,
+            a.model_json.as_str(),
+            a.memory_bytes
+        ),
+        ("cam", 10, r#"{"m":1}"#, 1000)
+    );
+    let b = s
+        .claim_shard("w2", 60_000, u64::MAX, None)
+        .await
+        .unwrap()
+        .unwrap();
+    assert_eq!((b.shard, b.attempt), (1, 1));
+    // w1 stops heart-beating (killed): once its lease has run out, its shard is claimed again.
+    tokio::time::sleep(std::time::Duration::from_millis(250)).await;
+    let c = s
+        .claim_shard("w3", 60_000, u64::MAX, None)
+        .await
+        .unwrap()
+        .unwrap();
+    assert_eq!((c.shard, c.attempt), (0, 2));
+    // The stale run is fenced out: no heartbeat, no result.
+    assert!(!s.heartbeat_shard(id, 0, 1, 60_000).await.unwrap());
+    assert!(!s.complete_shard(id, 0, 1, b"stale").await.unwrap());
+    assert!(s.heartbeat_shard(id, 0, 2, 60_000).await.unwrap());
+    assert!(s.complete_shard(id, 0, 2, b"part 0").await.unwrap());
+    assert!(!s.complete_shard(id, 0, 2, b"again").await.unwrap());
+    // Not all done: no parts yet.
+    assert!(s.shard_parts(id).await.is_err());
+    // A transient failure queues the shard again; the next claim takes it (attempt 2).
+    assert!(s.fail_shard(id, 1, 1, "disk hiccup", true).await.unwrap());
+    assert!(!s.complete_shard(id, 1, 1, b"late").await.unwrap());
+    let d = s
+        .claim_shard("w2", 60_000, u64::MAX, None)
+        .await
+        .unwrap()
+        .unwrap();
+    assert_eq!((d.shard, d.attempt), (1, 2));
+    assert!(s.complete_shard(id, 1, 2, b"part 1").await.unwrap());
+    // A graceful shutdown gives the shard back without spending an attempt.
+    let e = s
+        .claim_shard("w4", 60_000, u64::MAX, None)
+        .await
+        .unwrap()
+        .unwrap();
+    assert_eq!((e.shard, e.attempt), (2, 1));
+    assert!(s.release_shard(id, 2, 1).await.unwrap());
+    let f = s
+        .claim_shard("w5", 60_000, u64::MAX, None)
+        .await
+        .unwrap()
+        .unwrap();
+    assert_eq!((f.shard, f.attempt), (2, 1));
+    assert!(s.complete_shard(id, 2, 1, b"part 2").await.unwrap());
+    assert!(
+        s.claim_shard("w6", 60_000, u64::MAX, None)
+            .await
+            .unwrap()
+            .is_none()
+    );
+    let listed = s.shards(id).await.unwrap();
+    assert_eq!(
+        listed
+            .iter()
+            .map(|r| (
+                r.state.as_str(),
+                r.attempt,
+                r.worker_id.as_deref(),
+                r.part_bytes
+            ))
+            .collect::<Vec<_>>(),
+        vec![
+            ("done", 2, Some("w3"), Some(6)),
+            ("done", 2, Some("w2"), Some(6)),
+            ("done", 1, Some("w5"), Some(6))
+        ]
+    );
+    assert_eq!(
+        s.shard_parts(id).await.unwrap(),
+        vec![b"part 0".to_vec(), b"part 1".to_vec(), b"part 2".to_vec()]
+    );
+    // The job completes with T whole; the parts are dropped, the shards' rows kept.
+    assert!(
+        s.complete_reconstruction(id, attempt, &[], Some(b"T"), "{}", 1.0)
+            .await
+            .unwrap()
+    );
+    assert_eq!(s.transport(id).await.unwrap().as_deref(), Some(&b"T"[..]));
+    let listed = s.shards(id).await.unwrap();
+    assert_eq!(listed.len(), 3);
+    assert!(
+        listed
+            .iter()
+            .all(|r| r.state == "done" && r.part_bytes.is_none())
+    );
+}
+
+async fn a_shard_out_of_attempts_fails_and_a_cancelled_job_s_shards_stop(s: Store) {
+    let (id, attempt) = running_transport(&s, "one", 1, 0).await;
+    s.start_shards(id, attempt, "{}", &[(0, 1), (1, 2)])
+        .await
+        .unwrap()
+        .unwrap();
+    let a = s
+        .claim_shard("w1", 60_000, u64::MAX, None)
+        .await
+        .unwrap()
+        .unwrap();
+    // Retry asked, but the job allows one attempt: the shard fails for good.
+    assert!(
+        s.fail_shard(id, a.shard, a.attempt, "bad frames", true)
+            .await
+            .unwrap()
+    );
+    // A shard whose worker died with no attempts left is marked failed at the next claim.
+    let b = s
+        .claim_shard("w2", 100, u64::MAX, None)
+        .await
+        .unwrap()
+        .unwrap();
+    assert_eq!(b.shard, 1);
+    tokio::time::sleep(std::time::Duration::from_millis(150)).await;
+    assert!(
+        s.claim_shard("w3", 60_000, u64::MAX, None)
+            .await
+            .unwrap()
+            .is_none()
+    );
+    let listed = s.shards(id).await.unwrap();
+    assert_eq!(
+        listed
+            .iter()
+            .map(|r| (r.state.as_str(), r.last_error.as_deref()))
+            .collect::<Vec<_>>(),
+        vec![
+            ("failed", Some("bad frames")),
+            ("failed", Some("worker lost its lease (no attempts left)"))
+        ]
+    );
+    // A cancelled job's shards are neither claimed, heart-beaten nor completed.
+    let (id2, attempt2) = running_transport(&s, "two", 3, 0).await;
+    s.start_shards(id2, attempt2, "{}", &[(0, 1), (1, 2)])
+        .await
+        .unwrap()
+        .unwrap();
+    let c = s
+        .claim_shard("w1", 60_000, u64::MAX, None)
+        .await
+        .unwrap()
+        .unwrap();
+    assert_eq!(c.reconstruction_id, id2);
+    assert!(s.cancel_job(id2).await.unwrap());
+    assert!(
+        !s.heartbeat_shard(id2, c.shard, c.attempt, 60_000)
+            .await
+            .unwrap()
+    );
+    assert!(
+        !s.complete_shard(id2, c.shard, c.attempt, b"late")
+            .await
+            .unwrap()
+    );
+    assert!(
+        s.claim_shard("w2", 60_000, u64::MAX, None)
+            .await
+            .unwrap()
+            .is_none()
+    );
 }

@@ -243,6 +243,12 @@ impl Jobs for Postgres {
             .bind(seconds)
             .execute(&mut *tx)
             .await?;
+        // T is stored whole below: the parts of its shards (if it was solved in shards) are
+        // dropped, their rows (who solved what, when) kept.
+        sqlx::query("UPDATE transport_shards SET part = NULL WHERE reconstruction_id = $1")
+            .bind(id)
+            .execute(&mut *tx)
+            .await?;
         for image in images {
             sqlx::query(
                 "INSERT INTO dual_images (reconstruction_id, channel_index, channel_name, width, height, data) \

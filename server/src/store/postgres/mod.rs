@@ -19,6 +19,7 @@ use super::{Database, StoreError};
 mod jobs;
 mod rows;
 mod sessions;
+mod shards;
 #[cfg(test)]
 pub(crate) mod testing;
 mod tokens;

@@ -17,6 +17,7 @@ use super::{Database, StoreError};
 mod jobs;
 mod rows;
 mod sessions;
+mod shards;
 mod tokens;
 
 /// The SQLite database `helmholtz.sqlite` of a data directory; cheap to clone.
