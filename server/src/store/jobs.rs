@@ -7,6 +7,8 @@
 
 use async_trait::async_trait;
 
+use super::StoreRow;
+
 use super::StoreError;
 
 /// A reconstruction and the state of its job.
@@ -186,5 +188,26 @@ pub trait Jobs: Send + Sync {
     ) -> Result<Option<ClaimedJob>, StoreError> {
         self.claim_job_within(worker_id, lease_ms, max_running_per_lab, u64::MAX)
             .await
+    }
+}
+
+/// A reconstruction row of either backend (the backends' `RECON_COLUMNS`).
+pub(crate) fn recon_from_row(row: &impl StoreRow) -> ReconstructionRow {
+    ReconstructionRow {
+        id: row.int("id"),
+        lab: row.text("lab"),
+        session_id: row.text("session_id"),
+        method: row.text("method"),
+        params_json: row.text("params_json"),
+        rows_used: row.int("rows_used") as u64,
+        state: row.text("state"),
+        progress: row.real("progress"),
+        attempt: row.int("attempt"),
+        last_error: row.text_or_null("last_error"),
+        report_json: row.text_or_null("report_json"),
+        seconds: row.real_or_null("seconds"),
+        created_ms: row.int("created_ms"),
+        started_ms: row.int_or_null("started_ms"),
+        finished_ms: row.int_or_null("finished_ms"),
     }
 }

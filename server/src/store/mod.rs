@@ -12,6 +12,7 @@ use helmholtz_proto::PatternSpec;
 
 mod jobs;
 pub mod postgres;
+mod record;
 mod rows;
 mod sessions;
 mod shards;
@@ -20,6 +21,7 @@ mod tokens;
 
 pub use jobs::{ClaimedJob, Jobs, ReconstructionRow, StoredImage};
 pub use postgres::Postgres;
+pub(crate) use record::StoreRow;
 pub use rows::{AppendOutcome, RawChunk, Rows, WriterLease};
 pub use sessions::{CameraLayout, NewSession, SampleFormat, SessionRow, SessionState, Sessions};
 pub use shards::{ClaimedShard, ShardRow, Shards};

@@ -6,6 +6,8 @@ use std::time::{Duration, SystemTime, UNIX_EPOCH};
 
 use async_trait::async_trait;
 
+use super::StoreRow;
+
 use super::StoreError;
 
 /// What one append did.
@@ -269,4 +271,13 @@ pub trait Rows: Send + Sync {
             })
             .collect())
     }
+}
+
+/// A stored chunk of either backend (`start_row, row_count, data`).
+pub(crate) fn raw_chunk(row: &impl StoreRow) -> RawChunk {
+    (
+        row.int("start_row") as u64,
+        row.int("row_count") as u64,
+        row.bytes("data"),
+    )
 }

@@ -3,9 +3,11 @@
 use std::collections::BTreeMap;
 
 use async_trait::async_trait;
+
+use super::StoreRow;
 use helmholtz_proto::PatternSpec;
 
-use super::StoreError;
+use super::{StoreError, parse_spec};
 
 pub use helmholtz_proto::wire::SampleFormat;
 
@@ -167,4 +169,46 @@ pub trait Sessions: Send + Sync {
             .await?
             .ok_or_else(|| StoreError::SessionNotFound(id.to_string()))
     }
+}
+
+/// A session row of either backend (the columns of the backends' `SESSION_COLUMNS`).
+pub(crate) fn session_from_row(row: &impl StoreRow) -> Result<SessionRow, StoreError> {
+    let corrupt = |what: &str, e: serde_json::Error| StoreError::Corrupt(format!("{what}: {e}"));
+    let name = row.text("sample_format");
+    let format = SampleFormat::parse(&name)
+        .ok_or_else(|| StoreError::Corrupt(format!("unknown sample format {name:?}")))?;
+    let camera = match (
+        row.int_or_null("camera_width"),
+        row.int_or_null("camera_height"),
+    ) {
+        (Some(w), Some(h)) => Some(CameraLayout {
+            width: w as u32,
+            height: h as u32,
+            format,
+        }),
+        _ => None,
+    };
+    Ok(SessionRow {
+        directions: serde_json::from_str(&row.text("directions_json"))
+            .map_err(|e| corrupt("directions", e))?,
+        camera,
+        id: row.text("id"),
+        lab: row.text("lab"),
+        rig: row.text("rig"),
+        spec: parse_spec(&row.text("spec_json"))?,
+        channels: serde_json::from_str(&row.text("channels_json"))
+            .map_err(|e| corrupt("channels", e))?,
+        metadata: serde_json::from_str(&row.text("metadata_json"))
+            .map_err(|e| corrupt("metadata", e))?,
+        expected_rows: row.int("expected_rows") as u64,
+        committed_rows: row.int("committed_rows") as u64,
+        state: if row.text("state") == "finished" {
+            SessionState::Finished
+        } else {
+            SessionState::Open
+        },
+        has_ground_truth: row.flag("has_gt"),
+        created_ms: row.int("created_ms"),
+        finished_ms: row.int_or_null("finished_ms"),
+    })
 }

@@ -7,6 +7,8 @@
 
 use async_trait::async_trait;
 
+use super::StoreRow;
+
 use super::StoreError;
 
 /// One shard as stored.
@@ -140,4 +142,21 @@ pub(crate) fn parts_in_order(
         )));
     }
     Ok(out)
+}
+
+/// A shard row of either backend.
+pub(crate) fn shard_from_row(row: &impl StoreRow) -> ShardRow {
+    ShardRow {
+        reconstruction_id: row.int("reconstruction_id"),
+        shard: row.int("shard"),
+        first_block: row.int("first_block") as u64,
+        end_block: row.int("end_block") as u64,
+        state: row.text("state"),
+        attempt: row.int("attempt"),
+        worker_id: row.text_or_null("worker_id"),
+        last_error: row.text_or_null("last_error"),
+        part_bytes: row.int_or_null("part_bytes").map(|b| b as u64),
+        started_ms: row.int_or_null("started_ms"),
+        finished_ms: row.int_or_null("finished_ms"),
+    }
 }

@@ -3,6 +3,8 @@
 
 use async_trait::async_trait;
 
+use super::StoreRow;
+
 use super::StoreError;
 use crate::auth::{Principal, Roles};
 
@@ -41,4 +43,16 @@ pub trait Tokens: Send + Sync {
         id: i64,
         lab: Option<&str>,
     ) -> Result<Option<TokenInfo>, StoreError>;
+}
+
+/// A token row of either backend.
+pub(crate) fn token_from_row(row: &impl StoreRow) -> TokenInfo {
+    TokenInfo {
+        id: row.int("id"),
+        lab: row.text("lab"),
+        roles: row.text("roles"),
+        note: row.text("note"),
+        created_unix_ms: row.int("created_ms"),
+        revoked_unix_ms: row.int_or_null("revoked_ms"),
+    }
 }

@@ -4,6 +4,7 @@ use async_trait::async_trait;
 use sqlx::Row;
 
 use super::Postgres;
+use crate::store::rows::raw_chunk;
 use crate::store::rows::{check_bounds, check_chunks, compare_overlap, row_of_chunk};
 use crate::store::{AppendOutcome, RawChunk, Rows, StoreError, WriterLease};
 
@@ -183,12 +184,4 @@ impl Rows for Postgres {
         let Some(found) = found else { return Ok(None) };
         row_of_chunk(session_id, &raw_chunk(&found), row, row_bytes)
     }
-}
-
-fn raw_chunk(row: &sqlx::postgres::PgRow) -> RawChunk {
-    (
-        row.get::<i64, _>("start_row") as u64,
-        row.get::<i64, _>("row_count") as u64,
-        row.get("data"),
-    )
 }

@@ -2,23 +2,12 @@
 
 use async_trait::async_trait;
 use sqlx::Row;
-use sqlx::postgres::PgRow;
 use subtle::ConstantTimeEq;
 
 use super::Postgres;
 use crate::auth::{self, Principal, Roles};
+use crate::store::tokens::token_from_row;
 use crate::store::{StoreError, TokenInfo, Tokens};
-
-fn token_from_row(row: &PgRow) -> TokenInfo {
-    TokenInfo {
-        id: row.get("id"),
-        lab: row.get("lab"),
-        roles: row.get("roles"),
-        note: row.get("note"),
-        created_unix_ms: row.get("created_ms"),
-        revoked_unix_ms: row.get("revoked_ms"),
-    }
-}
 
 #[async_trait]
 impl Tokens for Postgres {

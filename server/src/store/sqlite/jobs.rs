@@ -3,9 +3,9 @@
 
 use async_trait::async_trait;
 use sqlx::Row;
-use sqlx::sqlite::SqliteRow;
 
 use super::Sqlite;
+use crate::store::jobs::recon_from_row;
 use crate::store::{
     ClaimedJob, Jobs, ReconstructionRow, StoreError, StoredImage, f32_to_le, le_to_f32, now_ms,
 };
@@ -15,26 +15,6 @@ const TRANSPORT_PART_BYTES: usize = 64 << 20;
 
 const RECON_COLUMNS: &str = "r.id, j.lab, r.session_id, r.method, r.params_json, r.rows_used, j.state, \
      j.progress, j.attempt, j.last_error, r.report_json, r.seconds, j.created_ms, j.started_ms, j.finished_ms";
-
-fn recon_from_row(row: &SqliteRow) -> ReconstructionRow {
-    ReconstructionRow {
-        id: row.get("id"),
-        lab: row.get("lab"),
-        session_id: row.get("session_id"),
-        method: row.get("method"),
-        params_json: row.get("params_json"),
-        rows_used: row.get::<i64, _>("rows_used") as u64,
-        state: row.get("state"),
-        progress: row.get("progress"),
-        attempt: row.get("attempt"),
-        last_error: row.get("last_error"),
-        report_json: row.get("report_json"),
-        seconds: row.get("seconds"),
-        created_ms: row.get("created_ms"),
-        started_ms: row.get("started_ms"),
-        finished_ms: row.get("finished_ms"),
-    }
-}
 
 #[async_trait]
 impl Jobs for Sqlite {

@@ -2,59 +2,18 @@
 
 use async_trait::async_trait;
 use sqlx::Row;
-use sqlx::sqlite::SqliteRow;
 
 use super::Sqlite;
+use crate::store::sessions::session_from_row;
 use crate::store::sessions::{finishable, same_declaration};
 use crate::store::{
-    CameraLayout, NewSession, SampleFormat, SessionRow, SessionState, Sessions, StoreError,
-    f32_to_le, le_to_f32, now_ms, parse_spec,
+    NewSession, SampleFormat, SessionRow, SessionState, Sessions, StoreError, f32_to_le, le_to_f32,
+    now_ms,
 };
 
 const SESSION_COLUMNS: &str = "id, lab, rig, spec_json, channels_json, metadata_json, expected_rows, \
      committed_rows, state, gt_transport IS NOT NULL AS has_gt, created_ms, finished_ms, \
      camera_width, camera_height, sample_format, directions_json";
-
-fn session_from_row(row: &SqliteRow) -> Result<SessionRow, StoreError> {
-    let corrupt = |what: &str, e: serde_json::Error| StoreError::Corrupt(format!("{what}: {e}"));
-    let name: &str = row.get("sample_format");
-    let format = SampleFormat::parse(name)
-        .ok_or_else(|| StoreError::Corrupt(format!("unknown sample format {name:?}")))?;
-    let camera = match (
-        row.get::<Option<i64>, _>("camera_width"),
-        row.get::<Option<i64>, _>("camera_height"),
-    ) {
-        (Some(w), Some(h)) => Some(CameraLayout {
-            width: w as u32,
-            height: h as u32,
-            format,
-        }),
-        _ => None,
-    };
-    Ok(SessionRow {
-        directions: serde_json::from_str(row.get("directions_json"))
-            .map_err(|e| corrupt("directions", e))?,
-        camera,
-        id: row.get("id"),
-        lab: row.get("lab"),
-        rig: row.get("rig"),
-        spec: parse_spec(row.get("spec_json"))?,
-        channels: serde_json::from_str(row.get("channels_json"))
-            .map_err(|e| corrupt("channels", e))?,
-        metadata: serde_json::from_str(row.get("metadata_json"))
-            .map_err(|e| corrupt("metadata", e))?,
-        expected_rows: row.get::<i64, _>("expected_rows") as u64,
-        committed_rows: row.get::<i64, _>("committed_rows") as u64,
-        state: if row.get::<String, _>("state") == "finished" {
-            SessionState::Finished
-        } else {
-            SessionState::Open
-        },
-        has_ground_truth: row.get::<bool, _>("has_gt"),
-        created_ms: row.get("created_ms"),
-        finished_ms: row.get("finished_ms"),
-    })
-}
 
 #[async_trait]
 impl Sessions for Sqlite {

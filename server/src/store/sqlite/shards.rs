@@ -3,27 +3,11 @@
 
 use async_trait::async_trait;
 use sqlx::Row;
-use sqlx::sqlite::SqliteRow;
 
 use super::Sqlite;
 use crate::store::shards::parts_in_order;
+use crate::store::shards::shard_from_row;
 use crate::store::{ClaimedShard, ShardRow, Shards, StoreError, now_ms};
-
-fn shard_from_row(row: &SqliteRow) -> ShardRow {
-    ShardRow {
-        reconstruction_id: row.get("reconstruction_id"),
-        shard: row.get("shard"),
-        first_block: row.get::<i64, _>("first_block") as u64,
-        end_block: row.get::<i64, _>("end_block") as u64,
-        state: row.get("state"),
-        attempt: row.get("attempt"),
-        worker_id: row.get("worker_id"),
-        last_error: row.get("last_error"),
-        part_bytes: row.get::<Option<i64>, _>("part_bytes").map(|b| b as u64),
-        started_ms: row.get("started_ms"),
-        finished_ms: row.get("finished_ms"),
-    }
-}
 
 #[async_trait]
 impl Shards for Sqlite {

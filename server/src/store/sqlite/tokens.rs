@@ -2,23 +2,12 @@
 
 use async_trait::async_trait;
 use sqlx::Row;
-use sqlx::sqlite::SqliteRow;
 use subtle::ConstantTimeEq;
 
 use super::Sqlite;
 use crate::auth::{self, Principal, Roles};
+use crate::store::tokens::token_from_row;
 use crate::store::{StoreError, TokenInfo, Tokens, now_ms};
-
-fn token_from_row(row: &SqliteRow) -> TokenInfo {
-    TokenInfo {
-        id: row.get("id"),
-        lab: row.get("lab"),
-        roles: row.get("roles"),
-        note: row.get("note"),
-        created_unix_ms: row.get("created_ms"),
-        revoked_unix_ms: row.get("revoked_ms"),
-    }
-}
 
 #[async_trait]
 impl Tokens for Sqlite {
