@@ -86,7 +86,8 @@ pub struct DatabaseArgs {
         global = true
     )]
     database_url: Option<String>,
-    /// Most pooled connections this process opens to PostgreSQL.
+    /// Most pooled connections this process opens to PostgreSQL (besides 2 of their own for
+    /// bulk reads: rows, frames, images, T).
     #[arg(long, env = "HELMHOLTZ_DATABASE_CONNECTIONS", default_value_t = 16, value_parser = clap::value_parser!(u32).range(2..), global = true)]
     database_connections: u32,
 }

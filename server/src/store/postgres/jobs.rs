@@ -265,7 +265,7 @@ impl Jobs for Postgres {
         let parts =
             sqlx::query("SELECT data FROM transports WHERE reconstruction_id = $1 ORDER BY part")
                 .bind(id)
-                .fetch_all(&self.pool)
+                .fetch_all(&self.bulk)
                 .await?;
         if parts.is_empty() {
             return Ok(None);
@@ -362,7 +362,7 @@ impl Jobs for Postgres {
              WHERE reconstruction_id = $1 ORDER BY channel_index",
         )
         .bind(reconstruction_id)
-        .fetch_all(&self.pool)
+        .fetch_all(&self.bulk)
         .await?;
         rows.iter()
             .map(|row| {

@@ -24,10 +24,19 @@ mod shards;
 pub(crate) mod testing;
 mod tokens;
 
+/// Connections of the pool for bulk reads ([`Postgres::bulk`]), besides `--database-connections`.
+pub const BULK_CONNECTIONS: u32 = 2;
+
 /// A PostgreSQL database; cheap to clone.
 #[derive(Clone, Debug)]
 pub struct Postgres {
     pub(crate) pool: PgPool,
+    /// Reads of bulk data (rows, frames, images, T and its parts) go through a pool of
+    /// [`BULK_CONNECTIONS`] of their own: the driver keeps each connection's receive buffer as
+    /// large as the largest message it has read, and a pool hands queries to its connections in
+    /// turn, so bulk reads through the main pool would leave a chunk-sized buffer on every one
+    /// of its connections (16 x an 8 MiB part of T, say), memory no budget accounts for.
+    pub(crate) bulk: PgPool,
     /// host:port/database, for logs (never the password).
     name: String,
 }
@@ -53,10 +62,14 @@ impl Postgres {
         let pool = PgPoolOptions::new()
             .max_connections(max_connections.max(2))
             .acquire_timeout(Duration::from_secs(30))
-            .connect_with(options)
+            .connect_with(options.clone())
             .await?;
         sqlx::migrate!("../migrations/postgres").run(&pool).await?;
-        Ok(Postgres { pool, name })
+        let bulk = PgPoolOptions::new()
+            .max_connections(BULK_CONNECTIONS)
+            .acquire_timeout(Duration::from_secs(30))
+            .connect_lazy_with(options);
+        Ok(Postgres { pool, bulk, name })
     }
 }
 
@@ -71,6 +84,7 @@ impl Database for Postgres {
     }
 
     async fn close(&self) {
+        self.bulk.close().await;
         self.pool.close().await;
     }
 

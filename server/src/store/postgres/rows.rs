@@ -160,7 +160,7 @@ impl Rows for Postgres {
         .bind(session_id)
         .bind(from_row as i64)
         .bind(max_chunks as i64)
-        .fetch_all(&self.pool)
+        .fetch_all(&self.bulk)
         .await?;
         let chunks: Vec<RawChunk> = rows.iter().map(raw_chunk).collect();
         check_chunks(session_id, from_row, &chunks, sample_bytes)?;
@@ -179,7 +179,7 @@ impl Rows for Postgres {
         )
         .bind(session_id)
         .bind(row as i64)
-        .fetch_optional(&self.pool)
+        .fetch_optional(&self.bulk)
         .await?;
         let Some(found) = found else { return Ok(None) };
         row_of_chunk(session_id, &raw_chunk(&found), row, row_bytes)

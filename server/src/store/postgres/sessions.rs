@@ -140,7 +140,7 @@ impl Sessions for Postgres {
         let row =
             sqlx::query("SELECT gt_width, gt_height, gt_transport FROM sessions WHERE id = $1")
                 .bind(id)
-                .fetch_optional(&self.pool)
+                .fetch_optional(&self.bulk)
                 .await?;
         let Some(row) = row else {
             return Err(StoreError::SessionNotFound(id.to_string()));

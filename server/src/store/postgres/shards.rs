@@ -243,7 +243,7 @@ impl Shards for Postgres {
             "SELECT shard, state, part FROM transport_shards WHERE reconstruction_id = $1 ORDER BY shard",
         )
         .bind(id)
-        .fetch_all(&self.pool)
+        .fetch_all(&self.bulk)
         .await?;
         parts_in_order(
             id,
