@@ -249,13 +249,9 @@ async fn uploads_through_a_proxy_that_cuts_connections_store_every_row_once() {
     println!("fault seed {seed} (rerun with HELMHOLTZ_FAULT_SEED={seed})");
     let mut rng = SplitMix64(seed);
     let dir = tempfile::tempdir().unwrap();
-    // On SQLite in both passes of the suite, for now: on PostgreSQL this test found a bug
-    // (open, issue 19). A request cancelled by a cut connection can return a pooled connection
-    // still inside a transaction ("there is already a transaction in progress"); its row lock on
-    // the session then stalls that session's appends (seed 1795673659740224053: no progress
-    // for 60 s; nothing acknowledged was lost, the rows stayed in the rig's spool). Back on
-    // both backends once store transactions are safe against cancellation.
-    let server = ServerProcess::start_sqlite(&dir.path().join("data"), 0, UNLIMITED).unwrap();
+    // On PostgreSQL this test found a cancelled request returning a pooled connection inside a
+    // transaction (seed 1795673659740224053); store::postgres::begin is the fix.
+    let server = ServerProcess::start(&dir.path().join("data"), 0, UNLIMITED).unwrap();
     let proxy = FaultyProxy::start(format!("127.0.0.1:{}", server.port))
         .await
         .unwrap();

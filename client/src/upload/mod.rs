@@ -313,7 +313,9 @@ pub const STREAM_BYTES: usize = 64 << 20;
 /// stream, at most [`STREAM_BYTES`]). So rows of another writer or another file under the same
 /// session id are refused (ALREADY_EXISTS naming the first differing row), never taken for
 /// ours. Streams of at most [`STREAM_BYTES`] each confirm their rows when they end OK
-/// ([`UploadReport::confirmed_rows`]). The source's values must be finite.
+/// ([`UploadReport::confirmed_rows`]); after a failed stream the next carries half as many rows
+/// (down to one chunk), so a connection cut again and again still confirms rows between cuts
+/// instead of re-sending one long stream. The source's values must be finite.
 pub async fn upload_rows_from(
     server: &str,
     session_id: &str,
@@ -363,6 +365,13 @@ pub async fn upload_rows_as(
 
     let mut asked = false;
     let mut failing_since: Option<Instant> = None;
+    // The most rows the server has reported committed: when it grows, failures so far were not
+    // in vain (rows were stored between cuts), so the retry clock starts again.
+    let mut best_committed = 0u64;
+    // Rows the next stream carries: a cut stream confirms nothing, so after a failure streams
+    // are halved (down to one chunk) to confirm rows between cuts instead of re-sending the same
+    // long stream again and again; after a success they grow back.
+    let mut stream_length = rows_a_stream;
     let mut attempt = 0u32;
     let mut resync_used = false;
 
@@ -414,6 +423,13 @@ pub async fn upload_rows_as(
             }
         };
         let committed = status.committed_rows;
+        if committed > best_committed {
+            if asked {
+                failing_since = None;
+                attempt = 0;
+            }
+            best_committed = committed;
+        }
         if !asked {
             asked = true;
             report.expected_rows = status.expected_rows;
@@ -442,7 +458,7 @@ pub async fn upload_rows_as(
         // 2. Stream from the first unconfirmed row (the server compares what it already has);
         // below the server's count only if it lost rows we confirmed (the source says so).
         let from = confirmed.min(committed);
-        let to = (from + rows_a_stream).min(total);
+        let to = (from + stream_length).min(total);
         let outcome = stream_rows(
             server,
             session_id,
@@ -462,6 +478,7 @@ pub async fn upload_rows_as(
                 report.rows_written += response.rows_written;
                 report.rows_matched += response.rows_skipped;
                 report.committed_rows = response.committed_rows;
+                stream_length = (stream_length * 2).min(rows_a_stream);
                 if to > confirmed {
                     confirmed = to;
                     report.confirmed_rows = confirmed;
@@ -489,6 +506,8 @@ pub async fn upload_rows_as(
                     Disposition::Retry => back_off_or_fail!(err),
                 }
                 report.resumes += 1;
+                stream_length = (stream_length / 2 / chunk_rows as u64 * chunk_rows as u64)
+                    .max(chunk_rows as u64);
                 bar.set_message(format!("resumed {}x", report.resumes));
             }
         }

@@ -46,6 +46,104 @@ on_both_backends!(
     a_shard_out_of_attempts_fails_and_a_cancelled_job_s_shards_stop,
 );
 
+/// A request whose client cuts the connection drops the store call at any await. On PostgreSQL
+/// that must never leave a pooled connection inside a transaction (the next borrower's
+/// statements would run in it, hold their locks, and vanish if the connection closes): after
+/// every cancelled append, no connection of the database stays `idle in transaction`, and the
+/// appends that complete store every row once.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn on_postgres_appends_cancelled_at_any_await_leave_no_transaction_open() {
+    use sqlx::Connection;
+    use std::task::Poll;
+    use std::time::{Duration, Instant};
+    let db = crate::store::postgres::testing::TestPostgres::create().await;
+    let s = db.store();
+    let mut admin = sqlx::PgConnection::connect(&crate::store::postgres::testing::admin_url())
+        .await
+        .unwrap();
+    let total = 400;
+    s.create_session(&new_session("s", total)).await.unwrap();
+    let mut committed = 0;
+    let mut cancelled = 0;
+    for i in 0..600usize {
+        if committed == total {
+            break;
+        }
+        let n = 1 + (i as u64 % 3).min(total - committed - 1);
+        let values = rows(committed, n);
+        // Poll the append until a deadline between 0 and 1.5 ms (round trips on loopback are
+        // ~0.1 ms: the deadlines fall before, inside and after each await), then drop it.
+        let deadline = Instant::now() + Duration::from_micros((i as u64 * 37) % 1500);
+        let done = {
+            let append = s.append_rows("s", committed, 2, &values);
+            tokio::pin!(append);
+            std::future::poll_fn(|cx| match append.as_mut().poll(cx) {
+                Poll::Ready(r) => Poll::Ready(Some(r)),
+                Poll::Pending if Instant::now() >= deadline => Poll::Ready(None),
+                Poll::Pending => {
+                    cx.waker().wake_by_ref();
+                    Poll::Pending
+                }
+            })
+            .await
+            // The append is dropped here, wherever it stood.
+        };
+        match done {
+            Some(out) => assert!(out.unwrap().committed_rows > committed),
+            None => cancelled += 1,
+        }
+        // The dropped request's connection goes back to the pool (its rollback flushed there);
+        // a connection left inside a transaction would stay so.
+        let waited = Instant::now();
+        loop {
+            let open: i64 = sqlx::query_scalar(
+                "SELECT count(*) FROM pg_stat_activity \
+                 WHERE datname = $1 AND state LIKE 'idle in transaction%'",
+            )
+            .bind(db.name())
+            .fetch_one(&mut admin)
+            .await
+            .unwrap();
+            if open == 0 {
+                break;
+            }
+            if waited.elapsed() >= Duration::from_secs(5) {
+                let last: Vec<String> = sqlx::query_scalar(
+                    "SELECT query FROM pg_stat_activity \
+                     WHERE datname = $1 AND state LIKE 'idle in transaction%'",
+                )
+                .bind(db.name())
+                .fetch_all(&mut admin)
+                .await
+                .unwrap();
+                panic!(
+                    "after cancelled append {i}, {open} pooled connection(s) stay idle in a \
+                     transaction (last statements: {last:?})"
+                );
+            }
+            tokio::time::sleep(Duration::from_millis(5)).await;
+        }
+        // Whatever the cancelled append did is either all stored or not at all.
+        committed = s.session("s").await.unwrap().committed_rows;
+    }
+    // The rest, uncancelled: it must not stall on a lock a leaked transaction holds.
+    if committed < total {
+        s.append_rows("s", committed, 2, &rows(committed, total - committed))
+            .await
+            .unwrap();
+    }
+    assert!(cancelled > 50, "only {cancelled} appends were cancelled");
+    let stored: Vec<f64> = s
+        .read_chunks("s", 0, u32::MAX)
+        .await
+        .unwrap()
+        .into_iter()
+        .flat_map(|(_, v)| v)
+        .collect();
+    assert_eq!(stored, rows(0, total), "every row once, as sent");
+    admin.close().await.ok();
+}
+
 fn new_session(id: &str, count: u64) -> NewSession {
     NewSession {
         id: id.into(),

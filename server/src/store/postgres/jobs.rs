@@ -5,7 +5,7 @@
 use async_trait::async_trait;
 use sqlx::Row;
 
-use super::{Postgres, advisory_lock, lab_lock};
+use super::{Postgres, advisory_lock, begin, lab_lock};
 use crate::store::jobs::recon_from_row;
 use crate::store::{
     ClaimedJob, Jobs, ReconstructionRow, StoreError, StoredImage, f32_to_le, le_to_f32,
@@ -32,7 +32,7 @@ impl Jobs for Postgres {
         memory_bytes: u64,
     ) -> Result<ReconstructionRow, StoreError> {
         // The lab's advisory lock makes the count and the insert atomic across every node.
-        let mut tx = self.pool.begin().await?;
+        let mut tx = begin(&self.pool).await?;
         lab_lock(&mut tx, "jobs", lab).await?;
         let pending: i64 = sqlx::query(
             "SELECT COUNT(*) FROM jobs WHERE lab = $1 AND state IN ('queued', 'running')",
@@ -125,7 +125,7 @@ impl Jobs for Postgres {
         // One claim at a time across all nodes: the fairness order and the per-lab cap are
         // decided on a consistent count of running jobs. SKIP LOCKED keeps a claim from waiting
         // on a job row another transaction is writing (a heartbeat, a cancel).
-        let mut tx = self.pool.begin().await?;
+        let mut tx = begin(&self.pool).await?;
         advisory_lock(&mut tx, "claim").await?;
         sqlx::query(
             "UPDATE jobs SET state = 'failed', finished_ms = helmholtz_now_ms(), \
@@ -203,7 +203,7 @@ impl Jobs for Postgres {
         report_json: &str,
         seconds: f64,
     ) -> Result<bool, StoreError> {
-        let mut tx = self.pool.begin().await?;
+        let mut tx = begin(&self.pool).await?;
         let fenced = sqlx::query(
             "UPDATE jobs SET state = 'done', progress = 1, finished_ms = helmholtz_now_ms(), lease_until_ms = NULL \
              WHERE id = $1 AND attempt = $2 AND state = 'running'",

@@ -12,7 +12,7 @@ use std::time::Duration;
 
 use async_trait::async_trait;
 use sqlx::postgres::{PgConnectOptions, PgListener, PgPoolOptions};
-use sqlx::{PgPool, Postgres as Pg, Row, Transaction};
+use sqlx::{Connection, PgPool, Postgres as Pg, Row, Transaction};
 
 use super::{Database, StoreError};
 
@@ -32,10 +32,11 @@ pub const BULK_CONNECTIONS: u32 = 2;
 pub struct Postgres {
     pub(crate) pool: PgPool,
     /// Reads of bulk data (rows, frames, images, T and its parts) go through a pool of
-    /// [`BULK_CONNECTIONS`] of their own: the driver keeps each connection's receive buffer as
-    /// large as the largest message it has read, and a pool hands queries to its connections in
-    /// turn, so bulk reads through the main pool would leave a chunk-sized buffer on every one
-    /// of its connections (16 x an 8 MiB part of T, say), memory no budget accounts for.
+    /// [`BULK_CONNECTIONS`] of their own, which bounds how many such reads (each up to a part
+    /// of T in the driver's receive buffer, then copied out) one process runs at once. Like
+    /// the main pool's, its connections shrink their buffers when released: the driver would
+    /// otherwise keep each as large as the largest message it carried (16 x an 8 MiB part of
+    /// T, say), memory no budget accounts for.
     pub(crate) bulk: PgPool,
     /// host:port/database, for logs (never the password).
     name: String,
@@ -59,15 +60,30 @@ impl Postgres {
             options.get_port(),
             options.get_database().unwrap_or("")
         );
+        // Every connection gives back the memory of a large message (a chunk written, a part of
+        // T read) when it returns to its pool: buffers above the driver's 8 KiB default are
+        // shrunk, so what a process holds between queries does not grow with the data.
         let pool = PgPoolOptions::new()
             .max_connections(max_connections.max(2))
             .acquire_timeout(Duration::from_secs(30))
+            .after_release(|conn, _| {
+                Box::pin(async move {
+                    conn.shrink_buffers();
+                    Ok(true)
+                })
+            })
             .connect_with(options.clone())
             .await?;
         sqlx::migrate!("../migrations/postgres").run(&pool).await?;
         let bulk = PgPoolOptions::new()
             .max_connections(BULK_CONNECTIONS)
             .acquire_timeout(Duration::from_secs(30))
+            .after_release(|conn, _| {
+                Box::pin(async move {
+                    conn.shrink_buffers();
+                    Ok(true)
+                })
+            })
             .connect_lazy_with(options);
         Ok(Postgres { pool, bulk, name })
     }
@@ -145,6 +161,27 @@ impl Database for Postgres {
 
 /// The channel an enqueue notifies (`pg_notify`) and idle workers listen on.
 pub(crate) const JOBS_CHANNEL: &str = "helmholtz_jobs";
+
+/// Starts a transaction on a pooled connection, cancellation-safe.
+///
+/// sqlx 0.9.0's PostgreSQL `begin` counts the transaction only after `BEGIN`'s answer arrives: a
+/// future dropped while waiting for it (a request whose client cut the connection) leaves the
+/// session inside a transaction that nothing rolls back, and the pool hands that connection on;
+/// the next borrower's statements then run inside it, hold their locks (a session's row lock
+/// stalls its appends) and are lost if the connection closes (upstream sqlx issues #4385 and
+/// #4393, fixed after 0.9.0). Here `BEGIN` runs in a task of its own that no caller can drop
+/// midway; a transaction whose caller has gone is dropped afterwards, fully counted, and its
+/// rollback is queued and flushed when the connection returns to the pool. Statements inside a
+/// counted transaction are safe to drop: sqlx rolls the transaction back.
+pub(crate) async fn begin(pool: &PgPool) -> Result<Transaction<'static, Pg>, StoreError> {
+    let pool = pool.clone();
+    match tokio::spawn(async move { pool.begin().await }).await {
+        Ok(tx) => Ok(tx?),
+        Err(e) if e.is_panic() => std::panic::resume_unwind(e.into_panic()),
+        // Only when the runtime shuts down.
+        Err(_) => Err(sqlx::Error::PoolClosed.into()),
+    }
+}
 
 /// Takes the transaction-scoped advisory lock named `helmholtz.{what}` (released at commit or
 /// rollback).

@@ -3,7 +3,7 @@
 use async_trait::async_trait;
 use sqlx::Row;
 
-use super::Postgres;
+use super::{Postgres, begin};
 use crate::store::rows::raw_chunk;
 use crate::store::rows::{check_bounds, check_chunks, compare_overlap, row_of_chunk};
 use crate::store::{AppendOutcome, RawChunk, Rows, StoreError, WriterLease};
@@ -62,7 +62,7 @@ impl Rows for Postgres {
         debug_assert!(row_bytes > 0 && payload.len().is_multiple_of(row_bytes));
         let rows = (payload.len() / row_bytes) as u64;
         // The session's row lock serialises its appends across every node: read-check-write.
-        let mut tx = self.pool.begin().await?;
+        let mut tx = begin(&self.pool).await?;
         let row = sqlx::query(
             "SELECT committed_rows, expected_rows, state FROM sessions WHERE id = $1 FOR UPDATE",
         )
@@ -162,7 +162,8 @@ impl Rows for Postgres {
         .bind(max_chunks as i64)
         .fetch_all(&self.bulk)
         .await?;
-        let chunks: Vec<RawChunk> = rows.iter().map(raw_chunk).collect();
+        // Each row is dropped as soon as its data is copied out.
+        let chunks: Vec<RawChunk> = rows.into_iter().map(|r| raw_chunk(&r)).collect();
         check_chunks(session_id, from_row, &chunks, sample_bytes)?;
         Ok(chunks)
     }

@@ -3,7 +3,7 @@
 use async_trait::async_trait;
 use sqlx::Row;
 
-use super::{Postgres, lab_lock};
+use super::{Postgres, begin, lab_lock};
 use crate::store::sessions::session_from_row;
 use crate::store::sessions::{finishable, same_declaration};
 use crate::store::{
@@ -27,7 +27,7 @@ impl Sessions for Postgres {
             Some((w, h, data)) => (Some(*w as i64), Some(*h as i64), Some(f32_to_le(data))),
             None => (None, None, None),
         };
-        let mut tx = self.pool.begin().await?;
+        let mut tx = begin(&self.pool).await?;
         lab_lock(&mut tx, "sessions", &new.lab).await?;
         let exists = sqlx::query("SELECT 1 FROM sessions WHERE id = $1")
             .bind(&new.id)

@@ -6,7 +6,7 @@
 use async_trait::async_trait;
 use sqlx::Row;
 
-use super::Postgres;
+use super::{Postgres, begin};
 use crate::store::shards::parts_in_order;
 use crate::store::shards::shard_from_row;
 use crate::store::{ClaimedShard, ShardRow, Shards, StoreError};
@@ -20,7 +20,7 @@ impl Shards for Postgres {
         model_json: &str,
         shards: &[(u64, u64)],
     ) -> Result<Option<String>, StoreError> {
-        let mut tx = self.pool.begin().await?;
+        let mut tx = begin(&self.pool).await?;
         // The job's row lock orders this against the job's other writes (a cancel, a claim).
         let job = sqlx::query(
             "SELECT max_attempts FROM jobs WHERE id = $1 AND attempt = $2 AND state = 'running' FOR UPDATE",
@@ -86,7 +86,7 @@ impl Shards for Postgres {
         max_memory: u64,
         only: Option<i64>,
     ) -> Result<Option<ClaimedShard>, StoreError> {
-        let mut tx = self.pool.begin().await?;
+        let mut tx = begin(&self.pool).await?;
         sqlx::query(
             "UPDATE transport_shards SET state = 'failed', finished_ms = helmholtz_now_ms(), \
              last_error = COALESCE(last_error, 'worker lost its lease') || ' (no attempts left)' \

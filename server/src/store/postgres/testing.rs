@@ -51,6 +51,11 @@ impl TestPostgres {
     pub(crate) fn store(&self) -> Store {
         self.store.clone()
     }
+
+    /// The database's name (for `pg_stat_activity`).
+    pub(crate) fn name(&self) -> &str {
+        &self.name
+    }
 }
 
 impl Drop for TestPostgres {
