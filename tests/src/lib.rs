@@ -21,11 +21,17 @@ pub use backend::{Backend, backend, server_command, store_args, store_args_on};
 /// last workspace build left.
 pub fn binary(name: &str) -> PathBuf {
     let exe = std::env::current_exe().expect("test executable path");
-    let dir = exe
-        .parent()
-        .and_then(Path::parent)
-        .expect("target/<profile>/deps/..");
-    let path = dir.join(format!("{name}{}", std::env::consts::EXE_SUFFIX));
+    let file = format!("{name}{}", std::env::consts::EXE_SUFFIX);
+    // A test runs from target/<profile>/deps, a benchmark binary from target/<profile>.
+    let beside = exe.parent().map(|d| d.join(&file));
+    let path = match beside {
+        Some(p) if p.exists() => p,
+        _ => exe
+            .parent()
+            .and_then(Path::parent)
+            .expect("target/<profile>/deps/..")
+            .join(&file),
+    };
     assert!(
         path.exists(),
         "{} is missing: run the tests with `cargo test --workspace`, which builds the binaries",
@@ -72,7 +78,8 @@ pub fn create_token_with(
     create_token_on(backend(), server_bin, data_dir, lab, roles)
 }
 
-fn create_token_on(
+/// [`create_token_with`] on `backend` whatever this process's backend is.
+pub fn create_token_on(
     backend: Backend,
     server_bin: &Path,
     data_dir: &Path,
@@ -153,7 +160,8 @@ impl ServerProcess {
         )
     }
 
-    fn start_binary_on(
+    /// [`ServerProcess::start_binary`] on `backend` whatever this process's backend is.
+    pub fn start_binary_on(
         backend: Backend,
         server_bin: &Path,
         data_dir: &Path,
@@ -566,4 +574,43 @@ impl OpenUpload {
         drop(self.tx);
         self.call.await.expect("the upload task")
     }
+}
+
+/// A simulated camera session (Lambertian scene seen by a `camera` ("WxH") camera tilted 20
+/// degrees, `count` Bernoulli patterns on a `side` x `side` projector, seed 4), uploaded and
+/// finished by the real client binary through `api`.
+pub fn simulate_camera_session(api: &ServerProcess, id: &str, camera: &str, side: u32, count: u64) {
+    let spool = tempfile::tempdir().expect("spool directory");
+    let out = Command::new(binary("helmholtz"))
+        .args(["--server", &api.address, "--token", &api.token, "--spool"])
+        .arg(spool.path())
+        .args([
+            "simulate",
+            "--scene",
+            "lambert",
+            "--camera",
+            camera,
+            "--camera-tilt",
+            "20",
+            "--family",
+            "bernoulli",
+            "--width",
+            &side.to_string(),
+            "--height",
+            &side.to_string(),
+            "--count",
+            &count.to_string(),
+            "--seed",
+            "4",
+            "--session-id",
+            id,
+        ])
+        .output()
+        .expect("running helmholtz simulate");
+    assert!(
+        out.status.success(),
+        "helmholtz simulate failed:\n{}\n{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
 }

@@ -218,6 +218,16 @@ pub struct WorkerProcess {
 impl WorkerProcess {
     /// Starts `workers` worker threads on `db` and waits until they run.
     pub fn start(db: &TestDatabase, workers: u32, extra: &[&str]) -> anyhow::Result<WorkerProcess> {
+        Self::start_with_env(db, workers, extra, &[])
+    }
+
+    /// [`WorkerProcess::start`] with environment variables `env` set for the process.
+    pub fn start_with_env(
+        db: &TestDatabase,
+        workers: u32,
+        extra: &[&str],
+        env: &[(&str, &str)],
+    ) -> anyhow::Result<WorkerProcess> {
         let mut child = Command::new(binary("helmholtz-server"))
             .args([
                 "worker",
@@ -227,6 +237,7 @@ impl WorkerProcess {
             ])
             .arg(db.url())
             .args(extra)
+            .envs(env.iter().copied())
             .env("RUST_LOG", "warn")
             .stdin(Stdio::null())
             .stdout(Stdio::piped())

@@ -9,12 +9,13 @@
 
 use std::time::{Duration, Instant};
 
+use helmholtz_client::upload::{SampleRows, Samples, upload_rows_as};
 use helmholtz_client::{NewSession, PatternSpec, UploadOptions};
 use helmholtz_proto::v1;
 use helmholtz_sim::Target;
 use helmholtz_sim::simulate::{self, NoiseModel};
 use helmholtz_tests::pg::{TestDatabase, WorkerProcess};
-use helmholtz_tests::{OpenUpload, ServerProcess, parse_npy};
+use helmholtz_tests::{OpenUpload, ServerProcess, parse_npy, simulate_camera_session};
 use serde_json::Value;
 use tonic::Code;
 
@@ -235,44 +236,6 @@ async fn a_killed_worker_process_s_job_is_taken_up_by_another() {
     );
 }
 
-/// A simulated camera session (Lambertian scene, Bernoulli patterns), uploaded and finished by
-/// the real client through `api`.
-fn simulate_camera_session(api: &ServerProcess, id: &str, camera: &str, side: u32, count: u64) {
-    let spool = tempfile::tempdir().unwrap();
-    let out = std::process::Command::new(helmholtz_tests::binary("helmholtz"))
-        .args(["--server", &api.address, "--token", &api.token, "--spool"])
-        .arg(spool.path())
-        .args([
-            "simulate",
-            "--scene",
-            "lambert",
-            "--camera",
-            camera,
-            "--camera-tilt",
-            "20",
-            "--family",
-            "bernoulli",
-            "--width",
-            &side.to_string(),
-            "--height",
-            &side.to_string(),
-            "--count",
-            &count.to_string(),
-            "--seed",
-            "4",
-            "--session-id",
-            id,
-        ])
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "helmholtz simulate failed:\n{}\n{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
-}
-
 const TRANSPORT: &str = r#"{"method": "transport", "params": {"sample_pixels": 16}}"#;
 
 /// The shards of a reconstruction: (count, distinct worker processes, most attempts).
@@ -378,20 +341,212 @@ async fn a_transport_in_shards_on_two_worker_processes_is_the_single_process_t()
     assert_eq!(report["iterations"], single_done["report"]["iterations"]);
 }
 
+/// Bucket rows of one rig: `count` Bernoulli patterns on 16x16 (seed `seed`), one detector.
+async fn rig_rows(seed: u64, count: u64) -> (PatternSpec, Vec<f64>) {
+    simulated(&format!(
+        r#"{{"family":"bernoulli","width":16,"height":16,"count":{count},"seed":{seed}}}"#
+    ))
+    .await
+}
+
+/// Uploads `values` (one detector) through `node` as writer `writer`, in chunks of 100 rows,
+/// retrying for `retry_for` without progress.
+async fn upload_as(
+    node: &str,
+    id: &str,
+    values: &[f64],
+    writer: &str,
+    retry_for: Duration,
+) -> anyhow::Result<helmholtz_client::upload::UploadReport> {
+    let rows = SampleRows {
+        samples: Samples::F64(values),
+        channels: 1,
+    };
+    let opts = UploadOptions {
+        chunk_rows: Some(100),
+        retry_for,
+        ..UploadOptions::default()
+    };
+    upload_rows_as(node, id, 1, &rows, 0, &opts, writer).await
+}
+
+/// Uploads `values` as writer `writer` through `node`; when that node stops answering, goes on
+/// through `fallback` as the same writer (what a rig behind a load balancer sees). Returns the
+/// nodes used.
+async fn rig_upload(
+    node: String,
+    fallback: String,
+    id: String,
+    values: Vec<f64>,
+    writer: String,
+) -> Vec<String> {
+    let mut used = vec![node.clone()];
+    if let Err(e) = upload_as(&node, &id, &values, &writer, Duration::from_secs(3)).await {
+        assert_ne!(node, fallback, "upload of {id} through {node}: {e:#}");
+        used.push(fallback.clone());
+        upload_as(&fallback, &id, &values, &writer, Duration::from_secs(60))
+            .await
+            .unwrap_or_else(|e| panic!("upload of {id} through {fallback}: {e:#}"));
+    }
+    helmholtz_client::finish_session(&fallback, &id)
+        .await
+        .unwrap_or_else(|e| panic!("finishing {id}: {e:#}"));
+    used
+}
+
+/// A reconstruction of a rig's session that takes a while (a fixed number of TV iterations), so
+/// that jobs overlap and the running cap has something to hold back.
+const SLOW_JOB: &str = r#"{"method": "tv", "params": {"max_iter": 1000}}"#;
+
+/// The issue's cluster: 2 API nodes and 3 worker processes on one PostgreSQL database. 20 rigs
+/// upload through both nodes while 4 rogue writers (other writer ids, other values) try the same
+/// sessions through the other node; one API node is SIGKILLed mid-upload (its rigs go on
+/// through the other, as the same writer) and a third node joins; a camera session's T is solved
+/// in shards while one worker is SIGKILLed mid-shard; every session then gets a reconstruction
+/// requested on either node. Checked: stored rows equal sent rows byte for byte, the rogues
+/// stored nothing, every job finished exactly once, the per-lab caps (sessions on the API nodes,
+/// running jobs on the workers) held across processes, and the sharded T is the single-process
+/// T bit for bit.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_killed_worker_s_shard_is_leased_again_and_t_is_unchanged() {
+async fn two_api_nodes_and_three_workers_lose_nothing_when_nodes_are_killed() {
+    const RIGS: usize = 20;
+    const ROWS: u64 = 10_000;
+    const SESSION_CAP: usize = 24;
     let db = TestDatabase::create();
     let token = db.create_token("e2e", "rig,reader").unwrap();
-    let api = ServerProcess::start_on_postgres(&db, &token, &["--workers", "0"]).unwrap();
-    simulate_camera_session(&api, "cam", "16x16", 32, 384);
-    // Shards of 16 camera pixels: 16 of the 256; leases of 2 s.
-    let args = ["--transport-shard-pixels", "16", "--lease-seconds", "2"];
-    let mut workers = vec![
-        WorkerProcess::start(&db, 1, &args).unwrap(),
-        WorkerProcess::start(&db, 1, &args).unwrap(),
+    let api_args = [
+        "--workers",
+        "0",
+        "--max-sessions-per-lab",
+        "24",
+        "--rate-per-second",
+        "0",
     ];
-    let job = request(&api, "cam", TRANSPORT).await;
-    // As soon as a worker holds a shard (not the last one), SIGKILL its process.
+    let a = ServerProcess::start_on_postgres(&db, &token, &api_args).unwrap();
+    let mut b = ServerProcess::start_on_postgres(&db, &token, &api_args).unwrap();
+    let worker_args = [
+        "--transport-shard-pixels",
+        "16",
+        "--lease-seconds",
+        "2",
+        "--max-running-jobs-per-lab",
+        "2",
+    ];
+    let mut workers: Vec<WorkerProcess> = (0..3)
+        .map(|_| WorkerProcess::start(&db, 1, &worker_args).unwrap())
+        .collect();
+
+    // The per-lab session cap across nodes: 30 creates at once, alternating between the nodes,
+    // for a lab of its own: exactly the cap succeed, the rest are refused naming the limit.
+    let capped = db.create_token("capped", "rig").unwrap();
+    let creates: Vec<_> = (0..30)
+        .map(|i| {
+            let node = if i % 2 == 0 { &a } else { &b }.url_with(&capped);
+            tokio::spawn(async move {
+                let spec: PatternSpec = serde_json::from_str(
+                    r#"{"family":"bernoulli","width":8,"height":8,"count":10,"seed":1}"#,
+                )
+                .unwrap();
+                helmholtz_client::create_session(
+                    &node,
+                    &NewSession::new(&format!("capped-{i}"), spec, vec!["bucket".into()]),
+                )
+                .await
+            })
+        })
+        .collect();
+    let mut results = Vec::new();
+    for create in creates {
+        results.push(create.await.unwrap());
+    }
+    let created = results.iter().filter(|r| r.is_ok()).count();
+    assert_eq!(created, SESSION_CAP, "sessions created past the cap");
+    for e in results.iter().filter_map(|r| r.as_ref().err()) {
+        assert!(format!("{e:#}").contains("sessions"), "{e:#}");
+    }
+
+    // The camera session (through the CLI) and the 20 rigs' sessions, half created on each node.
+    simulate_camera_session(&a, "cam", "16x16", 32, 384);
+    let mut sent = Vec::new();
+    for i in 0..RIGS {
+        let (spec, values) = rig_rows(100 + i as u64, ROWS).await;
+        let node = if i % 2 == 0 { &a } else { &b };
+        helmholtz_client::create_session(
+            &node.base_url,
+            &NewSession::new(&format!("rig-{i}"), spec, vec!["bucket".into()]),
+        )
+        .await
+        .unwrap();
+        sent.push(values);
+    }
+    let mut rigs = Vec::new();
+    for (i, values) in sent.iter().enumerate() {
+        let node = if i % 2 == 0 { &a } else { &b };
+        rigs.push(tokio::spawn(rig_upload(
+            node.base_url.clone(),
+            a.base_url.clone(),
+            format!("rig-{i}"),
+            values.clone(),
+            helmholtz_client::upload::new_writer_id(),
+        )));
+    }
+    // Rogue writers: other values, another writer id, through the other node, once their rig
+    // has stored rows. Refused: ABORTED while the rig holds the session, ALREADY_EXISTS on the
+    // first differing row otherwise; either way nothing of theirs is stored.
+    let mut rogues = Vec::new();
+    for i in 0..4 {
+        let id = format!("rig-{i}");
+        let node = if i % 2 == 0 { &b } else { &a }.base_url.clone();
+        let values: Vec<f64> = sent[i].iter().map(|v| v + 1.0).collect();
+        rogues.push(tokio::spawn(async move {
+            loop {
+                let once = helmholtz_client::upload::RetryPolicy {
+                    retry_for: Duration::ZERO,
+                    ..Default::default()
+                };
+                match helmholtz_client::upload::upload_status_with(&node, &id, &once).await {
+                    Ok(s) if s.committed_rows == 0 => {}
+                    // Rows stored, or the node is gone (killed): try now.
+                    _ => break,
+                }
+                tokio::time::sleep(Duration::from_millis(5)).await;
+            }
+            let writer = helmholtz_client::upload::new_writer_id();
+            upload_as(&node, &id, &values, &writer, Duration::from_secs(2)).await
+        }));
+    }
+
+    // SIGKILL node B once its rigs are under way (the first of its sessions holds a tenth of
+    // its rows), while the rest of its uploads are in flight.
+    let deadline = Instant::now() + Duration::from_secs(60);
+    let at_kill = loop {
+        let committed = db.strings(
+            "SELECT id || ' ' || committed_rows FROM sessions WHERE id LIKE 'rig-%' ORDER BY id",
+        );
+        let odd: Vec<u64> = committed
+            .iter()
+            .filter_map(|l| l.split_once(' '))
+            .filter(|(id, _)| id[4..].parse::<usize>().unwrap() % 2 == 1)
+            .map(|(_, c)| c.parse().unwrap())
+            .collect();
+        if odd.iter().any(|&c| c >= ROWS / 10) {
+            break odd;
+        }
+        assert!(Instant::now() < deadline, "node B's uploads never started");
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    };
+    b.kill();
+    let mid_upload = at_kill.iter().filter(|&&c| c < ROWS).count();
+    assert!(
+        mid_upload > 0,
+        "node B was killed after all its uploads: {at_kill:?}"
+    );
+    println!("node B killed with its sessions at rows {at_kill:?}");
+    let c = ServerProcess::start_on_postgres(&db, &token, &api_args).unwrap();
+
+    // T in shards: requested on the new node; as soon as a worker holds a shard (not the last
+    // one), SIGKILL its process and start another.
+    let job = request(&c, "cam", TRANSPORT).await;
     let deadline = Instant::now() + Duration::from_secs(120);
     let (victim, shard) = loop {
         let holders = db.strings(&format!(
@@ -412,13 +567,80 @@ async fn a_killed_worker_s_shard_is_leased_again_and_t_is_unchanged() {
     };
     let killed_pid = workers[victim].pid();
     workers[victim].kill();
-    // A fresh worker process takes the place of the killed one.
-    workers.push(WorkerProcess::start(&db, 1, &args).unwrap());
-    let done = wait_state(&api, job, &["done", "failed"], Duration::from_secs(300)).await;
+    workers.push(WorkerProcess::start(&db, 1, &worker_args).unwrap());
+
+    // Every rig finishes; those of node B went on through node A.
+    let mut failed_over = 0;
+    for rig in rigs {
+        if rig.await.unwrap().len() > 1 {
+            failed_over += 1;
+        }
+    }
+    assert!(failed_over > 0, "no rig had to fail over");
+    for rogue in rogues {
+        let result = rogue.await.unwrap();
+        assert!(result.is_err(), "a rogue writer's upload was accepted");
+    }
+    // Stored rows equal sent rows, byte for byte, read through either live node.
+    for (i, values) in sent.iter().enumerate() {
+        let node = if i % 2 == 0 { &a } else { &c };
+        let bits: Vec<u64> = values.iter().map(|v| v.to_bits()).collect();
+        assert!(
+            stored_bits(node, &format!("rig-{i}")).await == bits,
+            "rig-{i}: stored rows differ from sent rows"
+        );
+    }
+
+    // A reconstruction of every rig's session, requested on either node.
+    let mut jobs = Vec::new();
+    for i in 0..RIGS {
+        let node = if i % 2 == 0 { &a } else { &c };
+        jobs.push(request(node, &format!("rig-{i}"), SLOW_JOB).await);
+    }
+    for &id in &jobs {
+        let done = wait_state(&a, id, &["done", "failed"], Duration::from_secs(300)).await;
+        assert_eq!(done["state"], "done", "{done}");
+    }
+    let done = wait_state(&a, job, &["done", "failed"], Duration::from_secs(300)).await;
     assert_eq!(done["state"], "done", "{done}");
+    // Exactly once: one result per job (one detector: one image), no job left over.
+    for &id in &jobs {
+        assert_eq!(
+            db.scalar(&format!(
+                "SELECT COUNT(*) FROM dual_images WHERE reconstruction_id = {id}"
+            )),
+            1,
+            "results of job {id}"
+        );
+    }
+    assert_eq!(
+        db.scalar("SELECT COUNT(*) FROM jobs WHERE state <> 'done'"),
+        0
+    );
+    assert_eq!(
+        db.scalar("SELECT COUNT(*) FROM jobs"),
+        RIGS as i64 + 1,
+        "one job per request"
+    );
+    // The running cap (2 a lab) held across the worker processes: at no job's start were more
+    // than 2 of the lab's jobs running (start and finish times from the database's clock).
+    let most_running = db.scalar(
+        "SELECT COALESCE(MAX(n), 0) FROM (SELECT (SELECT COUNT(*) FROM jobs o \
+         WHERE o.lab = j.lab AND o.started_ms <= j.started_ms AND o.finished_ms > j.started_ms) AS n \
+         FROM jobs j WHERE j.started_ms IS NOT NULL) t",
+    );
+    let seconds = db.strings(
+        "SELECT ((finished_ms - started_ms) / 1000.0)::text FROM jobs WHERE kind = 'reconstruction' ORDER BY id",
+    );
+    println!("most jobs of the lab running at once: {most_running}; job seconds {seconds:?}");
+    assert_eq!(
+        most_running, 2,
+        "the cap of 2 running jobs a lab, with 3 worker processes free"
+    );
+
+    // The killed worker's shard was leased again and solved by another process.
     let (count, _, _) = shard_figures(&db, job);
     assert_eq!(count, 16);
-    // The killed worker's shard was leased again (a second attempt) and solved by another.
     let again = db.strings(&format!(
         "SELECT attempt || ' ' || worker_id FROM transport_shards WHERE reconstruction_id = {job} AND shard = {shard}"
     ));
@@ -435,7 +657,7 @@ async fn a_killed_worker_s_shard_is_leased_again_and_t_is_unchanged() {
     );
     let sharded = db.transport(job);
     drop(workers);
-    let (single, _) = single_process_t(&db, &api, "cam").await;
+    let (single, _) = single_process_t(&db, &a, "cam").await;
     assert!(
         sharded == single,
         "the T after a killed shard differs from the single-process T"

@@ -18,7 +18,7 @@ use helmholtz_client::spool::{self, SpoolDir};
 use helmholtz_client::{NewSession, PatternSpec, UploadOptions};
 use helmholtz_sim::Target;
 use helmholtz_sim::simulate::{self, NoiseModel};
-use helmholtz_tests::ServerProcess;
+use helmholtz_tests::{Backend, ServerProcess};
 
 #[derive(Parser, Debug, Clone)]
 #[command(
@@ -57,6 +57,12 @@ struct Args {
     /// HELMHOLTZ_TOKEN for the client library's gRPC calls.
     #[arg(long, env = "HELMHOLTZ_TOKEN")]
     token: Option<String>,
+    /// Databases to run on, one after the other, comma-separated (sqlite, postgres) [default:
+    /// HELMHOLTZ_TEST_BACKEND's, else sqlite]. With several, the report starts with their
+    /// figures side by side. PostgreSQL: a database created for the run on
+    /// HELMHOLTZ_TEST_POSTGRES (default the local server) and dropped at the end.
+    #[arg(long, value_delimiter = ',')]
+    backends: Vec<String>,
     /// Also write the Markdown report to this file.
     #[arg(long)]
     out: Option<PathBuf>,
@@ -138,6 +144,80 @@ async fn main() -> anyhow::Result<()> {
         // SAFETY: set before any other thread of ours reads the environment.
         unsafe { std::env::set_var("HELMHOLTZ_TOKEN", token) };
     }
+    let backends = if args.backends.is_empty() {
+        vec![helmholtz_tests::backend()]
+    } else {
+        args.backends
+            .iter()
+            .map(|b| match b.as_str() {
+                "sqlite" => Ok(Backend::Sqlite),
+                "postgres" => Ok(Backend::Postgres),
+                other => Err(anyhow::anyhow!(
+                    "--backends: {other:?} is not sqlite or postgres"
+                )),
+            })
+            .collect::<anyhow::Result<Vec<_>>>()?
+    };
+    let mut reports = Vec::new();
+    for &backend in &backends {
+        eprintln!("== {} ==", name(backend));
+        reports.push((backend, measure(&args, backend).await?));
+    }
+    let mut md = String::new();
+    if reports.len() > 1 {
+        md.push_str("| figure |");
+        for (b, _) in &reports {
+            md.push_str(&format!(" {} |", name(*b)));
+        }
+        md.push_str("\n|---|");
+        for _ in &reports {
+            md.push_str("---|");
+        }
+        md.push('\n');
+        for (i, (label, _)) in reports[0].1.summary.iter().enumerate() {
+            md.push_str(&format!("| {label} |"));
+            for (_, r) in &reports {
+                md.push_str(&format!(" {} |", r.summary[i].1));
+            }
+            md.push('\n');
+        }
+        md.push('\n');
+    }
+    for (b, r) in &reports {
+        if reports.len() > 1 {
+            md.push_str(&format!("### {}\n\n", name(*b)));
+        }
+        md.push_str(&r.markdown);
+        md.push('\n');
+    }
+    println!("{md}");
+    if let Some(out) = &args.out {
+        std::fs::write(out, &md).with_context(|| format!("writing {}", out.display()))?;
+        eprintln!("wrote {}", out.display());
+    }
+    let errors: u64 = reports.iter().map(|(_, r)| r.errors).sum();
+    if errors > 0 {
+        bail!("{errors} errors under load");
+    }
+    Ok(())
+}
+
+fn name(backend: Backend) -> &'static str {
+    match backend {
+        Backend::Sqlite => "SQLite",
+        Backend::Postgres => "PostgreSQL",
+    }
+}
+
+/// One backend's run: its Markdown report, its headline figures (label, value) in a fixed
+/// order, and its error count.
+struct Report {
+    markdown: String,
+    summary: Vec<(String, String)>,
+    errors: u64,
+}
+
+async fn measure(args: &Args, backend: Backend) -> anyhow::Result<Report> {
     let machine = machine();
     let bin = helmholtz_tests::server_binary_beside(args.server_bin.as_deref())?;
     let dir = tempfile::tempdir()?;
@@ -148,7 +228,8 @@ async fn main() -> anyhow::Result<()> {
         extra.extend(["--workers".into(), w.to_string()]);
     }
     let extra: Vec<&str> = extra.iter().map(String::as_str).collect();
-    let mut server = ServerProcess::start_binary(&bin, &dir.path().join("data"), 0, &extra)?;
+    let mut server =
+        ServerProcess::start_binary_on(backend, &bin, &dir.path().join("data"), 0, &extra)?;
     // The harness's token rides in `base_url`; `--token` replaces it.
     let base = match &args.token {
         Some(token) => helmholtz_client::auth::with_token(&server.address, token),
@@ -268,13 +349,14 @@ async fn main() -> anyhow::Result<()> {
     };
     // As in a lab, every rig has its own rig token and the queries a reader token (the server
     // limits requests per token); `--token` makes everyone share that one token instead.
-    use helmholtz_tests::create_token_with;
+    use helmholtz_tests::create_token_on;
     let (rig_bases, query_base) = match &args.token {
         Some(_) => (vec![base.clone(); args.rigs], base.clone()),
         None => {
             let mut bases = Vec::with_capacity(args.rigs);
             for _ in 0..args.rigs {
-                bases.push(server.url_with(&create_token_with(
+                bases.push(server.url_with(&create_token_on(
+                    backend,
                     &bin,
                     &server.data_dir,
                     helmholtz_tests::E2E_LAB,
@@ -283,7 +365,8 @@ async fn main() -> anyhow::Result<()> {
             }
             (
                 bases,
-                server.url_with(&create_token_with(
+                server.url_with(&create_token_on(
+                    backend,
                     &bin,
                     &server.data_dir,
                     helmholtz_tests::E2E_LAB,
@@ -454,6 +537,13 @@ async fn main() -> anyhow::Result<()> {
     ));
     md.push_str(&format!("- machine: {machine}\n"));
     md.push_str(&format!(
+        "- database: {}\n",
+        match backend {
+            Backend::Sqlite => "SQLite (the embedded default, a file in the data directory)",
+            Backend::Postgres => "PostgreSQL (a database of its own on HELMHOLTZ_TEST_POSTGRES, default the local server)",
+        }
+    ));
+    md.push_str(&format!(
         "- build: {} profile\n",
         if cfg!(debug_assertions) {
             "dev (optimised, debug assertions on)"
@@ -536,13 +626,49 @@ async fn main() -> anyhow::Result<()> {
             md.push_str(&format!("- {e}\n"));
         }
     }
-    println!("{md}");
-    if let Some(out) = &args.out {
-        std::fs::write(out, &md).with_context(|| format!("writing {}", out.display()))?;
-        eprintln!("wrote {}", out.display());
+    let mut summary = vec![
+        (
+            "rows committed per second".to_string(),
+            format!("{:.0}", totals.rows as f64 / elapsed),
+        ),
+        (
+            "sessions uploaded and finished".into(),
+            totals.sessions.to_string(),
+        ),
+        (
+            "queries answered per second".into(),
+            format!("{:.1}", query_count as f64 / query_seconds),
+        ),
+        ("errors".into(), errors.to_string()),
+        (
+            "server peak RSS (VmHWM)".into(),
+            vm_hwm.map_or("unavailable".into(), |k| {
+                format!("{:.1} MiB", k as f64 / 1024.0)
+            }),
+        ),
+        (
+            "upload session p50 / p99 ms".into(),
+            format!(
+                "{:.1} / {:.1}",
+                uploads.percentile(50.0) * 1e3,
+                uploads.percentile(99.0) * 1e3
+            ),
+        ),
+    ];
+    for (k, name) in kinds.iter().enumerate() {
+        let q = queries[k].lock().unwrap();
+        summary.push((
+            format!("{name} p50 / p99 ms"),
+            format!(
+                "{:.1} / {:.1}",
+                q.percentile(50.0) * 1e3,
+                q.percentile(99.0) * 1e3
+            ),
+        ));
     }
-    if errors > 0 {
-        bail!("{errors} errors under load");
-    }
-    Ok(())
+    Ok(Report {
+        markdown: md,
+        summary,
+        errors,
+    })
 }
