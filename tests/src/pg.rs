@@ -95,6 +95,24 @@ impl TestDatabase {
         Ok(String::from_utf8(out.stdout)?.trim().to_string())
     }
 
+    /// The database's name.
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+
+    /// Runs `sql` on the PostgreSQL server as the administrator (connected to its maintenance
+    /// database, not to this one), e.g. to refuse this database's connections for a while.
+    pub fn admin(&self, sql: &str) {
+        let sql = sql.to_string();
+        on_own_runtime(async move {
+            let mut conn = PgConnection::connect(&admin_url()).await.expect("connect");
+            conn.execute(sqlx::AssertSqlSafe(sql.clone()))
+                .await
+                .unwrap_or_else(|e| panic!("{sql}: {e}"));
+            conn.close().await.ok();
+        })
+    }
+
     /// Runs one SQL query returning one BIGINT (for checks on what is stored).
     pub fn scalar(&self, sql: &str) -> i64 {
         let (url, sql) = (self.url.clone(), sql.to_string());

@@ -341,6 +341,117 @@ async fn a_transport_in_shards_on_two_worker_processes_is_the_single_process_t()
     assert_eq!(report["iterations"], single_done["report"]["iterations"]);
 }
 
+/// A node that loses its database says so in its health check (503 "not serving", within the
+/// probe's patience), uploads meanwhile wait and retry, and once the database takes connections
+/// again the node reconnects by itself, reports SERVING, and the upload completes: every row
+/// stored once, as sent.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_node_that_loses_the_database_says_so_and_recovers_without_losing_rows() {
+    let db = TestDatabase::create();
+    let token = db.create_token("e2e", "rig,reader").unwrap();
+    let api = ServerProcess::start_on_postgres(&db, &token, &["--workers", "0"]).unwrap();
+    let health = || async {
+        let r = reqwest::get(format!("{}/healthz", api.address))
+            .await
+            .unwrap();
+        (
+            r.status().as_u16(),
+            r.json::<Value>().await.unwrap_or(Value::Null),
+        )
+    };
+    let wait_health = |want: u16, within: Duration| async move {
+        let deadline = Instant::now() + within;
+        loop {
+            let (status, body) = health().await;
+            if status == want {
+                return body;
+            }
+            assert!(
+                Instant::now() < deadline,
+                "health never became {want}: {status} {body}"
+            );
+            tokio::time::sleep(Duration::from_millis(100)).await;
+        }
+    };
+    assert_eq!(
+        wait_health(200, Duration::from_secs(5)).await["status"],
+        "serving"
+    );
+    let (spec, values) = rig_rows(7, 4000).await;
+    helmholtz_client::create_session(
+        &api.base_url,
+        &NewSession::new("outage", spec, vec!["bucket".into()]),
+    )
+    .await
+    .unwrap();
+    let writer = helmholtz_client::upload::new_writer_id();
+    upload_as(
+        &api.base_url,
+        "outage",
+        &values[..2000],
+        &writer,
+        Duration::from_secs(5),
+    )
+    .await
+    .unwrap();
+
+    // The database goes away for this node: no new connections, the open ones ended.
+    let name = db.name().to_string();
+    db.admin(&format!(
+        "ALTER DATABASE \"{name}\" ALLOW_CONNECTIONS false"
+    ));
+    db.admin(&format!(
+        "SELECT pg_terminate_backend(pid) FROM pg_stat_activity WHERE datname = '{name}'"
+    ));
+    let down = wait_health(503, Duration::from_secs(10)).await;
+    assert_eq!(down["status"], "not serving", "{down}");
+    // Requests meanwhile are refused as unavailable (retry), not as internal errors.
+    let (status, problem) = get(&api, "/v1/sessions/outage").await;
+    assert_eq!(
+        (status, problem["type"].as_str()),
+        (503, Some("/problems/unavailable")),
+        "{problem}"
+    );
+    let once = helmholtz_client::upload::RetryPolicy {
+        retry_for: Duration::ZERO,
+        ..Default::default()
+    };
+    let refused = helmholtz_client::upload::upload_status_with(&api.base_url, "outage", &once)
+        .await
+        .unwrap_err()
+        .downcast::<helmholtz_client::upload::RpcError>()
+        .unwrap();
+    assert_eq!(refused.code, Code::Unavailable, "{refused}");
+    let upload = tokio::spawn({
+        let (base, values, writer) = (api.base_url.clone(), values.clone(), writer.clone());
+        async move { upload_as(&base, "outage", &values, &writer, Duration::from_secs(60)).await }
+    });
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    assert!(
+        !upload.is_finished(),
+        "an upload finished while the database refused every connection"
+    );
+    assert_eq!(health().await.0, 503);
+
+    // Back: the node reconnects by itself.
+    db.admin(&format!("ALTER DATABASE \"{name}\" ALLOW_CONNECTIONS true"));
+    assert_eq!(
+        wait_health(200, Duration::from_secs(30)).await["status"],
+        "serving"
+    );
+    let report = upload.await.unwrap().unwrap();
+    assert_eq!(report.confirmed_rows, 4000, "{report:?}");
+    assert!(
+        report.resumes > 0 || report.last_error.is_some(),
+        "{report:?}"
+    );
+    let sent: Vec<u64> = values.iter().map(|v| v.to_bits()).collect();
+    assert!(
+        stored_bits(&api, "outage").await == sent,
+        "stored rows differ from sent rows"
+    );
+}
+
 /// Bucket rows of one rig: `count` Bernoulli patterns on 16x16 (seed `seed`), one detector.
 async fn rig_rows(seed: u64, count: u64) -> (PatternSpec, Vec<f64>) {
     simulated(&format!(

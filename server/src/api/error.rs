@@ -61,6 +61,9 @@ pub enum ApiError {
     /// A request body that stopped arriving (`--body-timeout-secs`).
     #[error("{0}")]
     Timeout(String),
+    /// The database does not answer (lost connections, a pool waiting to reconnect): retry.
+    #[error("the database does not answer; retry shortly (nothing of this request was stored)")]
+    Unavailable(String),
     #[error("internal error")]
     Internal(String),
 }
@@ -90,6 +93,7 @@ impl ApiError {
             ApiError::TooLarge { .. } => ("too-large", "Request too large"),
             ApiError::MemoryBudget { .. } => ("memory-budget", "Needs more memory than the budget"),
             ApiError::Timeout(_) => ("request-timeout", "Request timeout"),
+            ApiError::Unavailable(_) => ("unavailable", "Database unavailable"),
             ApiError::Internal(_) => ("internal", "Internal error"),
         }
     }
@@ -110,13 +114,16 @@ impl ApiError {
                 StatusCode::PAYLOAD_TOO_LARGE
             }
             ApiError::Timeout(_) => StatusCode::REQUEST_TIMEOUT,
+            ApiError::Unavailable(_) => StatusCode::SERVICE_UNAVAILABLE,
             ApiError::Internal(_) => StatusCode::INTERNAL_SERVER_ERROR,
         }
     }
 
     fn log_internal(&self) {
-        if let ApiError::Internal(cause) = self {
-            tracing::error!(%cause, "internal error");
+        match self {
+            ApiError::Internal(cause) => tracing::error!(%cause, "internal error"),
+            ApiError::Unavailable(cause) => tracing::warn!(%cause, "database unavailable"),
+            _ => {}
         }
     }
 }
@@ -142,6 +149,7 @@ impl From<StoreError> for ApiError {
             StoreError::Finished(_) | StoreError::Incomplete { .. } => {
                 ApiError::FailedPrecondition(e.to_string())
             }
+            StoreError::Db(_) if e.is_unavailable() => ApiError::Unavailable(e.to_string()),
             StoreError::Corrupt(_)
             | StoreError::Db(_)
             | StoreError::Migrate(_)
@@ -216,6 +224,7 @@ impl From<ApiError> for tonic::Status {
                 tonic::Status::resource_exhausted(message)
             }
             ApiError::Timeout(_) => tonic::Status::deadline_exceeded(message),
+            ApiError::Unavailable(_) => tonic::Status::unavailable(message),
             ApiError::Internal(_) => tonic::Status::internal(message),
         }
     }

@@ -166,7 +166,12 @@ async fn healthz(State(state): State<AppState>) -> Response {
             status: status.into(),
         })
     };
-    if state.store.ping().await {
+    // A probe wants an answer within its own timeout: a database that does not answer within
+    // 2 s (a pool waiting to reconnect) is as good as none.
+    let answers = tokio::time::timeout(std::time::Duration::from_secs(2), state.store.ping())
+        .await
+        .unwrap_or(false);
+    if answers {
         health(Health::SERVING).into_response()
     } else {
         (StatusCode::SERVICE_UNAVAILABLE, health(Health::NOT_SERVING)).into_response()

@@ -88,6 +88,35 @@ pub enum StoreError {
     Migrate(#[from] sqlx::migrate::MigrateError),
 }
 
+impl StoreError {
+    /// The database cannot be reached now (connections lost or refused, a pool waiting to
+    /// reconnect, the server shutting down or out of connections): the request may succeed if
+    /// retried, and nothing of it was stored.
+    pub fn is_unavailable(&self) -> bool {
+        let StoreError::Db(e) = self else {
+            return false;
+        };
+        match e {
+            sqlx::Error::Io(_)
+            | sqlx::Error::Tls(_)
+            | sqlx::Error::PoolTimedOut
+            | sqlx::Error::PoolClosed
+            | sqlx::Error::WorkerCrashed => true,
+            sqlx::Error::Database(db) => {
+                let code = db.code().unwrap_or_default();
+                // 08: connection exception; 57P: operator intervention (shutdown, cannot
+                // connect now); 53300: too many connections; 55000 as PostgreSQL says it of a
+                // database that does not accept connections.
+                code.starts_with("08")
+                    || code.starts_with("57P")
+                    || code == "53300"
+                    || (code == "55000" && db.message().contains("accepting connections"))
+            }
+            _ => false,
+        }
+    }
+}
+
 /// Everything the service keeps, as one backend stores it: sessions and their rows, the job
 /// queue and results, tokens. SQLite ([`Sqlite`]) is the embedded implementation; a backend
 /// implements the four parts and these.
