@@ -83,7 +83,7 @@ pub async fn run(config: Config, exit_after_demo: bool) -> anyhow::Result<()> {
     );
     println!("   rig    (create sessions, upload):           {rig_token}");
     println!("   reader (sessions, reconstructions, images): {reader_token}");
-    println!("   e.g.  curl -H 'Authorization: Bearer {reader_token}' {base}/v1/sessions");
+    println!("   e.g.  curl -fsS -H 'Authorization: Bearer {reader_token}' {base}/v1/sessions");
     println!("         helmholtz --server {base} --token {reader_token} status");
     let rig = helmholtz_client::auth::with_token(&base, &rig_token);
     let reader = helmholtz_client::auth::with_token(&base, &reader_token);
@@ -260,13 +260,17 @@ async fn camera_rig(base: &str, rig: &str, reader: &str) -> anyhow::Result<()> {
             .and_then(|r| r.recon.details.get("stored_bytes"))
             .unwrap_or(&serde_json::Value::Null))
     );
+    // Lines a user pastes as they are: the reader's real token, JSON declared as such.
+    let token = helmholtz_client::auth::split_server(reader)
+        .1
+        .unwrap_or_default();
     println!("   report:     {base}/v1/reconstructions/{}", rec.id);
     println!(
-        "   relight:    curl -H 'Authorization: Bearer ...' -d '{{\"light\": {{\"preset\": \"disc\", \"x\": 16, \"y\": 12, \"radius\": 5}}}}' {base}/v1/reconstructions/{}/relight -o relit.png",
+        "   relight:    curl -fsS -H 'Authorization: Bearer {token}' -H 'Content-Type: application/json' -d '{{\"light\": {{\"preset\": \"disc\", \"x\": 16, \"y\": 12, \"radius\": 5}}}}' -o relit.png {base}/v1/reconstructions/{}/relight",
         rec.id
     );
     println!(
-        "   or:         helmholtz relight --reconstruction {} --disc 16,12,5 --out relit.png",
+        "   or:         helmholtz --server {base} --token {token} relight --reconstruction {} --disc 16,12,5 --out relit.png",
         rec.id
     );
     Ok(())

@@ -69,3 +69,84 @@ fn the_demo_reconstructs_its_sessions_and_reruns_idempotently() {
         "{second}"
     );
 }
+
+/// The lines the demo prints for a user to paste (the curl and `helmholtz` commands after
+/// "e.g.", "relight:" and "or:") work as printed, run by a shell against the demo while it
+/// serves: the real tokens, JSON sent as JSON, images written.
+#[test]
+fn the_demo_s_printed_hints_work_when_pasted() {
+    use std::io::{BufRead, BufReader};
+    let dir = tempfile::tempdir().unwrap();
+    let mut demo = Command::new(env!("CARGO_BIN_EXE_helmholtz-demo"))
+        .args(["--listen", "127.0.0.1:0", "--data-dir"])
+        .arg(dir.path().join("data"))
+        .stdout(std::process::Stdio::piped())
+        .spawn()
+        .expect("running helmholtz-demo");
+    let mut printed = Vec::new();
+    for line in BufReader::new(demo.stdout.take().unwrap()).lines() {
+        let line = line.unwrap();
+        let serving = line.starts_with("Serving on");
+        printed.push(line);
+        if serving {
+            break;
+        }
+    }
+    let text = printed.join("\n");
+    // The client binary sits beside the demo's (`cargo test --workspace` builds both).
+    let bin_dir = std::path::Path::new(env!("CARGO_BIN_EXE_helmholtz-demo"))
+        .parent()
+        .unwrap()
+        .to_path_buf();
+    assert!(
+        bin_dir.join("helmholtz").exists(),
+        "the client binary is missing beside helmholtz-demo: run `cargo test --workspace`"
+    );
+    let path = format!(
+        "{}:{}",
+        bin_dir.display(),
+        std::env::var("PATH").unwrap_or_default()
+    );
+    let commands: Vec<&str> = printed
+        .iter()
+        .filter_map(|l| {
+            let l = l.trim_start();
+            ["e.g.", "relight:", "or:"]
+                .iter()
+                .find_map(|p| l.strip_prefix(p))
+                .map(str::trim)
+                .or_else(|| l.starts_with("helmholtz --server").then_some(l))
+        })
+        .collect();
+    assert_eq!(commands.len(), 4, "printed hints: {commands:?}\n{text}");
+    let work = tempfile::tempdir().unwrap();
+    for command in &commands {
+        let out = Command::new("sh")
+            .args(["-c", command])
+            .current_dir(work.path())
+            .env("PATH", &path)
+            .env_remove("HELMHOLTZ_TOKEN")
+            .output()
+            .expect("running sh (and curl: Debian's curl package)");
+        assert!(
+            out.status.success(),
+            "the printed line failed when pasted: {command}\nstdout: {}\nstderr: {}",
+            String::from_utf8_lossy(&out.stdout),
+            String::from_utf8_lossy(&out.stderr)
+        );
+        if command.starts_with("curl") && command.ends_with("/v1/sessions") {
+            let body = String::from_utf8_lossy(&out.stdout);
+            assert!(body.contains("demo-lambert-camera"), "{body}");
+        }
+        if command.contains("relit.png") {
+            let png = std::fs::read(work.path().join("relit.png")).expect("relit.png written");
+            assert!(png.starts_with(b"\x89PNG"), "{command}: not a PNG");
+            std::fs::remove_file(work.path().join("relit.png")).unwrap();
+        }
+    }
+    let _ = Command::new("kill")
+        .args(["-TERM", &demo.id().to_string()])
+        .status();
+    let status = demo.wait().unwrap();
+    assert!(status.success(), "the demo exited {status:?} after SIGTERM");
+}

@@ -19,6 +19,10 @@ pub mod wire;
 #[allow(clippy::all, missing_docs)]
 pub mod v1 {
     include!(concat!(env!("OUT_DIR"), "/helmholtz.v1.rs"));
+
+    /// The encoded `FileDescriptorSet` of `helmholtz.v1` (what gRPC server reflection serves).
+    pub const FILE_DESCRIPTOR_SET: &[u8] =
+        include_bytes!(concat!(env!("OUT_DIR"), "/helmholtz_descriptor.bin"));
 }
 
 pub use patterns::{Family, HadamardOrdering, PatternGenerator, PatternSpec, SpecError};

@@ -149,6 +149,20 @@ impl Application {
             .set_serving::<AcquisitionServer<AcquisitionService>>()
             .await;
         let acquisition = AcquisitionService::new(state.clone()).into_server();
+        // Server reflection (v1, and v1alpha for clients such as Python's grpcio-reflection
+        // that know only it): the contract's schema, open like the health service (the .proto
+        // files are public; every call of the service itself still needs a token).
+        let reflection = || {
+            tonic_reflection::server::Builder::configure()
+                .register_encoded_file_descriptor_set(helmholtz_proto::v1::FILE_DESCRIPTOR_SET)
+                .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+        };
+        let reflection_v1 = reflection()
+            .build_v1()
+            .map_err(|e| anyhow::anyhow!("gRPC reflection: {e}"))?;
+        let reflection_v1alpha = reflection()
+            .build_v1alpha()
+            .map_err(|e| anyhow::anyhow!("gRPC reflection: {e}"))?;
         // REST bodies that stop arriving fail with 408 (gRPC streams are not cut here).
         let rest = rest::router(state).layer(axum::middleware::from_fn_with_state(
             edge.body_timeout,
@@ -157,6 +171,8 @@ impl Application {
         let router = rest
             .route_service(&format!("/{}/{{*rpc}}", <AcquisitionServer<AcquisitionService> as NamedService>::NAME), grpc_route(acquisition))
             .route_service(&format!("/{}/{{*rpc}}", health_name(&health_service)), grpc_route(health_service))
+            .route_service(&format!("/{}/{{*rpc}}", health_name(&reflection_v1)), grpc_route(reflection_v1))
+            .route_service(&format!("/{}/{{*rpc}}", health_name(&reflection_v1alpha)), grpc_route(reflection_v1alpha))
             .layer(axum::middleware::from_fn(crate::telemetry::record_latency))
             // Outermost first: set (or keep the client's) x-request-id, log in a span that
             // carries it, and copy it to the response (HTTP header / gRPC initial metadata).
