@@ -19,30 +19,82 @@ pub fn frame_pixels(generator: &PatternGenerator, i: u64) -> Vec<u8> {
     png::to_grey8(&values)
 }
 
-/// Writes frames `first..first + count` of `spec` into `dir` (created if missing) and returns
-/// their paths. Errors if the range runs past the spec's count.
-pub fn write_frames(
-    spec: &PatternSpec,
-    first: u64,
-    count: u64,
-    dir: &Path,
-) -> anyhow::Result<Vec<PathBuf>> {
+/// Frames `first..first + count` of `spec`, checked against the spec's count.
+fn frame_range(spec: &PatternSpec, first: u64, count: u64) -> anyhow::Result<std::ops::Range<u64>> {
     let end = first.checked_add(count).context("frame range overflows")?;
     anyhow::ensure!(
         end <= spec.count(),
         "frames {first}..{end} run past the spec's {} patterns (--first + --count <= count)",
         spec.count()
     );
+    Ok(first..end)
+}
+
+/// Writes frames `first..first + count` of `spec` into `dir` (created if missing) and returns
+/// their paths. Errors if the range runs past the spec's count. `progress` is told of each
+/// frame written.
+pub fn write_frames(
+    spec: &PatternSpec,
+    first: u64,
+    count: u64,
+    dir: &Path,
+    progress: &dyn Fn(u64),
+) -> anyhow::Result<Vec<PathBuf>> {
+    let range = frame_range(spec, first, count)?;
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     let generator = PatternGenerator::new(spec);
-    (first..end)
+    range
         .map(|i| {
             let png = png::encode_grey8(spec.width(), spec.height(), &frame_pixels(&generator, i))?;
             let path = dir.join(frame_name(i));
             std::fs::write(&path, png).with_context(|| format!("writing {}", path.display()))?;
+            progress(1);
             Ok(path)
         })
         .collect()
+}
+
+/// Writes frames `first..first + count` of `spec` as one NPY stack, float32 `(count, height,
+/// width)` of the generator's exact values (0/1, or speckle levels in [0, 1]), streamed frame by
+/// frame. `progress` is told of each frame written.
+pub fn write_npy_stack(
+    spec: &PatternSpec,
+    first: u64,
+    count: u64,
+    path: &Path,
+    progress: &dyn Fn(u64),
+) -> anyhow::Result<()> {
+    use std::io::Write;
+    let range = frame_range(spec, first, count)?;
+    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
+    let file =
+        std::fs::File::create(path).with_context(|| format!("creating {}", path.display()))?;
+    let mut out = std::io::BufWriter::new(file);
+    let shape = [count, spec.height() as u64, spec.width() as u64];
+    let write = |out: &mut std::io::BufWriter<std::fs::File>, bytes: &[u8]| {
+        out.write_all(bytes)
+            .with_context(|| format!("writing {}", path.display()))
+    };
+    write(
+        &mut out,
+        &helmholtz_proto::npy::header(helmholtz_proto::npy::Dtype::F32, &shape, false),
+    )?;
+    let generator = PatternGenerator::new(spec);
+    let mut values = vec![0.0f32; spec.pixels()];
+    let mut bytes = Vec::with_capacity(values.len() * 4);
+    for i in range {
+        generator.fill_values(i, &mut values);
+        bytes.clear();
+        bytes.extend(values.iter().flat_map(|v| v.to_le_bytes()));
+        write(&mut out, &bytes)?;
+        progress(1);
+    }
+    out.into_inner()
+        .map_err(|e| e.into_error())
+        .and_then(|f| f.sync_all())
+        .with_context(|| format!("writing {}", path.display()))
 }
 
 #[cfg(test)]
@@ -57,7 +109,7 @@ mod tests {
             r#"{"family":"speckle","width":6,"height":5,"count":10,"seed":3,"grain":2}"#,
         ] {
             let spec: PatternSpec = serde_json::from_str(json).unwrap();
-            let paths = write_frames(&spec, 2, 3, dir.path()).unwrap();
+            let paths = write_frames(&spec, 2, 3, dir.path(), &|_| {}).unwrap();
             assert_eq!(paths.len(), 3);
             assert!(paths[0].ends_with("frame_000002.png"));
             let generator = PatternGenerator::new(&spec);

@@ -124,3 +124,67 @@ async fn upload_gives_up_after_retry_for_when_nobody_listens() {
         "{text}"
     );
 }
+
+/// `helmholtz patterns` writes every frame of the spec by default (from `--first` on), as PNGs
+/// and, with `--npy`, as one float32 stack equal to the generator's values; it needs an output.
+#[test]
+fn patterns_writes_every_frame_and_an_npy_stack() {
+    let dir = tempfile::tempdir().unwrap();
+    let spec_json = r#"{"family":"speckle","width":8,"height":4,"count":12,"seed":3,"grain":2}"#;
+    let (frames, stack) = (dir.path().join("frames"), dir.path().join("stack.npy"));
+    let out = helmholtz()
+        .args(["--json", "patterns", "--spec-json", spec_json, "--out"])
+        .arg(&frames)
+        .arg("--npy")
+        .arg(&stack)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert_eq!(std::fs::read_dir(&frames).unwrap().count(), 12);
+    let (header, values) =
+        helmholtz_proto::npy::decode_f32(&std::fs::read(&stack).unwrap()).unwrap();
+    assert_eq!(header.shape_text(), "(12, 4, 8)");
+    let spec: helmholtz_proto::PatternSpec = serde_json::from_str(spec_json).unwrap();
+    let generator = helmholtz_proto::PatternGenerator::new(&spec);
+    let mut want = vec![0f32; 32];
+    for i in 0..12 {
+        generator.fill_values(i as u64, &mut want);
+        assert_eq!(&values[i * 32..(i + 1) * 32], &want[..], "frame {i}");
+    }
+    // From --first to the end by default.
+    let tail = dir.path().join("tail.npy");
+    let out = helmholtz()
+        .args([
+            "patterns",
+            "--spec-json",
+            spec_json,
+            "--first",
+            "9",
+            "--npy",
+        ])
+        .arg(&tail)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let (header, rest) = helmholtz_proto::npy::decode_f32(&std::fs::read(&tail).unwrap()).unwrap();
+    assert_eq!(header.shape_text(), "(3, 4, 8)");
+    assert_eq!(rest, values[9 * 32..]);
+    // Without an output it says what to give.
+    let out = helmholtz()
+        .args(["patterns", "--spec-json", spec_json])
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success() && stderr.contains("--out") && stderr.contains("--npy"),
+        "{stderr}"
+    );
+}
