@@ -71,7 +71,7 @@ fn simulate_reconstruct_fetch_and_status_from_the_command_line() {
         &server,
         &[
             "fetch",
-            "--session",
+            "--session-id",
             "cli-slit",
             "--format",
             "npy",
@@ -93,7 +93,9 @@ fn simulate_reconstruct_fetch_and_status_from_the_command_line() {
         "DGI from the CLI correlates {r:.3} with the double slit"
     );
 
-    let status = helmholtz(&server, &["status", "cli-slit"]);
+    let status = helmholtz(&server, &["status", "--session-id", "cli-slit"]);
+    // The older bare form still works and says the same.
+    assert_eq!(helmholtz(&server, &["status", "cli-slit"]), status);
     let text = status.to_string();
     assert!(
         text.contains("20000") && text.contains("finished"),

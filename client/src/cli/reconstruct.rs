@@ -16,7 +16,18 @@ use super::args::{ResultArgs, parse_params};
 #[derive(Debug, Clone, Args)]
 pub struct StatusArgs {
     /// Session to show; omit to list all sessions.
+    #[arg(long = "session-id", value_name = "ID")]
     pub session_id: Option<String>,
+    /// The session as a bare argument (the older form of --session-id).
+    #[arg(value_name = "SESSION_ID", hide = true, conflicts_with = "session_id")]
+    pub session_arg: Option<String>,
+}
+
+impl StatusArgs {
+    /// The session asked for, by either form.
+    pub fn session(&self) -> Option<&str> {
+        self.session_id.as_deref().or(self.session_arg.as_deref())
+    }
 }
 
 #[derive(Debug, Clone, Args)]
@@ -24,8 +35,8 @@ pub struct FetchArgs {
     /// Reconstruction id.
     #[arg(long, required_unless_present = "session", conflicts_with = "session")]
     pub reconstruction: Option<i64>,
-    /// Session id: its latest finished reconstruction.
-    #[arg(long)]
+    /// Session id: its latest finished reconstruction (`--session` is accepted too).
+    #[arg(long = "session-id", alias = "session", value_name = "ID")]
     pub session: Option<String>,
     /// Image format [default: from --out's extension, else png].
     #[arg(long, value_enum)]
@@ -44,8 +55,9 @@ pub struct ReconstructArgs {
     #[arg(long)]
     pub session_id: String,
     /// Method: gi (correlation), dgi (differential), ngi (normalised), direct (complete
-    /// Hadamard/raster inverse), zero_filled / levels (Hadamard subsets), lsq, cs, tv, or auto
-    /// (the data choose the model by held-out error). Parameters: --params.
+    /// Hadamard/raster inverse), zero_filled / levels (Hadamard subsets), lsq, cs, tv, auto
+    /// (the data choose the model by held-out error), or transport (camera sessions: the light
+    /// transport matrix T, for relight and primal). Parameters: --params.
     #[arg(long)]
     pub method: String,
     #[command(flatten)]
@@ -154,7 +166,7 @@ pub(super) async fn finish_reconstruction(
 }
 
 pub(super) async fn status_cmd(server: &str, a: &StatusArgs) -> anyhow::Result<Outcome> {
-    match &a.session_id {
+    match a.session() {
         None => {
             let sessions = rest::list_sessions(server).await?;
             let mut text = if sessions.is_empty() {
