@@ -18,6 +18,11 @@ pub enum Request {
 }
 
 impl Request {
+    /// Every method a request may name: the bucket methods, then `transport`.
+    pub fn method_names() -> impl Iterator<Item = &'static str> {
+        crate::method::METHODS.into_iter().chain(["transport"])
+    }
+
     /// The method named `method` with `params` (a JSON object, or null for the defaults); errors
     /// name the offending field.
     pub fn parse(method: &str, params: &Value) -> Result<Request, ParamError> {
@@ -70,6 +75,27 @@ mod tests {
             assert_eq!(r.is_transport(), method == "transport");
             let again = Request::parse(r.name(), &r.params_json()).unwrap();
             assert_eq!(again, r, "{method}");
+        }
+    }
+
+    /// The list the API shows is the list the parser knows: every name parses (with the one
+    /// parameter `levels` requires), and the parser's own error lists the bucket methods.
+    #[test]
+    fn every_listed_method_parses() {
+        let names: Vec<&str> = Request::method_names().collect();
+        assert_eq!(names.last(), Some(&"transport"));
+        for method in &names {
+            let params = if *method == "levels" {
+                json!({"level": 1})
+            } else {
+                json!({})
+            };
+            let r = Request::parse(method, &params).unwrap_or_else(|e| panic!("{method}: {e:?}"));
+            assert_eq!(r.name(), *method);
+        }
+        let unknown = Request::parse("nope", &json!({})).unwrap_err();
+        for method in &names[..names.len() - 1] {
+            assert!(unknown.message.contains(method), "{}", unknown.message);
         }
     }
 

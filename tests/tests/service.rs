@@ -640,3 +640,36 @@ async fn sigterm_finishes_uploads_in_flight_and_gives_running_jobs_back() {
         "the interrupted run was given back, not counted: {r}"
     );
 }
+
+/// `GET /` names every method a reconstruction may request (the list the parser accepts), the
+/// open gRPC services, and every REST family of routes.
+#[tokio::test]
+async fn the_index_names_every_method_and_route() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = ServerProcess::start(dir.path(), 0, &[]).unwrap();
+    let index: Value = reqwest::get(server.url("/"))
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    let routes = index["routes"].to_string();
+    let methods = "gi|dgi|ngi|direct|zero_filled|levels|cs|tv|lsq|auto|transport";
+    assert!(routes.contains(methods), "{routes}");
+    for route in [
+        "/v1/sessions/{id}/measurements.npy",
+        "/v1/reconstructions/{id}/relight",
+        "/v1/reconstructions/{id}/primal",
+        "/v1/tokens",
+        "/healthz",
+    ] {
+        assert!(routes.contains(route), "{route} missing: {routes}");
+    }
+    assert!(
+        index["grpc"]
+            .as_str()
+            .unwrap()
+            .contains("grpc.reflection.v1"),
+        "{index}"
+    );
+}

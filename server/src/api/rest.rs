@@ -137,24 +137,25 @@ async fn index(Caller(_caller): Caller) -> axum::Json<ServiceIndex> {
     axum::Json(ServiceIndex {
         service: "helmholtz".into(),
         version: env!("CARGO_PKG_VERSION").into(),
-        grpc: "helmholtz.v1.Acquisition on this same address (HTTP/2)".into(),
-        routes: [
-            "GET /v1/sessions", "GET /v1/sessions/{id}", "GET /v1/sessions/{id}/reconstructions",
-            "POST /v1/sessions/{id}/reconstructions {\"method\": \"gi|dgi|ngi|direct|lsq|cs|tv\", \"params\": {}}",
-            "GET /v1/sessions/{id}/dual.png|dual.tiff|dual.npy (latest finished reconstruction)",
-            "GET /v1/sessions/{id}/measurements.npy (the committed bucket rows, float64, shape (rows, channels))",
-            "GET /v1/reconstructions/{id}",
-            "GET /v1/reconstructions/{id}/dual.png|dual.tiff|dual.npy?channel=NAME&scale=percentile|minmax",
-            "GET /v1/reconstructions/{id}/normals.png|normals.npy|albedo.png|albedo.npy|residual.npy|photometric.json?gains=auto|equal|estimate (photometric stereo from 3+ detectors with declared directions)",
-            "GET /v1/reconstructions/{id}/composite.png (channels r, g, b)",
-            "POST /v1/reconstructions/{id}/cancel (or DELETE /v1/reconstructions/{id})",
-            "POST /v1/reconstructions/{id}/relight?format=png|tiff|npy {\"light\": {\"preset\": \"full\"|\"disc\"|\"stripe\", ...} | {\"weights\": {CHANNEL: W}}} or a camera-sized PNG/NPY body: the dual image T^T c'",
-            "POST /v1/reconstructions/{id}/primal?format=png|tiff|npy&ambient=include|exclude {\"pattern_index\": I} or a projector-sized PNG/NPY body: the camera image T p (+ ambient), with x-helmholtz-relative-error for a measured pattern",
-            "GET /v1/tokens, POST /v1/tokens {\"roles\": [\"rig\"], \"note\": \"...\"}, DELETE /v1/tokens/{id} (admin)",
-            "GET /healthz (no token needed)",
-        ]
-        .map(String::from)
-        .to_vec(),
+        grpc: "helmholtz.v1.Acquisition on this same address (HTTP/2); grpc.health.v1.Health and server reflection (grpc.reflection.v1, v1alpha) need no token".into(),
+        routes: vec![
+            "GET /v1/sessions".to_string(), "GET /v1/sessions/{id}".into(), "GET /v1/sessions/{id}/reconstructions".into(),
+            format!(
+                "POST /v1/sessions/{{id}}/reconstructions {{\"method\": \"{}\", \"params\": {{}}}} (transport: camera sessions)",
+                crate::recon::Request::method_names().collect::<Vec<_>>().join("|")
+            ),
+            "GET /v1/sessions/{id}/dual.png|dual.tiff|dual.npy (latest finished reconstruction)".into(),
+            "GET /v1/sessions/{id}/measurements.npy (the committed rows: float64 (rows, channels), or a camera session's frames, (rows, height, width))".into(),
+            "GET /v1/reconstructions/{id}".into(),
+            "GET /v1/reconstructions/{id}/dual.png|dual.tiff|dual.npy?channel=NAME&scale=percentile|minmax".into(),
+            "GET /v1/reconstructions/{id}/normals.png|normals.npy|albedo.png|albedo.npy|residual.npy|photometric.json?gains=auto|equal|estimate (photometric stereo from 3+ detectors with declared directions)".into(),
+            "GET /v1/reconstructions/{id}/composite.png (channels r, g, b)".into(),
+            "POST /v1/reconstructions/{id}/cancel (or DELETE /v1/reconstructions/{id})".into(),
+            "POST /v1/reconstructions/{id}/relight?format=png|tiff|npy {\"light\": {\"preset\": \"full\"|\"disc\"|\"stripe\", ...} | {\"weights\": {CHANNEL: W}}} or a camera-sized PNG/NPY body: the dual image T^T c'".into(),
+            "POST /v1/reconstructions/{id}/primal?format=png|tiff|npy&ambient=include|exclude {\"pattern_index\": I} or a projector-sized PNG/NPY body: the camera image T p (+ ambient), with x-helmholtz-relative-error for a measured pattern".into(),
+            "GET /v1/tokens, POST /v1/tokens {\"roles\": [\"rig\"], \"note\": \"...\"}, DELETE /v1/tokens/{id} (admin)".into(),
+            "GET /healthz (no token needed)".into(),
+        ],
         auth: "every route but /healthz needs \"Authorization: Bearer <token>\"; tokens belong to one lab and carry roles rig, reader, admin".into(),
     })
 }
