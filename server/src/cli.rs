@@ -396,12 +396,20 @@ pub fn init_tracing(format: &str) {
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info,sqlx=warn,tower_http=info"));
     let builder = tracing_subscriber::fmt()
         .with_env_filter(filter)
+        .with_ansi(colour_logs())
         .with_writer(std::io::stderr);
     if format == "json" {
         builder.json().init()
     } else {
         builder.init()
     }
+}
+
+/// Colour codes in logs only on a terminal (not in files, journald or pipes), and never with
+/// `NO_COLOR` set.
+pub fn colour_logs() -> bool {
+    use std::io::IsTerminal;
+    std::io::stderr().is_terminal() && std::env::var_os("NO_COLOR").is_none_or(|v| v.is_empty())
 }
 
 /// Resolves on Ctrl-C or SIGTERM.

@@ -230,3 +230,34 @@ fn acquire_spools_rows_from_stdin_and_a_rerun_continues_after_a_bad_line() {
         .collect();
     assert_eq!(values, expected);
 }
+
+/// Logs written to a pipe or a file (journald, `2> log`) carry no terminal colour codes, from
+/// the server and from the client.
+#[test]
+fn logs_off_a_terminal_have_no_colour_codes() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = Command::new(binary("helmholtz-server"))
+        .args(["migrate", "--data-dir"])
+        .arg(dir.path().join("data"))
+        .env("RUST_LOG", "debug")
+        .output()
+        .unwrap();
+    assert!(server.status.success(), "{server:?}");
+    let client = Command::new(binary("helmholtz"))
+        .args(["--server", "http://127.0.0.1:9", "status"])
+        .env("RUST_LOG", "debug")
+        .output()
+        .unwrap();
+    for (who, stderr) in [("server", &server.stderr), ("client", &client.stderr)] {
+        let text = String::from_utf8_lossy(stderr);
+        assert!(
+            text.contains("DEBUG"),
+            "{who} logged nothing at debug: {text}"
+        );
+        let start: String = text.chars().take(300).collect();
+        assert!(
+            !text.contains('\u{1b}'),
+            "{who} logs carry colour codes: {start:?}"
+        );
+    }
+}
