@@ -128,7 +128,7 @@ mod tests {
         }
         let spec: PatternSpec =
             serde_json::from_str(r#"{"family":"raster","width":4,"height":4,"count":16}"#).unwrap();
-        let e = write_frames(&spec, 10, 10, dir.path())
+        let e = write_frames(&spec, 10, 10, dir.path(), &|_| {})
             .unwrap_err()
             .to_string();
         assert!(e.contains("run past"), "{e}");
