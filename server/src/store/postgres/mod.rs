@@ -61,29 +61,19 @@ impl Postgres {
             options.get_database().unwrap_or("")
         );
         // Every connection gives back the memory of a large message (a chunk written, a part of
-        // T read) when it returns to its pool: buffers above the driver's 8 KiB default are
-        // shrunk, so what a process holds between queries does not grow with the data.
+        // T read) when it returns to its pool, so what a process holds between queries does not
+        // grow with the data.
         let pool = PgPoolOptions::new()
             .max_connections(max_connections.max(2))
             .acquire_timeout(Duration::from_secs(30))
-            .after_release(|conn, _| {
-                Box::pin(async move {
-                    conn.shrink_buffers();
-                    Ok(true)
-                })
-            })
+            .after_release(shrink_buffers)
             .connect_with(options.clone())
             .await?;
         sqlx::migrate!("../migrations/postgres").run(&pool).await?;
         let bulk = PgPoolOptions::new()
             .max_connections(BULK_CONNECTIONS)
             .acquire_timeout(Duration::from_secs(30))
-            .after_release(|conn, _| {
-                Box::pin(async move {
-                    conn.shrink_buffers();
-                    Ok(true)
-                })
-            })
+            .after_release(shrink_buffers)
             .connect_lazy_with(options);
         Ok(Postgres { pool, bulk, name })
     }
@@ -157,6 +147,18 @@ impl Database for Postgres {
             pause = (pause * 2).min(Duration::from_secs(10));
         }
     }
+}
+
+/// A pool's `after_release`: the connection gives back buffers grown past the driver's default
+/// by a large message, and stays in the pool.
+fn shrink_buffers(
+    conn: &mut sqlx::PgConnection,
+    _: sqlx::pool::PoolConnectionMetadata,
+) -> futures::future::BoxFuture<'_, Result<bool, sqlx::Error>> {
+    Box::pin(async move {
+        conn.shrink_buffers();
+        Ok(true)
+    })
 }
 
 /// The channel an enqueue notifies (`pg_notify`) and idle workers listen on.
