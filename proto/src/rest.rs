@@ -712,6 +712,70 @@ fn null_as_nan<'de, D: Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
     Ok(Option::<f64>::deserialize(d)?.unwrap_or(f64::NAN))
 }
 
+// ---------------------------------------------------------------------------------------------
+// Sessions and rows over REST (for tools without gRPC: MATLAB, curl)
+
+/// `POST /v1/sessions`: the same declaration as gRPC `CreateSession`, in the shape
+/// `GET /v1/sessions/{id}` returns.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct NewSessionRequest {
+    /// Client-generated: 1-128 characters of `A-Z a-z 0-9 . _ -`. Creating again with the same
+    /// declaration returns the stored session (200); a different one is 409.
+    pub id: String,
+    pub rig: String,
+    /// The pattern spec (`PATTERNS.md`).
+    pub patterns: PatternSpec,
+    /// Bucket channel names, e.g. `["bucket"]` (empty for a camera session).
+    #[serde(default)]
+    pub channels: Vec<String>,
+    /// Optional: the direction from the scene toward each bucket detector, one per channel.
+    #[serde(default)]
+    pub directions: Vec<[f64; 3]>,
+    /// Set for a camera session (then `channels` is empty).
+    #[serde(default)]
+    pub camera: Option<CameraView>,
+    #[serde(default)]
+    pub metadata: BTreeMap<String, String>,
+    /// The imaged scene, when known (simulations): the server then reports PSNR and SSIM.
+    #[serde(default)]
+    pub ground_truth: Option<GroundTruthView>,
+}
+
+/// A session's known transport (`width x height` per channel, channels one after another; a
+/// camera session: one row of T per camera pixel).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct GroundTruthView {
+    pub width: u32,
+    pub height: u32,
+    pub transport: Vec<f32>,
+}
+
+/// `GET /v1/sessions/{id}/rows` (rig or reader): where an upload stands; resume from
+/// `committed_rows`.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct UploadStatusView {
+    pub session_id: String,
+    pub committed_rows: u64,
+    pub expected_rows: u64,
+    pub state: SessionState,
+}
+
+/// `PUT /v1/sessions/{id}/rows`: what one upload request did.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct UploadResult {
+    pub session_id: String,
+    /// Rows stored for the session now (resume from here).
+    pub committed_rows: u64,
+    /// Rows this request added.
+    pub rows_written: u64,
+    /// Rows of this request that were already stored with exactly these bytes.
+    pub rows_skipped: u64,
+    pub expected_rows: u64,
+    pub state: SessionState,
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

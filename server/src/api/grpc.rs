@@ -1,7 +1,6 @@
 //! The gRPC acquisition service (`helmholtz.v1.Acquisition`).
 
 use helmholtz_proto::v1::{self, acquisition_server::Acquisition};
-use helmholtz_proto::wire::{self, WireError};
 use tonic::{Request, Response, Status, Streaming};
 
 use super::{ApiError, AppState, validate};
@@ -134,25 +133,9 @@ impl AcquisitionService {
 /// The metadata naming an upload's writer: one id for every stream of one client upload.
 pub const WRITER_HEADER: &str = "x-helmholtz-writer";
 
-/// The upload's writer id from [`WRITER_HEADER`] (empty when not sent): 1-64 characters of
-/// `A-Z a-z 0-9 _ -`.
+/// The upload's writer id from [`WRITER_HEADER`] (empty when not sent).
 fn writer_id<T>(request: &Request<T>) -> Result<String, ApiError> {
-    let Some(value) = request.metadata().get(WRITER_HEADER) else {
-        return Ok(String::new());
-    };
-    let id = value.to_str().unwrap_or("");
-    if id.is_empty()
-        || id.len() > 64
-        || !id
-            .bytes()
-            .all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-')
-    {
-        return Err(ApiError::invalid(
-            WRITER_HEADER,
-            "must be 1-64 characters of A-Z a-z 0-9 _ -",
-        ));
-    }
-    Ok(id.to_string())
+    validate::writer_id(request.metadata().get(WRITER_HEADER).map(|v| v.as_bytes()))
 }
 
 pub fn session_message(s: &SessionRow) -> v1::Session {
@@ -208,15 +191,6 @@ fn reconstruction_message(r: &ReconstructionRow) -> v1::Reconstruction {
     }
 }
 
-fn wire_error(e: WireError) -> ApiError {
-    match e {
-        WireError::Checksum { .. } => ApiError::DataLoss(e.to_string()),
-        WireError::Ragged { .. } | WireError::NotFinite { .. } => {
-            ApiError::invalid("values_f64le", e.to_string())
-        }
-    }
-}
-
 /// The chunk's payload in the session's sample format, checked (exactly that payload set, whole
 /// rows, checksum, finite floats, size cap): the bytes to store as they are.
 fn checked_payload<'c>(
@@ -264,15 +238,6 @@ fn checked_payload<'c>(
             ),
         });
     }
-    if format == SampleFormat::F64 {
-        wire::decode_values(bytes, session.row_values(), chunk.crc32c).map_err(|e| {
-            if matches!(e, WireError::Checksum { .. }) {
-                metrics::counter!("helmholtz_checksum_failures_total").increment(1);
-            }
-            wire_error(e)
-        })?;
-        return Ok(bytes);
-    }
     let actual = crc32c::crc32c(bytes);
     if actual != chunk.crc32c {
         metrics::counter!("helmholtz_checksum_failures_total").increment(1);
@@ -281,34 +246,7 @@ fn checked_payload<'c>(
             chunk.crc32c
         )));
     }
-    let row_bytes = session.row_bytes();
-    if !bytes.len().is_multiple_of(row_bytes) {
-        return Err(ApiError::invalid(
-            *field,
-            format!(
-                "{} bytes are not whole frames of {} x {} {} pixels ({row_bytes} bytes each)",
-                bytes.len(),
-                session.camera.map(|c| c.width).unwrap_or(0),
-                session.camera.map(|c| c.height).unwrap_or(0),
-                format.name()
-            ),
-        ));
-    }
-    if format == SampleFormat::F32
-        && let Some(i) = bytes
-            .chunks_exact(4)
-            .position(|b| !f32::from_le_bytes(b.try_into().expect("4")).is_finite())
-    {
-        let per_row = session.row_values();
-        return Err(ApiError::invalid(
-            *field,
-            format!(
-                "value at row {}, pixel {} is not finite",
-                i / per_row,
-                i % per_row
-            ),
-        ));
-    }
+    validate::stored_rows(field, bytes, session)?;
     Ok(bytes)
 }
 

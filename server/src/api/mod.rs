@@ -7,6 +7,7 @@ pub mod images;
 pub mod json;
 pub mod relight;
 pub mod rest;
+pub mod upload;
 pub mod validate;
 
 use std::sync::Arc;

@@ -28,7 +28,18 @@ pub fn router(state: AppState) -> Router {
     Router::new()
         .route("/", get(index))
         .route("/healthz", get(healthz))
-        .route("/v1/sessions", get(list_sessions))
+        .route(
+            "/v1/sessions",
+            get(list_sessions).post(super::upload::create_session),
+        )
+        .route(
+            "/v1/sessions/{id}/rows",
+            get(super::upload::upload_status).put(super::upload::put_rows),
+        )
+        .route(
+            "/v1/sessions/{id}/finish",
+            post(super::upload::finish_session),
+        )
         .route("/v1/sessions/{id}", get(get_session))
         .route(
             "/v1/sessions/{id}/reconstructions",
@@ -93,12 +104,12 @@ impl FromRequestParts<AppState> for Caller {
 /// Path parameters; a bad one (e.g. invalid percent-encoding) is a 400 problem naming the path.
 #[derive(FromRequestParts)]
 #[from_request(via(axum::extract::Path), rejection(ApiError))]
-struct Path<T>(T);
+pub(super) struct Path<T>(pub T);
 
 /// Query parameters; undecodable ones are a 400 problem naming the query.
 #[derive(FromRequestParts)]
 #[from_request(via(axum::extract::Query), rejection(ApiError))]
-struct Query<T>(T);
+pub(super) struct Query<T>(pub T);
 
 impl From<PathRejection> for ApiError {
     fn from(e: PathRejection) -> Self {
@@ -115,7 +126,16 @@ impl From<QueryRejection> for ApiError {
 /// A request body of at most `max_body_bytes` (413 problem+json naming the limit; 408 when it
 /// stops arriving for the body timeout, see `edge::body_timeout`).
 async fn read_body(state: &AppState, body: Body) -> Result<Bytes, ApiError> {
-    let max = state.limits.max_body_bytes;
+    read_body_up_to(body, state.limits.max_body_bytes, "max_body_bytes").await
+}
+
+/// A request body of at most `max` bytes (413 problem+json naming `limit`; 408 when it stops
+/// arriving for the body timeout).
+pub(super) async fn read_body_up_to(
+    body: Body,
+    max: usize,
+    limit: &'static str,
+) -> Result<Bytes, ApiError> {
     axum::body::to_bytes(body, max).await.map_err(|e| {
         let timed_out =
             std::iter::successors(Some(&e as &(dyn std::error::Error + 'static)), |e| {
@@ -126,7 +146,7 @@ async fn read_body(state: &AppState, body: Body) -> Result<Bytes, ApiError> {
             ApiError::Timeout("the request body stopped arriving (body timeout)".into())
         } else {
             ApiError::TooLarge {
-                limit: "max_body_bytes",
+                limit,
                 message: format!("request bodies may hold at most {max} bytes"),
             }
         }
@@ -139,7 +159,12 @@ async fn index(Caller(_caller): Caller) -> axum::Json<ServiceIndex> {
         version: env!("CARGO_PKG_VERSION").into(),
         grpc: "helmholtz.v1.Acquisition on this same address (HTTP/2); grpc.health.v1.Health and server reflection (grpc.reflection.v1, v1alpha) need no token".into(),
         routes: vec![
-            "GET /v1/sessions".to_string(), "GET /v1/sessions/{id}".into(), "GET /v1/sessions/{id}/reconstructions".into(),
+            "GET /v1/sessions".to_string(),
+            "POST /v1/sessions {\"id\", \"rig\", \"patterns\": {spec}, \"channels\": [..] | \"camera\": {\"width\", \"height\", \"format\"}} (rig; the REST twin of gRPC CreateSession)".into(),
+            "PUT /v1/sessions/{id}/rows?start_row=N with an application/x-npy or application/octet-stream body and x-helmholtz-crc32c: <hex> (rig; resumable, one writer, overlap compared)".into(),
+            "GET /v1/sessions/{id}/rows (rig or reader: committed_rows, where to resume)".into(),
+            "POST /v1/sessions/{id}/finish (rig)".into(),
+            "GET /v1/sessions/{id}".into(), "GET /v1/sessions/{id}/reconstructions".into(),
             format!(
                 "POST /v1/sessions/{{id}}/reconstructions {{\"method\": \"{}\", \"params\": {{}}}} (transport: camera sessions)",
                 crate::recon::Request::method_names().collect::<Vec<_>>().join("|")
@@ -156,7 +181,7 @@ async fn index(Caller(_caller): Caller) -> axum::Json<ServiceIndex> {
             "GET /v1/tokens, POST /v1/tokens {\"roles\": [\"rig\"], \"note\": \"...\"}, DELETE /v1/tokens/{id} (admin)".into(),
             "GET /healthz (no token needed)".into(),
         ],
-        auth: "every route but /healthz needs \"Authorization: Bearer <token>\"; tokens belong to one lab and carry roles rig, reader, admin".into(),
+        auth: "every route but /healthz needs \"Authorization: Bearer <token>\"; tokens belong to one lab and carry roles rig, reader, admin, metrics (GET /metrics)".into(),
     })
 }
 
@@ -234,7 +259,7 @@ pub fn reconstruction_view(r: &ReconstructionRow) -> ReconstructionView<Box<RawV
     }
 }
 
-fn session_path(id: &str) -> Result<(), ApiError> {
+pub(super) fn session_path(id: &str) -> Result<(), ApiError> {
     validate::session_id(id, "id")
 }
 
@@ -481,7 +506,7 @@ async fn create_token(
     if roles.is_empty() {
         return Err(ApiError::invalid(
             "roles",
-            "name at least one of rig, reader, admin",
+            "name at least one of rig, reader, admin, metrics",
         ));
     }
     let roles = Roles::of(&roles);

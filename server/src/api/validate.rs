@@ -6,7 +6,7 @@ use helmholtz_proto::{PatternSpec, v1};
 
 use super::ApiError;
 use crate::limits::Limits;
-use crate::store::{CameraLayout, NewSession, SampleFormat};
+use crate::store::{CameraLayout, NewSession, SampleFormat, SessionRow};
 
 pub const MAX_ID_LEN: usize = 128;
 pub const MAX_CHANNELS: usize = 64;
@@ -34,6 +34,78 @@ pub fn session_id(id: &str, field: &str) -> Result<(), ApiError> {
         return Err(ApiError::invalid(
             field,
             format!("{id:?} is not a usable id (it names a directory)"),
+        ));
+    }
+    Ok(())
+}
+
+/// An upload's writer id (the `x-helmholtz-writer` header; empty when not sent): 1-64
+/// characters of `A-Z a-z 0-9 _ -`. One id for every stream or request of one client upload.
+pub fn writer_id(value: Option<&[u8]>) -> Result<String, ApiError> {
+    let Some(value) = value else {
+        return Ok(String::new());
+    };
+    if value.is_empty()
+        || value.len() > 64
+        || !value
+            .iter()
+            .all(|b| b.is_ascii_alphanumeric() || *b == b'_' || *b == b'-')
+    {
+        return Err(ApiError::invalid(
+            super::grpc::WRITER_HEADER,
+            "must be 1-64 characters of A-Z a-z 0-9 _ -",
+        ));
+    }
+    Ok(String::from_utf8(value.to_vec()).expect("ascii"))
+}
+
+/// Checks uploaded rows, already in the session's sample format and checksum-checked: whole
+/// rows (`field` names where they came from) and, for floats, every value finite. The same rule
+/// for a gRPC chunk and a REST upload body.
+pub fn stored_rows(field: &str, bytes: &[u8], session: &SessionRow) -> Result<(), ApiError> {
+    let format = session.sample_format();
+    let row_bytes = session.row_bytes();
+    let per_row = session.row_values();
+    if row_bytes == 0 || !bytes.len().is_multiple_of(row_bytes) {
+        let whole = match session.camera {
+            Some(c) => format!(
+                "whole frames of {} x {} {} pixels",
+                c.width,
+                c.height,
+                format.name()
+            ),
+            None => format!("whole rows of {per_row} f64 values (one per channel)"),
+        };
+        return Err(ApiError::invalid(
+            field,
+            format!(
+                "{} bytes are not {whole} ({row_bytes} bytes each)",
+                bytes.len()
+            ),
+        ));
+    }
+    let unit = if session.camera.is_some() {
+        "pixel"
+    } else {
+        "channel"
+    };
+    let not_finite = match format {
+        SampleFormat::F64 => bytes
+            .chunks_exact(8)
+            .position(|b| !f64::from_le_bytes(b.try_into().expect("8")).is_finite()),
+        SampleFormat::F32 => bytes
+            .chunks_exact(4)
+            .position(|b| !f32::from_le_bytes(b.try_into().expect("4")).is_finite()),
+        SampleFormat::U16 => None,
+    };
+    if let Some(i) = not_finite {
+        return Err(ApiError::invalid(
+            field,
+            format!(
+                "value at row {}, {unit} {} is not finite",
+                i / per_row,
+                i % per_row
+            ),
         ));
     }
     Ok(())
