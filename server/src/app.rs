@@ -110,12 +110,15 @@ impl Application {
                 )
             })?;
         let addr = listener.local_addr()?;
+        // Metrics are always recorded: served on the main port to `metrics` tokens, and on a
+        // listener of their own (no token) when asked.
+        let recorder = crate::telemetry::recorder()?;
         let metrics = match config.metrics_listen {
             None => None,
             Some(at) => {
                 let l = crate::telemetry::bind(at).await?;
                 let a = l.local_addr()?;
-                Some((l, a, crate::telemetry::recorder()?))
+                Some((l, a, recorder.clone()))
             }
         };
         let store = Store::connect(
@@ -164,10 +167,12 @@ impl Application {
             .build_v1alpha()
             .map_err(|e| anyhow::anyhow!("gRPC reflection: {e}"))?;
         // REST bodies that stop arriving fail with 408 (gRPC streams are not cut here).
-        let rest = rest::router(state).layer(axum::middleware::from_fn_with_state(
-            edge.body_timeout,
-            crate::edge::body_timeout,
-        ));
+        let rest = rest::router(state.clone())
+            .merge(crate::telemetry::main_port(state, recorder))
+            .layer(axum::middleware::from_fn_with_state(
+                edge.body_timeout,
+                crate::edge::body_timeout,
+            ));
         let router = rest
             .route_service(&format!("/{}/{{*rpc}}", <AcquisitionServer<AcquisitionService> as NamedService>::NAME), grpc_route(acquisition))
             .route_service(&format!("/{}/{{*rpc}}", health_name(&health_service)), grpc_route(health_service))

@@ -21,16 +21,20 @@ pub enum Role {
     Reader,
     /// Manage the lab's tokens.
     Admin,
+    /// Scrape the server's Prometheus metrics (`GET /metrics` on the main port): counts over
+    /// the whole server, nothing of any lab's sessions or images.
+    Metrics,
 }
 
 impl Role {
-    pub const ALL: [Role; 3] = [Role::Rig, Role::Reader, Role::Admin];
+    pub const ALL: [Role; 4] = [Role::Rig, Role::Reader, Role::Admin, Role::Metrics];
 
     pub fn name(self) -> &'static str {
         match self {
             Role::Rig => "rig",
             Role::Reader => "reader",
             Role::Admin => "admin",
+            Role::Metrics => "metrics",
         }
     }
 
@@ -39,6 +43,7 @@ impl Role {
             Role::Rig => 1,
             Role::Reader => 2,
             Role::Admin => 4,
+            Role::Metrics => 8,
         }
     }
 
@@ -47,8 +52,9 @@ impl Role {
             "rig" => Ok(Role::Rig),
             "reader" => Ok(Role::Reader),
             "admin" => Ok(Role::Admin),
+            "metrics" => Ok(Role::Metrics),
             other => Err(format!(
-                "unknown role {other:?}; roles are rig, reader and admin"
+                "unknown role {other:?}; roles are rig, reader, admin and metrics"
             )),
         }
     }
@@ -91,7 +97,7 @@ impl Roles {
             roles.0 |= Role::parse(part)?.bit();
         }
         if roles.is_empty() {
-            return Err("at least one role is required (rig, reader, admin)".into());
+            return Err("at least one role is required (rig, reader, admin, metrics)".into());
         }
         Ok(roles)
     }

@@ -15,7 +15,7 @@ use crate::limits::Limits;
 #[command(
     name = "helmholtz-server",
     version,
-    about = "Helmholtz: dual photography and ghost imaging reconstruction service.\n\nServes the gRPC acquisition API (helmholtz.v1.Acquisition) and the REST API on one address, stores sessions in SQLite (embedded, in --data-dir) or PostgreSQL (--database-url, shared by API nodes and `worker` processes on many machines) and reconstructs on a pool of CPU workers.\n\nEvery call but the health checks needs a lab's token (Authorization: Bearer hz_...); create the first with `helmholtz-server token create --lab LAB --role admin` (or rig, reader)."
+    about = "Helmholtz: dual photography and ghost imaging reconstruction service.\n\nServes the gRPC acquisition API (helmholtz.v1.Acquisition) and the REST API on one address, stores sessions in SQLite (embedded, in --data-dir) or PostgreSQL (--database-url, shared by API nodes and `worker` processes on many machines) and reconstructs on a pool of CPU workers.\n\nEvery call but the health checks needs a lab's token (Authorization: Bearer hz_...); create the first with `helmholtz-server token create --lab LAB --role admin` (or rig, reader, metrics)."
 )]
 struct Cli {
     #[command(subcommand)]
@@ -53,8 +53,9 @@ pub struct ServeArgs {
     /// ones are dropped first).
     #[arg(long, default_value_t = 2048)]
     transport_cache_mib: u64,
-    /// Serve Prometheus metrics (GET /metrics) on this separate address; port 0 picks a free
-    /// port (printed on the first line). Off unless given.
+    /// Also serve Prometheus metrics (GET /metrics) without a token on this separate address
+    /// (a private scrape network); port 0 picks a free port (printed on the first line). The main
+    /// port always serves GET /metrics to tokens with the `metrics` role.
     #[arg(long, env = "HELMHOLTZ_METRICS_LISTEN")]
     metrics_listen: Option<SocketAddr>,
     #[command(flatten)]
@@ -257,7 +258,8 @@ enum TokenCommand {
         #[arg(long)]
         lab: String,
         /// Role: rig (create sessions, upload), reader (read, request and cancel
-        /// reconstructions), admin (manage the lab's tokens). Repeat or comma-separate for several.
+        /// reconstructions), admin (manage the lab's tokens), metrics (scrape GET /metrics on the
+        /// main port). Repeat or comma-separate for several.
         #[arg(long = "role", required = true, value_delimiter = ',')]
         roles: Vec<String>,
         /// A note to recognise the token by in `token list`.
@@ -307,6 +309,12 @@ enum Command {
     Check {
         #[command(flatten)]
         database: DatabaseArgs,
+    },
+    /// Print a shell completion script to stdout (bash, zsh, fish, elvish, powershell), e.g.
+    /// `helmholtz-server completions bash > ~/.local/share/bash-completion/completions/helmholtz-server`.
+    Completions {
+        #[arg(value_enum)]
+        shell: clap_complete::Shell,
     },
 }
 
@@ -365,6 +373,16 @@ impl ServeArgs {
 
 pub fn main() {
     let cli = Cli::parse();
+    if let Command::Completions { shell } = cli.command {
+        let mut command = <Cli as clap::CommandFactory>::command();
+        clap_complete::generate(
+            shell,
+            &mut command,
+            "helmholtz-server",
+            &mut std::io::stdout(),
+        );
+        return;
+    }
     init_tracing(&cli.log_format);
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
@@ -382,6 +400,7 @@ pub fn main() {
                 store.close().await;
                 Ok(())
             }
+            Command::Completions { .. } => unreachable!("handled before the runtime starts"),
         }
     });
     if let Err(e) = result {

@@ -1,4 +1,5 @@
-//! Observability: Prometheus metrics (served on their own listener) and per-request latency
+//! Observability: Prometheus metrics (on the main port for a token with the `metrics` role, and
+//! without a token on their own listener when `--metrics-listen` is set) and per-request latency
 //! recording; request ids are set in `app` (tower-http) and carried in every log span.
 //!
 //! Series:
@@ -104,6 +105,26 @@ pub async fn serve(
         .with_state((handle, store))
         .layer(axum::middleware::map_response(crate::app::nosniff));
     crate::edge::serve(listener, app, &edge, None, shutdown).await
+}
+
+/// `GET /metrics` on the main port (REST, TLS when the API has it): the same text as the
+/// separate listener, for a token with the `metrics` role (401/403 problem+json otherwise).
+pub fn main_port(state: crate::api::AppState, handle: PrometheusHandle) -> axum::Router {
+    axum::Router::new()
+        .route("/metrics", axum::routing::get(main_port_render))
+        .with_state((state, handle))
+}
+
+async fn main_port_render(
+    State((state, handle)): State<(crate::api::AppState, PrometheusHandle)>,
+    headers: http::HeaderMap,
+) -> Result<Response, crate::api::ApiError> {
+    let authorization = headers
+        .get(http::header::AUTHORIZATION)
+        .map(|v| v.as_bytes());
+    let caller = state.authenticate(authorization).await?;
+    caller.require(crate::auth::Role::Metrics)?;
+    Ok(render(State((handle, state.store.clone()))).await)
 }
 
 async fn render(State((handle, store)): State<(PrometheusHandle, Store)>) -> Response {

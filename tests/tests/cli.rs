@@ -261,3 +261,101 @@ fn logs_off_a_terminal_have_no_colour_codes() {
         );
     }
 }
+
+/// The text a person reads after `simulate --reconstruct auto --wait`: the model auto chose and
+/// its weight, the held-out error, the report's warnings (here: too few rows for 64x64) and the
+/// PSNR against the simulated scene; `status` shows the same report, not stale figures.
+#[test]
+fn text_output_says_what_the_report_knows() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = ServerProcess::start(&dir.path().join("data"), 0, &[]).unwrap();
+    let run = |args: &[&str]| {
+        let out = Command::new(binary("helmholtz"))
+            .arg("--server")
+            .arg(&server.base_url)
+            .env("HELMHOLTZ_SPOOL", server.data_dir.join("client-spool"))
+            .args(args)
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "helmholtz {args:?} failed:\n{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        String::from_utf8(out.stdout).unwrap()
+    };
+    // 64 x 64 from 120 Bernoulli rows (3 %): auto says the rows cannot support 64x64.
+    let text = run(&[
+        "simulate",
+        "--scene",
+        "camera",
+        "--family",
+        "bernoulli",
+        "--width",
+        "64",
+        "--height",
+        "64",
+        "--count",
+        "120",
+        "--seed",
+        "5",
+        "--session-id",
+        "cli-report",
+        "--reconstruct",
+        "auto",
+        "--wait",
+    ]);
+    for want in [
+        "auto: model ",
+        " of lambda_max)",
+        "held-out error ",
+        "warning: too few rows for 64x64",
+        "vs ground truth [bucket]: PSNR ",
+        "after a gain/offset fit",
+        " iterations, ",
+    ] {
+        assert!(text.contains(want), "{want:?} missing from:\n{text}");
+    }
+    let status = run(&["status", "--session-id", "cli-report"]);
+    for want in ["auto: model ", "warning: too few rows for 64x64", "PSNR "] {
+        assert!(status.contains(want), "{want:?} missing from:\n{status}");
+    }
+}
+
+/// `completions SHELL` prints a script that names the subcommands, for both binaries; bash
+/// accepts it.
+#[test]
+fn both_binaries_print_shell_completions() {
+    for (bin, subcommand) in [("helmholtz", "relight"), ("helmholtz-server", "worker")] {
+        for shell in ["bash", "zsh", "fish", "powershell", "elvish"] {
+            let out = Command::new(binary(bin))
+                .args(["completions", shell])
+                .output()
+                .unwrap();
+            assert!(out.status.success(), "{bin} completions {shell}: {out:?}");
+            let script = String::from_utf8(out.stdout).unwrap();
+            assert!(
+                script.contains(subcommand) && script.contains(bin),
+                "{bin}'s {shell} script names neither {subcommand} nor itself:\n{script}"
+            );
+        }
+        let out = Command::new(binary(bin))
+            .args(["completions", "bash"])
+            .output()
+            .unwrap();
+        let path = std::env::temp_dir().join(format!("{bin}-{}.bash", std::process::id()));
+        std::fs::write(&path, &out.stdout).unwrap();
+        let checked = Command::new("bash").arg("-n").arg(&path).output().unwrap();
+        let _ = std::fs::remove_file(&path);
+        assert!(
+            checked.status.success(),
+            "bash -n refuses {bin}'s script: {}",
+            String::from_utf8_lossy(&checked.stderr)
+        );
+        let bad = Command::new(binary(bin))
+            .args(["completions", "tcsh"])
+            .output()
+            .unwrap();
+        assert!(!bad.status.success(), "{bin} accepted an unknown shell");
+    }
+}

@@ -510,14 +510,39 @@ async fn metrics_describe_uploads_jobs_and_latencies() {
     helmholtz_client::wait_reconstruction(&server.base_url, rec.id, Duration::from_secs(60))
         .await
         .unwrap();
-    // The application's API does not serve /metrics; the metrics listener does.
-    assert_eq!(get(&server, &server.token, "/metrics").await.0, 404);
+    // The main port serves /metrics only to a token with the metrics role (a lab's rig and
+    // reader token is refused, as is no token); the separate listener needs no token.
+    let (status, problem) = get(&server, &server.token, "/metrics").await;
+    assert_eq!(status, 403, "{problem}");
+    assert!(
+        problem["detail"].as_str().unwrap().contains("metrics role"),
+        "{problem}"
+    );
+    assert_eq!(get(&server, "", "/metrics").await.0, 401);
+    let scraper = server.create_token("ops", "metrics").unwrap();
+    let on_main_port = reqwest::Client::new()
+        .get(format!("{}/metrics", server.address))
+        .bearer_auth(&scraper)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(on_main_port.status().as_u16(), 200);
+    let main_text = on_main_port.text().await.unwrap();
+    // A metrics token reads nothing of any lab.
+    assert_eq!(get(&server, &scraper, "/v1/sessions").await.0, 403);
     let text = reqwest::get(&metrics_url)
         .await
         .unwrap()
         .text()
         .await
         .unwrap();
+    for t in [&text, &main_text] {
+        assert_eq!(
+            sample(t, "helmholtz_upload_rows_total", &[]),
+            Some(64.0),
+            "{t}"
+        );
+    }
     let expect = |name: &str, labels: &[&str]| {
         sample(&text, name, labels).unwrap_or_else(|| panic!("no {name} {labels:?} in\n{text}"))
     };

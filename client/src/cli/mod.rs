@@ -9,6 +9,7 @@ mod args;
 mod patterns;
 mod reconstruct;
 mod relight;
+mod report;
 mod simulate;
 mod spool;
 mod upload;
@@ -148,11 +149,21 @@ pub enum Command {
     Normals(NormalsArgs),
     /// Cancel a queued or running reconstruction (an ended one is refused with 409).
     Cancel(CancelArgs),
-    /// Write pattern frames as 8-bit grey PNGs (frame_000000.png, ...) for a projector or DMD.
+    /// Write pattern frames for a projector or DMD: 8-bit grey PNGs (frame_000000.png, ...)
+    /// with --out DIR, and/or one float32 NPY stack (frames, height, width) with --npy FILE.
     Patterns(PatternsArgs),
     /// The local spool of measured rows: what is pending, and uploading it.
     #[command(subcommand)]
     Spool(SpoolCommand),
+    /// Print a shell completion script to stdout (bash, zsh, fish, elvish, powershell).
+    ///
+    /// bash: `helmholtz completions bash > ~/.local/share/bash-completion/completions/helmholtz`;
+    /// zsh: `helmholtz completions zsh > "${fpath[1]}/_helmholtz"`;
+    /// fish: `helmholtz completions fish > ~/.config/fish/completions/helmholtz.fish`.
+    Completions {
+        #[arg(value_enum)]
+        shell: clap_complete::Shell,
+    },
 }
 
 /// What a command prints.
@@ -237,6 +248,16 @@ pub async fn run(cli: Cli) -> anyhow::Result<Outcome> {
         Command::Normals(a) => normals_cmd(server, a).await,
         Command::Cancel(a) => cancel_cmd(server, a).await,
         Command::Acquire(a) => acquire_cmd(server, &spools, a).await,
+        Command::Completions { shell } => {
+            let mut script = Vec::new();
+            let mut command = <Cli as clap::CommandFactory>::command();
+            clap_complete::generate(*shell, &mut command, "helmholtz", &mut script);
+            let script = String::from_utf8(script)?;
+            Ok(Outcome {
+                json: json!({ "shell": shell.to_string(), "script": script }),
+                text: script,
+            })
+        }
     }
 }
 

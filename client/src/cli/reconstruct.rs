@@ -89,14 +89,9 @@ fn recon_text(r: &Reconstruction) -> String {
         s.push_str(&format!("\n  error: {e}"));
     }
     if let Some(report) = &r.report {
-        // Figures a report of an earlier version carried at its top level, and the iterations.
-        let mut figures: Vec<String> = ["psnr_db", "psnr", "ssim"]
-            .iter()
-            .filter_map(|k| report.extra.get(*k).map(|v| format!("{k} {v}")))
-            .collect();
-        figures.push(format!("iterations {}", report.recon.iterations));
-        if !figures.is_empty() {
-            s.push_str(&format!("\n  {}", figures.join(", ")));
+        for line in super::report::report_lines(report) {
+            s.push_str("\n  ");
+            s.push_str(&line);
         }
     }
     s.push('\n');

@@ -1,0 +1,208 @@
+//! A reconstruction's report as text: what the user needs to judge the image (the model `auto`
+//! chose and its weight, the held-out error estimate, warnings, PSNR/SSIM when the session has
+//! ground truth, time and memory). `--json` prints the whole report instead.
+
+use helmholtz_proto::rest::{AutoChoice, Figure, Report, TransportQuality};
+use serde_json::Value;
+
+/// Indented lines describing `report` (no trailing newline on the last).
+pub fn report_lines(report: &Report) -> Vec<String> {
+    let mut lines = Vec::new();
+    // auto: one choice per channel (details.auto[i], in channel order).
+    if let Some(choices) = report.recon.details.get("auto").and_then(Value::as_array) {
+        for (i, c) in choices.iter().enumerate() {
+            let Ok(choice) = serde_json::from_value::<AutoChoice>(c.clone()) else {
+                continue;
+            };
+            let channel = c
+                .get("channel")
+                .and_then(Value::as_str)
+                .map(str::to_string)
+                .unwrap_or_else(|| {
+                    if choices.len() > 1 {
+                        format!("channel {i}")
+                    } else {
+                        String::new()
+                    }
+                });
+            lines.push(auto_line(&channel, &choice));
+            for w in &choice.warnings {
+                lines.push(format!("warning: {w}"));
+            }
+        }
+    }
+    // transport: the sparsifying transform and weight chosen for T.
+    if let Some(transform) = report
+        .recon
+        .details
+        .get("transform")
+        .and_then(Value::as_str)
+    {
+        let mut s = format!("transform {transform}");
+        if let Some(l) = report.detail_f64("lambda") {
+            s.push_str(&format!(", weight {l:.3e}"));
+        }
+        lines.push(s);
+    }
+    if let Some(warnings) = report
+        .recon
+        .details
+        .get("warnings")
+        .and_then(Value::as_array)
+    {
+        lines.extend(
+            warnings
+                .iter()
+                .filter_map(Value::as_str)
+                .map(|w| format!("warning: {w}")),
+        );
+    }
+    match (&report.recon.held_out, &report.recon.held_out_unavailable) {
+        (Some(h), _) => lines.push(match h.relative_residual {
+            Some(r) => format!(
+                "held-out error {r:.4} (relative residual on {} held-out rows; rms {:.4e} in bucket units)",
+                h.rows, h.rms_residual
+            ),
+            None => format!(
+                "held-out error: not defined (the {} held-out rows are all equal), rms {:.4e}",
+                h.rows, h.rms_residual
+            ),
+        }),
+        (None, Some(why)) => lines.push(format!("held-out error: unavailable ({why})")),
+        (None, None) => {}
+    }
+    for q in report.channel_quality() {
+        lines.push(format!(
+            "vs ground truth{}: PSNR {} dB, SSIM {}, relative error {}; after a gain/offset fit {} dB (gain {:.3}, offset {:.3e})",
+            if q.channel.is_empty() {
+                String::new()
+            } else {
+                format!(" [{}]", q.channel)
+            },
+            figure(q.psnr_db, 2),
+            figure(q.ssim, 3),
+            figure(q.relative_error, 4),
+            figure(q.psnr_fitted_db, 2),
+            q.fit.scale,
+            q.fit.offset
+        ));
+    }
+    match report.transport_quality() {
+        Some(TransportQuality::Scored {
+            transport_relative_error,
+            worst_row_relative_error,
+            camera_dual_psnr_db,
+            camera_dual_ssim,
+        }) => lines.push(format!(
+            "vs ground truth: T relative error {}, worst camera pixel {}, dual under the whole camera PSNR {} dB, SSIM {}",
+            figure(*transport_relative_error, 4),
+            figure(*worst_row_relative_error, 4),
+            figure(*camera_dual_psnr_db, 2),
+            figure(*camera_dual_ssim, 3)
+        )),
+        Some(TransportQuality::Unavailable { unavailable }) => {
+            lines.push(format!("vs ground truth: not scored ({unavailable})"))
+        }
+        None => {}
+    }
+    let mut cost = vec![format!("{} iterations", report.recon.iterations)];
+    if let Some(s) = report.seconds {
+        cost.push(format!("{s:.2} s compute"));
+    }
+    if let Some(b) = report.peak_memory_bytes {
+        cost.push(format!(
+            "peak memory {:.1} MiB",
+            b as f64 / (1 << 20) as f64
+        ));
+    }
+    lines.push(cost.join(", "));
+    lines
+}
+
+fn auto_line(channel: &str, c: &AutoChoice) -> String {
+    let mut s = String::from("auto");
+    if !channel.is_empty() {
+        s.push_str(&format!(" [{channel}]"));
+    }
+    s.push_str(&format!(": model {}", c.model));
+    match (c.lambda, c.lambda_fraction) {
+        (Some(l), Some(f)) => s.push_str(&format!(", weight {l:.3e} ({f:.3} of lambda_max)")),
+        (Some(l), None) => s.push_str(&format!(", weight {l:.3e}")),
+        _ => {}
+    }
+    if let Some(k) = c.kept {
+        s.push_str(&format!(", {k} coefficients kept"));
+    }
+    if let Some(h) = c.held_out {
+        s.push_str(&format!(", held-out {h:.4}"));
+    }
+    if let Some(r) = &c.reason {
+        s.push_str(&format!(" ({r})"));
+    }
+    s
+}
+
+fn figure(f: Figure, decimals: usize) -> String {
+    if f.0.is_finite() {
+        format!("{:.*}", decimals, f.0)
+    } else if f.0 == f64::INFINITY {
+        "inf".into()
+    } else {
+        "n/a".into()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde_json::json;
+
+    #[test]
+    fn an_auto_report_shows_model_weight_held_out_warnings_and_psnr() {
+        let report: Report = serde_json::from_value(json!({
+            "method": "auto", "params": {}, "rows_used": 400, "iterations": 1234,
+            "details": {"auto": [{
+                "model": "db4", "lambda": 0.0123, "lambda_fraction": 0.1, "kept": 310,
+                "held_out": 0.0421,
+                "warnings": ["too few rows for 64x64: 400 rows predict held-out buckets better at 32x32"]
+            }]},
+            "held_out": {"rows": 40, "fraction": 0.1, "relative_residual": 0.0421,
+                         "per_channel": [0.0421], "rms_residual": 0.5},
+            "quality": [{"channel": "bucket", "psnr_db": 24.5, "ssim": 0.81, "relative_error": 0.12,
+                         "psnr_fitted_db": 25.0, "ssim_fitted": 0.82, "fit": {"scale": 0.97, "offset": 0.01}}],
+            "seconds": 1.5, "peak_memory_bytes": 3145728
+        }))
+        .unwrap();
+        let text = report_lines(&report).join("\n");
+        for want in [
+            "auto: model db4, weight 1.230e-2 (0.100 of lambda_max), 310 coefficients kept, held-out 0.0421",
+            "warning: too few rows for 64x64",
+            "held-out error 0.0421 (relative residual on 40 held-out rows",
+            "vs ground truth [bucket]: PSNR 24.50 dB, SSIM 0.810",
+            "gain 0.970",
+            "1234 iterations, 1.50 s compute, peak memory 3.0 MiB",
+        ] {
+            assert!(text.contains(want), "{want:?} missing from:\n{text}");
+        }
+    }
+
+    #[test]
+    fn a_transport_report_shows_its_transform_and_t_error_and_an_unavailable_held_out() {
+        let report: Report = serde_json::from_value(json!({
+            "method": "transport", "params": {}, "rows_used": 64, "iterations": 0,
+            "details": {"transform": "haar", "lambda": 0.5},
+            "held_out": null, "held_out_unavailable": "complete set: nothing to hold out",
+            "quality": {"transport_relative_error": 0.032, "worst_row_relative_error": 0.2,
+                        "camera_dual_psnr_db": "inf", "camera_dual_ssim": null}
+        }))
+        .unwrap();
+        let text = report_lines(&report).join("\n");
+        for want in [
+            "transform haar, weight 5.000e-1",
+            "held-out error: unavailable (complete set: nothing to hold out)",
+            "T relative error 0.0320, worst camera pixel 0.2000, dual under the whole camera PSNR inf dB, SSIM n/a",
+        ] {
+            assert!(text.contains(want), "{want:?} missing from:\n{text}");
+        }
+    }
+}
