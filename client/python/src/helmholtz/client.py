@@ -909,30 +909,50 @@ class _Upload:
             gave_up=gave_up,
         )
 
-    def _chunks(self, start: int, end: int, counters: dict[str, int]) -> Iterator[pb.MeasurementChunk]:
+    def _chunks(
+        self, start: int, end: int, counters: dict[str, int], local: list[BaseException]
+    ) -> Iterator[pb.MeasurementChunk]:
+        """The chunks of rows start..end, made as gRPC takes them (in its thread). An exception
+        here (e.g. from the progress callback) ends the stream early and is kept in `local`
+        to be raised by the caller: never taken for a failure of the server."""
         sid, channels = self.session.id, self.rows.shape[1]
         for a in range(start, end, self.chunk_rows):
             b = min(end, a + self.chunk_rows)
-            payload = self.rows[a:b].tobytes()
-            chunk = pb.MeasurementChunk(
-                session_id=sid, start_row=a, channels=channels, crc32c=crc32c(payload)
-            )
-            setattr(chunk, self.field, payload)
+            try:
+                payload = self.rows[a:b].tobytes()
+                chunk = pb.MeasurementChunk(
+                    session_id=sid, start_row=a, channels=channels, crc32c=crc32c(payload)
+                )
+                setattr(chunk, self.field, payload)
+            except BaseException as e:  # noqa: BLE001 - re-raised by _stream
+                local.append(e)
+                return
             yield chunk
             counters["rows"] += b - a
             counters["chunks"] += 1
             counters["bytes"] += len(payload)
             if self.progress is not None:
-                self.progress(b, self.total)
+                try:
+                    self.progress(b, self.total)
+                except BaseException as e:  # noqa: BLE001 - re-raised by _stream
+                    local.append(e)
+                    return
 
     def _stream(self, start: int, end: int) -> pb.UploadResponse:
         counters = {"rows": 0, "chunks": 0, "bytes": 0}
+        local: list[BaseException] = []
         stub = self.client._stub()
         try:
-            return stub.UploadMeasurements(
-                self._chunks(start, end, counters), metadata=self.client._metadata(self.writer)
+            response = stub.UploadMeasurements(
+                self._chunks(start, end, counters, local),
+                metadata=self.client._metadata(self.writer),
             )
+            if local:
+                raise local[0]
+            return response
         except grpc.RpcError as e:
+            if local:
+                raise local[0] from None
             err = RpcError.from_grpc(f"uploading to session {self.session.id}", e)
             if err.code == grpc.StatusCode.UNAVAILABLE:
                 self.client._reset_channel()
