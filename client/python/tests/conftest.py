@@ -66,6 +66,7 @@ class Server:
     token: str = ""
     process: Optional[subprocess.Popen] = None
     log_path: Optional[Path] = None
+    banner: str = ""
     _lines: "queue.Queue[str]" = field(default_factory=queue.Queue)
 
     def store_args(self) -> list[str]:
@@ -119,6 +120,7 @@ class Server:
             self.stop()
             raise RuntimeError(f"no address in {first!r}; log:\n{self.log()}")
         self.address = urls[0].rstrip(",")
+        self.banner = first.strip()
 
     def log(self) -> str:
         return self.log_path.read_text(errors="replace") if self.log_path else ""

@@ -98,6 +98,15 @@ def test_bucket_session_end_to_end(server, client, session_id) -> None:  # type:
     assert client.session(session_id).state == "finished"
 
 
+def test_the_server_runs_on_the_requested_store(server) -> None:  # type: ignore[no-untyped-def]
+    # "... data in sqlite:/tmp/.../helmholtz.sqlite, ..." or "... data in postgres://...".
+    store = server.banner.split(" data in ", 1)[1].split(",", 1)[0]
+    if server.database_url:
+        assert store.startswith("postgres://"), server.banner
+    else:
+        assert store == f"sqlite:{server.data_dir / 'helmholtz.sqlite'}", server.banner
+
+
 def test_the_index_lists_the_routes_this_package_uses(client) -> None:  # type: ignore[no-untyped-def]
     index = client.index()
     assert index["service"] == "helmholtz"

@@ -30,8 +30,9 @@ def test_resume_after_a_partial_upload(client, session_id) -> None:  # type: ign
     first = client.upload(session, values[:100], chunk_rows=32)
     assert first.committed_rows == 100 and first.rows_written == 100
     assert client.upload_status(session).committed_rows == 100
-    # A new call with all rows: rows 0..100 are compared (not trusted), the rest written.
-    second = client.upload(session, values, chunk_rows=32)
+    # A new call with all rows: rows 0..100 are compared (not trusted), the rest written. (By
+    # session id: the layout is read with GET /v1/sessions/{id}.)
+    second = client.upload(session.id, values, chunk_rows=32)
     assert (second.rows_matched, second.rows_written) == (100, 156)
     assert second.committed_rows == second.confirmed_rows == 256
     # Rows known to be stored are not re-sent at all.

@@ -29,6 +29,7 @@ from .errors import (
     HelmholtzError,
     ReconstructionFailed,
     RpcError,
+    ServerUnreachable,
     UploadError,
 )
 from .retry import Disposition, RetryPolicy, disposition
@@ -59,7 +60,7 @@ MAX_CHUNK_BYTES = 8 << 20
 #: ends OK confirms its rows, so a failure re-sends at most this much.
 STREAM_BYTES = 64 << 20
 
-_FORMATS = {"f64": np.dtype("<f8"), "f32": np.dtype("<f4"), "u16": np.dtype("<u2")}
+_FORMATS: dict[str, "np.dtype[Any]"] = {"f64": np.dtype("<f8"), "f32": np.dtype("<f4"), "u16": np.dtype("<u2")}
 _FORMAT_TO_PB = {"f64": pb.SAMPLE_FORMAT_F64, "f32": pb.SAMPLE_FORMAT_F32, "u16": pb.SAMPLE_FORMAT_U16}
 _PB_TO_FORMAT = {v: k for k, v in _FORMAT_TO_PB.items()}
 _PAYLOAD_FIELD = {"f64": "values_f64le", "f32": "values_f32le", "u16": "values_u16le"}
@@ -647,7 +648,18 @@ class Client:
         started = time.monotonic()
         poll = 0.05
         while True:
-            rec = self.reconstruction(rid)
+            try:
+                view = self._http.request("GET", f"/v1/reconstructions/{rid}", retry=False).json()
+            except (ServerUnreachable, ApiError) as e:
+                # A server restarting or overloaded: poll again until the timeout. A problem the
+                # server states (404, 400, ...) will not go away by waiting.
+                transient = isinstance(e, ServerUnreachable) or e.status >= 500 or e.status == 429
+                if not transient or time.monotonic() - started >= timeout:
+                    raise
+                time.sleep(min(poll, max(0.0, timeout - (time.monotonic() - started))))
+                poll = min(poll * 2, 1.0)
+                continue
+            rec = Reconstruction.from_view(view)
             if progress is not None:
                 progress(rec)
             if rec.terminal:
@@ -1030,15 +1042,15 @@ class _Upload:
             try:
                 response = self._stream(start, end)
             except _StreamFailed as failed:
-                err = failed.error
-                d = disposition(err.code)
+                failure = failed.error
+                d = disposition(failure.code)
                 if d is Disposition.FATAL or (d is Disposition.RESYNC_ONCE and resync_used):
-                    raise self._fail(err, committed=committed) from None
+                    raise self._fail(failure, committed=committed) from None
                 if d is Disposition.RESYNC_ONCE:
                     resync_used = True
-                    self.report.last_error = str(err)
+                    self.report.last_error = str(failure)
                 else:
-                    back_off_or_fail(err)
+                    back_off_or_fail(failure)
                 self.report.resumes += 1
                 stream_length = max(
                     self.chunk_rows, stream_length // 2 // self.chunk_rows * self.chunk_rows
