@@ -1,0 +1,76 @@
+"""Helmholtz from Python: dual photography and computational ghost imaging with numpy.
+
+>>> import helmholtz as hz
+>>> client = hz.Client("http://127.0.0.1:8080", token="hz_...")
+>>> spec = hz.PatternSpec.hadamard(16, 16, ordering="sequency")
+>>> frames = hz.patterns(spec)                      # what the projector shows, (512, 16, 16)
+>>> session = client.create_session("run-1", spec, channels=["bucket"])
+>>> client.upload(session, buckets)                 # ndarray (512, 1), CRC-32C, resumable
+>>> rec = client.wait(client.reconstruct(session, "auto"), progress=print)
+>>> image = client.dual_image(rec)                  # float32 (16, 16)
+
+See the README for a walkthrough. Sessions and uploads go over gRPC (the rig's side);
+reconstructions and images over REST (the reader's side). Errors are :class:`HelmholtzError`
+subclasses: :class:`RpcError` carries the gRPC status code and message, :class:`ApiError`
+the server's problem+json.
+"""
+
+from .client import (
+    DEFAULT_CHUNK_BYTES,
+    MAX_CHUNK_BYTES,
+    STREAM_BYTES,
+    WRITER_HEADER,
+    Camera,
+    Client,
+    Reconstruction,
+    Session,
+    UploadReport,
+    UploadStatus,
+    new_writer_id,
+)
+from .crc32c import crc32c
+from .errors import (
+    ApiError,
+    HelmholtzError,
+    ReconstructionFailed,
+    RpcError,
+    ServerUnreachable,
+    UploadError,
+)
+from .patterns import PatternGenerator, packed_bits, pattern, patterns, speckle_levels
+from .retry import Backoff, RetryPolicy
+from .spec import ORDERINGS, PatternSpec, SpecError
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "ApiError",
+    "Backoff",
+    "Camera",
+    "Client",
+    "DEFAULT_CHUNK_BYTES",
+    "HelmholtzError",
+    "MAX_CHUNK_BYTES",
+    "ORDERINGS",
+    "PatternGenerator",
+    "PatternSpec",
+    "Reconstruction",
+    "ReconstructionFailed",
+    "RetryPolicy",
+    "RpcError",
+    "STREAM_BYTES",
+    "ServerUnreachable",
+    "Session",
+    "SpecError",
+    "UploadError",
+    "UploadReport",
+    "UploadStatus",
+    "WRITER_HEADER",
+    "__version__",
+    "crc32c",
+    "new_writer_id",
+    "packed_bits",
+    "pattern",
+    "patterns",
+    "speckle_levels",
+]

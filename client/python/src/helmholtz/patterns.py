@@ -1,0 +1,284 @@
+"""The seed -> pattern generator of proto/PATTERNS.md, vectorised with numpy.
+
+Pattern ``i`` of a spec is a pure function of ``(spec, i)``; the server rebuilds the same
+patterns from the session's spec. What a projector shows:
+
+>>> from helmholtz import PatternSpec, patterns
+>>> spec = PatternSpec.hadamard(8, 8, ordering="sequency")
+>>> frames = patterns(spec)            # float32, shape (128, 8, 8), values 0.0 / 1.0
+>>> frames[0].all(), frames[1].any()   # frame 0 is all on, frame 1 all off
+(True, False)
+
+Binary families (raster, bernoulli, hadamard) give 0.0 / 1.0; speckle gives ``L / 2^24`` for
+24-bit integer levels ``L`` (exact in float32). :func:`packed_bits` gives the packed words of
+PATTERNS.md ("pixel p is bit p % 64 of word p / 64") and :func:`speckle_levels` the integer
+levels, which is what the test vectors (proto/tests/pattern_vectors.json) list.
+
+This module was ported from the pure-Python reference ``proto/tools/patterns_ref.py`` and
+vectorised: Bernoulli uses the bit-sliced form (one OR/AND per fill digit over all words at
+once), Hadamard computes the Walsh signs from popcounts, speckle draws one random word per cell.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from functools import lru_cache
+from typing import Optional
+
+import numpy as np
+
+from .spec import FILL_BITS, PatternSpec
+
+__all__ = [
+    "PatternGenerator",
+    "patterns",
+    "pattern",
+    "packed_bits",
+    "speckle_levels",
+    "random_words",
+    "ordering_table",
+    "run_sha256",
+]
+
+GOLDEN = 0x9E3779B97F4A7C15
+MUL1 = 0xBF58476D1CE4E5B9
+MUL2 = 0x94D049BB133111EB
+
+# Temporary random words per block of frames (bounds the memory of one step).
+_BLOCK_WORDS = 1 << 21
+
+
+def _u64(x: int) -> np.uint64:
+    return np.uint64(x & 0xFFFFFFFFFFFFFFFF)
+
+
+def random_words(seed: int, counters: np.ndarray) -> np.ndarray:
+    """``random_word(seed, c)`` of PATTERNS.md for every counter (uint64, wrapping)."""
+    c = np.asarray(counters, dtype=np.uint64)
+    with np.errstate(over="ignore"):
+        z = _u64(seed) + (c + np.uint64(1)) * _u64(GOLDEN)
+        z = (z ^ (z >> np.uint64(30))) * _u64(MUL1)
+        z = (z ^ (z >> np.uint64(27))) * _u64(MUL2)
+    return z ^ (z >> np.uint64(31))
+
+
+def _bitrev(x: np.ndarray, bits: int) -> np.ndarray:
+    out = np.zeros_like(x)
+    for b in range(bits):
+        out |= ((x >> b) & 1) << (bits - 1 - b)
+    return out
+
+
+def _bitlen(x: np.ndarray) -> np.ndarray:
+    out = np.zeros_like(x)
+    for b in range(int(x.max(initial=0)).bit_length()):
+        out += (x >> b) > 0
+    return out
+
+
+def _natural_of_sequency(length: int) -> np.ndarray:
+    """table[s] = the natural index of the length-``length`` Walsh function with s sign changes."""
+    s = np.arange(length, dtype=np.int64)
+    return _bitrev(s ^ (s >> 1), length.bit_length() - 1)
+
+
+@lru_cache(maxsize=32)
+def _ordering_table_cached(width: int, height: int, ordering: str) -> np.ndarray:
+    k = width * height
+    if ordering == "natural":
+        table = np.arange(k, dtype=np.int64)
+    elif ordering == "sequency":
+        table = _natural_of_sequency(k)
+    else:
+        su = np.repeat(np.arange(height, dtype=np.int64), width)
+        sv = np.tile(np.arange(width, dtype=np.int64), height)
+        if ordering == "zigzag":
+            rank = np.lexsort((su, su + sv))
+        elif ordering == "russian_doll":
+            rank = np.lexsort((su, su + sv, np.maximum(_bitlen(su), _bitlen(sv))))
+        elif ordering == "cake_cutting":
+            rank = np.lexsort((su, (su + 1) * (sv + 1)))
+        else:
+            raise ValueError(f"unknown ordering {ordering!r}")
+        nat_h, nat_w = _natural_of_sequency(height), _natural_of_sequency(width)
+        table = nat_h[su[rank]] * width + nat_w[sv[rank]]
+    table.setflags(write=False)
+    return table
+
+
+def ordering_table(width: int, height: int, ordering: str) -> np.ndarray:
+    """``order(r)`` for every row ``r``: the natural index ``u * W + v`` of Hadamard row ``r``."""
+    return _ordering_table_cached(width, height, ordering)
+
+
+def _fill_digits(q: int) -> tuple[int, int]:
+    tz = (q & -q).bit_length() - 1
+    return FILL_BITS - tz, q >> tz
+
+
+class PatternGenerator:
+    """Patterns of one spec. ``PatternGenerator(spec).values(start, stop)`` is
+    :func:`patterns`; the generator keeps the spec's tables for repeated calls."""
+
+    def __init__(self, spec: PatternSpec):
+        self.spec = spec.canonical()
+        s = self.spec
+        self.k = s.pixels
+        self.words_per_pattern = (self.k + 63) // 64
+        self._table: Optional[np.ndarray] = None
+        if s.family == "hadamard":
+            self._table = ordering_table(s.width, s.height, s.ordering or "natural")
+
+    def _check_range(self, start: int, stop: Optional[int]) -> tuple[int, int]:
+        count = self.spec.count
+        if stop is None:
+            stop = count
+        if not (0 <= start <= stop <= count):
+            raise IndexError(f"patterns {start}..{stop} are outside the spec's 0..{count}")
+        return int(start), int(stop)
+
+    def _block(self, per_frame: int) -> int:
+        return max(1, _BLOCK_WORDS // max(1, per_frame))
+
+    # -- binary families as booleans ------------------------------------------------------
+    def _on(self, start: int, stop: int) -> np.ndarray:
+        """Boolean (n, H, W): which pixels are on in frames start..stop (binary families)."""
+        s = self.spec
+        h, w = s.height, s.width
+        i = np.arange(start, stop, dtype=np.int64)
+        if s.family == "raster":
+            b = s.block or 1
+            bw, bh = -(-w // b), -(-h // b)
+            blk = i % (bw * bh)
+            bx, by = blk % bw, blk // bw
+            xs = np.arange(w) // b
+            ys = np.arange(h) // b
+            return (ys[None, :, None] == by[:, None, None]) & (xs[None, None, :] == bx[:, None, None])
+        if s.family == "hadamard":
+            assert self._table is not None
+            n = self._table[i // 2]
+            u, v = n // w, n % w
+            positive = (i % 2) == 0
+            pu = np.bitwise_count(u[:, None] & np.arange(h)[None, :]) & 1
+            pv = np.bitwise_count(v[:, None] & np.arange(w)[None, :]) & 1
+            plus = (pu[:, :, None] ^ pv[:, None, :]) == 0
+            return plus == positive[:, None, None]
+        if s.family == "bernoulli":
+            words = self._bernoulli_words(start, stop)
+            bits = np.unpackbits(words.astype("<u8").view(np.uint8), axis=1, bitorder="little")
+            return bits[:, : self.k].astype(bool).reshape(-1, h, w)
+        raise ValueError("speckle patterns have grey levels, not bits")
+
+    def _bernoulli_words(self, start: int, stop: int) -> np.ndarray:
+        s = self.spec
+        q = round((s.fill if s.fill is not None else 0.5) * (1 << FILL_BITS))
+        d, odd = _fill_digits(q)
+        nw = self.words_per_pattern
+        i = np.arange(start, stop, dtype=np.uint64)
+        base = (i[:, None] * np.uint64(nw) + np.arange(nw, dtype=np.uint64)[None, :]) * np.uint64(d)
+        r = np.zeros(base.shape, dtype=np.uint64)
+        for j in reversed(range(d)):
+            v = random_words(s.seed, base + np.uint64(j))
+            r = (v | r) if (odd >> (d - 1 - j)) & 1 else (v & r)
+        if self.k % 64:
+            r[:, -1] &= np.uint64((1 << (self.k % 64)) - 1)
+        return r
+
+    # -- public ---------------------------------------------------------------------------
+    def packed_bits(self, start: int = 0, stop: Optional[int] = None) -> np.ndarray:
+        """Packed words (n, ceil(k / 64)) uint64 of binary frames: pixel p = bit p % 64 of word
+        p / 64, bits past k are 0."""
+        start, stop = self._check_range(start, stop)
+        if self.spec.family == "bernoulli":
+            return self._bernoulli_words(start, stop)
+        nw = self.words_per_pattern
+        out = np.zeros((stop - start, nw), dtype=np.uint64)
+        step = self._block(self.k)
+        for a in range(start, stop, step):
+            b = min(stop, a + step)
+            on = self._on(a, b).reshape(b - a, self.k)
+            padded = np.zeros((b - a, nw * 64), dtype=bool)
+            padded[:, : self.k] = on
+            out[a - start : b - start] = (
+                np.packbits(padded, axis=1, bitorder="little").view("<u8").astype(np.uint64)
+            )
+        return out
+
+    def speckle_levels(self, start: int = 0, stop: Optional[int] = None) -> np.ndarray:
+        """Speckle grey levels (n, H, W) uint32: ``L = random_word(seed, i * C + cell) >> 40``."""
+        start, stop = self._check_range(start, stop)
+        s = self.spec
+        if s.family != "speckle":
+            raise ValueError(f"a {s.family} spec has no grey levels")
+        g = s.grain or 1
+        cw, ch = -(-s.width // g), -(-s.height // g)
+        cells = cw * ch
+        cell = (np.arange(s.height)[:, None] // g) * cw + (np.arange(s.width)[None, :] // g)
+        i = np.arange(start, stop, dtype=np.uint64)
+        counters = i[:, None] * np.uint64(cells) + np.arange(cells, dtype=np.uint64)[None, :]
+        with np.errstate(over="ignore"):
+            levels = (random_words(s.seed, counters) >> np.uint64(40)).astype(np.uint32)
+        return levels[:, cell]
+
+    def values(
+        self, start: int = 0, stop: Optional[int] = None, dtype: "np.typing.DTypeLike" = np.float32
+    ) -> np.ndarray:
+        """Frames ``start..stop`` as an ndarray (n, height, width) of ``dtype`` (float32 by
+        default): 0/1 for binary families, ``L / 2^24`` for speckle."""
+        start, stop = self._check_range(start, stop)
+        s = self.spec
+        out = np.empty((stop - start, s.height, s.width), dtype=dtype)
+        step = self._block(self.k + 16 * self.words_per_pattern)
+        for a in range(start, stop, step):
+            b = min(stop, a + step)
+            if s.family == "speckle":
+                out[a - start : b - start] = self.speckle_levels(a, b) * (1.0 / (1 << 24))
+            else:
+                out[a - start : b - start] = self._on(a, b)
+        return out
+
+    def run_sha256(self, start: int, count: int) -> str:
+        """SHA-256 of frames start..start+count as PATTERNS.md's test vectors hash them."""
+        h = hashlib.sha256()
+        if self.spec.family == "speckle":
+            h.update(self.speckle_levels(start, start + count).astype("<u4").tobytes())
+        else:
+            h.update(self.packed_bits(start, start + count).astype("<u8").tobytes())
+        return h.hexdigest()
+
+
+def patterns(
+    spec: PatternSpec,
+    start: int = 0,
+    stop: Optional[int] = None,
+    dtype: "np.typing.DTypeLike" = np.float32,
+) -> np.ndarray:
+    """Frames ``start..stop`` (default: all ``spec.count``) of ``spec`` as an ndarray
+    ``(n, height, width)``, ready for a projector: 0.0 / 1.0 for raster, bernoulli and
+    hadamard, ``L / 2^24`` for speckle. Bit-exact with the server's generator (PATTERNS.md).
+
+    Raises:
+        SpecError: the spec is invalid.
+        IndexError: the range leaves ``0..spec.count``.
+    """
+    return PatternGenerator(spec).values(start, stop, dtype)
+
+
+def pattern(spec: PatternSpec, index: int, dtype: "np.typing.DTypeLike" = np.float32) -> np.ndarray:
+    """Frame ``index`` of ``spec`` as an ndarray ``(height, width)``."""
+    return PatternGenerator(spec).values(index, index + 1, dtype)[0]
+
+
+def packed_bits(spec: PatternSpec, start: int = 0, stop: Optional[int] = None) -> np.ndarray:
+    """:meth:`PatternGenerator.packed_bits` of ``spec``."""
+    return PatternGenerator(spec).packed_bits(start, stop)
+
+
+def speckle_levels(spec: PatternSpec, start: int = 0, stop: Optional[int] = None) -> np.ndarray:
+    """:meth:`PatternGenerator.speckle_levels` of ``spec``."""
+    return PatternGenerator(spec).speckle_levels(start, stop)
+
+
+def run_sha256(spec: PatternSpec, start: int, count: int) -> str:
+    """:meth:`PatternGenerator.run_sha256` of ``spec``."""
+    return PatternGenerator(spec).run_sha256(start, count)
