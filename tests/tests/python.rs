@@ -163,4 +163,9 @@ fn the_python_package_passes_its_pytest_suite_against_the_real_server() {
         stdout.contains(" passed") && !stdout.contains(" failed"),
         "pytest ran no tests or reported failures:\n{stdout}"
     );
+    // Inside this wrapper every test runs: a skip would hide one silently.
+    assert!(
+        !stdout.contains("skipped"),
+        "pytest skipped tests under cargo test:\n{stdout}"
+    );
 }
