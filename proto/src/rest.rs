@@ -36,23 +36,35 @@ pub const PROBLEM_JSON: &str = "application/problem+json";
 /// An error as `application/problem+json` (RFC 9457). The server always sends `type`, `title`,
 /// `status` and `detail`; `field` names the offending input of a 400, `limit` the limit a 413
 /// or 429 ran into (with `estimate_bytes` and `limit_bytes` for the memory budget).
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
 pub struct Problem {
     /// `/problems/{slug}`.
     #[serde(rename = "type", skip_serializing_if = "Option::is_none")]
+    #[cfg_attr(feature = "openapi", schema(required = true, nullable = false))]
     pub problem_type: Option<String>,
     #[serde(skip_serializing_if = "Option::is_none")]
+    #[cfg_attr(feature = "openapi", schema(required = true, nullable = false))]
     pub title: Option<String>,
+    /// The HTTP status code.
+    #[cfg_attr(feature = "openapi", schema(required = true))]
     pub status: u16,
     #[serde(skip_serializing_if = "Option::is_none")]
+    #[cfg_attr(feature = "openapi", schema(required = true, nullable = false))]
     pub detail: Option<String>,
+    /// A 400's offending input as the request spells it (`limit`, `light.radius`, `roles[1]`,
+    /// `content-type`, `body`, ...).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub field: Option<String>,
+    /// The limit a 413 or 429 ran into (`max_body_bytes`, `rate_per_second`, `memory_budget`,
+    /// a cap's name).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub limit: Option<String>,
+    /// The memory budget's 413: the reconstruction's estimated working set.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub estimate_bytes: Option<u64>,
+    /// The memory budget's 413: the budget.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub limit_bytes: Option<u64>,
 }
@@ -74,6 +86,7 @@ impl Problem {
 // Service
 
 /// `GET /healthz`: `{"status": "serving"}` (200) or `{"status": "not serving"}` (503).
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Health {
     pub status: String,
@@ -85,6 +98,7 @@ impl Health {
 }
 
 /// `GET /`: what the service is and the routes it serves.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ServiceIndex {
     pub service: String,
@@ -98,6 +112,7 @@ pub struct ServiceIndex {
 // Sessions
 
 /// Whether a session still takes rows.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum SessionState {
@@ -122,6 +137,7 @@ impl std::fmt::Display for SessionState {
 }
 
 /// A camera session's frame layout: `width x height` samples of `format` per pattern.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct CameraView {
     pub width: u32,
@@ -130,6 +146,7 @@ pub struct CameraView {
 }
 
 /// Where a session's resources are.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 pub struct SessionLinks {
     #[serde(rename = "self")]
@@ -150,6 +167,7 @@ impl SessionLinks {
 }
 
 /// A session as `GET /v1/sessions/{id}` returns it.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct SessionView {
     pub id: String,
@@ -185,6 +203,7 @@ pub struct SessionView {
 }
 
 /// `GET /v1/sessions`.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct SessionList {
     pub sessions: Vec<SessionView>,
@@ -195,6 +214,7 @@ pub struct SessionList {
 
 /// `POST /v1/sessions/{id}/reconstructions`: a method and its parameters (method-specific, see
 /// the method's documentation; `{}` or absent for the defaults).
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ReconstructionRequest {
@@ -204,6 +224,7 @@ pub struct ReconstructionRequest {
 }
 
 /// Where a reconstruction's resources are.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 pub struct ReconstructionLinks {
     #[serde(rename = "self")]
@@ -226,6 +247,7 @@ impl ReconstructionLinks {
 
 /// A reconstruction job as `GET /v1/reconstructions/{id}` returns it. `R` is its report: the
 /// client reads a [`Report`]; the server passes the stored report text through unchanged.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct ReconstructionView<R = Report> {
     pub id: i64,
@@ -303,8 +325,11 @@ impl From<v1::Reconstruction> for ReconstructionView {
 }
 
 /// `GET /v1/sessions/{id}/reconstructions`.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ReconstructionList<R = Report> {
+    // The document describes the views as the server sends them (with a `Report`).
+    #[cfg_attr(feature = "openapi", schema(value_type = Vec<ReconstructionView>))]
     pub reconstructions: Vec<ReconstructionView<R>>,
 }
 
@@ -313,6 +338,7 @@ pub struct ReconstructionList<R = Report> {
 
 /// `POST /v1/reconstructions/{id}/relight` with a JSON body: `{"light": ...}`. (The light may
 /// also be sent as a camera-sized PNG or NPY body.)
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct RelightRequest {
@@ -321,6 +347,7 @@ pub struct RelightRequest {
 
 /// A virtual light at the detector side: `{"preset": ...}` or `{"weights": {...}}` (decoded by
 /// the key present, so an error names the field, not "no variant matched").
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Debug, PartialEq, Serialize)]
 #[serde(untagged)]
 pub enum LightRequest {
@@ -438,6 +465,7 @@ impl<'de> Deserialize<'de> for LightRequest {
 }
 
 /// `{"preset": "full" | "disc" | "stripe", ...}`, in camera pixel units.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "preset", rename_all = "lowercase", deny_unknown_fields)]
 pub enum LightPreset {
@@ -451,6 +479,7 @@ pub enum LightPreset {
 
 /// `POST /v1/reconstructions/{id}/primal` with a JSON body: one of the session's own patterns.
 /// (Any pattern may also be sent as a projector-sized PNG or NPY body.)
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct PrimalRequest {
@@ -462,6 +491,7 @@ pub struct PrimalRequest {
 
 /// `POST /v1/tokens`: roles (`rig`, `reader`, `admin`; at least one) and a note (at most 256
 /// characters, no control characters).
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct TokenRequest {
@@ -472,6 +502,7 @@ pub struct TokenRequest {
 
 /// A token of a lab, never with its secret, except in the answer to its creation (`token`,
 /// shown that once).
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct TokenView {
     pub id: i64,
@@ -487,6 +518,7 @@ pub struct TokenView {
 }
 
 /// `GET /v1/tokens`.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct TokenList {
     pub tokens: Vec<TokenView>,
@@ -498,6 +530,7 @@ pub struct TokenList {
 /// A reconstruction's report as stored and served (`ReconstructionView::report`): what the
 /// numerics report ([`ReconReport`], flattened) and what the service adds. Fields of other
 /// versions are kept in `extra`.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct Report {
     #[serde(flatten)]
@@ -554,6 +587,7 @@ impl Report {
 }
 
 /// What every reconstruction method reports (the numerics' part of a [`Report`]).
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 #[serde(default)]
 pub struct ReconReport {
@@ -573,6 +607,7 @@ pub struct ReconReport {
 }
 
 /// The held-out error estimate as reported (`ReconReport::held_out`).
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct HeldOut {
     /// Held-out rows scored: patterns; for the iterative methods on Hadamard, split pairs; for
@@ -580,6 +615,7 @@ pub struct HeldOut {
     pub rows: usize,
     /// Fraction of rows held out.
     #[serde(deserialize_with = "null_as_nan")]
+    #[cfg_attr(feature = "openapi", schema(value_type = Option<f64>, required = true))]
     pub fraction: f64,
     /// `||c_H - c_hat_H|| / ||c_H - mean(c_H)||`, channels pooled; `None` (JSON null) when the
     /// held-out buckets are all equal but not predicted exactly (no scale to compare with).
@@ -587,6 +623,7 @@ pub struct HeldOut {
     pub per_channel: Vec<Option<f64>>,
     /// Root-mean-square residual in bucket units.
     #[serde(deserialize_with = "null_as_nan")]
+    #[cfg_attr(feature = "openapi", schema(value_type = Option<f64>, required = true))]
     pub rms_residual: f64,
 }
 
@@ -618,6 +655,7 @@ pub struct AutoChoice {
 }
 
 /// A report's `quality`.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(untagged)]
 pub enum Quality {
@@ -670,6 +708,7 @@ impl<'de> Deserialize<'de> for Figure {
 
 /// One channel's dual image against its truth, raw and after the least-squares affine fit
 /// (correlation methods estimate t only up to scale and offset).
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ChannelQuality {
     pub channel: String,
@@ -681,15 +720,19 @@ pub struct ChannelQuality {
     pub fit: AffineFit,
 }
 
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct AffineFit {
     #[serde(deserialize_with = "null_as_nan")]
+    #[cfg_attr(feature = "openapi", schema(value_type = Option<f64>, required = true))]
     pub scale: f64,
     #[serde(deserialize_with = "null_as_nan")]
+    #[cfg_attr(feature = "openapi", schema(value_type = Option<f64>, required = true))]
     pub offset: f64,
 }
 
 /// A transport matrix against the simulator's (`m x k`, row-major).
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(untagged)]
 pub enum TransportQuality {
@@ -717,6 +760,7 @@ fn null_as_nan<'de, D: Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
 
 /// `POST /v1/sessions`: the same declaration as gRPC `CreateSession`, in the shape
 /// `GET /v1/sessions/{id}` returns.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct NewSessionRequest {
@@ -744,6 +788,7 @@ pub struct NewSessionRequest {
 
 /// A session's known transport (`width x height` per channel, channels one after another; a
 /// camera session: one row of T per camera pixel).
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct GroundTruthView {
@@ -754,6 +799,7 @@ pub struct GroundTruthView {
 
 /// `GET /v1/sessions/{id}/rows` (rig or reader): where an upload stands; resume from
 /// `committed_rows`.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct UploadStatusView {
     pub session_id: String,
@@ -763,6 +809,7 @@ pub struct UploadStatusView {
 }
 
 /// `PUT /v1/sessions/{id}/rows`: what one upload request did.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct UploadResult {
     pub session_id: String,
@@ -774,6 +821,111 @@ pub struct UploadResult {
     pub rows_skipped: u64,
     pub expected_rows: u64,
     pub state: SessionState,
+}
+
+/// Schemas written by hand where serde's shape is custom ([`Figure`], [`PatternSpec`]) and the
+/// parameter schemas of the OpenAPI document (feature `openapi`).
+#[cfg(feature = "openapi")]
+mod openapi {
+    use utoipa::openapi::schema::{ObjectBuilder, OneOfBuilder, Schema, Type};
+    use utoipa::openapi::{RefOr, schema};
+    use utoipa::{PartialSchema, ToSchema};
+
+    use super::{Figure, PatternSpec};
+    use crate::patterns::{Family, MAX_COUNT, MAX_SIDE};
+
+    impl PartialSchema for Figure {
+        /// A number, `"inf"` or null.
+        fn schema() -> RefOr<Schema> {
+            OneOfBuilder::new()
+                .item(ObjectBuilder::new().schema_type(Type::Number))
+                .item(
+                    ObjectBuilder::new()
+                        .schema_type(Type::String)
+                        .enum_values(Some(["inf"])),
+                )
+                .item(ObjectBuilder::new().schema_type(Type::Null))
+                .description(Some(
+                    "A figure: a finite number, \"inf\" (+infinity, e.g. a perfect PSNR) or null (undefined)",
+                ))
+                .into()
+        }
+    }
+
+    impl ToSchema for Figure {}
+
+    /// One object per family, as `PatternSpec` writes and reads it: the family's own fields
+    /// (from [`Family`]'s schema) beside `width`, `height`, `count` and `seed`.
+    impl PartialSchema for PatternSpec {
+        fn schema() -> RefOr<Schema> {
+            let common = |object: schema::Object| {
+                let mut object = schema::ObjectBuilder::from(object)
+                    .property(
+                        "width",
+                        ObjectBuilder::new()
+                            .schema_type(Type::Integer)
+                            .minimum(Some(1))
+                            .maximum(Some(MAX_SIDE)),
+                    )
+                    .required("width")
+                    .property(
+                        "height",
+                        ObjectBuilder::new()
+                            .schema_type(Type::Integer)
+                            .minimum(Some(1))
+                            .maximum(Some(MAX_SIDE)),
+                    )
+                    .required("height")
+                    .property(
+                        "count",
+                        ObjectBuilder::new()
+                            .schema_type(Type::Integer)
+                            .minimum(Some(1))
+                            .maximum(Some(MAX_COUNT))
+                            .description(Some("Patterns in the session")),
+                    )
+                    .required("count")
+                    .property(
+                        "seed",
+                        ObjectBuilder::new()
+                            .schema_type(Type::Integer)
+                            .minimum(Some(0))
+                            .description(Some("The generator's seed (0 if absent)")),
+                    );
+                // Family denies unknown fields on its own; here the common fields belong too.
+                object = object
+                    .additional_properties(Some(schema::AdditionalProperties::FreeForm(false)));
+                object.build()
+            };
+            let variants = match Family::schema() {
+                RefOr::T(Schema::OneOf(one_of)) => one_of.items,
+                other => panic!(
+                    "Family's schema is a oneOf of its families, got {}",
+                    serde_json::to_string(&other).unwrap_or_default()
+                ),
+            };
+            let mut spec = OneOfBuilder::new().description(Some(
+                "A pattern spec (PATTERNS.md): the family and its parameters beside the common fields, e.g. {\"family\": \"bernoulli\", \"width\": 64, \"height\": 64, \"count\": 4096, \"seed\": 7, \"fill\": 0.5}",
+            ));
+            for variant in variants {
+                match variant {
+                    RefOr::T(Schema::Object(object)) => spec = spec.item(common(object)),
+                    other => panic!(
+                        "a family's schema is an object, got {}",
+                        serde_json::to_string(&other).unwrap_or_default()
+                    ),
+                }
+            }
+            spec.into()
+        }
+    }
+
+    impl ToSchema for PatternSpec {
+        fn schemas(schemas: &mut Vec<(String, RefOr<Schema>)>) {
+            // What the families' fields refer to (e.g. HadamardOrdering).
+            <Family as ToSchema>::schemas(schemas);
+        }
+    }
 }
 
 #[cfg(test)]

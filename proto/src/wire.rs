@@ -3,6 +3,7 @@
 
 /// How one measured value is stored and sent: f64 for bucket sessions, f32 or u16 (counts) for
 /// camera frames.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(
     Clone, Copy, Debug, Default, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize,
 )]

@@ -118,7 +118,7 @@ impl Application {
             Some(at) => {
                 let l = crate::telemetry::bind(at).await?;
                 let a = l.local_addr()?;
-                Some((l, a, recorder.clone()))
+                Some((l, a, recorder))
             }
         };
         let store = Store::connect(
@@ -167,12 +167,10 @@ impl Application {
             .build_v1alpha()
             .map_err(|e| anyhow::anyhow!("gRPC reflection: {e}"))?;
         // REST bodies that stop arriving fail with 408 (gRPC streams are not cut here).
-        let rest = rest::router(state.clone())
-            .merge(crate::telemetry::main_port(state, recorder))
-            .layer(axum::middleware::from_fn_with_state(
-                edge.body_timeout,
-                crate::edge::body_timeout,
-            ));
+        let rest = rest::router(state).layer(axum::middleware::from_fn_with_state(
+            edge.body_timeout,
+            crate::edge::body_timeout,
+        ));
         let router = rest
             .route_service(&format!("/{}/{{*rpc}}", <AcquisitionServer<AcquisitionService> as NamedService>::NAME), grpc_route(acquisition))
             .route_service(&format!("/{}/{{*rpc}}", health_name(&health_service)), grpc_route(health_service))

@@ -107,16 +107,23 @@ pub async fn serve(
     crate::edge::serve(listener, app, &edge, None, shutdown).await
 }
 
-/// `GET /metrics` on the main port (REST, TLS when the API has it): the same text as the
-/// separate listener, for a token with the `metrics` role (401/403 problem+json otherwise).
-pub fn main_port(state: crate::api::AppState, handle: PrometheusHandle) -> axum::Router {
-    axum::Router::new()
-        .route("/metrics", axum::routing::get(main_port_render))
-        .with_state((state, handle))
-}
-
-async fn main_port_render(
-    State((state, handle)): State<(crate::api::AppState, PrometheusHandle)>,
+/// Metrics
+///
+/// The server's Prometheus metrics in the text exposition format, for a token with the
+/// `metrics` role (server-wide counts, nothing of any lab's sessions). `--metrics-listen`
+/// serves the same without a token on a separate address.
+#[utoipa::path(
+    get,
+    path = "/metrics",
+    tag = "service",
+    responses(
+        (status = 200, description = "Prometheus text format 0.0.4",
+            content_type = "text/plain; version=0.0.4", body = String),
+        (status = 403, response = crate::api::openapi::Forbidden),
+    )
+)]
+pub(crate) async fn metrics(
+    State(state): State<crate::api::AppState>,
     headers: http::HeaderMap,
 ) -> Result<Response, crate::api::ApiError> {
     let authorization = headers
@@ -124,6 +131,7 @@ async fn main_port_render(
         .map(|v| v.as_bytes());
     let caller = state.authenticate(authorization).await?;
     caller.require(crate::auth::Role::Metrics)?;
+    let handle = recorder().map_err(|e| crate::api::ApiError::Internal(e.to_string()))?;
     Ok(render(State((handle, state.store.clone()))).await)
 }
 

@@ -88,6 +88,24 @@ impl Rest<'_> {
         self.send(request).await
     }
 
+    /// `PUT .../rows{query}` with exactly `headers` (no checksum added).
+    async fn put_with(
+        &self,
+        id: &str,
+        query: &str,
+        headers: &[(&str, &str)],
+        body: Vec<u8>,
+    ) -> Answer {
+        let mut request = self.http.put(format!(
+            "{}/v1/sessions/{id}/rows{query}",
+            self.server.address
+        ));
+        for (name, value) in headers {
+            request = request.header(*name, *value);
+        }
+        self.send(request.body(body)).await
+    }
+
     async fn committed(&self, id: &str) -> u64 {
         let a = self
             .send(
@@ -237,17 +255,13 @@ async fn a_bucket_session_made_and_filled_over_rest_keeps_every_row_and_refuses_
         ),
         // No checksum.
         (
-            {
-                let r = rest
-                    .http
-                    .put(format!(
-                        "{}/v1/sessions/{id}/rows?start_row=150",
-                        server.address
-                    ))
-                    .header("content-type", "application/octet-stream")
-                    .body(rows_bytes(150, 160));
-                rest.send(r).await
-            },
+            rest.put_with(
+                id,
+                "?start_row=150",
+                &[("content-type", "application/octet-stream")],
+                rows_bytes(150, 160),
+            )
+            .await,
             400,
             "x-helmholtz-crc32c",
         ),
@@ -268,16 +282,12 @@ async fn a_bucket_session_made_and_filled_over_rest_keeps_every_row_and_refuses_
         (
             {
                 let body = rows_bytes(150, 160);
-                let r = rest
-                    .http
-                    .put(format!("{}/v1/sessions/{id}/rows", server.address))
-                    .header("content-type", "application/octet-stream")
-                    .header(
-                        "x-helmholtz-crc32c",
-                        format!("{:08x}", crc32c::crc32c(&body)),
-                    )
-                    .body(body);
-                rest.send(r).await
+                let crc = format!("{:08x}", crc32c::crc32c(&body));
+                let headers = [
+                    ("content-type", "application/octet-stream"),
+                    ("x-helmholtz-crc32c", crc.as_str()),
+                ];
+                rest.put_with(id, "", &headers, body).await
             },
             400,
             "start_row",
@@ -415,52 +425,42 @@ async fn a_bucket_session_made_and_filled_over_rest_keeps_every_row_and_refuses_
         // A Content-Digest that does not match, one of another algorithm, a malformed one.
         (
             {
-                let r = rest
-                    .http
-                    .put(format!(
-                        "{}/v1/sessions/{id}/rows?start_row=150",
-                        server.address
-                    ))
-                    .header("content-type", "application/octet-stream")
-                    .header(
-                        "content-digest",
-                        format!("sha-256=:{}:", "A".repeat(43) + "="),
-                    )
-                    .body(rows_bytes(150, 160));
-                rest.send(r).await
+                let digest = format!("sha-256=:{}=:", "A".repeat(43));
+                let headers = [
+                    ("content-type", "application/octet-stream"),
+                    ("content-digest", digest.as_str()),
+                ];
+                rest.put_with(id, "?start_row=150", &headers, rows_bytes(150, 160))
+                    .await
             },
             422,
             "",
         ),
         (
-            {
-                let r = rest
-                    .http
-                    .put(format!(
-                        "{}/v1/sessions/{id}/rows?start_row=150",
-                        server.address
-                    ))
-                    .header("content-type", "application/octet-stream")
-                    .header("content-digest", "md5=:AAAAAAAAAAAAAAAAAAAAAA==:")
-                    .body(rows_bytes(150, 160));
-                rest.send(r).await
-            },
+            rest.put_with(
+                id,
+                "?start_row=150",
+                &[
+                    ("content-type", "application/octet-stream"),
+                    ("content-digest", "md5=:AAAAAAAAAAAAAAAAAAAAAA==:"),
+                ],
+                rows_bytes(150, 160),
+            )
+            .await,
             400,
             "content-digest",
         ),
         (
-            {
-                let r = rest
-                    .http
-                    .put(format!(
-                        "{}/v1/sessions/{id}/rows?start_row=150",
-                        server.address
-                    ))
-                    .header("content-type", "application/octet-stream")
-                    .header("content-digest", "sha-256=:not base64:")
-                    .body(rows_bytes(150, 160));
-                rest.send(r).await
-            },
+            rest.put_with(
+                id,
+                "?start_row=150",
+                &[
+                    ("content-type", "application/octet-stream"),
+                    ("content-digest", "sha-256=:not base64:"),
+                ],
+                rows_bytes(150, 160),
+            )
+            .await,
             400,
             "content-digest",
         ),

@@ -682,7 +682,9 @@ async fn the_index_names_every_method_and_route() {
     let methods = "gi|dgi|ngi|direct|zero_filled|levels|cs|tv|lsq|auto|transport";
     assert!(routes.contains(methods), "{routes}");
     for route in [
-        "/v1/sessions/{id}/measurements.npy",
+        // The session's files are one route, GET /v1/sessions/{id}/{file}, naming its files.
+        "/v1/sessions/{id}/{file}",
+        "measurements.npy",
         "/v1/reconstructions/{id}/relight",
         "/v1/reconstructions/{id}/primal",
         "/v1/tokens",

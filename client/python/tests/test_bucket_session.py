@@ -114,15 +114,22 @@ def test_the_index_lists_the_routes_this_package_uses(client) -> None:  # type: 
     for route in [
         "GET /v1/sessions/{id}",
         "POST /v1/sessions/{id}/reconstructions",
-        "GET /v1/sessions/{id}/dual.png|dual.tiff|dual.npy",
-        "GET /v1/sessions/{id}/measurements.npy",
         "GET /v1/reconstructions/{id}",
-        "GET /v1/reconstructions/{id}/dual.png|dual.tiff|dual.npy",
         "POST /v1/reconstructions/{id}/cancel",
         "POST /v1/reconstructions/{id}/relight",
         "POST /v1/reconstructions/{id}/primal",
     ]:
         assert any(r.startswith(route) for r in routes), f"{route} not in GET /: {routes}"
+    # The file routes list the files they serve ({file}: a|b|c).
+    for route, files in [
+        ("GET /v1/sessions/{id}/{file}", ["measurements.npy", "dual.png", "dual.tiff", "dual.npy"]),
+        ("GET /v1/reconstructions/{id}/{file}", ["dual.png", "dual.tiff", "dual.npy"]),
+    ]:
+        line = next((r for r in routes if r.startswith(route)), None)
+        assert line is not None, f"{route} not in GET /: {routes}"
+        served = line.split("({file}: ", 1)[1].rstrip(")").split("|")
+        for f in files:
+            assert f in served, f"{f} not served by {line}"
     post = next(r for r in routes if r.startswith("POST /v1/sessions/{id}/reconstructions"))
     for method in ("auto", "dgi", "transport"):
         assert method in post, post

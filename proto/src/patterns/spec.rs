@@ -14,6 +14,7 @@ pub const MAX_COUNT: u64 = 10_000_000;
 pub const FILL_BITS: u32 = 16;
 
 /// The pattern family and its parameters.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "family", rename_all = "snake_case", deny_unknown_fields)]
 pub enum Family {

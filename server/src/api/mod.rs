@@ -5,6 +5,7 @@ pub mod error;
 pub mod grpc;
 pub mod images;
 pub mod json;
+pub mod openapi;
 pub mod relight;
 pub mod rest;
 pub mod upload;

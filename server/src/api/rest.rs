@@ -9,11 +9,10 @@ use axum::extract::{FromRequestParts, State};
 use axum::http::request::Parts;
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
-use axum::routing::{get, post};
 use helmholtz_proto::rest::{
-    CameraView, Health, Problem, ReconstructionLinks, ReconstructionList, ReconstructionRequest,
-    ReconstructionView, ServiceIndex, SessionLinks, SessionList, SessionState, SessionView,
-    TokenList, TokenRequest, TokenView,
+    CameraView, Health, PrimalRequest, Problem, ReconstructionLinks, ReconstructionList,
+    ReconstructionRequest, ReconstructionView, RelightRequest, ServiceIndex, SessionLinks,
+    SessionList, SessionState, SessionView, TokenList, TokenRequest, TokenView,
 };
 use serde_json::Value;
 use serde_json::value::RawValue;
@@ -23,46 +22,225 @@ use super::{ApiError, AppState, validate};
 use crate::auth::{Principal, Role, Roles};
 use crate::store::{self, ReconstructionRow, SampleFormat, SessionRow, StoredImage, TokenInfo};
 use futures::StreamExt;
+use utoipa_axum::router::OpenApiRouter;
+use utoipa_axum::routes;
 
+use super::openapi::{self, ReconstructionFile, SessionFile};
+
+/// Every REST route, each with its OpenAPI operation (the `#[utoipa::path]` on its handler):
+/// what is routed and what `/openapi.json` documents come from this one list. A new route is
+/// one `.routes(routes!(handler))` line here and an annotated handler; a plain `.route(...)`
+/// would be served but not documented (the openapi tests catch it).
+pub fn api() -> OpenApiRouter<AppState> {
+    OpenApiRouter::with_openapi(<openapi::Base as utoipa::OpenApi>::openapi())
+        .routes(routes!(index))
+        .routes(routes!(healthz))
+        .routes(routes!(openapi::openapi_json))
+        .routes(routes!(openapi::docs))
+        .routes(routes!(list_sessions, super::upload::create_session))
+        .routes(routes!(
+            super::upload::upload_status,
+            super::upload::put_rows
+        ))
+        .routes(routes!(super::upload::finish_session))
+        .routes(routes!(crate::telemetry::metrics))
+        .routes(routes!(get_session))
+        .routes(routes!(list_reconstructions, post_reconstruction))
+        .routes(routes!(session_file))
+        .routes(routes!(get_reconstruction, delete_reconstruction))
+        .routes(routes!(cancel_reconstruction))
+        .routes(routes!(relight))
+        .routes(routes!(primal))
+        .routes(routes!(reconstruction_file))
+        .routes(routes!(list_tokens, create_token))
+        .routes(routes!(revoke_token))
+}
+
+/// The REST router: [`routes`] with the state.
 pub fn router(state: AppState) -> Router {
-    Router::new()
-        .route("/", get(index))
-        .route("/healthz", get(healthz))
-        .route(
-            "/v1/sessions",
-            get(list_sessions).post(super::upload::create_session),
-        )
-        .route(
-            "/v1/sessions/{id}/rows",
-            get(super::upload::upload_status).put(super::upload::put_rows),
-        )
-        .route(
-            "/v1/sessions/{id}/finish",
-            post(super::upload::finish_session),
-        )
-        .route("/v1/sessions/{id}", get(get_session))
-        .route(
-            "/v1/sessions/{id}/reconstructions",
-            get(list_reconstructions).post(post_reconstruction),
-        )
-        // measurements.npy, dual.png, dual.tiff, dual.npy
-        .route("/v1/sessions/{id}/{file}", get(session_file))
-        .route(
-            "/v1/reconstructions/{id}",
-            get(get_reconstruction).delete(cancel_reconstruction),
-        )
-        .route(
-            "/v1/reconstructions/{id}/cancel",
-            post(cancel_reconstruction),
-        )
-        .route("/v1/reconstructions/{id}/relight", post(relight))
-        .route("/v1/reconstructions/{id}/primal", post(primal))
-        .route("/v1/reconstructions/{id}/{file}", get(reconstruction_file))
-        .route("/v1/tokens", get(list_tokens).post(create_token))
-        .route("/v1/tokens/{id}", axum::routing::delete(revoke_token))
+    routes().with_state(state)
+}
+
+/// [`api`]'s routes, problem+json for unknown paths (404) and methods (405).
+pub fn routes() -> Router<AppState> {
+    let (router, _) = api().split_for_parts();
+    router
         .fallback(not_found)
         .method_not_allowed_fallback(method_not_allowed)
-        .with_state(state)
+}
+
+/// `GET /v1/{sessions,reconstructions}/{id}/{file}`: the dual image files.
+pub const DUAL_FILES: [&str; 3] = ["dual.png", "dual.tiff", "dual.npy"];
+
+// Parameters as the document describes them (the handlers read them as strings and refuse bad
+// ones with a 400 naming the parameter).
+
+/// `{id}` of a session.
+#[derive(utoipa::IntoParams)]
+#[into_params(parameter_in = Path)]
+#[allow(dead_code)]
+pub(super) struct SessionId {
+    /// The session id: 1-128 characters of A-Z a-z 0-9 . _ -
+    #[param(pattern = r"^[A-Za-z0-9._-]{1,128}$")]
+    id: String,
+}
+
+/// `{id}` of a reconstruction.
+#[derive(utoipa::IntoParams)]
+#[into_params(parameter_in = Path)]
+#[allow(dead_code)]
+struct ReconstructionId {
+    /// The reconstruction id (an integer)
+    id: i64,
+}
+
+/// `{id}` and `{file}` of a session's file.
+#[derive(utoipa::IntoParams)]
+#[into_params(parameter_in = Path)]
+#[allow(dead_code)]
+struct SessionFilePath {
+    /// The session id: 1-128 characters of A-Z a-z 0-9 . _ -
+    #[param(pattern = r"^[A-Za-z0-9._-]{1,128}$")]
+    id: String,
+    /// The file
+    #[param(inline, value_type = SessionFile)]
+    file: String,
+}
+
+/// `{id}` and `{file}` of a reconstruction's file.
+#[derive(utoipa::IntoParams)]
+#[into_params(parameter_in = Path)]
+#[allow(dead_code)]
+struct ReconstructionFilePath {
+    /// The reconstruction id (an integer)
+    id: i64,
+    /// The file
+    #[param(inline, value_type = ReconstructionFile)]
+    file: String,
+}
+
+/// How a PNG maps float values to 8 bits.
+#[derive(utoipa::ToSchema)]
+#[schema(rename_all = "lowercase")]
+#[allow(dead_code)]
+enum ScaleName {
+    /// Black at the 0.5th percentile, white at the 99.5th (the default)
+    Percentile,
+    /// Black at the minimum, white at the maximum
+    MinMax,
+}
+
+/// The encoding of a computed image.
+#[derive(utoipa::ToSchema)]
+#[schema(rename_all = "lowercase")]
+#[allow(dead_code)]
+enum FormatName {
+    /// 8-bit grey PNG scaled for viewing (`scale`), image/png (the default)
+    Png,
+    /// 32-bit float TIFF, image/tiff
+    Tiff,
+    /// float32 NPY of shape (height, width), sent as application/octet-stream
+    Npy,
+}
+
+/// Photometric stereo's detector gains.
+#[derive(utoipa::ToSchema)]
+#[schema(rename_all = "lowercase")]
+#[allow(dead_code)]
+enum GainsName {
+    /// Estimated when the data fix them, else equal (the default; photometric.json says which)
+    Auto,
+    /// All detectors equally sensitive
+    Equal,
+    /// Estimated from the images (four or more channels)
+    Estimate,
+}
+
+/// Whether a predicted camera image includes the measured ambient (dark) image.
+#[derive(utoipa::ToSchema)]
+#[schema(rename_all = "lowercase")]
+#[allow(dead_code)]
+enum AmbientName {
+    /// Add the reconstruction's ambient image (the default)
+    Include,
+    /// T p alone
+    Exclude,
+}
+
+#[derive(utoipa::IntoParams)]
+#[into_params(parameter_in = Query)]
+#[allow(dead_code)]
+struct ListQuery {
+    /// At most this many sessions (1-1000, default 100)
+    #[param(minimum = 1, maximum = 1000)]
+    limit: Option<u32>,
+}
+
+#[derive(utoipa::IntoParams)]
+#[into_params(parameter_in = Query)]
+#[allow(dead_code)]
+struct DualQuery {
+    /// The channel by name or index (default: the first)
+    channel: Option<String>,
+    /// dual.png only: how values map to 8 bits
+    #[param(inline)]
+    scale: Option<ScaleName>,
+}
+
+#[derive(utoipa::IntoParams)]
+#[into_params(parameter_in = Query)]
+#[allow(dead_code)]
+struct FileQuery {
+    /// dual.*: the channel by name or index (default: the first)
+    channel: Option<String>,
+    /// dual.png: how values map to 8 bits
+    #[param(inline)]
+    scale: Option<ScaleName>,
+    /// normals.*, albedo.*, residual.npy, photometric.json: the detector gains
+    #[param(inline)]
+    gains: Option<GainsName>,
+    /// normals.*, albedo.*, residual.npy, photometric.json: a channel at most this fraction of a pixel's brightest is shadowed there (in [0, 1), default 0.05)
+    #[param(minimum = 0, exclusive_maximum = 1)]
+    shadow_threshold: Option<f64>,
+    /// normals.*, albedo.*, residual.npy, photometric.json: a pixel whose brightest channel is at most this fraction of the image's 99th percentile is too dark to fit (in [0, 1), default 0.05)
+    #[param(minimum = 0, exclusive_maximum = 1)]
+    dark_threshold: Option<f64>,
+}
+
+#[derive(utoipa::IntoParams)]
+#[into_params(parameter_in = Query)]
+#[allow(dead_code)]
+struct RelightQuery {
+    /// The image's encoding
+    #[param(inline)]
+    format: Option<FormatName>,
+    /// format=png: how values map to 8 bits
+    #[param(inline)]
+    scale: Option<ScaleName>,
+}
+
+#[derive(utoipa::IntoParams)]
+#[into_params(parameter_in = Query)]
+#[allow(dead_code)]
+struct PrimalQuery {
+    /// The image's encoding
+    #[param(inline)]
+    format: Option<FormatName>,
+    /// format=png: how values map to 8 bits
+    #[param(inline)]
+    scale: Option<ScaleName>,
+    /// Whether the camera image includes the ambient image
+    #[param(inline)]
+    ambient: Option<AmbientName>,
+}
+
+#[derive(utoipa::IntoParams)]
+#[into_params(parameter_in = Header)]
+#[allow(dead_code)]
+struct Conditional {
+    /// An ETag of an earlier answer: 304 without a body when it names this one
+    #[param(rename = "If-None-Match")]
+    if_none_match: Option<String>,
 }
 
 async fn not_found() -> ApiError {
@@ -153,39 +331,40 @@ pub(super) async fn read_body_up_to(
     })
 }
 
+/// The service index
+///
+/// What the service is, its gRPC services, how to authenticate and every REST route (one line
+/// per operation of this document).
+#[utoipa::path(
+    get,
+    path = "/",
+    tag = "service",
+    responses((status = 200, description = "The service index", body = ServiceIndex))
+)]
 async fn index(Caller(_caller): Caller) -> axum::Json<ServiceIndex> {
     axum::Json(ServiceIndex {
         service: "helmholtz".into(),
         version: env!("CARGO_PKG_VERSION").into(),
         grpc: "helmholtz.v1.Acquisition on this same address (HTTP/2); grpc.health.v1.Health and server reflection (grpc.reflection.v1, v1alpha) need no token".into(),
-        routes: vec![
-            "GET /v1/sessions".to_string(),
-            "POST /v1/sessions {\"id\", \"rig\", \"patterns\": {spec}, \"channels\": [..] | \"camera\": {\"width\", \"height\", \"format\"}} (rig; the REST twin of gRPC CreateSession)".into(),
-            "PUT /v1/sessions/{id}/rows?start_row=N with an application/x-npy or application/octet-stream body and x-helmholtz-crc32c: <hex> (rig; resumable, one writer, overlap compared)".into(),
-            "GET /v1/sessions/{id}/rows (rig or reader: committed_rows, where to resume)".into(),
-            "POST /v1/sessions/{id}/finish (rig)".into(),
-            "GET /v1/sessions/{id}".into(), "GET /v1/sessions/{id}/reconstructions".into(),
-            format!(
-                "POST /v1/sessions/{{id}}/reconstructions {{\"method\": \"{}\", \"params\": {{}}}} (transport: camera sessions)",
-                crate::recon::Request::method_names().collect::<Vec<_>>().join("|")
-            ),
-            "GET /v1/sessions/{id}/dual.png|dual.tiff|dual.npy (latest finished reconstruction)".into(),
-            "GET /v1/sessions/{id}/measurements.npy (the committed rows: float64 (rows, channels), or a camera session's frames, (rows, height, width))".into(),
-            "GET /v1/reconstructions/{id}".into(),
-            "GET /v1/reconstructions/{id}/dual.png|dual.tiff|dual.npy?channel=NAME&scale=percentile|minmax".into(),
-            "GET /v1/reconstructions/{id}/normals.png|normals.npy|albedo.png|albedo.npy|residual.npy|photometric.json?gains=auto|equal|estimate (photometric stereo from 3+ detectors with declared directions)".into(),
-            "GET /v1/reconstructions/{id}/composite.png (channels r, g, b)".into(),
-            "POST /v1/reconstructions/{id}/cancel (or DELETE /v1/reconstructions/{id})".into(),
-            "POST /v1/reconstructions/{id}/relight?format=png|tiff|npy {\"light\": {\"preset\": \"full\"|\"disc\"|\"stripe\", ...} | {\"weights\": {CHANNEL: W}}} or a camera-sized PNG/NPY body: the dual image T^T c'".into(),
-            "POST /v1/reconstructions/{id}/primal?format=png|tiff|npy&ambient=include|exclude {\"pattern_index\": I} or a projector-sized PNG/NPY body: the camera image T p (+ ambient), with x-helmholtz-relative-error for a measured pattern".into(),
-            "GET /v1/tokens, POST /v1/tokens {\"roles\": [\"rig\"], \"note\": \"...\"}, DELETE /v1/tokens/{id} (admin)".into(),
-            "GET /healthz (no token needed)".into(),
-        ],
-        auth: "every route but /healthz needs \"Authorization: Bearer <token>\"; tokens belong to one lab and carry roles rig, reader, admin, metrics (GET /metrics)".into(),
+        routes: openapi::document().routes.clone(),
+        auth: "every route but /healthz, /openapi.json and /docs needs \"Authorization: Bearer <token>\"; tokens belong to one lab and carry roles rig, reader, admin, metrics (GET /metrics)".into(),
     })
 }
 
-/// Open (no token): load balancers and probes call it.
+/// Health
+///
+/// Open (no token): load balancers and probes call it. Serving when the database answers
+/// within 2 s.
+#[utoipa::path(
+    get,
+    path = "/healthz",
+    tag = "service",
+    security(()),
+    responses(
+        (status = 200, description = "The database answers: {\"status\": \"serving\"}", body = Health),
+        (status = 503, description = "The database does not answer within 2 s: {\"status\": \"not serving\"}", body = Health),
+    )
+)]
 async fn healthz(State(state): State<AppState>) -> Response {
     let health = |status: &str| {
         axum::Json(Health {
@@ -272,6 +451,20 @@ fn recon_path(id: &str) -> Result<i64, ApiError> {
     })
 }
 
+/// List the lab's sessions
+///
+/// The caller's lab's sessions, newest first (role reader).
+#[utoipa::path(
+    get,
+    path = "/v1/sessions",
+    tag = "sessions",
+    params(ListQuery),
+    responses(
+        (status = 200, description = "The sessions", body = SessionList),
+        (status = 400, response = openapi::BadRequest),
+        (status = 403, response = openapi::Forbidden),
+    )
+)]
 async fn list_sessions(
     Caller(caller): Caller,
     State(state): State<AppState>,
@@ -299,6 +492,21 @@ async fn list_sessions(
     Ok(axum::Json(SessionList { sessions: out }))
 }
 
+/// A session
+///
+/// Its declaration, upload progress and latest finished reconstruction (role reader).
+#[utoipa::path(
+    get,
+    path = "/v1/sessions/{id}",
+    tag = "sessions",
+    params(SessionId),
+    responses(
+        (status = 200, description = "The session", body = SessionView),
+        (status = 400, response = openapi::BadRequest),
+        (status = 403, response = openapi::Forbidden),
+        (status = 404, response = openapi::NotFound),
+    )
+)]
 async fn get_session(
     Caller(caller): Caller,
     State(state): State<AppState>,
@@ -311,6 +519,21 @@ async fn get_session(
     Ok(axum::Json(session_view(&s, latest)))
 }
 
+/// A session's reconstructions
+///
+/// Every reconstruction requested on the session, oldest first (role reader).
+#[utoipa::path(
+    get,
+    path = "/v1/sessions/{id}/reconstructions",
+    tag = "reconstructions",
+    params(SessionId),
+    responses(
+        (status = 200, description = "The reconstructions", body = ReconstructionList),
+        (status = 400, response = openapi::BadRequest),
+        (status = 403, response = openapi::Forbidden),
+        (status = 404, response = openapi::NotFound),
+    )
+)]
 async fn list_reconstructions(
     Caller(caller): Caller,
     State(state): State<AppState>,
@@ -325,6 +548,29 @@ async fn list_reconstructions(
     }))
 }
 
+/// Request a reconstruction
+///
+/// Queues a reconstruction of the session's committed rows by `method` with `params`
+/// (method-specific; `{}` or absent for the defaults); `transport` reconstructs a camera
+/// session's transport matrix. Poll the answer's `links.self` until `state` is done, failed or
+/// cancelled (role reader).
+#[utoipa::path(
+    post,
+    path = "/v1/sessions/{id}/reconstructions",
+    tag = "reconstructions",
+    params(SessionId),
+    request_body(content = ReconstructionRequest, description = "The method and its parameters", content_type = "application/json"),
+    responses(
+        (status = 202, description = "Queued", body = ReconstructionView,
+            headers(("Location" = String, description = "The reconstruction: /v1/reconstructions/{id}"))),
+        (status = 400, response = openapi::BadRequest),
+        (status = 403, response = openapi::Forbidden),
+        (status = 404, response = openapi::NotFound),
+        (status = 408, response = openapi::RequestTimeout),
+        (status = 409, response = openapi::Conflict),
+        (status = 413, response = openapi::TooLarge),
+    )
+)]
 async fn post_reconstruction(
     Caller(caller): Caller,
     State(state): State<AppState>,
@@ -408,7 +654,43 @@ async fn measurements_npy(
     Ok(response)
 }
 
-/// `POST /v1/reconstructions/{id}/relight` ([`relight`](super::relight)).
+/// Relight: the dual image under a virtual light
+///
+/// The dual image `T^T c'` of a finished reconstruction under a virtual light `c'` at the
+/// detector side (see `api::relight`): a camera session takes a preset
+/// (`{"light": {"preset": "full" | "disc" | "stripe", ...}}`) or a camera-sized image (PNG, or
+/// NPY of shape (height, width) or (height * width,)); a bucket session takes per-channel weights
+/// (`{"light": {"weights": {CHANNEL: W}}}`). Answers are immutable: strong ETag,
+/// `If-None-Match` gives 304 (role reader).
+#[utoipa::path(
+    post,
+    path = "/v1/reconstructions/{id}/relight",
+    tag = "relighting",
+    params(ReconstructionId, RelightQuery, Conditional),
+    request_body(description = "The virtual light: JSON, or a camera-sized image",
+        content(
+            (RelightRequest = "application/json"),
+            ("image/png"),
+            ("application/x-npy"),
+            ("application/octet-stream"),
+        )),
+    responses(
+        (status = 200, description = "The relit dual image (format=npy: float32 NPY sent as application/octet-stream)",
+            content(("image/png"), ("image/tiff"), ("application/octet-stream")),
+            headers(
+                ("ETag" = String, description = "The answer's strong ETag"),
+                ("Cache-Control" = String, description = "private, max-age=31536000, immutable"),
+                ("Server-Timing" = String, description = "compute;dur=MS, or cache;desc=\"hit\""),
+            )),
+        (status = 304, response = openapi::NotModified),
+        (status = 400, response = openapi::BadRequest),
+        (status = 403, response = openapi::Forbidden),
+        (status = 404, response = openapi::NotFound),
+        (status = 408, response = openapi::RequestTimeout),
+        (status = 409, response = openapi::Conflict),
+        (status = 413, response = openapi::TooLarge),
+    )
+)]
 async fn relight(
     Caller(caller): Caller,
     State(state): State<AppState>,
@@ -423,7 +705,45 @@ async fn relight(
     super::relight::relight(&state, &caller, id, &query, &headers, body).await
 }
 
-/// `POST /v1/reconstructions/{id}/primal` ([`relight`](super::relight)).
+/// Primal: the camera image a pattern would give
+///
+/// The camera image `T p` (+ the ambient image) a projector pattern `p` would give, from a
+/// finished camera session's transport matrix (see `api::relight`): one of the
+/// session's own patterns (`{"pattern_index": I}`; the answer then carries the error against
+/// the measured frame) or any projector-sized image (PNG, or NPY of shape (height, width) or
+/// (height * width,)). Answers are immutable: strong ETag, `If-None-Match` gives 304 (role reader).
+#[utoipa::path(
+    post,
+    path = "/v1/reconstructions/{id}/primal",
+    tag = "relighting",
+    params(ReconstructionId, PrimalQuery, Conditional),
+    request_body(description = "The pattern: one of the session's (JSON), or a projector-sized image",
+        content(
+            (PrimalRequest = "application/json"),
+            ("image/png"),
+            ("application/x-npy"),
+            ("application/octet-stream"),
+        )),
+    responses(
+        (status = 200, description = "The predicted camera image (format=npy: float32 NPY sent as application/octet-stream)",
+            content(("image/png"), ("image/tiff"), ("application/octet-stream")),
+            headers(
+                ("ETag" = String, description = "The answer's strong ETag"),
+                ("Cache-Control" = String, description = "private, max-age=31536000, immutable"),
+                ("Server-Timing" = String, description = "compute;dur=MS, or cache;desc=\"hit\""),
+                ("x-helmholtz-relative-error" = String, description = "pattern_index with a stored frame: ||c - measured|| / ||measured||"),
+                ("x-helmholtz-psnr-db" = String, description = "pattern_index with a stored frame: PSNR against the measured frame, dB"),
+                ("x-helmholtz-measured-row" = String, description = "pattern_index with a stored frame: the row compared"),
+            )),
+        (status = 304, response = openapi::NotModified),
+        (status = 400, response = openapi::BadRequest),
+        (status = 403, response = openapi::Forbidden),
+        (status = 404, response = openapi::NotFound),
+        (status = 408, response = openapi::RequestTimeout),
+        (status = 409, response = openapi::Conflict),
+        (status = 413, response = openapi::TooLarge),
+    )
+)]
 async fn primal(
     Caller(caller): Caller,
     State(state): State<AppState>,
@@ -438,6 +758,21 @@ async fn primal(
     super::relight::primal(&state, &caller, id, &query, &headers, body).await
 }
 
+/// A reconstruction
+///
+/// Its state, progress and, once done, its report (role reader).
+#[utoipa::path(
+    get,
+    path = "/v1/reconstructions/{id}",
+    tag = "reconstructions",
+    params(ReconstructionId),
+    responses(
+        (status = 200, description = "The reconstruction", body = ReconstructionView),
+        (status = 400, response = openapi::BadRequest),
+        (status = 403, response = openapi::Forbidden),
+        (status = 404, response = openapi::NotFound),
+    )
+)]
 async fn get_reconstruction(
     Caller(caller): Caller,
     State(state): State<AppState>,
@@ -450,9 +785,57 @@ async fn get_reconstruction(
     )))
 }
 
-/// `POST /v1/reconstructions/{id}/cancel` or `DELETE /v1/reconstructions/{id}`: 200 with the
-/// cancelled reconstruction; 409 if it already ended.
+/// Cancel a reconstruction
+///
+/// The cancelled reconstruction; 409 if it already ended (role reader). Also
+/// `DELETE /v1/reconstructions/{id}`.
+#[utoipa::path(
+    post,
+    path = "/v1/reconstructions/{id}/cancel",
+    tag = "reconstructions",
+    params(ReconstructionId),
+    responses(
+        (status = 200, description = "Cancelled", body = ReconstructionView),
+        (status = 400, response = openapi::BadRequest),
+        (status = 403, response = openapi::Forbidden),
+        (status = 404, response = openapi::NotFound),
+        (status = 409, response = openapi::Conflict),
+    )
+)]
 async fn cancel_reconstruction(
+    caller: Caller,
+    state: State<AppState>,
+    id: Path<String>,
+) -> Result<axum::Json<ReconstructionView<Box<RawValue>>>, ApiError> {
+    cancel(caller, state, id).await
+}
+
+/// Cancel a reconstruction
+///
+/// As `POST /v1/reconstructions/{id}/cancel`: the cancelled reconstruction; 409 if it already
+/// ended (role reader).
+#[utoipa::path(
+    delete,
+    path = "/v1/reconstructions/{id}",
+    tag = "reconstructions",
+    params(ReconstructionId),
+    responses(
+        (status = 200, description = "Cancelled", body = ReconstructionView),
+        (status = 400, response = openapi::BadRequest),
+        (status = 403, response = openapi::Forbidden),
+        (status = 404, response = openapi::NotFound),
+        (status = 409, response = openapi::Conflict),
+    )
+)]
+async fn delete_reconstruction(
+    caller: Caller,
+    state: State<AppState>,
+    id: Path<String>,
+) -> Result<axum::Json<ReconstructionView<Box<RawValue>>>, ApiError> {
+    cancel(caller, state, id).await
+}
+
+async fn cancel(
     Caller(caller): Caller,
     State(state): State<AppState>,
     Path(id): Path<String>,
@@ -477,7 +860,18 @@ pub fn token_view(t: &TokenInfo, secret: Option<String>) -> TokenView {
     }
 }
 
-/// `GET /v1/tokens`: the admin's lab's tokens (never their secrets).
+/// List the lab's tokens
+///
+/// The admin's lab's tokens, never their secrets (role admin).
+#[utoipa::path(
+    get,
+    path = "/v1/tokens",
+    tag = "tokens",
+    responses(
+        (status = 200, description = "The tokens", body = TokenList),
+        (status = 403, response = openapi::Forbidden),
+    )
+)]
 async fn list_tokens(
     Caller(caller): Caller,
     State(state): State<AppState>,
@@ -489,8 +883,23 @@ async fn list_tokens(
     }))
 }
 
-/// `POST /v1/tokens {"roles": ["rig"], "note": "..."}`: a new token of the admin's lab; 201 with
-/// the secret, shown this once.
+/// Create a token
+///
+/// A new token of the admin's lab with roles (rig, reader, admin) and a note; the answer holds
+/// the secret, shown this once (role admin).
+#[utoipa::path(
+    post,
+    path = "/v1/tokens",
+    tag = "tokens",
+    request_body(content = TokenRequest, content_type = "application/json"),
+    responses(
+        (status = 201, description = "Created; `token` is the secret", body = TokenView),
+        (status = 400, response = openapi::BadRequest),
+        (status = 403, response = openapi::Forbidden),
+        (status = 408, response = openapi::RequestTimeout),
+        (status = 413, response = openapi::TooLarge),
+    )
+)]
 async fn create_token(
     Caller(caller): Caller,
     State(state): State<AppState>,
@@ -526,7 +935,21 @@ async fn create_token(
         .into_response())
 }
 
-/// `DELETE /v1/tokens/{id}`: revokes a token of the admin's lab (another lab's is 404).
+/// Revoke a token
+///
+/// Revokes a token of the admin's lab; another lab's is 404 (role admin).
+#[utoipa::path(
+    delete,
+    path = "/v1/tokens/{id}",
+    tag = "tokens",
+    params(("id" = i64, Path, description = "The token id")),
+    responses(
+        (status = 200, description = "Revoked", body = TokenView),
+        (status = 400, response = openapi::BadRequest),
+        (status = 403, response = openapi::Forbidden),
+        (status = 404, response = openapi::NotFound),
+    )
+)]
 async fn revoke_token(
     Caller(caller): Caller,
     State(state): State<AppState>,
@@ -564,6 +987,35 @@ fn dual_format(file: &str) -> Result<Format, ApiError> {
     }
 }
 
+/// A reconstruction's file
+///
+/// `dual.png|dual.tiff|dual.npy`: a dual image (8-bit PNG scaled for viewing, 32-bit float
+/// TIFF, float32 NPY of shape (height, width)); bucket sessions also serve
+/// `normals.png|normals.npy|albedo.png|albedo.npy|residual.npy|photometric.json` (photometric
+/// stereo from 3+ detectors with declared directions) and `composite.png` (channels r, g, b).
+/// NPY files are sent as application/octet-stream. Answers are immutable: ETag, `If-None-Match`
+/// gives 304 (role reader).
+#[utoipa::path(
+    get,
+    path = "/v1/reconstructions/{id}/{file}",
+    tag = "reconstructions",
+    params(ReconstructionFilePath, FileQuery, Conditional),
+    responses(
+        (status = 200, description = "The file: image/png (.png), image/tiff (.tiff), application/octet-stream (.npy, NumPy format), application/json (photometric.json)",
+            content(("image/png"), ("image/tiff"), ("application/octet-stream"), ("application/json")),
+            headers(
+                ("ETag" = String, description = "The answer's ETag"),
+                ("Cache-Control" = String, description = "private, max-age=31536000, immutable"),
+                ("Content-Disposition" = String, description = "dual.*: inline; filename=\"dual-ID-CHANNEL.EXT\""),
+                ("Server-Timing" = String, description = "derived files: compute;dur=MS, or cache;desc=\"hit\""),
+            )),
+        (status = 304, response = openapi::NotModified),
+        (status = 400, response = openapi::BadRequest),
+        (status = 403, response = openapi::Forbidden),
+        (status = 404, response = openapi::NotFound),
+        (status = 409, response = openapi::Conflict),
+    )
+)]
 async fn reconstruction_file(
     Caller(caller): Caller,
     State(state): State<AppState>,
@@ -581,6 +1033,32 @@ async fn reconstruction_file(
     serve_dual(&state, r, &query, &headers, format).await
 }
 
+/// A session's file
+///
+/// `measurements.npy`: the committed rows as stored, streamed (bucket sessions float64 of shape
+/// (rows, channels); camera sessions their frames, uint16 or float32 of shape (rows, height,
+/// width)). `dual.png|dual.tiff|dual.npy`: the dual image of the latest finished reconstruction.
+/// NPY files are sent as application/octet-stream (role reader).
+#[utoipa::path(
+    get,
+    path = "/v1/sessions/{id}/{file}",
+    tag = "sessions",
+    params(SessionFilePath, DualQuery, Conditional),
+    responses(
+        (status = 200, description = "The file: image/png (.png), image/tiff (.tiff), application/octet-stream (.npy, NumPy format)",
+            content(("image/png"), ("image/tiff"), ("application/octet-stream")),
+            headers(
+                ("ETag" = String, description = "dual.*: the answer's ETag"),
+                ("Cache-Control" = String, description = "dual.*: private, max-age=31536000, immutable"),
+                ("Content-Disposition" = String, description = "dual.*: inline; filename=\"dual-ID-CHANNEL.EXT\""),
+            )),
+        (status = 304, response = openapi::NotModified),
+        (status = 400, response = openapi::BadRequest),
+        (status = 403, response = openapi::Forbidden),
+        (status = 404, response = openapi::NotFound),
+        (status = 409, response = openapi::Conflict),
+    )
+)]
 async fn session_file(
     Caller(caller): Caller,
     State(state): State<AppState>,

@@ -19,7 +19,8 @@ use helmholtz_proto::npy::{self, Dtype};
 use helmholtz_proto::rest::{NewSessionRequest, SessionState, UploadResult, UploadStatusView};
 use helmholtz_proto::v1;
 
-use super::rest::{Caller, Path, Query, read_body_up_to, session_path, session_view};
+use super::openapi;
+use super::rest::{Caller, Path, Query, SessionId, read_body_up_to, session_path, session_view};
 use super::{ApiError, AppState, validate};
 use crate::auth::Role;
 use crate::store::{self, SampleFormat, SessionRow, StoreError};
@@ -36,8 +37,28 @@ pub const RAW: &str = "application/octet-stream";
 /// Room for an NPY header on top of `max_chunk_bytes` of samples.
 const NPY_HEADER_ROOM: usize = 64 << 10;
 
-/// `POST /v1/sessions` (role rig): 201 with the session and its `Location`, or 200 with the
-/// stored one when it exists with the same declaration.
+/// Create a session
+///
+/// The REST twin of gRPC `CreateSession`, for tools without gRPC (role rig): 201 with the
+/// session and its `Location`, or 200 with the stored one when the id exists with the same
+/// declaration; 409 when it differs or the id is another lab's.
+#[utoipa::path(
+    post,
+    path = "/v1/sessions",
+    tag = "sessions",
+    request_body(content = NewSessionRequest, content_type = "application/json"),
+    responses(
+        (status = 201, description = "Created", body = helmholtz_proto::rest::SessionView,
+            headers(("Location" = String, description = "/v1/sessions/{id}"))),
+        (status = 200, description = "It exists with this declaration", body = helmholtz_proto::rest::SessionView),
+        (status = 400, response = openapi::BadRequest),
+        (status = 403, response = openapi::Forbidden),
+        (status = 408, response = openapi::RequestTimeout),
+        (status = 409, response = openapi::Conflict),
+        (status = 413, response = openapi::TooLarge),
+        (status = 429, response = openapi::TooManyRequests),
+    )
+)]
 pub(super) async fn create_session(
     Caller(caller): Caller,
     State(state): State<AppState>,
@@ -99,7 +120,23 @@ pub(super) async fn create_session(
     Ok(response)
 }
 
-/// `POST /v1/sessions/{id}/finish` (role rig): no more rows; the session as stored.
+/// Finish a session
+///
+/// No more rows (role rig): the session as stored. Refused (409) while rows of the spec are
+/// missing.
+#[utoipa::path(
+    post,
+    path = "/v1/sessions/{id}/finish",
+    tag = "sessions",
+    params(SessionId),
+    responses(
+        (status = 200, description = "Finished", body = helmholtz_proto::rest::SessionView),
+        (status = 400, response = openapi::BadRequest),
+        (status = 403, response = openapi::Forbidden),
+        (status = 404, response = openapi::NotFound),
+        (status = 409, response = openapi::Conflict),
+    )
+)]
 pub(super) async fn finish_session(
     Caller(caller): Caller,
     State(state): State<AppState>,
@@ -113,8 +150,22 @@ pub(super) async fn finish_session(
     Ok(axum::Json(session_view(&session, latest)))
 }
 
-/// `GET /v1/sessions/{id}/rows` (role rig or reader): the committed count to resume from (the
-/// REST twin of gRPC `GetUploadStatus`).
+/// Upload status
+///
+/// The committed count to resume an upload from (role rig or reader; the REST twin of gRPC
+/// `GetUploadStatus`).
+#[utoipa::path(
+    get,
+    path = "/v1/sessions/{id}/rows",
+    tag = "sessions",
+    params(SessionId),
+    responses(
+        (status = 200, description = "Where the upload stands", body = UploadStatusView),
+        (status = 400, response = openapi::BadRequest),
+        (status = 403, response = openapi::Forbidden),
+        (status = 404, response = openapi::NotFound),
+    )
+)]
 pub(super) async fn upload_status(
     Caller(caller): Caller,
     State(state): State<AppState>,
@@ -138,8 +189,64 @@ fn session_state(state: store::SessionState) -> SessionState {
     }
 }
 
-/// `PUT /v1/sessions/{id}/rows?start_row=N` (role rig): rows `N..` as an NPY array or raw
-/// little-endian samples, with their CRC-32C in [`CRC_HEADER`] (or SHA-256 in `Content-Digest`).
+/// The query of `PUT /v1/sessions/{id}/rows`.
+#[derive(utoipa::IntoParams)]
+#[into_params(parameter_in = Query)]
+#[allow(dead_code)]
+struct RowsQuery {
+    /// The pattern index of the body's first row (`GET .../rows` gives `committed_rows`, where
+    /// to resume; rows below it are compared with the stored ones)
+    start_row: u64,
+}
+
+/// The headers of `PUT /v1/sessions/{id}/rows`.
+#[derive(utoipa::IntoParams)]
+#[into_params(parameter_in = Header)]
+#[allow(dead_code)]
+struct RowsHeaders {
+    /// The CRC-32C (Castagnoli) of the body, 8 hexadecimal digits; required unless
+    /// Content-Digest is sent
+    #[param(rename = "x-helmholtz-crc32c", pattern = "^(0[xX])?[0-9A-Fa-f]{1,8}$")]
+    crc32c: Option<String>,
+    /// RFC 9530: `sha-256=:BASE64:`, the body's SHA-256; required unless x-helmholtz-crc32c is
+    /// sent
+    #[param(rename = "content-digest")]
+    content_digest: Option<String>,
+    /// One id for every request of one client upload (1-64 of A-Z a-z 0-9 _ -): one writer
+    /// per session at a time
+    #[param(rename = "x-helmholtz-writer", pattern = "^[A-Za-z0-9_-]{1,64}$")]
+    writer: Option<String>,
+}
+
+/// Upload rows
+///
+/// Rows `start_row..` of a session without gRPC (role rig), under the gRPC upload's rules: the
+/// body (at most `max_chunk_bytes` of samples) is checked whole (checksum, dtype, shape, whole
+/// rows, finite values) before anything is stored; rows below the committed count must equal
+/// the stored ones byte for byte (409 naming the first that differs); a start above it is a gap
+/// (416); another writer's upload in progress is 409. New rows and the new count commit in one
+/// transaction.
+#[utoipa::path(
+    put,
+    path = "/v1/sessions/{id}/rows",
+    tag = "sessions",
+    params(SessionId, RowsQuery, RowsHeaders),
+    request_body(description = "The rows: an NPY array of the session's sample type in C order \
+        (float64 (rows, channels); a camera's float32/uint16 (rows, height, width) or (rows, \
+        height*width)), or the same samples raw and little-endian",
+        content(("application/x-npy"), ("application/octet-stream"))),
+    responses(
+        (status = 200, description = "Stored (or already stored with these bytes)", body = UploadResult),
+        (status = 400, response = openapi::BadRequest),
+        (status = 403, response = openapi::Forbidden),
+        (status = 404, response = openapi::NotFound),
+        (status = 408, response = openapi::RequestTimeout),
+        (status = 409, response = openapi::Conflict),
+        (status = 413, response = openapi::TooLarge),
+        (status = 416, response = openapi::RangeNotSatisfiable),
+        (status = 422, response = openapi::ChecksumMismatch),
+    )
+)]
 pub(super) async fn put_rows(
     Caller(caller): Caller,
     State(state): State<AppState>,
