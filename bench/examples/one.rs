@@ -51,6 +51,14 @@ fn main() {
             .expect("reconstruct");
         let s = started.elapsed().as_secs_f64();
         let img = &r.images[0].data;
+        let mean = |v: &[f32]| v.iter().map(|&x| x as f64).sum::<f64>() / v.len() as f64;
+        println!(
+            "image mean {:.4} (truth {:.4}), min {:.4}, max {:.4}",
+            mean(img),
+            mean(&truth),
+            img.iter().copied().fold(f32::INFINITY, f32::min),
+            img.iter().copied().fold(f32::NEG_INFINITY, f32::max)
+        );
         println!(
             "{:.4} s  {:.2} dB  ssim {:.3}  iterations {}  held-out {:?}",
             s,

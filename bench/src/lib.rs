@@ -10,6 +10,7 @@
 pub mod compare;
 mod grid;
 pub mod machine;
+pub mod noisy;
 mod plot;
 mod report;
 mod transport;
@@ -35,8 +36,9 @@ pub use grid::{Case, Noise, Preset};
 struct Args {
     /// smoke: a few small cases (CI); targets: the target problems; full: the whole grid;
     /// compare: the target problems against other tools; transport: camera sessions (transport
-    /// matrix time, size and error, relight/primal latency).
-    #[arg(long, default_value = "targets", value_parser = ["smoke", "targets", "full", "compare", "transport"])]
+    /// matrix time, size and error, relight/primal latency); noisy: `auto` on noisy buckets
+    /// against the solvers at their ground-truth-best weight, with its error estimates' calibration.
+    #[arg(long, default_value = "targets", value_parser = ["smoke", "targets", "full", "compare", "transport", "noisy"])]
     preset: String,
     /// Output directory.
     #[arg(long, default_value = "docs")]
@@ -71,6 +73,25 @@ struct Args {
     /// (comma-separated, e.g. "hadamard 50,bernoulli 10").
     #[arg(long, value_delimiter = ',')]
     cases: Option<Vec<String>>,
+    /// noisy: scenes (comma-separated; built-in names or PNG paths).
+    #[arg(long, value_delimiter = ',')]
+    scenes: Option<Vec<String>>,
+    /// noisy: pattern families (bernoulli, hadamard).
+    #[arg(long, value_delimiter = ',', default_value = "bernoulli,hadamard", value_parser = ["bernoulli", "hadamard"])]
+    families: Vec<String>,
+    /// noisy: noise conventions (snr30: Gaussian at 30 dB of the total bucket power; poisson:
+    /// 1e4 photons per pattern; none).
+    #[arg(long, value_delimiter = ',', default_value = "snr30,poisson", value_parser = ["none", "snr30", "poisson"])]
+    noises: Vec<String>,
+    /// noisy: image side (Hadamard needs a power of two).
+    #[arg(long, default_value_t = 128)]
+    size: u32,
+    /// noisy: measurements / pixels (Hadamard: split pairs / pixels).
+    #[arg(long, default_value_t = 0.1)]
+    ratio: f64,
+    /// noisy: skip the oracle's weight sweeps.
+    #[arg(long)]
+    no_oracle: bool,
 }
 
 /// One measured reconstruction.
@@ -129,6 +150,37 @@ pub fn main() {
         }
         eprintln!(
             "wrote {}/comparison.md and comparison.json",
+            args.out.display()
+        );
+        return;
+    }
+    if args.preset == "noisy" {
+        let opts = noisy::Options {
+            out: args.out.clone(),
+            scenes: args
+                .scenes
+                .clone()
+                .unwrap_or_else(noisy::Options::default_scenes),
+            families: args.families.clone(),
+            noises: args
+                .noises
+                .iter()
+                .map(|n| match n.as_str() {
+                    "snr30" => Noise::Snr30,
+                    "poisson" => Noise::Poisson,
+                    _ => Noise::None,
+                })
+                .collect(),
+            size: args.size,
+            ratio: args.ratio,
+            oracle: !args.no_oracle,
+        };
+        if let Err(e) = noisy::run(&opts) {
+            eprintln!("helmholtz-bench: {e:#}");
+            std::process::exit(1);
+        }
+        eprintln!(
+            "wrote {}/benchmarks-noisy.md and benchmarks-noisy.json",
             args.out.display()
         );
         return;

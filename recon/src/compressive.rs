@@ -22,6 +22,7 @@ use super::fit::{Offset, Scorer, fit_model, fitting};
 use super::holdout::{self, Score};
 use super::linop::LinearOperator;
 use super::method::{Fit, MethodConfig, Model};
+use super::noise::{self, NoiseEstimate};
 use super::ops::{self, BernoulliOperator, HadamardOperator, RowSubset};
 use super::solve::{self, Lambda, Solution, SolveOptions};
 use super::stream::RowStream;
@@ -34,6 +35,9 @@ pub(crate) struct Planned<'a> {
     op: PlannedOp,
     /// Per channel: the buckets (Hadamard: split-pair differences / sqrt(k)).
     pub data: Vec<Vec<f64>>,
+    /// Per channel: the noise of `data` as the session shows it ([`noise`]), where the design
+    /// allows an estimate (Hadamard split pairs, Bernoulli rows).
+    pub noise: Vec<Option<NoiseEstimate>>,
     pub details: serde_json::Map<String, Value>,
 }
 
@@ -58,7 +62,7 @@ impl<'a> Planned<'a> {
         }
         let unsolvable = |e: ops::OpError| ReconError::Unsolvable(e.to_string());
         let mut details = serde_json::Map::new();
-        let (op, data) = match spec.family() {
+        let (op, data, noise) = match spec.family() {
             Family::Hadamard { .. } => {
                 // Only whole P+/P- pairs are used.
                 let frames = problem.rows - problem.rows % 2;
@@ -70,17 +74,23 @@ impl<'a> Planned<'a> {
                 }
                 let op = HadamardOperator::from_spec(spec, frames).map_err(unsolvable)?;
                 let used = &buckets[..frames as usize * channels];
-                let data = (0..channels)
-                    .map(|ch| op.split_pairs_channel(used, channels, ch).data)
+                let pairs: Vec<_> = (0..channels)
+                    .map(|ch| op.split_pairs_channel(used, channels, ch))
                     .collect();
+                let scale = 1.0 / (spec.pixels() as f64).sqrt();
+                let noise = pairs
+                    .iter()
+                    .map(|p| noise::from_pair_sums(&p.sums, scale, &p.data))
+                    .collect();
+                let data = pairs.into_iter().map(|p| p.data).collect();
                 details.insert(
                     "data".into(),
                     json!("split-pair differences (y+ - y-)/sqrt(k)"),
                 );
-                (PlannedOp::Hadamard(op), data)
+                (PlannedOp::Hadamard(op), data, noise)
             }
             family => {
-                let data = (0..channels)
+                let data: Vec<Vec<f64>> = (0..channels)
                     .map(|ch| buckets.iter().skip(ch).step_by(channels).copied().collect())
                     .collect();
                 let op = if family.is_binary() {
@@ -92,13 +102,20 @@ impl<'a> Planned<'a> {
                         ops::try_measurement_operator(spec, problem.rows).map_err(unsolvable)?,
                     )
                 };
-                (op, data)
+                let noise = match (family, &op) {
+                    (Family::Bernoulli { .. }, PlannedOp::Bernoulli(a)) => {
+                        data.iter().map(|b| noise::from_random_rows(a, b)).collect()
+                    }
+                    _ => vec![None; channels],
+                };
+                (op, data, noise)
             }
         };
         Ok(Planned {
             spec,
             op,
             data,
+            noise,
             details,
         })
     }
@@ -123,6 +140,24 @@ impl<'a> Planned<'a> {
             t.iter_mut().for_each(|v| *v = v.max(0.0));
             t
         })
+    }
+
+    /// What the error estimate needs to know about the rows ([`auto::Design`]).
+    pub fn design(&self) -> auto::Design {
+        match (&self.op, self.spec.family()) {
+            (PlannedOp::Hadamard(_), _) => auto::Design::Orthonormal,
+            (PlannedOp::Bernoulli(_), Family::Bernoulli { .. }) => {
+                let k = self.spec.pixels() as f64;
+                let ones = vec![1.0; self.spec.pixels()];
+                let mut sums = vec![0.0; self.op().rows()];
+                self.op().apply(&ones, &mut sums);
+                let p = sums.iter().sum::<f64>() / (sums.len().max(1) as f64 * k);
+                auto::Design::Random {
+                    variance: p * (1.0 - p),
+                }
+            }
+            _ => auto::Design::Other,
+        }
     }
 
     pub fn is_hadamard(&self) -> bool {
@@ -219,9 +254,22 @@ pub fn run(
     let fit: Fit = config.fit().expect("an iterative method");
     let planned = Planned::load(problem, source, control)?;
     let offset = fit.fits_offset(spec.family());
-    let fraction = fit
-        .holdout
-        .unwrap_or_else(|| holdout::default_fraction(planned.rows()));
+    // `auto` judges its choices on the held-out rows: where the session's own noise estimate
+    // says the noise is most of what the buckets vary by, a tenth of the rows cannot tell
+    // fits apart ([`holdout::noisy_fraction`]), so more are held out.
+    let relative_noise = planned
+        .noise
+        .iter()
+        .flatten()
+        .map(|e| e.relative())
+        .fold(0.0, f64::max);
+    let fraction = fit.holdout.unwrap_or_else(|| {
+        let base = holdout::default_fraction(planned.rows());
+        match config {
+            MethodConfig::Auto { .. } => base.max(holdout::noisy_fraction(relative_noise)),
+            _ => base,
+        }
+    });
     let split = holdout::split(planned.rows(), fraction);
     if let (MethodConfig::Auto { .. }, Err(why)) = (config, &split) {
         return Err(ReconError::Unsolvable(format!(
@@ -263,6 +311,8 @@ pub fn run(
                     b_test: gather(b, &split.test),
                     measured_resolution: planned.measured_resolution(),
                     offset,
+                    noise: planned.noise[ch],
+                    design: planned.design(),
                 };
                 let out = auto::run(&job, models, *max_iter, *fit, span, control)?;
                 score.add_channel(ch, &job.b_test, &out.held_out_prediction);
@@ -339,6 +389,8 @@ pub fn run(
     };
     details.insert(key.into(), Value::Array(channel_reports));
     details.insert("operator_rows".into(), json!(planned.rows()));
+    // Per channel (null where the design allows no estimate): see [`noise`].
+    details.insert("noise_estimate".into(), json!(planned.noise));
     details.insert(
         "offset".into(),
         json!(if offset {

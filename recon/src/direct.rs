@@ -18,6 +18,7 @@ use helmholtz_proto::{Family, PatternGenerator};
 use serde_json::{Map, Value, json};
 
 use super::fwht::fwht;
+use super::noise;
 use super::stream::RowStream;
 use super::{
     BucketSource, Control, DualImage, MethodConfig, Problem, ReconError, Reconstruction, Report,
@@ -244,6 +245,8 @@ fn hadamard(
     let mut have_positive = false;
     let mut dark = vec![f64::NAN; m];
     let mut stats = vec![PairStats::default(); m];
+    // The pair sums in arrival order, per channel: the noise estimate ([`noise::from_pair_sums`]).
+    let mut sums: Vec<Vec<f64>> = vec![Vec::new(); m];
     let frames = 2 * pairs.min(k) as u64;
     while let Some(b) = stream.next_block()? {
         for (i, row) in b.values.chunks_exact(m).enumerate() {
@@ -263,6 +266,7 @@ fn hadamard(
                 let (yp, ym) = (positive[ch], row[ch]);
                 d[ch * k + n] = yp - ym;
                 stats[ch].push(yp + ym);
+                sums[ch].push(yp + ym);
                 if n == 0 {
                     dark[ch] = ym; // P- of the all-ones row lights nothing
                 }
@@ -271,6 +275,13 @@ fn hadamard(
         }
         control.set_progress(0.95 * stream.rows_seen() as f64 / stream.total() as f64);
     }
+    let root = 1.0 / (k as f64).sqrt();
+    let noise: Vec<Option<noise::NoiseEstimate>> = (0..m)
+        .map(|ch| {
+            let data: Vec<f64> = d[ch * k..(ch + 1) * k].iter().map(|v| v * root).collect();
+            noise::from_pair_sums(&sums[ch], root, &data)
+        })
+        .collect();
     let scale = 1.0 / k as f64;
     let images = d
         .chunks_exact_mut(k)
@@ -305,6 +316,9 @@ fn hadamard(
         "pair_sum_max_rel_dev".into(),
         Value::Array(stats.iter().map(|s| finite(s.max_rel_dev())).collect()),
     );
+    // Per channel, in the units of (y+ - y-) / sqrt(k); for the exact inverse this is also
+    // each pixel's noise (the transform is orthonormal).
+    details.insert("noise_estimate".into(), json!(noise));
     Ok((images, details))
 }
 

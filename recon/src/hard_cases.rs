@@ -914,6 +914,101 @@ fn error_falls_as_rows_grow() {
 }
 
 // ---------------------------------------------------------------------------------------------
+// 15. The hard cases under noise: 1 % sampling, a nearly dark scene, a 1e4 highlight.
+
+/// Read noise at `snr_db` of the buckets' rms, and its standard deviation.
+fn read_noise(c: &[f64], snr_db: f64, seed: u64) -> (Vec<f64>, f64) {
+    let rms = (c.iter().map(|v| v * v).sum::<f64>() / c.len() as f64).sqrt();
+    let noise = NoiseModel {
+        snr_db: Some(snr_db),
+        seed,
+        ..NoiseModel::default()
+    };
+    (apply_noise(c, 1, &noise).0, rms / 10f64.powf(snr_db / 20.0))
+}
+
+/// `auto`'s noise estimate against the noise put in (`sigma` in the data's units).
+fn check_noise_estimate(case: &str, spec: &PatternSpec, c: &[f64], sigma: f64) {
+    let r = solve(spec, c, spec.count(), "auto", &json!({})).unwrap();
+    let est = &r.report.details["noise_estimate"][0];
+    let (got, se) = (
+        est["sigma"].as_f64().unwrap(),
+        est["standard_error"].as_f64().unwrap(),
+    );
+    eprintln!("{case}: noise estimate {got:.4e} +- {se:.1e}, put in {sigma:.4e}");
+    assert!(
+        (got - sigma).abs() < 4.0 * se + 0.1 * sigma,
+        "{case}: noise estimate {got:.4e} +- {se:.1e}, put in {sigma:.4e}"
+    );
+    assert_eq!(r.report.details["auto"][0]["noise_estimate"], *est);
+}
+
+#[test]
+fn the_hard_cases_under_noise() {
+    // 1 % sampling at 30 dB: finite, non-negative, positively correlated.
+    let truth = blocks(64, 64);
+    let spec = bernoulli(64, 64, 41, 0.5, 11);
+    let (c, _) = read_noise(&clean(&spec, &truth), 30.0, 3);
+    for method in any_family() {
+        let image = checked_image("1 % sampling, 30 dB", &spec, &c, 41, method);
+        let corr = pearson(&image, &truth);
+        eprintln!("1 % sampling, 30 dB / {method}: pearson {corr:.3}");
+        assert!(corr > 0.0, "{method}: pearson {corr:.3}");
+    }
+
+    // A nearly dark scene: one block at 1e-3 of full scale on black, 10 dB read noise (the
+    // noise is a third of the buckets' rms). Finite, non-negative, and no method invents
+    // light: the image's total stays within a few times the truth's.
+    let mut dim = vec![0.0f32; 32 * 32];
+    for y in 10..18 {
+        for x in 12..22 {
+            dim[y * 32 + x] = 1e-3;
+        }
+    }
+    let spec = bernoulli(32, 32, 600, 0.5, 5);
+    let (c, sigma) = read_noise(&clean(&spec, &dim), 10.0, 4);
+    let total: f64 = dim.iter().map(|&v| v as f64).sum();
+    for method in any_family() {
+        let image = checked_image("nearly dark, 10 dB", &spec, &c, 600, method);
+        if is_correlation(method) {
+            continue;
+        }
+        let sum: f64 = image.iter().map(|&v| v as f64).sum();
+        eprintln!("nearly dark, 10 dB / {method}: total {sum:.4e} (truth {total:.4e})");
+        assert!(
+            (sum - total).abs() < 0.5 * total,
+            "{method}: total light {sum:.4e}, truth {total:.4e}"
+        );
+    }
+    check_noise_estimate("nearly dark, 10 dB", &spec, &c, sigma);
+
+    // A highlight 1e4 times the background at 30 dB: located by every method.
+    let at = 25 * 32 + 7;
+    let truth = point(32, 32, 7, 25, 1e4, 1.0);
+    for (spec, methods) in [
+        (bernoulli(32, 32, 2048, 0.5, 23), any_family()),
+        (hadamard(32, 32, 2048), all_methods()),
+    ] {
+        let (c, sigma) = read_noise(&clean(&spec, &truth), 30.0, 6);
+        let case = format!("1e4 highlight, 30 dB {}", spec.family().name());
+        for &method in &methods {
+            let image = checked_image(&case, &spec, &c, spec.count(), method);
+            assert_eq!(
+                argmax(&image),
+                at,
+                "{case} / {method}: the highlight is elsewhere"
+            );
+        }
+        // Hadamard data are pair differences over sqrt(k): sigma sqrt(2) / sqrt(k).
+        let sigma = match spec.family() {
+            Family::Hadamard { .. } => sigma * 2f64.sqrt() / 32.0,
+            _ => sigma,
+        };
+        check_noise_estimate(&case, &spec, &c, sigma);
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
 // Unsolvable requests.
 
 #[test]

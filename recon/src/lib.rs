@@ -26,6 +26,7 @@ pub mod holdout;
 pub mod linop;
 pub mod method;
 pub mod metrics;
+pub mod noise;
 pub mod ops;
 pub mod photometric;
 pub mod request;
@@ -193,13 +194,24 @@ pub fn reconstruct(
             }
             r.report.method = config.name().into();
             r.report.params = config.params_json();
-            r.report.details.insert(
-                "auto".into(),
-                serde_json::json!([{
-                    "model": "direct",
-                    "reason": auto::EXACT_REASON,
-                }]),
-            );
+            let noise = r.report.details.get("noise_estimate").cloned();
+            let choices = r
+                .images
+                .iter()
+                .enumerate()
+                .map(|(ch, image)| {
+                    let estimate = noise.as_ref().map(|n| n[ch].clone()).unwrap_or_default();
+                    serde_json::json!({
+                        "model": "direct",
+                        "reason": auto::EXACT_REASON,
+                        "noise_estimate": estimate,
+                        "error_estimate": auto::exact_error_estimate(&image.data, estimate["sigma"].as_f64()),
+                    })
+                })
+                .collect();
+            r.report
+                .details
+                .insert("auto".into(), serde_json::Value::Array(choices));
             Ok(r)
         }
         MethodConfig::Cs { .. }

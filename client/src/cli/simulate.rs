@@ -70,7 +70,8 @@ impl NoiseArgs {
 
 #[derive(Debug, Clone, Args)]
 pub struct SimulateArgs {
-    /// Target: camera, shapes, usaf (USAF-1951 chart), double-slit, or a PNG file (grey or colour,
+    /// Target: camera, shapes, usaf (USAF-1951 chart), double-slit, smooth (smooth, low
+    /// contrast), text (a page of capitals), or a PNG file (grey or colour,
     /// 8/16 bit; resampled to the pattern grid): one bucket detector sees it as its transport.
     /// Or lambert: an analytic Lambertian scene (ground plane, hemisphere, box; cast shadows, one
     /// diffuse bounce) with a known light transport for any detector direction or camera (see

@@ -200,6 +200,11 @@ impl<'a> PathRunner<'a> {
         self.lmax
     }
 
+    /// The next point starts from `t` instead of the previous point's solution.
+    pub fn start_from(&mut self, t: Vec<f64>) {
+        self.last = Some(t);
+    }
+
     /// Whether the solvers iterate on the deflated problem.
     pub fn deflated(&self) -> bool {
         self.deflated

@@ -4,8 +4,10 @@
 //!
 //! Sources: any PNG file, the embedded photos `camera` and
 //! `shapes` (see `sim/images/README.md`), and two procedural targets drawn analytically at any
-//! size with exact area coverage (no aliasing): `usaf` (a USAF-1951 resolution chart) and
-//! `double-slit` (the classic ghost-imaging target).
+//! size with exact area coverage (no aliasing): `usaf` (a USAF-1951 resolution chart),
+//! `double-slit` (the classic ghost-imaging target) and `text` (a page of dark 5x7 capitals on a
+//! bright ground); and `smooth`, a smooth low-contrast field (values 0.55 to 1: no edges, little
+//! contrast over a large common level, the hardest kind of scene for 0/1 patterns under noise).
 
 use std::path::Path;
 
@@ -17,7 +19,8 @@ const CAMERA_PNG: &[u8] = include_bytes!("../../images/camera-256.png");
 const SHAPES_PNG: &[u8] = include_bytes!("../../images/shapes-256.png");
 
 /// Names accepted by [`Target::builtin`].
-pub const BUILTIN_TARGETS: [&str; 4] = ["camera", "shapes", "usaf", "double-slit"];
+pub const BUILTIN_TARGETS: [&str; 6] =
+    ["camera", "shapes", "usaf", "double-slit", "smooth", "text"];
 
 /// A grey image, row-major, values in [0, 1].
 #[derive(Clone, Debug, PartialEq)]
@@ -37,6 +40,8 @@ impl Target {
             "shapes" => Ok(Target::from_png_bytes(SHAPES_PNG)?.resample(width, height)),
             "usaf" => Ok(usaf(width, height)),
             "double-slit" | "double_slit" => Ok(double_slit(width, height)),
+            "smooth" => Ok(smooth(width, height)),
+            "text" => Ok(text(width, height)),
             other => bail!(
                 "unknown built-in scene {other:?}: expected one of {} or a path to a .png file",
                 BUILTIN_TARGETS.join(", ")
@@ -309,9 +314,287 @@ pub fn double_slit(width: u32, height: u32) -> Target {
     render(width, height, &double_slit_rects(width, height))
 }
 
+/// A smooth low-contrast field: two gentle waves and a soft blob over a level of 0.55, values
+/// in [0.55, 1] (the maximum is exactly 1), evaluated at pixel centres (band-limited enough not
+/// to alias at any size).
+pub fn smooth(width: u32, height: u32) -> Target {
+    use std::f64::consts::PI;
+    let (w, h) = (width as f64, height as f64);
+    let raw: Vec<f64> = (0..height)
+        .flat_map(|y| (0..width).map(move |x| (x, y)))
+        .map(|(x, y)| {
+            let (u, v) = ((x as f64 + 0.5) / w, (y as f64 + 0.5) / h);
+            let waves = (2.0 * PI * (1.3 * u + 0.4 * v)).sin() * (2.0 * PI * 0.8 * v).cos();
+            let blob = (-((u - 0.62).powi(2) + (v - 0.35).powi(2)) / (2.0 * 0.12f64.powi(2))).exp();
+            waves + 1.5 * blob
+        })
+        .collect();
+    let (lo, hi) = raw
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |(a, b), &v| {
+            (a.min(v), b.max(v))
+        });
+    let span = if hi > lo { hi - lo } else { 1.0 };
+    Target {
+        width,
+        height,
+        pixels: raw
+            .iter()
+            .map(|&v| (0.55 + 0.45 * (v - lo) / span) as f32)
+            .collect(),
+    }
+}
+
+/// 5x7 capitals of [`text`], one string of five `#`/space cells per row.
+const GLYPHS: [(char, [&str; 7]); 26] = [
+    (
+        'A',
+        [
+            " ### ", "#   #", "#   #", "#####", "#   #", "#   #", "#   #",
+        ],
+    ),
+    (
+        'B',
+        [
+            "#### ", "#   #", "#   #", "#### ", "#   #", "#   #", "#### ",
+        ],
+    ),
+    (
+        'C',
+        [
+            " ### ", "#   #", "#    ", "#    ", "#    ", "#   #", " ### ",
+        ],
+    ),
+    (
+        'D',
+        [
+            "#### ", "#   #", "#   #", "#   #", "#   #", "#   #", "#### ",
+        ],
+    ),
+    (
+        'E',
+        [
+            "#####", "#    ", "#    ", "#### ", "#    ", "#    ", "#####",
+        ],
+    ),
+    (
+        'F',
+        [
+            "#####", "#    ", "#    ", "#### ", "#    ", "#    ", "#    ",
+        ],
+    ),
+    (
+        'G',
+        [
+            " ### ", "#   #", "#    ", "# ###", "#   #", "#   #", " ####",
+        ],
+    ),
+    (
+        'H',
+        [
+            "#   #", "#   #", "#   #", "#####", "#   #", "#   #", "#   #",
+        ],
+    ),
+    (
+        'I',
+        [
+            " ### ", "  #  ", "  #  ", "  #  ", "  #  ", "  #  ", " ### ",
+        ],
+    ),
+    (
+        'J',
+        [
+            "  ###", "   # ", "   # ", "   # ", "   # ", "#  # ", " ##  ",
+        ],
+    ),
+    (
+        'K',
+        [
+            "#   #", "#  # ", "# #  ", "##   ", "# #  ", "#  # ", "#   #",
+        ],
+    ),
+    (
+        'L',
+        [
+            "#    ", "#    ", "#    ", "#    ", "#    ", "#    ", "#####",
+        ],
+    ),
+    (
+        'M',
+        [
+            "#   #", "## ##", "# # #", "# # #", "#   #", "#   #", "#   #",
+        ],
+    ),
+    (
+        'N',
+        [
+            "#   #", "##  #", "# # #", "#  ##", "#   #", "#   #", "#   #",
+        ],
+    ),
+    (
+        'O',
+        [
+            " ### ", "#   #", "#   #", "#   #", "#   #", "#   #", " ### ",
+        ],
+    ),
+    (
+        'P',
+        [
+            "#### ", "#   #", "#   #", "#### ", "#    ", "#    ", "#    ",
+        ],
+    ),
+    (
+        'Q',
+        [
+            " ### ", "#   #", "#   #", "#   #", "# # #", "#  # ", " ## #",
+        ],
+    ),
+    (
+        'R',
+        [
+            "#### ", "#   #", "#   #", "#### ", "# #  ", "#  # ", "#   #",
+        ],
+    ),
+    (
+        'S',
+        [
+            " ####", "#    ", "#    ", " ### ", "    #", "    #", "#### ",
+        ],
+    ),
+    (
+        'T',
+        [
+            "#####", "  #  ", "  #  ", "  #  ", "  #  ", "  #  ", "  #  ",
+        ],
+    ),
+    (
+        'U',
+        [
+            "#   #", "#   #", "#   #", "#   #", "#   #", "#   #", " ### ",
+        ],
+    ),
+    (
+        'V',
+        [
+            "#   #", "#   #", "#   #", "#   #", "#   #", " # # ", "  #  ",
+        ],
+    ),
+    (
+        'W',
+        [
+            "#   #", "#   #", "#   #", "# # #", "# # #", "# # #", " # # ",
+        ],
+    ),
+    (
+        'X',
+        [
+            "#   #", "#   #", " # # ", "  #  ", " # # ", "#   #", "#   #",
+        ],
+    ),
+    (
+        'Y',
+        [
+            "#   #", "#   #", " # # ", "  #  ", "  #  ", "  #  ", "  #  ",
+        ],
+    ),
+    (
+        'Z',
+        [
+            "#####", "    #", "   # ", "  #  ", " #   ", "#    ", "#####",
+        ],
+    ),
+];
+
+/// The rectangles of the ink of [`text`], pixel units: lines of the pangram set in 5x7 capitals,
+/// a cell of 6x10 units per character, `unit = side / 128` (1 px at 128x128), a margin of 4
+/// units; lines wrap at the right margin and stop at the bottom one.
+pub fn text_ink(width: u32, height: u32) -> Vec<Rect> {
+    const WORDS: &str = "THE QUICK BROWN FOX JUMPS OVER THE LAZY DOG HELMHOLTZ RECIPROCITY SWAPS LIGHTS AND CAMERAS SO A PROJECTOR SEES THE SCENE PACK MY BOX WITH FIVE DOZEN LIQUOR JUGS";
+    let unit = width.min(height) as f64 / 128.0;
+    let margin = 4.0 * unit;
+    let (cw, lh) = (6.0 * unit, 10.0 * unit);
+    let per_line = (((width as f64 - 2.0 * margin) / cw).floor() as usize).max(1);
+    let lines = ((height as f64 - 2.0 * margin) / lh).floor() as usize;
+    let chars: Vec<char> = WORDS.chars().collect();
+    let mut rects = Vec::new();
+    for line in 0..lines {
+        for col in 0..per_line {
+            let c = chars[(line * per_line + col) % chars.len()];
+            let Some((_, rows)) = GLYPHS.iter().find(|(g, _)| *g == c) else {
+                continue; // a space
+            };
+            for (r, row) in rows.iter().enumerate() {
+                for (q, cell) in row.chars().enumerate() {
+                    if cell == '#' {
+                        let x0 = margin + col as f64 * cw + q as f64 * unit;
+                        let y0 = margin + line as f64 * lh + r as f64 * unit;
+                        rects.push(Rect {
+                            x0,
+                            y0,
+                            x1: x0 + unit,
+                            y1: y0 + unit,
+                        });
+                    }
+                }
+            }
+        }
+    }
+    rects
+}
+
+/// A page of text: ink at 0.1 on paper at 1 ([`text_ink`]; exact area coverage).
+pub fn text(width: u32, height: u32) -> Target {
+    let ink = render(width, height, &text_ink(width, height));
+    Target {
+        width,
+        height,
+        pixels: ink.pixels.iter().map(|&v| 1.0 - 0.9 * v).collect(),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn smooth_and_text_are_what_they_say() {
+        let s = smooth(64, 48);
+        let (lo, hi) = s
+            .pixels
+            .iter()
+            .fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), &v| {
+                (a.min(v), b.max(v))
+            });
+        assert!(
+            (lo - 0.55).abs() < 1e-6 && (hi - 1.0).abs() < 1e-6,
+            "{lo} {hi}"
+        );
+        // Smooth: neighbouring pixels differ by little.
+        let steps = s
+            .pixels
+            .windows(2)
+            .map(|p| (p[0] - p[1]).abs())
+            .fold(0.0, f32::max);
+        assert!(steps < 0.05, "largest step {steps}");
+        // Text: mostly paper, the ink a minority with full-contrast edges; ink covers exactly
+        // the glyph cells (area coverage is exact, so the total is an integer count of units).
+        let t = text(128, 128);
+        let ink: f64 = t.pixels.iter().map(|&v| (1.0 - v as f64) / 0.9).sum();
+        let cells = text_ink(128, 128).len() as f64;
+        assert!((ink - cells).abs() < 1e-2 * cells, "{ink} vs {cells}");
+        assert!(
+            cells > 0.1 * 128.0 * 128.0 * 0.2 && cells < 0.4 * 128.0 * 128.0,
+            "{cells}"
+        );
+        assert!(t.pixels.iter().any(|&v| v < 0.2));
+        // Every letter of the text has a glyph.
+        assert_eq!(GLYPHS.len(), 26);
+        assert!(
+            GLYPHS
+                .iter()
+                .all(|(_, rows)| rows.iter().all(|r| r.len() == 5))
+        );
+    }
 
     /// Runs of values above `threshold` along a sequence.
     fn bright_runs(values: impl IntoIterator<Item = f32>, threshold: f32) -> usize {
