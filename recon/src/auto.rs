@@ -993,6 +993,9 @@ fn contrast(
 pub struct ErrorEstimate {
     /// Estimated `||t_hat - t|| / ||t_hat||` (the served image's norm stands in for the truth's).
     pub relative_error: Option<f64>,
+    /// Its range: two standard errors of the noise estimate and of the held-out residuals'
+    /// mean square either way.
+    pub relative_error_range: Option<(f64, f64)>,
     /// Estimated root-mean-square pixel error, in the image's units.
     pub rms_error: Option<f64>,
     /// What the estimate covers and how it was had.
@@ -1011,6 +1014,7 @@ pub fn exact_error_estimate(image: &[f32], sigma: Option<f64>) -> ErrorEstimate 
     let k = image.len().max(1) as f64;
     ErrorEstimate {
         relative_error: sigma.and_then(|s| (norm > 0.0).then(|| s * k.sqrt() / norm)),
+        relative_error_range: None,
         rms_error: sigma,
         basis: match sigma {
             Some(_) => "complete orthonormal set: every pixel carries one datum's noise, estimated from the pair sums".into(),
@@ -1033,23 +1037,23 @@ fn error_estimate(
     let r: Vec<f64> = b.iter().zip(prediction).map(|(b, p)| b - p).collect();
     let norm_t = t.iter().map(|v| v * v).sum::<f64>().sqrt();
     let k = t.len().max(1) as f64;
-    let sigma2 = noise.map(|e| e.sigma * e.sigma);
-    let (e2, basis) = match design {
+    // The noise variance and its two-standard-error range.
+    let sigma2 = noise.map(|e| {
+        let lo = (e.sigma - 2.0 * e.standard_error).max(0.0);
+        (
+            e.sigma * e.sigma,
+            lo * lo,
+            (e.sigma + 2.0 * e.standard_error).powi(2),
+        )
+    });
+    // The residuals' mean square (about their mean for random rows: the mean carries the
+    // image-mean error and any offset) and its two-standard-error range over `n` rows.
+    let (ms, scale, what) = match design {
         Design::Random { variance } if n >= 2 && variance > 0.0 => {
-            // Var(a~ . e) = variance ||e||^2 about the residuals' mean (the mean carries the
-            // image-mean error and any offset; dropped).
             let m = mean(&r);
             let var = r.iter().map(|v| (v - m) * (v - m)).sum::<f64>() / (n - 1) as f64;
-            match sigma2 {
-                Some(s2) => (
-                    Some((var - s2).max(0.0) / variance),
-                    "held-out residual variance less the estimated noise, over the pattern variance p (1 - p): the image error".to_string(),
-                ),
-                None => (
-                    Some(var / variance),
-                    "held-out residual variance over the pattern variance (no noise estimate: an upper bound, the noise counted as error)".to_string(),
-                ),
-            }
+            // Var(a~ . e) = p (1 - p) ||e||^2.
+            (var, 1.0 / variance, "held-out residual variance, less the estimated noise, over the pattern variance p (1 - p): the image error".to_string())
         }
         Design::Orthonormal if n >= 1 => {
             // Each held-out residual is the error's coefficient on that row plus noise: the
@@ -1057,22 +1061,40 @@ fn error_estimate(
             // coefficients.
             let ms = r.iter().map(|v| v * v).sum::<f64>() / n as f64;
             (
-                Some((ms - sigma2.unwrap_or(0.0)).max(0.0) * rows as f64),
+                ms,
+                rows as f64,
                 format!(
-                    "held-out residuals{} over the {rows} measured coefficients of {k}: the error in what the rows measure; detail \
-                     they never measured is not in it (a lower bound when rows < pixels)",
-                    if sigma2.is_some() { " less the estimated noise" } else { "" }
+                    "held-out residuals, less the estimated noise, over the {rows} measured coefficients of {k}: the error in what \
+                 the rows measure; detail they never measured is not in it (a lower bound when rows < pixels)"
                 ),
             )
         }
-        _ => (
-            None,
-            "no estimate for this pattern family (held-out residuals cannot be mapped to image error)".to_string(),
-        ),
+        _ => {
+            return ErrorEstimate {
+                relative_error: None,
+                relative_error_range: None,
+                rms_error: None,
+                basis: "no estimate for this pattern family (held-out residuals cannot be mapped to image error)".into(),
+            };
+        }
     };
+    let spread = 2.0 * (2.0 / n.max(1) as f64).sqrt();
+    let (s2, s2_lo, s2_hi) = sigma2.unwrap_or((0.0, 0.0, 0.0));
+    let relative = |e2: f64| (norm_t > 0.0).then(|| e2.max(0.0).sqrt() / norm_t);
+    let e2 = (ms - s2).max(0.0) * scale;
+    let lo = (ms * (1.0 - spread) - s2_hi).max(0.0) * scale;
+    let hi = (ms * (1.0 + spread) - s2_lo).max(0.0) * scale;
+    let mut basis = what;
+    if sigma2.is_none() {
+        basis.push_str("; no noise estimate, so the noise is counted as error (an upper bound)");
+    }
+    if lo <= 0.0 {
+        basis.push_str("; the range reaches 0: the held-out rows' noise swamps the image error, which they cannot measure here");
+    }
     ErrorEstimate {
-        relative_error: e2.and_then(|e2| (norm_t > 0.0).then(|| e2.sqrt() / norm_t)),
-        rms_error: e2.map(|e2| (e2 / k).sqrt()),
+        relative_error: relative(e2),
+        relative_error_range: relative(lo).zip(relative(hi)),
+        rms_error: Some((e2 / k).sqrt()),
         basis,
     }
 }
@@ -1404,6 +1426,140 @@ mod tests {
         }
         assert_eq!(early, 2);
         assert!(pa > pz + 1.0, "auto {pa:.2} dB vs zero-filled {pz:.2} dB");
+    }
+
+    /// `method` on `c` (default parameters): the image's raw PSNR, or after the gain/offset fit
+    /// for the correlators.
+    fn psnr_of(spec: &PatternSpec, c: &[f64], method: &str, truth: &[f32]) -> f64 {
+        let problem = Problem {
+            spec,
+            channels: 1,
+            rows: c.len() as u64,
+        };
+        let config = MethodConfig::parse(method, &json!({})).unwrap();
+        let r = reconstruct(
+            &problem,
+            &config,
+            &mut SliceSource::new(c, 1, 500),
+            &Control::new(),
+        )
+        .unwrap();
+        let image = &r.images[0].data;
+        if method == "dgi" {
+            let (a, b) = metrics::fit_affine(image, truth);
+            let fitted: Vec<f32> = image.iter().map(|&v| (a * v as f64 + b) as f32).collect();
+            metrics::psnr(&fitted, truth)
+        } else {
+            metrics::psnr(image, truth)
+        }
+    }
+
+    #[test]
+    fn noisy_buckets_move_auto_to_heavier_weights_with_the_noise_it_measured() {
+        use helmholtz_sim::simulate::{NoiseModel, apply_noise};
+        // Hadamard split pairs (25 %, 64x64 photo): noise-free, then read noise at 30 dB of
+        // the total frame power (the common mode of 0/1 frames carries most of it).
+        let n = 64u32;
+        let truth = scene("camera", n);
+        let spec = PatternSpec::new(
+            Family::Hadamard {
+                ordering: HadamardOrdering::RussianDoll,
+            },
+            n,
+            n,
+            2 * 1024,
+            0,
+        )
+        .unwrap();
+        let clean = buckets(&spec, &truth);
+        let rms = (clean.iter().map(|v| v * v).sum::<f64>() / clean.len() as f64).sqrt();
+        let noise = NoiseModel {
+            snr_db: Some(30.0),
+            seed: 5,
+            ..NoiseModel::default()
+        };
+        let (noisy, _) = apply_noise(&clean, 1, &noise);
+        let sigma = rms / 10f64.powf(1.5) * 2f64.sqrt() / n as f64; // of (y+ - y-) / sqrt(k)
+        let quiet = auto(&spec, &clean, json!({}));
+        let loud = auto(&spec, &noisy, json!({}));
+        let (q, l) = (
+            &quiet.report.details["auto"][0],
+            &loud.report.details["auto"][0],
+        );
+        let est = l["noise_estimate"]["sigma"].as_f64().unwrap();
+        let se = l["noise_estimate"]["standard_error"].as_f64().unwrap();
+        let (fq, fl) = (
+            q["lambda_fraction"].as_f64().unwrap(),
+            l["lambda_fraction"].as_f64().unwrap(),
+        );
+        let (pq, pl) = (
+            metrics::psnr(&quiet.images[0].data, &truth),
+            metrics::psnr(&loud.images[0].data, &truth),
+        );
+        let dgi = psnr_of(&spec, &noisy, "dgi", &truth);
+        let tv = psnr_of(&spec, &noisy, "tv", &truth);
+        println!(
+            "noise-free: f {fq:.2e} {pq:.2} dB; 30 dB: f {fl:.2e} {pl:.2} dB (tv default {tv:.2}, dgi fitted {dgi:.2}); \
+             noise {est:.4} +- {se:.4} (put in {sigma:.4}); held-out fraction {:?}; contrast {}; error estimate {}",
+            loud.report.held_out.as_ref().map(|h| h.fraction),
+            l["contrast"],
+            l["error_estimate"]
+        );
+        // The noise the pair sums show is the noise put in.
+        assert!((est - sigma).abs() < 4.0 * se, "{est} +- {se} vs {sigma}");
+        assert_eq!(q["noise_estimate"]["sigma"], json!(0.0));
+        // Noisy data move the weight up by orders of magnitude, and auto stays above the
+        // default tv (whose fixed weight fits the noise) and DGI after its oracle fit.
+        assert!(fl > 30.0 * fq, "f {fl} vs {fq}");
+        assert!(pl > tv + 3.0, "auto {pl:.2} dB, tv {tv:.2} dB");
+        assert!(pl > dgi, "auto {pl:.2} dB, dgi fitted {dgi:.2} dB");
+        // Its error estimate is in the truth's ballpark (measured coefficients only, so not
+        // above it by much).
+        let estimated = l["error_estimate"]["relative_error"].as_f64().unwrap();
+        let actual = metrics::relative_error(&loud.images[0].data, &truth);
+        println!("estimated relative error {estimated:.3}, actual {actual:.3}");
+        assert!(estimated < 1.5 * actual && estimated > 0.2 * actual);
+    }
+
+    #[test]
+    fn bernoulli_buckets_drowned_in_noise_give_the_flat_image_not_noise() {
+        use helmholtz_sim::simulate::{NoiseModel, apply_noise};
+        // 48x48 smooth low-contrast scene, 25 % Bernoulli rows, 30 dB of the total bucket
+        // power: the image's share of the bucket spread is far below the noise.
+        let n = 48u32;
+        let truth = scene("smooth", n);
+        let spec = bernoulli(n, 576);
+        let clean = buckets(&spec, &truth);
+        let noise = NoiseModel {
+            snr_db: Some(30.0),
+            seed: 8,
+            ..NoiseModel::default()
+        };
+        let (noisy, _) = apply_noise(&clean, 1, &noise);
+        let r = auto(&spec, &noisy, json!({}));
+        let a = &r.report.details["auto"][0];
+        let p = metrics::psnr(&r.images[0].data, &truth);
+        let flat = {
+            let m = truth.iter().map(|&v| v as f64).sum::<f64>() / truth.len() as f64;
+            metrics::psnr(&vec![m as f32; truth.len()], &truth)
+        };
+        let dgi = psnr_of(&spec, &noisy, "dgi", &truth);
+        let tv = psnr_of(&spec, &noisy, "tv", &truth);
+        let held = r.report.held_out.as_ref().unwrap();
+        println!(
+            "auto {p:.2} dB ({} at f {}), flat {flat:.2}, dgi fitted {dgi:.2}, tv {tv:.2}; noise {}; held out {:.2}",
+            a["model"], a["lambda_fraction"], a["noise_estimate"], held.fraction
+        );
+        // The noise dominates what the buckets vary by: more rows are held out than the
+        // default tenth (measured 0.20).
+        assert!(held.fraction > 0.15, "held out {}", held.fraction);
+        // Nothing beats the flat image by more than the noise allows: auto returns (nearly) it,
+        // far above the default tv, which fits the noise.
+        assert!(
+            p > flat - 0.5,
+            "auto {p:.2} dB, the flat image {flat:.2} dB"
+        );
+        assert!(p > tv + 5.0, "auto {p:.2} dB, tv {tv:.2} dB");
     }
 
     #[test]

@@ -1,5 +1,6 @@
 //! A reconstruction's report as text: what the user needs to judge the image (the model `auto`
-//! chose and its weight, the held-out error estimate, warnings, PSNR/SSIM when the session has
+//! chose and its weight, the noise it measured and the image error it estimates, the held-out
+//! error estimate, warnings, PSNR/SSIM when the session has
 //! ground truth, time and memory). `--json` prints the whole report instead.
 
 use helmholtz_proto::rest::{AutoChoice, Figure, Report, TransportQuality};
@@ -26,6 +27,9 @@ pub fn report_lines(report: &Report) -> Vec<String> {
                     }
                 });
             lines.push(auto_line(&channel, &choice));
+            if let Some(line) = noise_and_error_line(&choice) {
+                lines.push(line);
+            }
             for w in &choice.warnings {
                 lines.push(format!("warning: {w}"));
             }
@@ -142,6 +146,39 @@ fn auto_line(channel: &str, c: &AutoChoice) -> String {
     s
 }
 
+/// `auto`'s noise estimate and the error it estimates for its image, when reported.
+fn noise_and_error_line(c: &AutoChoice) -> Option<String> {
+    let mut parts = Vec::new();
+    let noise = &c.extra.get("noise_estimate")?;
+    if let Some(sigma) = noise.get("sigma").and_then(Value::as_f64) {
+        let se = noise.get("standard_error").and_then(Value::as_f64);
+        let source = noise
+            .get("source")
+            .and_then(Value::as_str)
+            .map(|s| s.split(" (").next().unwrap_or(s))
+            .unwrap_or("");
+        parts.push(match se {
+            Some(se) => format!("noise {sigma:.3e} +- {se:.1e} per datum ({source})"),
+            None => format!("noise {sigma:.3e} per datum ({source})"),
+        });
+    }
+    let error = c.extra.get("error_estimate");
+    if let Some(e) = error
+        .and_then(|e| e.get("relative_error"))
+        .and_then(Value::as_f64)
+    {
+        let range = error
+            .and_then(|e| e.get("relative_error_range"))
+            .and_then(Value::as_array)
+            .and_then(|r| Some((r.first()?.as_f64()?, r.get(1)?.as_f64()?)));
+        parts.push(match range {
+            Some((lo, hi)) => format!("estimated error {e:.3} of the image ({lo:.3} to {hi:.3})"),
+            None => format!("estimated error {e:.3} of the image"),
+        });
+    }
+    (!parts.is_empty()).then(|| parts.join(", "))
+}
+
 fn figure(f: Figure, decimals: usize) -> String {
     if f.0.is_finite() {
         format!("{:.*}", decimals, f.0)
@@ -164,7 +201,10 @@ mod tests {
             "details": {"auto": [{
                 "model": "db4", "lambda": 0.0123, "lambda_fraction": 0.1, "kept": 310,
                 "held_out": 0.0421,
-                "warnings": ["too few rows for 64x64: 400 rows predict held-out buckets better at 32x32"]
+                "warnings": ["too few rows for 64x64: 400 rows predict held-out buckets better at 32x32"],
+                "noise_estimate": {"sigma": 1.5, "standard_error": 0.05, "data_spread": 30.0, "rows": 400,
+                                   "source": "hadamard pair sums (y+ + y- is the same for every pair but for noise)"},
+                "error_estimate": {"relative_error": 0.12, "relative_error_range": [0.1, 0.15], "rms_error": 0.05, "basis": "..."}
             }]},
             "held_out": {"rows": 40, "fraction": 0.1, "relative_residual": 0.0421,
                          "per_channel": [0.0421], "rms_residual": 0.5},
@@ -177,6 +217,7 @@ mod tests {
         for want in [
             "auto: model db4, weight 1.230e-2 (0.100 of lambda_max), 310 coefficients kept, held-out 0.0421",
             "warning: too few rows for 64x64",
+            "noise 1.500e0 +- 5.0e-2 per datum (hadamard pair sums), estimated error 0.120 of the image (0.100 to 0.150)",
             "held-out error 0.0421 (relative residual on 40 held-out rows",
             "vs ground truth [bucket]: PSNR 24.50 dB, SSIM 0.810",
             "gain 0.970",

@@ -572,8 +572,8 @@ mod tests {
         // Smooth: neighbouring pixels differ by little.
         let steps = s
             .pixels
-            .windows(2)
-            .map(|p| (p[0] - p[1]).abs())
+            .chunks_exact(64)
+            .flat_map(|row| row.windows(2).map(|p| (p[0] - p[1]).abs()))
             .fold(0.0, f32::max);
         assert!(steps < 0.05, "largest step {steps}");
         // Text: mostly paper, the ink a minority with full-contrast edges; ink covers exactly
