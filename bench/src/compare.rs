@@ -745,7 +745,12 @@ fn write_report(
         .map(|p| format!(" --problems {}", p.join(",")))
         .unwrap_or_default();
     let command = format!(
-        "cargo run --release -p helmholtz-bench -- --preset compare{repeat_arg}{problems_arg} --out {}",
+        "cargo run{} -p helmholtz-bench -- --preset compare{repeat_arg}{problems_arg} --out {}",
+        if cfg!(debug_assertions) {
+            ""
+        } else {
+            " --release"
+        },
         dir.display()
     );
     let mut machine = json!({
@@ -1009,7 +1014,7 @@ fn verdict(rows: &[Row]) -> Option<String> {
 
 const METHOD_TEXT: &str = "How it is measured:
 
-- **Same problems.** Each problem is simulated once (noise-free, the scene's transport scaled to [0, 1]) and exported as NPY: the ground truth, the measurement operator exactly as our solvers apply it (Bernoulli: the dense 0/1 matrix; Hadamard: the measured rows' natural indices, an orthonormal Walsh-Hadamard subset `A = S H / sqrt(k)` with data `b = (y+ - y-) / sqrt(k)`), and the data (see `bench/src/compare.rs`). The other tools read these files; ours run on the same simulated buckets.
+- **Same problems.** Each problem is simulated once (noise-free unless its title names the noise: Gaussian read noise at 30 dB SNR of the total bucket power, or Poisson shot noise at 1e4 photons per pattern, the same draw for every tool; the scene's transport scaled to [0, 1]) and exported as NPY: the ground truth, the measurement operator exactly as our solvers apply it (Bernoulli: the dense 0/1 matrix; Hadamard: the measured rows' natural indices, an orthonormal Walsh-Hadamard subset `A = S H / sqrt(k)` with data `b = (y+ - y-) / sqrt(k)`), and the data (see `bench/src/compare.rs`). The other tools read these files; ours run on the same simulated buckets.
 - **Same metric.** Every image, ours and theirs, is scored by the service's own `recon::metrics` (PSNR with the truth's range as peak, SSIM with an 11x11 Gaussian window), raw (no gain/offset fit).
 - **Times** are wall-clock seconds of the solve alone (not loading, not the operator's set-up from files; for ours the patterns are regenerated from the seed inside the timed call, and every iterative method's time includes its held-out error estimate), the median of the repeats, with default threads (rayon / the BLAS of numpy and torch) on the same 2 cores. The machine is a shared VM: times vary by up to 2x between runs.
 - **Weights favour the other tools.** Their regularisation weight is swept over a grid and the best point **by ground truth** is shown (its time is that point's solve alone; the whole sweep's time is in the notes). Ours use no ground truth: `tv` runs at its default weight and `auto` chooses the model and weight from held-out rows.
