@@ -35,3 +35,50 @@ fn smoke_grid_runs_and_writes_the_report() {
     .unwrap();
     assert_eq!(json["results"].as_array().unwrap().len(), results.len());
 }
+
+#[test]
+fn noisy_preset_runs_and_reports_against_the_targets_and_the_truth() {
+    let dir = tempfile::tempdir().unwrap();
+    let opts = noisy::Options {
+        out: dir.path().to_path_buf(),
+        scenes: vec!["shapes".into()],
+        families: vec!["hadamard".into()],
+        noises: vec![Noise::Snr30],
+        size: 32,
+        ratio: 0.25,
+        oracle: true,
+    };
+    let results = noisy::run(&opts).unwrap();
+    assert_eq!(results.len(), 1);
+    let r = &results[0];
+    assert!(r.auto.error.is_none() && r.auto.psnr_db.is_finite());
+    // The noise put in is known, and auto estimated it from the pair sums.
+    assert!(r.true_sigma > 0.0);
+    let est = r.auto_choice["noise_estimate"]["sigma"].as_f64().unwrap();
+    assert!(
+        (est / r.true_sigma - 1.0).abs() < 0.3,
+        "{est} vs {}",
+        r.true_sigma
+    );
+    // The oracle swept both models over the whole grid.
+    assert_eq!(r.oracle.len(), 2);
+    assert!(
+        r.oracle
+            .iter()
+            .all(|s| s.points.len() == noisy::ORACLE_FRACTIONS.len())
+    );
+    let md = std::fs::read_to_string(dir.path().join("benchmarks-noisy.md")).unwrap();
+    for want in [
+        "## Summary against the targets",
+        "| 30 dB | 1 |",
+        "## Calibration",
+        "| shapes | hadamard | 30 dB |",
+    ] {
+        assert!(md.contains(want), "{want:?} missing from:\n{md}");
+    }
+    let json: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(dir.path().join("benchmarks-noisy.json")).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(json["problems"].as_array().unwrap().len(), 1);
+}
