@@ -12,7 +12,7 @@
 //!    first, the flat image, is the same for every model) a candidate trailing the leader
 //!    by more than 2x in held-out score is dropped, and from the fourth round on one trailing by
 //!    more than 25 % (reported as eliminated), so clearly wrong models cost a few points.
-//!    The leader's path then goes on where the data ask: while its best point is its heaviest
+//!    The leader's path then goes on where the data ask: while its chosen point is its heaviest
 //!    weight (noisy data), heavier ones up to `lambda_max` ([`UPWARD`]); and, under noise,
 //!    where its best point lies between two solved ones, one point between it and each
 //!    ([`REFINE_GAP`]).
@@ -33,8 +33,12 @@
 //! 4. The winner (model, resolution, `f`) is refitted on all rows, warm-started from its
 //!    held-out fit.
 //! 5. Its contrast about the mean is corrected by the gain the held-out rows ask for
-//!    ([`contrast`]: l1 and TV shrink, most at the heavy weights noisy data need), when that
-//!    pays by more than one fitted parameter does by chance.
+//!    ([`contrast`]: l1 and TV shrink, most at the heavy weights noisy data need), when the
+//!    gain is significant against the estimated noise, fits the fitted rows no worse, and pays
+//!    by more than one fitted parameter does by chance.
+//!
+//! Where the session's noise estimate says the noise dominates the buckets, more rows are held
+//! out ([`holdout::noisy_fraction`], chosen by the driver, `compressive`).
 //!
 //! The report carries the session's noise estimate ([`noise`](super::noise): Hadamard pair
 //! sums, Bernoulli row moments) and an estimate of the served image's error from the held-out
