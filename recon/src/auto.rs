@@ -775,11 +775,7 @@ pub fn run(
     let p1 = super::fit::predict(train_op, &warm);
     let p0 = super::fit::predict(train_op, &flat);
     let gain = contrast(&job.b_test, &q0, &q1, (&b_train_fit, &p0, &p1), sigma);
-    let held_out_prediction: Vec<f64> = q0
-        .iter()
-        .zip(&q1)
-        .map(|(a, b)| a + gain.applied * (b - a))
-        .collect();
+    let held_out_prediction = along(&q0, &q1, gain.applied);
 
     // Refit on all rows (from the held-out fit at the same weight: a few dozen iterations).
     let refit_opts = SolveOptions {
@@ -943,15 +939,7 @@ fn contrast(
         den += (a1 - a0) * (a1 - a0);
     }
     let gain = if den > 0.0 { (num / den).max(0.0) } else { 1.0 };
-    let rss = |g: f64| -> f64 {
-        b.iter()
-            .zip(q0)
-            .zip(q1)
-            .map(|((b, a0), a1)| (b - a0 - g * (a1 - a0)).powi(2))
-            .sum()
-    };
-    let prediction =
-        |g: f64| -> Vec<f64> { q0.iter().zip(q1).map(|(a, c)| a + g * (c - a)).collect() };
+    let rss = |g: f64| rss_along(b, q0, q1, g);
     let n = b.len().max(1) as f64;
     // The gain's standard error: the held-out noise over the contrast's prediction (from the
     // residual spread when there is no noise estimate). On noisy held-out rows the gain is
@@ -970,14 +958,7 @@ fn contrast(
     // residual the gain takes back there too, while a fit that already matches its rows
     // (noise-free, orthonormal rows fitted exactly) is short only where it extrapolates, which
     // a global gain would not mend.
-    let rss_fit = |g: f64| -> f64 {
-        b_fit
-            .iter()
-            .zip(p0)
-            .zip(p1)
-            .map(|((b, a0), a1)| (b - a0 - g * (a1 - a0)).powi(2))
-            .sum()
-    };
+    let rss_fit = |g: f64| rss_along(b_fit, p0, p1, g);
     let pays = gain.is_finite()
         && (gain - 1.0).abs() > NOISE_BAND * se
         && rss(gain) < rss(1.0) * (-2.0 / n).exp()
@@ -988,8 +969,22 @@ fn contrast(
         standard_error: se,
         applied,
         held_out_before: holdout::relative_residual(b, q1),
-        held_out_after: holdout::relative_residual(b, &prediction(applied)),
+        held_out_after: holdout::relative_residual(b, &along(q0, q1, applied)),
     }
+}
+
+/// The prediction of `t(g) = mean + g (t - mean)`: affine in `g`, `q0 + g (q1 - q0)`.
+fn along(q0: &[f64], q1: &[f64], g: f64) -> Vec<f64> {
+    q0.iter().zip(q1).map(|(a, c)| a + g * (c - a)).collect()
+}
+
+/// `||b - along(q0, q1, g)||^2`.
+fn rss_along(b: &[f64], q0: &[f64], q1: &[f64], g: f64) -> f64 {
+    b.iter()
+        .zip(q0)
+        .zip(q1)
+        .map(|((b, a0), a1)| (b - a0 - g * (a1 - a0)).powi(2))
+        .sum()
 }
 
 /// The estimated error of the served image, from the held-out residuals and the noise estimate.

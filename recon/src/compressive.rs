@@ -146,11 +146,10 @@ impl<'a> Planned<'a> {
     pub fn design(&self) -> auto::Design {
         match (&self.op, self.spec.family()) {
             (PlannedOp::Hadamard(_), _) => auto::Design::Orthonormal,
-            (PlannedOp::Bernoulli(_), Family::Bernoulli { .. }) => {
+            (PlannedOp::Bernoulli(op), Family::Bernoulli { .. }) => {
+                // The rows' actual fill (the operator keeps the pattern sums).
+                let sums = op.row_sums();
                 let k = self.spec.pixels() as f64;
-                let ones = vec![1.0; self.spec.pixels()];
-                let mut sums = vec![0.0; self.op().rows()];
-                self.op().apply(&ones, &mut sums);
                 let p = sums.iter().sum::<f64>() / (sums.len().max(1) as f64 * k);
                 auto::Design::Random {
                     variance: p * (1.0 - p),
