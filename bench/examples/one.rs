@@ -59,6 +59,29 @@ fn main() {
             img.iter().copied().fold(f32::INFINITY, f32::min),
             img.iter().copied().fold(f32::NEG_INFINITY, f32::max)
         );
+        // The slope of the image on the truth (1: the right physical units).
+        let (mi, mt) = (mean(img), mean(&truth));
+        let (mut cov, mut var, mut var_img) = (0.0, 0.0, 0.0);
+        for (&x, &t) in img.iter().zip(&truth) {
+            cov += (x as f64 - mi) * (t as f64 - mt);
+            var += (t as f64 - mt) * (t as f64 - mt);
+            var_img += (x as f64 - mi) * (x as f64 - mi);
+        }
+        let err: f64 = img
+            .iter()
+            .zip(&truth)
+            .map(|(&x, &t)| (x as f64 - t as f64).powi(2))
+            .sum::<f64>()
+            .sqrt();
+        let norm: f64 = img.iter().map(|&x| (x as f64).powi(2)).sum::<f64>().sqrt();
+        // And the slope of the truth on the image (1: no rescaling of the image predicts the
+        // truth better; what the fitted PSNR's gain is).
+        println!(
+            "gain {:.3}  truth-on-image slope {:.3}  true relative error {:.4}",
+            cov / var,
+            cov / var_img,
+            err / norm
+        );
         println!(
             "{:.4} s  {:.2} dB  ssim {:.3}  iterations {}  held-out {:?}",
             s,

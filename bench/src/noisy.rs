@@ -69,6 +69,11 @@ pub struct Run {
     /// the right physical units, < 1 shrunk towards the mean (noise in the image does not
     /// bias it, unlike the slope of the truth on the image).
     pub gain: f64,
+    /// Least-squares slope of the truth on the image (`truth ~ slope * image + offset`, the
+    /// fitted PSNR's gain): 1 when no rescaling of the image predicts the truth better (an
+    /// image shrunk the way the noise asks, as a Wiener filter is, has 1 here and a `gain` below
+    /// 1; one carrying amplified noise has a slope below 1).
+    pub calibration_slope: f64,
     /// `||image - truth|| / ||truth||`.
     pub relative_error: f64,
     pub error: Option<String>,
@@ -134,6 +139,7 @@ fn solve(
                 psnr_db: metrics::psnr(&image, truth),
                 psnr_fitted_db: metrics::psnr(&fitted, truth),
                 gain: metrics::fit_affine(truth, &image).0,
+                calibration_slope: a,
                 relative_error: metrics::relative_error(&image, truth),
                 error: None,
                 report: serde_json::to_value(&r.report).unwrap_or_default(),
@@ -148,6 +154,7 @@ fn solve(
                 psnr_db: f64::NAN,
                 psnr_fitted_db: f64::NAN,
                 gain: f64::NAN,
+                calibration_slope: f64::NAN,
                 relative_error: f64::NAN,
                 error: Some(e.to_string()),
                 report: Value::Null,
@@ -270,7 +277,7 @@ fn estimate(r: &ProblemResult) -> f64 {
 
 /// Counts against the targets, per noise convention.
 fn summary(md: &mut String, results: &[ProblemResult]) -> anyhow::Result<()> {
-    md.push_str("\n## Summary against the targets\n\n| noise | problems | auto within 0.5 dB of the oracle | median auto - oracle dB (worst) | auto >= DGI after its fit | gain within 5 % of 1 | median auto / default tv time |\n|---|---|---|---|---|---|---|\n");
+    md.push_str("\n## Summary against the targets\n\n| noise | problems | auto within 0.5 dB of the oracle | median auto - oracle dB (worst) | auto >= DGI after its fit | gain within 5 % of 1 | truth-on-image slope within 5 % of 1 | median auto / default tv time |\n|---|---|---|---|---|---|---|---|\n");
     let mut noises: Vec<&str> = Vec::new();
     for r in results {
         if !noises.contains(&r.noise.as_str()) {
@@ -289,7 +296,7 @@ fn summary(md: &mut String, results: &[ProblemResult]) -> anyhow::Result<()> {
         ratios.sort_by(f64::total_cmp);
         writeln!(
             md,
-            "| {noise} | {} | {} of {} | {} | {} of {} | {} of {} | {:.1} |",
+            "| {noise} | {} | {} of {} | {} | {} of {} | {} of {} | {} of {} | {:.1} |",
             rs.len(),
             gaps.iter().filter(|g| **g >= -0.5).count(),
             gaps.len(),
@@ -304,6 +311,10 @@ fn summary(md: &mut String, results: &[ProblemResult]) -> anyhow::Result<()> {
             rs.len(),
             rs.iter()
                 .filter(|r| (r.auto.gain - 1.0).abs() <= 0.05)
+                .count(),
+            rs.len(),
+            rs.iter()
+                .filter(|r| (r.auto.calibration_slope - 1.0).abs() <= 0.05)
                 .count(),
             rs.len(),
             ratios.get(ratios.len() / 2).copied().unwrap_or(f64::NAN),
@@ -391,7 +402,7 @@ fn write(
         opts.ratio * 100.0,
         ORACLE_FRACTIONS
     )?;
-    md.push_str("| scene | family | noise | auto raw dB | fitted dB | gain | model @ f | s | oracle best dB (model @ f) | auto - oracle dB | default tv dB | tv s | DGI fitted dB | auto/tv time |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
+    md.push_str("| scene | family | noise | auto raw dB | fitted dB | gain | truth-on-image slope | model @ f | s | oracle best dB (model @ f) | auto - oracle dB | default tv dB | tv s | DGI fitted dB | auto/tv time |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
     for r in results {
         let (oracle, gap) = match best_oracle(r) {
             Some(s) => (
@@ -402,13 +413,14 @@ fn write(
         };
         writeln!(
             md,
-            "| {} | {} | {} | {:.2} | {:.2} | {:.3} | {} @ {:.3} | {:.2} | {} | {} | {:.2} | {:.2} | {:.2} | {:.2} |",
+            "| {} | {} | {} | {:.2} | {:.2} | {:.3} | {:.3} | {} @ {:.3} | {:.2} | {} | {} | {:.2} | {:.2} | {:.2} | {:.2} |",
             r.scene,
             r.family,
             r.noise,
             r.auto.psnr_db,
             r.auto.psnr_fitted_db,
             r.auto.gain,
+            r.auto.calibration_slope,
             r.auto_choice["model"].as_str().unwrap_or("?"),
             num(&r.auto_choice["lambda_fraction"]),
             r.auto.seconds,
@@ -421,7 +433,7 @@ fn write(
         )?;
     }
     summary(&mut md, results)?;
-    md.push_str("\n## Calibration: the error `auto` reports against the true error\n\n`error_estimate.relative_error` in `auto`'s report is its estimate of `||t_hat - t|| / ||t||` from the held-out rows and the noise it estimated (docs/usage.md, `recon/src/auto.rs`), with a range of two standard errors of both either way; for Hadamard subsets it covers only the measured coefficients. The truth is measured here against the scene.\n\n| scene | family | noise | noise put in (sigma) | estimated noise (sigma +- se, source) | estimated relative error (range) | true relative error | estimate / truth | truth in range |\n|---|---|---|---|---|---|---|---|---|\n");
+    md.push_str("\n## Calibration: the error `auto` reports against the true error\n\n`error_estimate.relative_error` in `auto`'s report is its estimate of `||t_hat - t|| / ||t||` from the held-out rows and the noise it estimated (docs/usage.md, `recon/src/auto.rs`), with a range; for Hadamard subsets it adds the coefficients no row measured, from the scene's energy there extrapolated across the measured scales (`orthonormal_error` in `recon/src/auto.rs`). The truth is measured here against the scene.\n\n| scene | family | noise | noise put in (sigma) | estimated noise (sigma +- se, source) | estimated relative error (range) | true relative error | estimate / truth | truth in range |\n|---|---|---|---|---|---|---|---|---|\n");
     for r in results {
         let est = estimate(r);
         let noise = &r.auto_choice["noise_estimate"];

@@ -145,7 +145,9 @@ impl<'a> Planned<'a> {
     /// What the error estimate needs to know about the rows ([`auto::Design`]).
     pub fn design(&self) -> auto::Design {
         match (&self.op, self.spec.family()) {
-            (PlannedOp::Hadamard(_), _) => auto::Design::Orthonormal,
+            (PlannedOp::Hadamard(op), _) => auto::Design::Orthonormal {
+                measured: op.natural_indices().to_vec(),
+            },
             (PlannedOp::Bernoulli(op), Family::Bernoulli { .. }) => {
                 // The rows' actual fill (the operator keeps the pattern sums).
                 let sums = op.row_sums();
