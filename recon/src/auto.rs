@@ -1270,7 +1270,7 @@ fn error_estimate(
     let n = b.len();
     if let Design::Orthonormal { measured } = design
         && n >= 1
-        && let Some(e) = orthonormal_error(measured, noise, (b, prediction), (full, all, size), t)
+        && let Some(e) = orthonormal_error(measured, noise, (full, all, size), t)
     {
         return e;
     }
@@ -1330,17 +1330,18 @@ fn error_estimate(
 /// - the measured coefficients: each is its datum plus noise, so the error there is the
 ///   image's residual on every row, `||A t - b||^2`, give or take the noise it did or did not
 ///   fit (`rows sigma^2` either way: between fitting nothing of the noise and all of it);
-/// - the unmeasured ones ([`unmeasured_energy`]): the scene's energy there, extrapolated, times
-///   the share of it the model fails to extrapolate, which the held-out rows show on the
-///   coefficients they hold (the held-out fit never saw them: `sum (r_i^2 - sigma^2)` over
-///   `sum (b_i^2 - sigma^2)`, at most 1). The range runs from the image's best possible
+/// - the unmeasured ones ([`unmeasured_energy`]): the scene's energy there, extrapolated
+///   across the measured scale orders, against the image's own energy there:
+///   `(sqrt(scene) - sqrt(image))^2`, the error of an extrapolation in phase with the scene.
+///   (The share of the held-out coefficients the model fails to predict without them read
+///   near 0 where the true error there was large: held-out rows of a Russian-doll subset are
+///   coarser than the unmeasured ones.) The range runs from the image's best possible
 ///   extrapolation to none at all.
 ///
 /// `None` when the noise is unknown or the rows are not a subset this can judge.
 fn orthonormal_error(
     measured: &[usize],
     noise: Option<&NoiseEstimate>,
-    (b_test, prediction): (&[f64], &[f64]),
     (full, all, size): (&dyn LinearOperator, &[f64], (usize, usize)),
     t: &[f64],
 ) -> Option<ErrorEstimate> {
@@ -1370,27 +1371,17 @@ fn orthonormal_error(
         "the image's residuals on the {rows} measured coefficients of {k}, less the noise (each is its datum plus \
          noise; the range allows for the fit having absorbed it)"
     );
-    let held_error: f64 = b_test
-        .iter()
-        .zip(prediction)
-        .map(|(b, p)| (b - p) * (b - p) - s2)
-        .sum();
-    let held_energy: f64 = b_test.iter().map(|b| b * b - s2).sum();
-    let share = if held_energy > 0.0 {
-        (held_error / held_energy).clamp(0.0, 1.0)
-    } else {
-        1.0
-    };
     if let Some(u) = unmeasured_energy(measured, all, size, t, (s2, ds2)) {
-        let point = (share * u.scene).clamp(u.low, u.high);
+        let point = u.point.clamp(u.low, u.high);
         e2 += point;
         lo += u.low;
         hi += u.high;
         basis = format!(
             "{basis}, plus the error in the {} unmeasured ones: the scene's energy there extrapolated from the measured \
-             scales (a power law in scale order fitted to orders {:?}: {:.3e} of the image's squared norm) times the \
-             share {share:.3} of the held-out coefficients' energy the model failed to predict without them; the range \
-             runs from the image's best possible extrapolation to none",
+             scales (a power law in scale order fitted to orders {:?}: {:.3e} of the image's squared norm), against \
+             the image's own energy there (at least their difference: a held-out share of what the model fails to \
+             extrapolate read near 0 where the truth was far from it, the held-out rows being coarser than the \
+             unmeasured ones); the range runs from the image's best possible extrapolation to none",
             u.coefficients,
             u.levels,
             u.scene / norm2.max(f64::MIN_POSITIVE),
@@ -1414,6 +1405,8 @@ struct Unmeasured {
     coefficients: usize,
     /// The scene's extrapolated energy in them.
     scene: f64,
+    /// The error there if the scene's energy is `scene`: `(sqrt(scene) - sqrt(image))^2`.
+    point: f64,
     /// The error's range there: from `(sqrt(scene) - sqrt(image))^2` with the scene's energy
     /// as near the image's as its bounds allow (the image's extrapolation as right as it can
     /// be) to the scene's upper bound and the image's energy adding up in phase (as wrong as it
@@ -1578,6 +1571,7 @@ fn unmeasured_energy(
     Some(Unmeasured {
         coefficients: unmeasured,
         scene,
+        point: (scene.sqrt() - image.sqrt()).powi(2),
         low: (nearest.sqrt() - image.sqrt()).powi(2),
         high: scene_high + image + 2.0 * (scene_high * image).sqrt(),
         levels: fit.iter().map(|p| p.0).collect(),
