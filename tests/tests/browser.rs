@@ -1,0 +1,534 @@
+//! The web viewer in a real browser: the real `helmholtz-demo` (the service and its simulated
+//! rigs) on 127.0.0.1 port 0 with a real SQLite file (or PostgreSQL with
+//! `HELMHOLTZ_TEST_BACKEND=postgres`), and a headless Chromium driven through chromedriver
+//! (`helmholtz_tests::browser`). Nothing is mocked: the browser loads the page the server
+//! serves and calls its REST API with the demo's reader token.
+//!
+//! What a user does: log in with a token (pasted, and through the demo's `/#token=` link), see
+//! the demo's sessions, open a dual image (zoom, side by side), drag a light on the camera's view
+//! and see the relit image change (100 drags, timed in the browser: the figures go to
+//! `target/browser-artefacts/relight-latency.json` and docs/web-viewer.md, never asserted),
+//! predict a stored frame, start a reconstruction and cancel it while its progress streams in,
+//! and see another lab's session refused. Screenshots: `target/browser-artefacts/*.png`.
+//!
+//! Chromium and chromedriver must be installed (`apt-get install chromium chromium-driver`;
+//! .ci/run does it); without them the test fails saying so.
+
+use std::io::{BufRead, BufReader};
+use std::path::PathBuf;
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use helmholtz_tests::browser::Browser;
+use helmholtz_tests::{backend, binary, create_token_on, store_args};
+use serde_json::{Value, json};
+
+const WAIT: Duration = Duration::from_secs(60);
+
+/// `target/browser-artefacts` (screenshots, the latency figures).
+fn artefacts() -> PathBuf {
+    let exe = std::env::current_exe().unwrap();
+    // target/<profile>/deps/browser-HASH
+    let target = exe.ancestors().nth(3).unwrap().to_path_buf();
+    target.join("browser-artefacts")
+}
+
+/// The demo, serving after it has uploaded and reconstructed its sessions.
+struct Demo {
+    child: Child,
+    base: String,
+    reader: String,
+    viewer_link: String,
+}
+
+impl Drop for Demo {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn start_demo(data: &std::path::Path) -> Demo {
+    let mut child = Command::new(binary("helmholtz-demo"))
+        .args(["--listen", "127.0.0.1:0"])
+        .args(store_args(data))
+        .env("RUST_LOG", "warn")
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::inherit())
+        .spawn()
+        .expect("starting helmholtz-demo");
+    let stdout = child.stdout.take().unwrap();
+    let (tx, rx) = std::sync::mpsc::channel::<String>();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stdout).lines() {
+            let Ok(line) = line else { break };
+            if tx.send(line).is_err() {
+                break;
+            }
+        }
+    });
+    let deadline = Instant::now() + Duration::from_secs(600);
+    let mut seen = Vec::new();
+    loop {
+        let line = rx
+            .recv_timeout(deadline.saturating_duration_since(Instant::now()))
+            .unwrap_or_else(|_| panic!("the demo did not finish:\n{}", seen.join("\n")));
+        let done = line.starts_with("Serving on ");
+        seen.push(line);
+        if done {
+            break;
+        }
+    }
+    let text = seen.join("\n");
+    let field = |prefix: &str| -> String {
+        let line = seen
+            .iter()
+            .find(|l| l.trim_start().starts_with(prefix))
+            .unwrap_or_else(|| panic!("no line {prefix:?} in:\n{text}"));
+        line.split_whitespace().last().unwrap().to_string()
+    };
+    let reader = field("reader (");
+    let viewer_link = field("viewer (");
+    let base = viewer_link.split("/#token=").next().unwrap().to_string();
+    assert_eq!(
+        viewer_link,
+        format!("{base}/#token={reader}"),
+        "the demo's viewer link carries the reader token in the fragment"
+    );
+    Demo {
+        child,
+        base,
+        reader,
+        viewer_link,
+    }
+}
+
+fn median_p95(mut v: Vec<f64>) -> (f64, f64) {
+    v.sort_by(|a, b| a.partial_cmp(b).unwrap());
+    let at = |q: f64| v[((q * (v.len() - 1) as f64).round() as usize).min(v.len() - 1)];
+    (at(0.5), at(0.95))
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_viewer_in_a_real_browser() {
+    let started = Instant::now();
+    let out = artefacts();
+    std::fs::create_dir_all(&out).unwrap();
+    // First, so a machine without Chromium fails at once, saying how to install it.
+    let browser = Browser::start().await.unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path().join("data");
+    let demo = start_demo(&data);
+    let demo_ready = started.elapsed();
+    let base = demo.base.clone();
+    let shot = |name: &str| out.join(format!("{name}.png"));
+
+    // 1. The page is the server's own, and it asks for a token.
+    browser.goto(&format!("{base}/")).await.unwrap();
+    browser
+        .wait_for("document.querySelector('#login #token')", WAIT)
+        .await
+        .unwrap();
+    browser.screenshot(&shot("01-login")).await.unwrap();
+    // A wrong token is refused by the server, and the page says so.
+    browser.type_into("#token", "hz_not-a-token").await.unwrap();
+    browser.click("#login button[type=submit]").await.unwrap();
+    browser
+        .wait_for(
+            "document.querySelector('#login .error')?.textContent.includes('not accepted')",
+            WAIT,
+        )
+        .await
+        .unwrap();
+    // The demo's reader token, pasted.
+    browser.type_into("#token", &demo.reader).await.unwrap();
+    browser.click("#login button[type=submit]").await.unwrap();
+
+    // 2. The demo's sessions, with state and rows.
+    let sessions = browser
+        .wait_for(
+            "window.hz.sessions && window.hz.sessions.length >= 3 && window.hz.sessions",
+            WAIT,
+        )
+        .await
+        .unwrap();
+    for id in [
+        "demo-usaf-hadamard",
+        "demo-double-slit-dgi",
+        "demo-lambert-camera",
+    ] {
+        assert!(
+            sessions.as_array().unwrap().contains(&json!(id)),
+            "{sessions}"
+        );
+    }
+    let row_text = browser
+        .execute(
+            "return document.querySelector('tr[data-session=\"demo-usaf-hadamard\"]').innerText",
+            json!([]),
+        )
+        .await
+        .unwrap();
+    let digits: String = row_text
+        .as_str()
+        .unwrap()
+        .chars()
+        .filter(|c| c.is_ascii_digit() || *c == '/')
+        .collect();
+    assert!(digits.contains("8192/8192"), "{row_text}");
+    browser.screenshot(&shot("02-sessions")).await.unwrap();
+    // The token is in the tab's session storage, not in the address.
+    let where_ = browser
+        .execute(
+            "return [location.href, sessionStorage.getItem('helmholtz.token')]",
+            json!([]),
+        )
+        .await
+        .unwrap();
+    assert!(!where_[0].as_str().unwrap().contains("hz_"), "{where_}");
+    assert_eq!(where_[1], json!(demo.reader));
+
+    // The demo's link opens the viewer ready to use, and the token leaves the address bar.
+    browser.click("#logout").await.unwrap();
+    browser
+        .wait_for("document.querySelector('#login #token')", WAIT)
+        .await
+        .unwrap();
+    browser.goto("about:blank").await.unwrap();
+    browser.goto(&demo.viewer_link).await.unwrap();
+    browser
+        .wait_for("window.hz.sessions && window.hz.sessions.length >= 3", WAIT)
+        .await
+        .unwrap();
+    let href = browser
+        .execute("return location.href", json!([]))
+        .await
+        .unwrap();
+    assert!(!href.as_str().unwrap().contains("token"), "{href}");
+
+    // 3. A dual image: the report's figures, the plot, the image drawn, zoomed, side by side.
+    browser
+        .click("tr[data-session=\"demo-usaf-hadamard\"] a")
+        .await
+        .unwrap();
+    browser
+        .wait_for("window.hz.dual && window.hz.dual.draws >= 1", WAIT)
+        .await
+        .unwrap();
+    let recon_row = browser
+        .execute(
+            "return document.querySelector('#reconstructions tbody tr').innerText",
+            json!([]),
+        )
+        .await
+        .unwrap();
+    assert!(
+        recon_row.as_str().unwrap().contains("direct"),
+        "{recon_row}"
+    );
+    // PSNR against the known truth is shown (the demo's Hadamard inverse: > 30 dB).
+    let psnr: f64 = browser
+        .execute(
+            "return document.querySelector('#reconstructions tbody tr').children[7].textContent",
+            json!([]),
+        )
+        .await
+        .unwrap()
+        .as_str()
+        .unwrap()
+        .parse()
+        .unwrap();
+    assert!(psnr > 30.0, "{psnr}");
+    let first_hash = browser
+        .execute(
+            "return document.querySelector('.imageview canvas').dataset.hash",
+            json!([]),
+        )
+        .await
+        .unwrap();
+    assert!(first_hash.is_string(), "{first_hash}");
+    browser
+        .click(".imageview .zoomtools button[aria-label='Zoom in']")
+        .await
+        .unwrap();
+    let zoom = browser
+        .execute(
+            "return document.querySelectorAll('.imageview canvas').length",
+            json!([]),
+        )
+        .await
+        .unwrap();
+    assert!(zoom.as_u64().unwrap() >= 2);
+    browser.screenshot(&shot("03-dual-image")).await.unwrap();
+
+    // 4. Relighting the camera session: drag a disc light on the camera's view.
+    browser
+        .goto(&format!("{base}/#/sessions/demo-lambert-camera"))
+        .await
+        .unwrap();
+    browser
+        .wait_for(
+            "document.querySelector('#camera-view')?.dataset.ready === '1' && window.hz.relight && window.hz.relight.drawn >= 1 && !window.hz.relight.inFlight",
+            WAIT,
+        )
+        .await
+        .unwrap();
+    browser
+        .execute(
+            "document.querySelector('#camera-view').scrollIntoView({block: 'center'})",
+            json!([]),
+        )
+        .await
+        .unwrap();
+    let lit_all = browser
+        .execute("return window.hz.relight.hashes.at(-1)", json!([]))
+        .await
+        .unwrap();
+    browser
+        .drag("#camera-view", (-120, -60), (-60, -30))
+        .await
+        .unwrap();
+    let settled =
+        "window.hz.relight.answered === window.hz.relight.wanted && !window.hz.relight.inFlight";
+    browser.wait_for(settled, WAIT).await.unwrap();
+    let lit_disc = browser
+        .execute("return window.hz.relight.hashes.at(-1)", json!([]))
+        .await
+        .unwrap();
+    assert_ne!(lit_all, lit_disc, "the relit image changed with the light");
+    browser.screenshot(&shot("04-relight")).await.unwrap();
+
+    // 100 drags along a path; each waits for its image. Timed in the browser from the
+    // pointermove event to the relit image drawn on the canvas.
+    let before = browser
+        .execute("return window.hz.relight.timings.length", json!([]))
+        .await
+        .unwrap()
+        .as_u64()
+        .unwrap() as usize;
+    for i in 0..100i64 {
+        let a = (i as f64) * 0.37;
+        let (x, y) = ((a.cos() * 110.0) as i64, (a.sin() * 80.0) as i64);
+        browser
+            .drag(
+                "#camera-view",
+                (x, y),
+                (x + 9 - (i % 5) * 4, y + 5 - (i % 3) * 5),
+            )
+            .await
+            .unwrap();
+        browser.wait_for(settled, WAIT).await.unwrap();
+    }
+    let stats = browser
+        .execute("return window.hz.relight", json!([]))
+        .await
+        .unwrap();
+    assert_eq!(stats["errors"], 0, "{}", stats["lastError"]);
+    let timings = stats["timings"].as_array().unwrap()[before..].to_vec();
+    let moves: Vec<f64> = timings
+        .iter()
+        .filter(|t| t["kind"] == "pointermove")
+        .map(|t| t["ms"].as_f64().unwrap())
+        .collect();
+    assert_eq!(
+        moves.len(),
+        100,
+        "one relit image drawn per drag's move ({} images in all)",
+        timings.len()
+    );
+    let hashes: std::collections::BTreeSet<String> = stats["hashes"].as_array().unwrap()[before..]
+        .iter()
+        .map(|h| h.as_str().unwrap().to_string())
+        .collect();
+    assert!(
+        hashes.len() >= 50,
+        "the relit images change as the light moves: {} distinct of {}",
+        hashes.len(),
+        timings.len()
+    );
+    let (median, p95) = median_p95(moves.clone());
+    let figures = json!({
+        "drags": 100,
+        "images_drawn": timings.len(),
+        "distinct_images": hashes.len(),
+        "move_to_drawn_ms": {"median": median, "p95": p95, "min": moves.iter().cloned().fold(f64::INFINITY, f64::min), "max": moves.iter().cloned().fold(0.0, f64::max)},
+        "session": "demo-lambert-camera (32x32 projector, 32x24 camera)",
+        "backend": format!("{:?}", backend()),
+    });
+    std::fs::write(
+        out.join("relight-latency.json"),
+        serde_json::to_string_pretty(&figures).unwrap(),
+    )
+    .unwrap();
+    println!(
+        "relight latency over 100 drags (move -> relit image drawn): median {median:.1} ms, p95 {p95:.1} ms"
+    );
+
+    // The primal prediction of a stored pattern beside its measured frame, with the error.
+    browser.click("#primal-go").await.unwrap();
+    let primal = browser
+        .wait_for(
+            "document.querySelector('#primal-error')?.textContent.includes('relative error') && document.querySelector('#primal-measured')?.dataset.hash && document.querySelector('#primal-error').textContent",
+            WAIT,
+        )
+        .await
+        .unwrap();
+    assert!(primal.as_str().unwrap().contains("PSNR"), "{primal}");
+    browser.screenshot(&shot("05-primal")).await.unwrap();
+
+    // 5. A reconstruction job from the generated form: progress streams in; cancel it.
+    browser
+        .goto(&format!("{base}/#/sessions/demo-double-slit-dgi"))
+        .await
+        .unwrap();
+    browser
+        .wait_for(
+            "document.querySelector('#job-method option[value=tv]')",
+            WAIT,
+        )
+        .await
+        .unwrap();
+    // The methods are the server's own (the OpenAPI document's enum).
+    let methods = browser
+        .execute(
+            "return [...document.querySelectorAll('#job-method option')].map(o => o.value)",
+            json!([]),
+        )
+        .await
+        .unwrap();
+    for m in ["gi", "dgi", "auto", "tv"] {
+        assert!(methods.as_array().unwrap().contains(&json!(m)), "{methods}");
+    }
+    browser
+        .execute(
+            "const s = document.querySelector('#job-method'); s.value = 'tv'; s.dispatchEvent(new Event('change')); document.querySelector('#job-params').value = '';",
+            json!([]),
+        )
+        .await
+        .unwrap();
+    browser
+        .type_into("#job-params", r#"{"max_iter": 100000}"#)
+        .await
+        .unwrap();
+    browser.click("#job-submit").await.unwrap();
+    let job: i64 = browser
+        .wait_for("document.querySelector('#jobs li')?.dataset.job", WAIT)
+        .await
+        .unwrap()
+        .as_str()
+        .unwrap()
+        .parse()
+        .unwrap();
+    // Live: the stream's events arrive (the first at once, then as the state moves on).
+    browser
+        .wait_for(
+            "document.querySelector('#jobs li [data-state=running]')",
+            WAIT,
+        )
+        .await
+        .unwrap();
+    browser.screenshot(&shot("06-job-running")).await.unwrap();
+    browser.click("#jobs li button.cancel").await.unwrap();
+    browser
+        .wait_for(
+            "document.querySelector('#jobs li [data-state=cancelled]')",
+            WAIT,
+        )
+        .await
+        .unwrap();
+    let events: u64 = browser
+        .execute(
+            "return Number(document.querySelector('#jobs li').dataset.events)",
+            json!([]),
+        )
+        .await
+        .unwrap()
+        .as_u64()
+        .unwrap();
+    assert!(events >= 2, "the job's state streamed in: {events} events");
+    browser.screenshot(&shot("07-job-cancelled")).await.unwrap();
+    let client = reqwest::Client::new();
+    let view: Value = client
+        .get(format!("{base}/v1/reconstructions/{job}"))
+        .bearer_auth(&demo.reader)
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(view["state"], "cancelled", "{view}");
+    assert_eq!(view["method"], "tv", "{view}");
+
+    // 6. Another lab's session: not listed, and its page refused like a missing one.
+    let other = create_token_on(
+        backend(),
+        &binary("helmholtz-server"),
+        &data,
+        "other-lab",
+        "rig,reader",
+    )
+    .unwrap();
+    let r = client
+        .post(format!("{base}/v1/sessions"))
+        .bearer_auth(&other)
+        .json(&json!({
+            "id": "other-lab-session",
+            "rig": "theirs",
+            "patterns": {"family": "bernoulli", "width": 32, "height": 32, "count": 64, "seed": 1, "fill": 0.5},
+            "channels": ["d"],
+        }))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 201, "{}", r.text().await.unwrap());
+    browser
+        .execute("window.hz.sessions = null", json!([]))
+        .await
+        .unwrap();
+    browser.goto(&format!("{base}/#/")).await.unwrap();
+    let listed = browser
+        .wait_for("window.hz.sessions && document.querySelector('#sessions tbody tr') && window.hz.sessions", WAIT)
+        .await
+        .unwrap();
+    assert!(
+        !listed
+            .as_array()
+            .unwrap()
+            .contains(&json!("other-lab-session")),
+        "{listed}"
+    );
+    browser
+        .goto(&format!("{base}/#/sessions/other-lab-session"))
+        .await
+        .unwrap();
+    let refused = browser
+        .wait_for("document.querySelector('#page-error')?.textContent", WAIT)
+        .await
+        .unwrap();
+    assert!(refused.as_str().unwrap().contains("not found"), "{refused}");
+    browser
+        .screenshot(&shot("08-other-lab-refused"))
+        .await
+        .unwrap();
+
+    // Every request the page made went to the server under test.
+    let hosts = browser
+        .execute(
+            "return performance.getEntriesByType('resource').map(e => new URL(e.name).origin)",
+            json!([]),
+        )
+        .await
+        .unwrap();
+    for origin in hosts.as_array().unwrap() {
+        assert_eq!(origin.as_str().unwrap(), base, "{hosts}");
+    }
+    browser.quit().await;
+    println!(
+        "browser test: demo ready in {:.1} s, whole test {:.1} s; screenshots in {}",
+        demo_ready.as_secs_f64(),
+        started.elapsed().as_secs_f64(),
+        out.display()
+    );
+}
