@@ -289,6 +289,38 @@ impl Browser {
         self.command("DELETE", "/actions", None).await.map(drop)
     }
 
+    /// Mouse input on the element matching `css`, kept across calls (a button pressed here stays
+    /// pressed until [`Browser::release`]): `steps` are `("move", x, y)` (offsets in CSS pixels
+    /// from the element's centre), `("down", 0, 0)` or `("up", 0, 0)`.
+    pub async fn pointer(&self, css: &str, steps: &[(&str, i64, i64)]) -> anyhow::Result<()> {
+        let element = self.find(css).await?;
+        let origin = json!({ ELEMENT: Self::element_id(&element)? });
+        let actions: Vec<Value> = steps
+            .iter()
+            .map(|(kind, x, y)| match *kind {
+                "move" => {
+                    json!({"type": "pointerMove", "duration": 0, "origin": origin, "x": x, "y": y})
+                }
+                "down" => json!({"type": "pointerDown", "button": 0}),
+                _ => json!({"type": "pointerUp", "button": 0}),
+            })
+            .collect();
+        let actions = json!({"actions": [{
+            "type": "pointer",
+            "id": "mouse",
+            "parameters": {"pointerType": "mouse"},
+            "actions": actions,
+        }]});
+        self.command("POST", "/actions", Some(actions))
+            .await
+            .map(drop)
+    }
+
+    /// Releases every pressed button and key.
+    pub async fn release(&self) -> anyhow::Result<()> {
+        self.command("DELETE", "/actions", None).await.map(drop)
+    }
+
     /// Saves a PNG screenshot of the window at `path`.
     pub async fn screenshot(&self, path: &Path) -> anyhow::Result<()> {
         let v = self.command("GET", "/screenshot", None).await?;

@@ -21,12 +21,20 @@ function relighter(rec, view, mode) {
     pending = null;
     stats.inFlight = true;
     try {
+      const sent = performance.now();
       const r = await request(`/v1/reconstructions/${rec.id}/relight?format=npy`, { method: "POST", body: job.body, type: job.type });
-      const img = parseNpy(new Uint8Array(await r.arrayBuffer()));
+      const body = new Uint8Array(await r.arrayBuffer());
+      const received = performance.now();
+      const img = parseNpy(body);
       view.set(img.shape[1], img.shape[0], [img.data], mode(), `Relit dual image (#${rec.id})`);
-      const ms = performance.now() - job.t;
+      const drawn = performance.now();
       stats.drawn += 1;
-      stats.timings.push({ ms, kind: job.kind });
+      // From the input event to the image drawn, and its parts: the event reaching the
+      // handler, waiting for an earlier request, the request's round trip, decoding and drawing.
+      stats.timings.push({
+        ms: drawn - job.t, kind: job.kind, toHandler: job.handled - job.t, waited: sent - job.handled,
+        network: received - sent, draw: drawn - received, serverTiming: r.headers.get("server-timing"),
+      });
       stats.hashes.push(view.hash);
       stats.answered = job.seq;
       view.canvas.dataset.drawn = String(stats.drawn);
@@ -49,7 +57,8 @@ function relighter(rec, view, mode) {
   };
   return (body, type, event) => {
     stats.wanted += 1;
-    pending = { body, type, t: event ? event.timeStamp : performance.now(), kind: event ? event.type : "control", seq: stats.wanted };
+    const handled = performance.now();
+    pending = { body, type, t: event ? event.timeStamp : handled, handled, kind: event ? event.type : "control", seq: stats.wanted };
     pump();
   };
 }
