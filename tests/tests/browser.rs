@@ -207,7 +207,39 @@ async fn the_viewer_in_a_real_browser() {
         .unwrap();
     assert!(!href.as_str().unwrap().contains("token"), "{href}");
 
-    // 3. A dual image: the report's figures, the plot, the image drawn, zoomed, side by side.
+    // 3. A dual image: the report's figures, the plot, the image drawn, zoomed, side by side
+    // with a second reconstruction of the same session (requested here over REST).
+    let client = reqwest::Client::new();
+    let second: Value = client
+        .post(format!(
+            "{base}/v1/sessions/demo-usaf-hadamard/reconstructions"
+        ))
+        .bearer_auth(&demo.reader)
+        .json(&json!({"method": "dgi"}))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    let second_id = second["id"].as_i64().unwrap();
+    let deadline = Instant::now() + WAIT;
+    loop {
+        let v: Value = client
+            .get(format!("{base}/v1/reconstructions/{second_id}"))
+            .bearer_auth(&demo.reader)
+            .send()
+            .await
+            .unwrap()
+            .json()
+            .await
+            .unwrap();
+        if v["state"] == "done" {
+            break;
+        }
+        assert!(Instant::now() < deadline, "{v}");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
     browser
         .click("tr[data-session=\"demo-usaf-hadamard\"] a")
         .await
@@ -218,7 +250,7 @@ async fn the_viewer_in_a_real_browser() {
         .unwrap();
     let recon_row = browser
         .execute(
-            "return document.querySelector('#reconstructions tbody tr').innerText",
+            "return [...document.querySelectorAll('#reconstructions tbody tr')].find(r => r.children[1].textContent === 'direct').innerText",
             json!([]),
         )
         .await
@@ -230,7 +262,7 @@ async fn the_viewer_in_a_real_browser() {
     // PSNR against the known truth is shown (the demo's Hadamard inverse: > 30 dB).
     let psnr: f64 = browser
         .execute(
-            "return document.querySelector('#reconstructions tbody tr').children[7].textContent",
+            "return [...document.querySelectorAll('#reconstructions tbody tr')].find(r => r.children[1].textContent === 'direct').children[7].textContent",
             json!([]),
         )
         .await
@@ -260,7 +292,73 @@ async fn the_viewer_in_a_real_browser() {
         .await
         .unwrap();
     assert!(zoom.as_u64().unwrap() >= 2);
+    // Linear display: the same image, drawn again with another scale.
+    let draws = browser
+        .execute("return window.hz.dual.draws", json!([]))
+        .await
+        .unwrap();
+    browser
+        .execute(
+            "const s = document.querySelector('#image-mode'); s.value = 'linear'; s.dispatchEvent(new Event('change'));",
+            json!([]),
+        )
+        .await
+        .unwrap();
+    browser
+        .wait_for(
+            &format!("window.hz.dual.draws > {draws} && document.querySelector('.imageview figcaption').textContent.includes('linear display')"),
+            WAIT,
+        )
+        .await
+        .unwrap();
+    // Side by side with the second reconstruction: two different images.
+    browser
+        .execute(
+            &format!("const pick = document.querySelector('#image-recon').value; const s = document.querySelector('#image-compare'); s.value = [...s.options].map(o => o.value).find(v => v && v !== pick); s.dispatchEvent(new Event('change'));"),
+            json!([]),
+        )
+        .await
+        .unwrap();
+    let pair = browser
+        .wait_for(
+            "(() => { const c = document.querySelectorAll('.pair')[0].querySelectorAll('canvas'); return c[1].dataset.hash && !c[1].closest('figure').hidden && [c[0].dataset.hash, c[1].dataset.hash]; })()",
+            WAIT,
+        )
+        .await
+        .unwrap();
+    assert_ne!(pair[0], pair[1], "two reconstructions side by side");
     browser.screenshot(&shot("03-dual-image")).await.unwrap();
+    // A detector's weight: the relit image changes.
+    browser
+        .wait_for(
+            "window.hz.relight && window.hz.relight.drawn >= 1 && window.hz.relight.answered === window.hz.relight.wanted",
+            WAIT,
+        )
+        .await
+        .unwrap();
+    let unweighted = browser
+        .execute("return window.hz.relight.hashes.at(-1)", json!([]))
+        .await
+        .unwrap();
+    browser
+        .execute(
+            "const s = document.querySelector('input[data-channel]'); s.value = '0.25'; s.dispatchEvent(new Event('input'));",
+            json!([]),
+        )
+        .await
+        .unwrap();
+    browser
+        .wait_for(
+            "window.hz.relight.drawn >= 2 && window.hz.relight.answered === window.hz.relight.wanted && !window.hz.relight.inFlight",
+            WAIT,
+        )
+        .await
+        .unwrap();
+    let weighted = browser
+        .execute("return window.hz.relight.hashes.at(-1)", json!([]))
+        .await
+        .unwrap();
+    assert_ne!(unweighted, weighted, "the detector's weight relights");
 
     // 4. Relighting the camera session: drag a disc light on the camera's view.
     browser
@@ -415,6 +513,36 @@ async fn the_viewer_in_a_real_browser() {
         serde_json::to_string_pretty(&figures).unwrap()
     );
 
+    // The stripe and brush tools relight too.
+    for tool in ["stripe", "brush"] {
+        let last = browser
+            .execute("return window.hz.relight.hashes.at(-1)", json!([]))
+            .await
+            .unwrap();
+        browser
+            .execute(
+                &format!("const s = document.querySelector('#relight-tool'); s.value = '{tool}'; s.dispatchEvent(new Event('change'));"),
+                json!([]),
+            )
+            .await
+            .unwrap();
+        browser
+            .drag("#camera-view", (-100, -40), (30, 20))
+            .await
+            .unwrap();
+        browser.wait_for(settled, WAIT).await.unwrap();
+        let now = browser
+            .execute("return window.hz.relight.hashes.at(-1)", json!([]))
+            .await
+            .unwrap();
+        assert_ne!(last, now, "{tool} relights");
+    }
+    let errors = browser
+        .execute("return window.hz.relight.errors", json!([]))
+        .await
+        .unwrap();
+    assert_eq!(errors, 0);
+
     // The primal prediction of a stored pattern beside its measured frame, with the error.
     browser.click("#primal-go").await.unwrap();
     let primal = browser
@@ -498,7 +626,6 @@ async fn the_viewer_in_a_real_browser() {
         .unwrap();
     assert!(events >= 2, "the job's state streamed in: {events} events");
     browser.screenshot(&shot("07-job-cancelled")).await.unwrap();
-    let client = reqwest::Client::new();
     let view: Value = client
         .get(format!("{base}/v1/reconstructions/{job}"))
         .bearer_auth(&demo.reader)
