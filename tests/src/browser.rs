@@ -21,12 +21,21 @@ use serde_json::{Value, json};
 /// The W3C name of an element reference in JSON.
 const ELEMENT: &str = "element-6066-11e4-a52e-4f735466cecf";
 
+/// The binary `env` names (if that file exists), else the first of `names` on `PATH`.
 fn find_binary(env: &str, names: &[&str]) -> Option<PathBuf> {
-    if let Some(p) = std::env::var_os(env) {
-        return Some(PathBuf::from(p));
+    locate(std::env::var_os(env), std::env::var_os("PATH"), names)
+}
+
+fn locate(
+    explicit: Option<std::ffi::OsString>,
+    path: Option<std::ffi::OsString>,
+    names: &[&str],
+) -> Option<PathBuf> {
+    if let Some(p) = explicit {
+        let p = PathBuf::from(p);
+        return p.is_file().then_some(p);
     }
-    let path = std::env::var_os("PATH")?;
-    for dir in std::env::split_paths(&path) {
+    for dir in std::env::split_paths(&path?) {
         for name in names {
             let p = dir.join(name);
             if p.is_file() {
@@ -35,6 +44,14 @@ fn find_binary(env: &str, names: &[&str]) -> Option<PathBuf> {
         }
     }
     None
+}
+
+/// How to provide what is missing, for the failure of a browser test without it.
+const HOW: &str = "install them with `apt-get install -y chromium chromium-driver` (Debian; .ci/run does this), \
+                   or point HELMHOLTZ_CHROMIUM and HELMHOLTZ_CHROMEDRIVER at the binaries";
+
+fn missing(what: &str) -> String {
+    format!("the browser tests need {what}, and none was found: {HOW}")
 }
 
 /// One Chromium behind one chromedriver; both end when dropped.
@@ -49,16 +66,11 @@ pub struct Browser {
 impl Browser {
     /// Starts chromedriver on a free port and a headless Chromium session with a fresh profile.
     pub async fn start() -> anyhow::Result<Browser> {
-        let how = "install them with `apt-get install -y chromium chromium-driver` (Debian; .ci/run does this), \
-                   or point HELMHOLTZ_CHROMIUM and HELMHOLTZ_CHROMEDRIVER at the binaries";
+        let how = HOW;
         let chromium = find_binary("HELMHOLTZ_CHROMIUM", &["chromium", "chromium-browser"])
-            .with_context(|| {
-                format!("the browser tests need Chromium, and none is on PATH: {how}")
-            })?;
-        let chromedriver =
-            find_binary("HELMHOLTZ_CHROMEDRIVER", &["chromedriver"]).with_context(|| {
-                format!("the browser tests need chromedriver, and none is on PATH: {how}")
-            })?;
+            .with_context(|| missing("Chromium"))?;
+        let chromedriver = find_binary("HELMHOLTZ_CHROMEDRIVER", &["chromedriver"])
+            .with_context(|| missing("chromedriver"))?;
         let port = {
             let l = std::net::TcpListener::bind("127.0.0.1:0")?;
             l.local_addr()?.port()
@@ -390,6 +402,25 @@ fn base64_decode(text: &str) -> anyhow::Result<Vec<u8>> {
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn a_missing_browser_is_reported_with_how_to_install_it() {
+        let empty = tempfile::tempdir().unwrap();
+        let path = Some(empty.path().as_os_str().to_owned());
+        assert_eq!(super::locate(None, path.clone(), &["chromium"]), None);
+        // An explicit path that does not exist is missing too (not handed to chromedriver).
+        let nowhere = Some(empty.path().join("chromium").into_os_string());
+        assert_eq!(super::locate(nowhere, path, &["chromium"]), None);
+        let found = empty.path().join("chromium");
+        std::fs::write(&found, "").unwrap();
+        let path = Some(empty.path().as_os_str().to_owned());
+        assert_eq!(super::locate(None, path, &["chromium"]), Some(found));
+        let message = super::missing("Chromium");
+        assert!(
+            message.contains("apt-get install -y chromium chromium-driver"),
+            "{message}"
+        );
+    }
+
     #[test]
     fn base64_decodes() {
         assert_eq!(super::base64_decode("aGVsbG8=").unwrap(), b"hello");
