@@ -333,6 +333,17 @@ impl Browser {
         self.command("DELETE", "/actions", None).await.map(drop)
     }
 
+    /// Resizes the window to `width` x `height` CSS pixels.
+    pub async fn set_window(&self, width: u32, height: u32) -> anyhow::Result<()> {
+        self.command(
+            "POST",
+            "/window/rect",
+            Some(json!({"width": width, "height": height})),
+        )
+        .await
+        .map(drop)
+    }
+
     /// Saves a PNG screenshot of the window at `path`.
     pub async fn screenshot(&self, path: &Path) -> anyhow::Result<()> {
         let v = self.command("GET", "/screenshot", None).await?;

@@ -38,6 +38,7 @@ struct Demo {
     child: Child,
     base: String,
     reader: String,
+    rig: String,
     viewer_link: String,
 }
 
@@ -89,6 +90,7 @@ fn start_demo(data: &std::path::Path) -> Demo {
         line.split_whitespace().last().unwrap().to_string()
     };
     let reader = field("reader (");
+    let rig = field("rig ");
     let viewer_link = field("viewer (");
     let base = viewer_link.split("/#token=").next().unwrap().to_string();
     assert_eq!(
@@ -100,6 +102,7 @@ fn start_demo(data: &std::path::Path) -> Demo {
         child,
         base,
         reader,
+        rig,
         viewer_link,
     }
 }
@@ -396,6 +399,15 @@ async fn the_viewer_in_a_real_browser() {
         .unwrap();
     assert_ne!(lit_all, lit_disc, "the relit image changed with the light");
     browser.screenshot(&shot("04-relight")).await.unwrap();
+    // Every control on the page has a label (its own <label> or an aria-label).
+    let unlabelled = browser
+        .execute(
+            "return [...document.querySelectorAll('input, select, textarea')].filter(e => !(e.labels && e.labels.length) && !e.getAttribute('aria-label')).map(e => e.outerHTML)",
+            json!([]),
+        )
+        .await
+        .unwrap();
+    assert_eq!(unlabelled, json!([]), "controls without a label");
 
     // 100 drags along a path. Each presses (and waits for the image of the press), moves and
     // waits for the image of the move, then releases: the move's image is timed in the browser
@@ -689,6 +701,99 @@ async fn the_viewer_in_a_real_browser() {
         .screenshot(&shot("08-other-lab-refused"))
         .await
         .unwrap();
+
+    // 7. Live upload progress: rows arriving in a new session of the demo's lab show up in the
+    // open list without a reload.
+    let put_rows = |start: u64, rows: u64| {
+        let values: Vec<u8> = (start..start + rows)
+            .flat_map(|i| (1.0 + i as f64 / 64.0).to_le_bytes())
+            .collect();
+        client
+            .put(format!(
+                "{base}/v1/sessions/viewer-upload/rows?start_row={start}"
+            ))
+            .bearer_auth(&demo.rig)
+            .header("content-type", "application/octet-stream")
+            .header(
+                "x-helmholtz-crc32c",
+                format!("{:08x}", crc32c::crc32c(&values)),
+            )
+            .body(values)
+            .send()
+    };
+    let r = client
+        .post(format!("{base}/v1/sessions"))
+        .bearer_auth(&demo.rig)
+        .json(&json!({
+            "id": "viewer-upload",
+            "rig": "browser-test",
+            "patterns": {"family": "bernoulli", "width": 8, "height": 8, "count": 64, "seed": 3, "fill": 0.5},
+            "channels": ["d"],
+        }))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 201, "{}", r.text().await.unwrap());
+    let r = put_rows(0, 24).await.unwrap();
+    assert!(r.status().is_success(), "{}", r.text().await.unwrap());
+    browser
+        .execute("window.hz.sessions = null", json!([]))
+        .await
+        .unwrap();
+    browser.goto(&format!("{base}/#/")).await.unwrap();
+    let progress = |rows: u64| {
+        format!(
+            "document.querySelector('tr[data-session=\"viewer-upload\"] progress')?.value === {rows}"
+        )
+    };
+    browser.wait_for(&progress(24), WAIT).await.unwrap();
+    let r = put_rows(24, 40).await.unwrap();
+    assert!(r.status().is_success(), "{}", r.text().await.unwrap());
+    browser.wait_for(&progress(64), WAIT).await.unwrap();
+    let text = browser
+        .execute(
+            "return document.querySelector('tr[data-session=\"viewer-upload\"]').innerText",
+            json!([]),
+        )
+        .await
+        .unwrap();
+    let digits: String = text
+        .as_str()
+        .unwrap()
+        .chars()
+        .filter(|c| c.is_ascii_digit() || *c == '/')
+        .collect();
+    assert!(digits.contains("64/64"), "{text}");
+    browser
+        .screenshot(&shot("09-upload-progress"))
+        .await
+        .unwrap();
+
+    // 8. A phone-sized window: the camera session's page reflows without sideways scrolling.
+    browser.set_window(400, 900).await.unwrap();
+    browser
+        .goto(&format!("{base}/#/sessions/demo-lambert-camera"))
+        .await
+        .unwrap();
+    browser
+        .wait_for(
+            "document.querySelector('#camera-view')?.dataset.ready === '1' && document.querySelector('#jobs-panel')",
+            WAIT,
+        )
+        .await
+        .unwrap();
+    let overflow = browser
+        .execute(
+            "return [document.documentElement.scrollWidth, window.innerWidth]",
+            json!([]),
+        )
+        .await
+        .unwrap();
+    assert!(
+        overflow[0].as_i64().unwrap() <= overflow[1].as_i64().unwrap(),
+        "page wider than the window: {overflow}"
+    );
+    browser.screenshot(&shot("10-narrow")).await.unwrap();
 
     // Every request the page made went to the server under test.
     let hosts = browser
