@@ -769,7 +769,101 @@ async fn the_viewer_in_a_real_browser() {
         .await
         .unwrap();
 
-    // 8. A phone-sized window: the camera session's page reflows without sideways scrolling.
+    // 8. Colour and photometric stereo: a three-detector session with directions (rows over
+    // REST), reconstructed: its colour composite and its normals and albedo.
+    let s2 = 0.5f64.sqrt();
+    let r = client
+        .post(format!("{base}/v1/sessions"))
+        .bearer_auth(&demo.rig)
+        .json(&json!({
+            "id": "viewer-rgb",
+            "rig": "browser-test",
+            "patterns": {"family": "bernoulli", "width": 8, "height": 8, "count": 64, "seed": 5, "fill": 0.5},
+            "channels": ["r", "g", "b"],
+            "directions": [[s2, 0.0, s2], [-s2, 0.0, s2], [0.0, s2, s2]],
+        }))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 201, "{}", r.text().await.unwrap());
+    let values: Vec<u8> = (0..64u64 * 3)
+        .flat_map(|i| (1.0 + ((i * 2654435761) % 1000) as f64 / 1000.0).to_le_bytes())
+        .collect();
+    let r = client
+        .put(format!("{base}/v1/sessions/viewer-rgb/rows?start_row=0"))
+        .bearer_auth(&demo.rig)
+        .header("content-type", "application/octet-stream")
+        .header(
+            "x-helmholtz-crc32c",
+            format!("{:08x}", crc32c::crc32c(&values)),
+        )
+        .body(values)
+        .send()
+        .await
+        .unwrap();
+    assert!(r.status().is_success(), "{}", r.text().await.unwrap());
+    let rgb: Value = client
+        .post(format!("{base}/v1/sessions/viewer-rgb/reconstructions"))
+        .bearer_auth(&demo.reader)
+        .json(&json!({"method": "dgi"}))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    let deadline = Instant::now() + WAIT;
+    loop {
+        let v: Value = client
+            .get(format!("{base}/v1/reconstructions/{}", rgb["id"]))
+            .bearer_auth(&demo.reader)
+            .send()
+            .await
+            .unwrap()
+            .json()
+            .await
+            .unwrap();
+        if v["state"] == "done" {
+            break;
+        }
+        assert!(Instant::now() < deadline, "{v}");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    browser
+        .goto(&format!("{base}/#/sessions/viewer-rgb"))
+        .await
+        .unwrap();
+    browser
+        .wait_for(
+            "[...document.querySelectorAll('#photometric-panel img')].filter(i => i.complete && i.naturalWidth === 8).length === 2 && window.hz.dual && window.hz.dual.draws >= 1",
+            WAIT,
+        )
+        .await
+        .unwrap();
+    let grey = browser
+        .execute("return window.hz.dual.draws", json!([]))
+        .await
+        .unwrap();
+    browser
+        .execute(
+            "const s = document.querySelector('#image-channel'); s.value = '__composite'; s.dispatchEvent(new Event('change'));",
+            json!([]),
+        )
+        .await
+        .unwrap();
+    browser
+        .wait_for(
+            &format!("window.hz.dual.draws > {grey} && document.querySelector('.imageview figcaption').textContent.includes('composite')"),
+            WAIT,
+        )
+        .await
+        .unwrap();
+    browser
+        .screenshot(&shot("10-colour-photometric"))
+        .await
+        .unwrap();
+
+    // 9. A phone-sized window: the camera session's page reflows without sideways scrolling.
     browser.set_window(400, 900).await.unwrap();
     browser
         .goto(&format!("{base}/#/sessions/demo-lambert-camera"))
@@ -793,7 +887,7 @@ async fn the_viewer_in_a_real_browser() {
         overflow[0].as_i64().unwrap() <= overflow[1].as_i64().unwrap(),
         "page wider than the window: {overflow}"
     );
-    browser.screenshot(&shot("10-narrow")).await.unwrap();
+    browser.screenshot(&shot("11-narrow")).await.unwrap();
 
     // Every request the page made went to the server under test.
     let hosts = browser
