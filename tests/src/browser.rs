@@ -61,6 +61,7 @@ pub struct Browser {
     session: String,
     http: reqwest::Client,
     _profile: tempfile::TempDir,
+    downloads: tempfile::TempDir,
 }
 
 impl Browser {
@@ -114,6 +115,7 @@ impl Browser {
             tokio::time::sleep(Duration::from_millis(50)).await;
         }
         let profile = tempfile::tempdir()?;
+        let downloads = tempfile::tempdir()?;
         let args = [
             "--headless",
             "--no-sandbox",
@@ -133,7 +135,10 @@ impl Browser {
         .collect::<Vec<_>>();
         let capabilities = json!({"capabilities": {"alwaysMatch": {
             "browserName": "chrome",
-            "goog:chromeOptions": {"binary": chromium, "args": args},
+            "goog:chromeOptions": {"binary": chromium, "args": args, "prefs": {
+                "download.default_directory": downloads.path(),
+                "download.prompt_for_download": false,
+            }},
             "timeouts": {"script": 60000, "pageLoad": 60000, "implicit": 0},
         }}});
         let r: Value = http
@@ -157,6 +162,7 @@ impl Browser {
             session: session.to_string(),
             http,
             _profile: profile,
+            downloads,
         })
     }
 
@@ -331,6 +337,11 @@ impl Browser {
     /// Releases every pressed button and key.
     pub async fn release(&self) -> anyhow::Result<()> {
         self.command("DELETE", "/actions", None).await.map(drop)
+    }
+
+    /// The directory Chromium saves downloads in (empty at the start).
+    pub fn downloads(&self) -> &Path {
+        self.downloads.path()
     }
 
     /// Resizes the window to `width` x `height` CSS pixels.

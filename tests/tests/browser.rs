@@ -862,6 +862,40 @@ async fn the_viewer_in_a_real_browser() {
         .screenshot(&shot("10-colour-photometric"))
         .await
         .unwrap();
+    // Downloads (fetched with the token, saved by the browser): the NPY is the server's own file.
+    browser.click("#download-npy").await.unwrap();
+    let saved = browser
+        .downloads()
+        .join(format!("dual-{}-r.npy", rgb["id"]));
+    let deadline = Instant::now() + WAIT;
+    while !saved.exists() {
+        assert!(
+            Instant::now() < deadline,
+            "no download at {}",
+            saved.display()
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    let served = client
+        .get(format!(
+            "{base}/v1/reconstructions/{}/dual.npy?channel=r",
+            rgb["id"]
+        ))
+        .bearer_auth(&demo.reader)
+        .send()
+        .await
+        .unwrap()
+        .bytes()
+        .await
+        .unwrap();
+    let deadline = Instant::now() + WAIT;
+    while std::fs::read(&saved).unwrap() != served {
+        assert!(
+            Instant::now() < deadline,
+            "the download differs from dual.npy"
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
 
     // 9. A phone-sized window: the camera session's page reflows without sideways scrolling.
     browser.set_window(400, 900).await.unwrap();
