@@ -549,6 +549,44 @@ async fn the_viewer_in_a_real_browser() {
             .unwrap();
         assert_ne!(last, now, "{tool} relights");
     }
+    // A light from an image file (any size; the page resizes it to the camera): the left half
+    // of the camera lit.
+    let light_png = dir.path().join("light.png");
+    {
+        let (w, h) = (64u32, 48u32);
+        let mut encoder = png::Encoder::new(std::fs::File::create(&light_png).unwrap(), w, h);
+        encoder.set_color(png::ColorType::Grayscale);
+        encoder.set_depth(png::BitDepth::Eight);
+        let pixels: Vec<u8> = (0..w * h)
+            .map(|i| if i % w < w / 2 { 255 } else { 0 })
+            .collect();
+        let mut writer = encoder.write_header().unwrap();
+        writer.write_image_data(&pixels).unwrap();
+    }
+    let last = browser
+        .execute("return window.hz.relight.hashes.at(-1)", json!([]))
+        .await
+        .unwrap();
+    let drawn = browser
+        .execute("return window.hz.relight.drawn", json!([]))
+        .await
+        .unwrap();
+    browser
+        .type_into("#relight-file", light_png.to_str().unwrap())
+        .await
+        .unwrap();
+    browser
+        .wait_for(
+            &format!("window.hz.relight.drawn > {drawn} && {settled}"),
+            WAIT,
+        )
+        .await
+        .unwrap();
+    let now = browser
+        .execute("return window.hz.relight.hashes.at(-1)", json!([]))
+        .await
+        .unwrap();
+    assert_ne!(last, now, "a light from an image relights");
     let errors = browser
         .execute("return window.hz.relight.errors", json!([]))
         .await
