@@ -283,18 +283,28 @@ async fn the_viewer_in_a_real_browser() {
         .await
         .unwrap();
     assert!(first_hash.is_string(), "{first_hash}");
+    // Zoom in (button), then pan (a drag on the image): the pixels on screen change each time.
+    let screen = "return document.querySelector('.imageview canvas').toDataURL()";
+    let fitted = browser.execute(screen, json!([])).await.unwrap();
     browser
         .click(".imageview .zoomtools button[aria-label='Zoom in']")
         .await
         .unwrap();
-    let zoom = browser
+    let zoomed = browser.execute(screen, json!([])).await.unwrap();
+    assert_ne!(fitted, zoomed, "zoom in redraws the image larger");
+    browser
         .execute(
-            "return document.querySelectorAll('.imageview canvas').length",
+            "document.querySelector('.imageview canvas').scrollIntoView({block: 'center'})",
             json!([]),
         )
         .await
         .unwrap();
-    assert!(zoom.as_u64().unwrap() >= 2);
+    browser
+        .drag(".imageview canvas", (0, 0), (60, 40))
+        .await
+        .unwrap();
+    let panned = browser.execute(screen, json!([])).await.unwrap();
+    assert_ne!(zoomed, panned, "a drag pans the image");
     // Linear display: the same image, drawn again with another scale.
     let draws = browser
         .execute("return window.hz.dual.draws", json!([]))
