@@ -85,6 +85,9 @@ pub async fn run(config: Config, exit_after_demo: bool) -> anyhow::Result<()> {
     println!("   reader (sessions, reconstructions, images): {reader_token}");
     println!("   e.g.  curl -fsS -H 'Authorization: Bearer {reader_token}' {base}/v1/sessions");
     println!("         helmholtz --server {base} --token {reader_token} status");
+    // A URL fragment never reaches the server (browsers do not send it), so the token is in no
+    // request line and no log; the viewer moves it to the tab's session storage at once.
+    println!("   viewer (open in a browser, ready to use):  {base}/#token={reader_token}");
     let rig = helmholtz_client::auth::with_token(&base, &rig_token);
     let reader = helmholtz_client::auth::with_token(&base, &reader_token);
     let (demo_done_tx, demo_done_rx) = oneshot::channel::<()>();

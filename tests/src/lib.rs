@@ -11,6 +11,7 @@ use anyhow::{Context, bail};
 use helmholtz_client::auth::Grpc;
 
 pub mod backend;
+pub mod browser;
 pub mod pg;
 
 pub use backend::{Backend, backend, server_command, store_args, store_args_on};

@@ -10,6 +10,7 @@ pub mod relight;
 pub mod rest;
 pub mod upload;
 pub mod validate;
+pub mod web;
 
 use std::sync::Arc;
 

@@ -81,6 +81,7 @@ pub fn document() -> &'static ApiDocument {
         (name = "reconstructions", description = "Reconstruction jobs and their files"),
         (name = "relighting", description = "Camera sessions' transport matrices: relit dual images and predicted camera images"),
         (name = "tokens", description = "A lab's access tokens (admin)"),
+        (name = "viewer", description = "The web viewer's files (the viewer itself is GET / in a browser)"),
     )
 )]
 pub struct Base;
@@ -523,7 +524,15 @@ mod tests {
                 }
             }
         }
-        assert_eq!(open, ["GET /docs", "GET /healthz", "GET /openapi.json"]);
+        assert_eq!(
+            open,
+            [
+                "GET /assets/{file}",
+                "GET /docs",
+                "GET /healthz",
+                "GET /openapi.json"
+            ]
+        );
     }
 
     #[test]

@@ -54,6 +54,8 @@ pub fn api() -> OpenApiRouter<AppState> {
         .routes(routes!(reconstruction_file))
         .routes(routes!(list_tokens, create_token))
         .routes(routes!(revoke_token))
+        .routes(routes!(super::web::asset))
+        .routes(routes!(super::web::reconstruction_events))
 }
 
 /// The REST router: [`routes`] with the state.
@@ -89,7 +91,7 @@ pub(super) struct SessionId {
 #[derive(utoipa::IntoParams)]
 #[into_params(parameter_in = Path)]
 #[allow(dead_code)]
-struct ReconstructionId {
+pub(super) struct ReconstructionId {
     /// The reconstruction id (an integer)
     id: i64,
 }
@@ -334,21 +336,29 @@ pub(super) async fn read_body_up_to(
 /// The service index
 ///
 /// What the service is, its gRPC services, how to authenticate and every REST route (one line
-/// per operation of this document).
+/// per operation of this document). A browser's request (`Accept: text/html`) gets the web
+/// viewer's page instead, without a token (the page holds no data; it asks for a token).
 #[utoipa::path(
     get,
     path = "/",
     tag = "service",
-    responses((status = 200, description = "The service index", body = ServiceIndex))
+    responses((status = 200, description = "The service index (application/json), or the web viewer's page (text/html) when the request accepts text/html",
+        content((ServiceIndex = "application/json"), ("text/html"))))
 )]
-async fn index(Caller(_caller): Caller) -> axum::Json<ServiceIndex> {
-    axum::Json(ServiceIndex {
+async fn index(State(state): State<AppState>, headers: HeaderMap) -> Result<Response, ApiError> {
+    if super::web::wants_html(&headers) {
+        return Ok(super::web::index_html());
+    }
+    let authorization = headers.get(header::AUTHORIZATION).map(|v| v.as_bytes());
+    state.authenticate(authorization).await?;
+    Ok(axum::Json(ServiceIndex {
         service: "helmholtz".into(),
         version: env!("CARGO_PKG_VERSION").into(),
         grpc: "helmholtz.v1.Acquisition on this same address (HTTP/2); grpc.health.v1.Health and server reflection (grpc.reflection.v1, v1alpha) need no token".into(),
         routes: openapi::document().routes.clone(),
-        auth: "every route but /healthz, /openapi.json and /docs needs \"Authorization: Bearer <token>\"; tokens belong to one lab and carry roles rig, reader, admin, metrics (GET /metrics)".into(),
+        auth: "every route but /healthz, /openapi.json, /docs and the web viewer (/ in a browser, /assets/*) needs \"Authorization: Bearer <token>\"; tokens belong to one lab and carry roles rig, reader, admin, metrics (GET /metrics)".into(),
     })
+    .into_response())
 }
 
 /// Health
@@ -442,7 +452,7 @@ pub(super) fn session_path(id: &str) -> Result<(), ApiError> {
     validate::session_id(id, "id")
 }
 
-fn recon_path(id: &str) -> Result<i64, ApiError> {
+pub(super) fn recon_path(id: &str) -> Result<i64, ApiError> {
     id.parse::<i64>().map_err(|_| {
         ApiError::invalid(
             "id",
