@@ -910,39 +910,59 @@ async fn the_viewer_in_a_real_browser() {
         .screenshot(&shot("10-colour-photometric"))
         .await
         .unwrap();
-    // Downloads (fetched with the token, saved by the browser): the NPY is the server's own file.
-    browser.click("#download-npy").await.unwrap();
-    let saved = browser
-        .downloads()
-        .join(format!("dual-{}-r.npy", rgb["id"]));
-    let deadline = Instant::now() + WAIT;
-    while !saved.exists() {
-        assert!(
-            Instant::now() < deadline,
-            "no download at {}",
-            saved.display()
-        );
-        tokio::time::sleep(Duration::from_millis(50)).await;
-    }
-    let served = client
-        .get(format!(
-            "{base}/v1/reconstructions/{}/dual.npy?channel=r",
-            rgb["id"]
-        ))
-        .bearer_auth(&demo.reader)
-        .send()
-        .await
-        .unwrap()
-        .bytes()
+    // Downloads (fetched with the token, saved by the browser): each is the server's own file,
+    // the PNG at the display's scale.
+    let mode = browser
+        .execute(
+            "return document.querySelector('#image-mode').value;",
+            json!([]),
+        )
         .await
         .unwrap();
-    let deadline = Instant::now() + WAIT;
-    while std::fs::read(&saved).unwrap() != served {
-        assert!(
-            Instant::now() < deadline,
-            "the download differs from dual.npy"
-        );
-        tokio::time::sleep(Duration::from_millis(50)).await;
+    let scale = if mode == json!("linear") {
+        "minmax"
+    } else {
+        "percentile"
+    };
+    for (ext, query) in [
+        ("npy", "channel=r".to_string()),
+        ("png", format!("channel=r&scale={scale}")),
+        ("tiff", "channel=r".to_string()),
+    ] {
+        browser.click(&format!("#download-{ext}")).await.unwrap();
+        let saved = browser
+            .downloads()
+            .join(format!("dual-{}-r.{ext}", rgb["id"]));
+        let deadline = Instant::now() + WAIT;
+        while !saved.exists() {
+            assert!(
+                Instant::now() < deadline,
+                "no download at {}",
+                saved.display()
+            );
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
+        let served = client
+            .get(format!(
+                "{base}/v1/reconstructions/{}/dual.{ext}?{query}",
+                rgb["id"]
+            ))
+            .bearer_auth(&demo.reader)
+            .send()
+            .await
+            .unwrap()
+            .bytes()
+            .await
+            .unwrap();
+        assert!(served.len() > 64, "dual.{ext}: {} bytes", served.len());
+        let deadline = Instant::now() + WAIT;
+        while std::fs::read(&saved).unwrap() != served {
+            assert!(
+                Instant::now() < deadline,
+                "the download differs from dual.{ext}"
+            );
+            tokio::time::sleep(Duration::from_millis(50)).await;
+        }
     }
 
     // 9. A phone-sized window: the camera session's page reflows without sideways scrolling.
