@@ -275,6 +275,20 @@ async fn the_viewer_in_a_real_browser() {
         .parse()
         .unwrap();
     assert!(psnr > 30.0, "{psnr}");
+    // The speed-against-error plot has a point for each finished reconstruction with an error
+    // (the DGI requested above among them).
+    let plotted = browser
+        .execute(
+            "return [...new Set([...document.querySelectorAll('#speed-error g.point')].map(g => Number(g.dataset.reconstruction)))]",
+            json!([]),
+        )
+        .await
+        .unwrap();
+    let plotted: Vec<i64> = serde_json::from_value(plotted).unwrap();
+    assert!(
+        plotted.len() >= 2 && plotted.contains(&second_id),
+        "plotted {plotted:?}, dgi {second_id}"
+    );
     let first_hash = browser
         .execute(
             "return document.querySelector('.imageview canvas').dataset.hash",
