@@ -1,8 +1,8 @@
 //! A headless Chromium driven over the W3C WebDriver protocol by Debian's `chromedriver` (the
 //! browser vendor's own, maintained driver), for the web viewer's end-to-end tests
-//! (`tests/tests/browser.rs`). The protocol is JSON over HTTP, spoken here with the reqwest the
-//! harness already links: a few commands (navigate, execute script, find, click, type, pointer
-//! actions, screenshot) need no client crate of their own.
+//! (`tests/tests/browser.rs`). The protocol client is the fantoccini crate, connected over plain
+//! HTTP (hyper-util's `HttpConnector`, no TLS) to the chromedriver started here on a free
+//! 127.0.0.1 port; [`Browser`] is the small interface the tests use on top of it.
 //!
 //! Chromium runs with `--headless --no-sandbox --disable-gpu --disable-quic --no-first-run
 //! --disable-background-networking --disable-component-update --disable-sync`, no proxy, and a
@@ -10,16 +10,32 @@
 //! Without Chromium or chromedriver [`Browser::start`] fails saying how to install them; set
 //! `HELMHOLTZ_CHROMIUM` / `HELMHOLTZ_CHROMEDRIVER` to use other binaries.
 
+use std::future::Future;
 use std::io::{BufRead, BufReader, Write};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, bail};
+use fantoccini::actions::{InputSource, MOUSE_BUTTON_LEFT, MouseActions, PointerAction};
+use fantoccini::elements::Element;
+use fantoccini::{Client, ClientBuilder, Locator};
+use hyper_util::client::legacy::connect::HttpConnector;
 use serde_json::{Value, json};
 
-/// The W3C name of an element reference in JSON.
-const ELEMENT: &str = "element-6066-11e4-a52e-4f735466cecf";
+/// How long one WebDriver command may take before the test fails instead of hanging.
+const COMMAND_TIMEOUT: Duration = Duration::from_secs(120);
+
+/// Awaits the WebDriver command `what`, within [`COMMAND_TIMEOUT`].
+async fn within<T, E>(what: &str, command: impl Future<Output = Result<T, E>>) -> anyhow::Result<T>
+where
+    E: std::error::Error + Send + Sync + 'static,
+{
+    tokio::time::timeout(COMMAND_TIMEOUT, command)
+        .await
+        .with_context(|| format!("WebDriver {what}: no answer within {COMMAND_TIMEOUT:?}"))?
+        .with_context(|| format!("WebDriver {what}"))
+}
 
 /// The binary `env` names (if that file exists), else the first of `names` on `PATH`.
 fn find_binary(env: &str, names: &[&str]) -> Option<PathBuf> {
@@ -58,8 +74,9 @@ fn missing(what: &str) -> String {
 pub struct Browser {
     driver: Child,
     port: u16,
+    /// The WebDriver session's id; empty once [`Browser::quit`] ended it.
     session: String,
-    http: reqwest::Client,
+    client: Client,
     _profile: tempfile::TempDir,
     downloads: tempfile::TempDir,
 }
@@ -86,30 +103,18 @@ impl Browser {
         // Drain its output (it logs a line per start) so it never blocks on a full pipe.
         let out = driver.stdout.take().expect("piped");
         std::thread::spawn(move || for _ in BufReader::new(out).lines() {});
-        let http = reqwest::Client::builder()
-            .no_proxy()
-            .timeout(Duration::from_secs(120))
-            .build()?;
-        let base = format!("http://127.0.0.1:{port}");
+        // chromedriver serves once it listens: wait for the port to accept connections.
         let deadline = Instant::now() + Duration::from_secs(20);
-        loop {
-            let ready = async {
-                let v: Value = http
-                    .get(format!("{base}/status"))
-                    .send()
-                    .await?
-                    .json()
-                    .await?;
-                anyhow::Ok(v["value"]["ready"] == true)
-            };
-            if ready.await.unwrap_or(false) {
-                break;
-            }
+        while tokio::net::TcpStream::connect(("127.0.0.1", port))
+            .await
+            .is_err()
+        {
             if let Some(status) = driver.try_wait()? {
                 bail!("chromedriver exited with {status}");
             }
             if Instant::now() > deadline {
                 let _ = driver.kill();
+                let _ = driver.wait();
                 bail!("chromedriver did not become ready within 20 s");
             }
             tokio::time::sleep(Duration::from_millis(50)).await;
@@ -133,88 +138,68 @@ impl Browser {
         .map(|s| s.to_string())
         .chain([format!("--user-data-dir={}", profile.path().display())])
         .collect::<Vec<_>>();
-        let capabilities = json!({"capabilities": {"alwaysMatch": {
+        let Value::Object(capabilities) = json!({
             "browserName": "chrome",
             "goog:chromeOptions": {"binary": chromium, "args": args, "prefs": {
                 "download.default_directory": downloads.path(),
                 "download.prompt_for_download": false,
             }},
             "timeouts": {"script": 60000, "pageLoad": 60000, "implicit": 0},
-        }}});
-        let r: Value = http
-            .post(format!("{base}/session"))
-            .json(&capabilities)
-            .send()
-            .await?
-            .json()
-            .await?;
-        let Some(session) = r["value"]["sessionId"].as_str() else {
-            let _ = driver.kill();
-            bail!(
-                "chromedriver could not start {}: {}",
-                chromium.display(),
-                r["value"]
-            );
+        }) else {
+            unreachable!("a JSON object")
         };
+        // Plain HTTP to 127.0.0.1: hyper-util's connector, which consults no proxy settings.
+        let connect = ClientBuilder::new(HttpConnector::new())
+            .capabilities(capabilities)
+            .connect(&format!("http://127.0.0.1:{port}"))
+            .await;
+        let client = match connect {
+            Ok(client) => client,
+            Err(e) => {
+                let _ = driver.kill();
+                let _ = driver.wait();
+                bail!("chromedriver could not start {}: {e}", chromium.display());
+            }
+        };
+        let session = client
+            .session_creation_response()
+            .map(|r| r.session_id().to_string())
+            .unwrap_or_default();
         Ok(Browser {
             driver,
             port,
-            session: session.to_string(),
-            http,
+            session,
+            client,
             _profile: profile,
             downloads,
         })
     }
 
-    async fn command(
-        &self,
-        method: &str,
-        path: &str,
-        body: Option<Value>,
-    ) -> anyhow::Result<Value> {
-        let url = format!(
-            "http://127.0.0.1:{}/session/{}{path}",
-            self.port, self.session
-        );
-        let mut r = self.http.request(method.parse()?, &url);
-        if let Some(b) = body {
-            r = r.json(&b);
-        }
-        let v: Value = r.send().await?.json().await?;
-        let value = v["value"].clone();
-        if let Some(error) = value.get("error").and_then(Value::as_str) {
-            bail!(
-                "WebDriver {method} {path}: {error}: {}",
-                value["message"].as_str().unwrap_or("")
-            );
-        }
-        Ok(value)
-    }
-
     pub async fn goto(&self, url: &str) -> anyhow::Result<()> {
-        self.command("POST", "/url", Some(json!({ "url": url })))
-            .await
-            .map(drop)
+        within("navigate", self.client.goto(url)).await
     }
 
     /// Runs `script` (a function body; `arguments` holds `args`) and returns its value.
     pub async fn execute(&self, script: &str, args: Value) -> anyhow::Result<Value> {
-        self.command(
-            "POST",
-            "/execute/sync",
-            Some(json!({"script": script, "args": args})),
-        )
-        .await
+        within("execute", self.client.execute(script, Self::args(args)?)).await
     }
 
     /// Runs `script` whose last argument is a callback to call with the result.
     pub async fn execute_async(&self, script: &str, args: Value) -> anyhow::Result<Value> {
-        self.command(
-            "POST",
-            "/execute/async",
-            Some(json!({"script": script, "args": args})),
+        within(
+            "execute async",
+            self.client.execute_async(script, Self::args(args)?),
         )
         .await
+    }
+
+    /// A script's arguments: a JSON array (or null for none).
+    fn args(args: Value) -> anyhow::Result<Vec<Value>> {
+        match args {
+            Value::Array(args) => Ok(args),
+            Value::Null => Ok(Vec::new()),
+            other => bail!("script arguments are a JSON array, not {other}"),
+        }
     }
 
     /// Polls the JavaScript expression `expr` until it is truthy; returns its value.
@@ -247,96 +232,84 @@ impl Browser {
         }
     }
 
-    /// The element matching `css` (an error if none).
-    pub async fn find(&self, css: &str) -> anyhow::Result<Value> {
-        let v = self
-            .command(
-                "POST",
-                "/element",
-                Some(json!({"using": "css selector", "value": css})),
-            )
+    /// The element matching `css` (an error if none), as fantoccini's handle.
+    async fn element(&self, css: &str) -> anyhow::Result<Element> {
+        within("find element", self.client.find(Locator::Css(css)))
             .await
-            .with_context(|| format!("no element {css:?}"))?;
-        Ok(v)
+            .with_context(|| format!("no element {css:?}"))
     }
 
-    fn element_id(element: &Value) -> anyhow::Result<String> {
-        element[ELEMENT]
-            .as_str()
-            .map(str::to_string)
-            .context("not an element reference")
+    /// The element matching `css` (an error if none), as its W3C JSON reference.
+    pub async fn find(&self, css: &str) -> anyhow::Result<Value> {
+        Ok(serde_json::to_value(self.element(css).await?)?)
     }
 
     /// Clicks the element matching `css` (a real pointer click, scrolled into view).
     pub async fn click(&self, css: &str) -> anyhow::Result<()> {
-        let id = Self::element_id(&self.find(css).await?)?;
-        self.command("POST", &format!("/element/{id}/click"), Some(json!({})))
-            .await
-            .map(drop)
+        let element = self.element(css).await?;
+        within("click", element.click()).await
     }
 
     /// Types `text` into the element matching `css` (real key events).
     pub async fn type_into(&self, css: &str, text: &str) -> anyhow::Result<()> {
-        let id = Self::element_id(&self.find(css).await?)?;
-        self.command(
-            "POST",
-            &format!("/element/{id}/value"),
-            Some(json!({ "text": text })),
-        )
-        .await
-        .map(drop)
+        let element = self.element(css).await?;
+        within("send keys", element.send_keys(text)).await
+    }
+
+    /// A pointer move to (`x`, `y`) CSS pixels from the centre of `element`, taking no time.
+    fn move_to(element: &Element, (x, y): (i64, i64)) -> PointerAction {
+        PointerAction::MoveToElement {
+            element: element.clone(),
+            duration: Some(Duration::ZERO),
+            x: x as f64,
+            y: y as f64,
+        }
+    }
+
+    /// The one mouse of every action sequence here (one id, so its state carries across calls).
+    fn mouse() -> MouseActions {
+        MouseActions::new("mouse".to_string())
     }
 
     /// A mouse drag on the element matching `css`: press at `from`, move to `to`, release
     /// (offsets in CSS pixels from the element's centre), as real input events.
     pub async fn drag(&self, css: &str, from: (i64, i64), to: (i64, i64)) -> anyhow::Result<()> {
-        let element = self.find(css).await?;
-        let origin = json!({ ELEMENT: Self::element_id(&element)? });
-        let actions = json!({"actions": [{
-            "type": "pointer",
-            "id": "mouse",
-            "parameters": {"pointerType": "mouse"},
-            "actions": [
-                {"type": "pointerMove", "duration": 0, "origin": origin, "x": from.0, "y": from.1},
-                {"type": "pointerDown", "button": 0},
-                {"type": "pointerMove", "duration": 0, "origin": origin, "x": to.0, "y": to.1},
-                {"type": "pointerUp", "button": 0},
-            ],
-        }]});
-        self.command("POST", "/actions", Some(actions)).await?;
-        self.command("DELETE", "/actions", None).await.map(drop)
+        let element = self.element(css).await?;
+        let actions = Self::mouse()
+            .then(Self::move_to(&element, from))
+            .then(PointerAction::Down {
+                button: MOUSE_BUTTON_LEFT,
+            })
+            .then(Self::move_to(&element, to))
+            .then(PointerAction::Up {
+                button: MOUSE_BUTTON_LEFT,
+            });
+        within("perform actions", self.client.perform_actions(actions)).await?;
+        self.release().await
     }
 
     /// Mouse input on the element matching `css`, kept across calls (a button pressed here stays
     /// pressed until [`Browser::release`]): `steps` are `("move", x, y)` (offsets in CSS pixels
     /// from the element's centre), `("down", 0, 0)` or `("up", 0, 0)`.
     pub async fn pointer(&self, css: &str, steps: &[(&str, i64, i64)]) -> anyhow::Result<()> {
-        let element = self.find(css).await?;
-        let origin = json!({ ELEMENT: Self::element_id(&element)? });
-        let actions: Vec<Value> = steps
-            .iter()
-            .map(|(kind, x, y)| match *kind {
-                "move" => {
-                    json!({"type": "pointerMove", "duration": 0, "origin": origin, "x": x, "y": y})
-                }
-                "down" => json!({"type": "pointerDown", "button": 0}),
-                _ => json!({"type": "pointerUp", "button": 0}),
+        let element = self.element(css).await?;
+        let actions = steps.iter().fold(Self::mouse(), |actions, &(kind, x, y)| {
+            actions.then(match kind {
+                "move" => Self::move_to(&element, (x, y)),
+                "down" => PointerAction::Down {
+                    button: MOUSE_BUTTON_LEFT,
+                },
+                _ => PointerAction::Up {
+                    button: MOUSE_BUTTON_LEFT,
+                },
             })
-            .collect();
-        let actions = json!({"actions": [{
-            "type": "pointer",
-            "id": "mouse",
-            "parameters": {"pointerType": "mouse"},
-            "actions": actions,
-        }]});
-        self.command("POST", "/actions", Some(actions))
-            .await
-            .map(drop)
+        });
+        within("perform actions", self.client.perform_actions(actions)).await
     }
 
     /// Releases every pressed button and key.
     pub async fn release(&self) -> anyhow::Result<()> {
-        self.command("DELETE", "/actions", None).await.map(drop)
+        within("release actions", self.client.release_actions()).await
     }
 
     /// The directory Chromium saves downloads in (empty at the start).
@@ -346,19 +319,16 @@ impl Browser {
 
     /// Resizes the window to `width` x `height` CSS pixels.
     pub async fn set_window(&self, width: u32, height: u32) -> anyhow::Result<()> {
-        self.command(
-            "POST",
-            "/window/rect",
-            Some(json!({"width": width, "height": height})),
+        within(
+            "set window rect",
+            self.client.set_window_size(width, height),
         )
         .await
-        .map(drop)
     }
 
     /// Saves a PNG screenshot of the window at `path`.
     pub async fn screenshot(&self, path: &Path) -> anyhow::Result<()> {
-        let v = self.command("GET", "/screenshot", None).await?;
-        let png = base64_decode(v.as_str().context("screenshot is a string")?)?;
+        let png = within("screenshot", self.client.screenshot()).await?;
         if let Some(dir) = path.parent() {
             std::fs::create_dir_all(dir)?;
         }
@@ -368,7 +338,7 @@ impl Browser {
 
     /// Ends the session (Chromium exits) and chromedriver.
     pub async fn quit(mut self) {
-        let _ = self.command("DELETE", "", None).await;
+        let _ = within("delete session", self.client.clone().close()).await;
         self.session.clear();
     }
 }
@@ -376,7 +346,9 @@ impl Browser {
 impl Drop for Browser {
     fn drop(&mut self) {
         if !self.session.is_empty() {
-            // Ends the session (and with it Chromium) without a runtime: one raw HTTP request.
+            // Ends the session (and with it Chromium) before chromedriver is killed. fantoccini
+            // would end it only later, from a task of the async runtime this destructor may not
+            // be able to wait for: so one raw HTTP request, blocking.
             if let Ok(mut s) = std::net::TcpStream::connect(("127.0.0.1", self.port)) {
                 let _ = s.set_read_timeout(Some(Duration::from_secs(10)));
                 let _ = write!(
@@ -390,36 +362,6 @@ impl Drop for Browser {
         let _ = self.driver.kill();
         let _ = self.driver.wait();
     }
-}
-
-/// Standard base64 (with padding) to bytes.
-fn base64_decode(text: &str) -> anyhow::Result<Vec<u8>> {
-    let value = |c: u8| -> anyhow::Result<u32> {
-        Ok(match c {
-            b'A'..=b'Z' => c - b'A',
-            b'a'..=b'z' => c - b'a' + 26,
-            b'0'..=b'9' => c - b'0' + 52,
-            b'+' => 62,
-            b'/' => 63,
-            _ => bail!("not base64: {:?}", c as char),
-        } as u32)
-    };
-    let bytes: Vec<u8> = text
-        .bytes()
-        .filter(|c| !c.is_ascii_whitespace() && *c != b'=')
-        .collect();
-    let mut out = Vec::with_capacity(bytes.len() * 3 / 4);
-    for chunk in bytes.chunks(4) {
-        let mut n = 0u32;
-        for (i, c) in chunk.iter().enumerate() {
-            n |= value(*c)? << (18 - 6 * i);
-        }
-        let take = chunk.len() - 1;
-        for i in 0..take {
-            out.push((n >> (16 - 8 * i)) as u8);
-        }
-    }
-    Ok(out)
 }
 
 #[cfg(test)]
@@ -441,12 +383,5 @@ mod tests {
             message.contains("apt-get install -y chromium chromium-driver"),
             "{message}"
         );
-    }
-
-    #[test]
-    fn base64_decodes() {
-        assert_eq!(super::base64_decode("aGVsbG8=").unwrap(), b"hello");
-        assert_eq!(super::base64_decode("aGVsbG8hIQ==").unwrap(), b"hello!!");
-        assert_eq!(super::base64_decode("YWJj").unwrap(), b"abc");
     }
 }
