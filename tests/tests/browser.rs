@@ -107,6 +107,27 @@ fn start_demo(data: &std::path::Path) -> Demo {
     }
 }
 
+/// Waits (up to [`WAIT`]) until reconstruction `id` is done; its last view.
+async fn wait_done(client: &reqwest::Client, base: &str, token: &str, id: i64) -> Value {
+    let deadline = Instant::now() + WAIT;
+    loop {
+        let v: Value = client
+            .get(format!("{base}/v1/reconstructions/{id}"))
+            .bearer_auth(token)
+            .send()
+            .await
+            .unwrap()
+            .json()
+            .await
+            .unwrap();
+        if v["state"] == "done" {
+            return v;
+        }
+        assert!(Instant::now() < deadline, "{v}");
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
+
 fn median_p95(mut v: Vec<f64>) -> (f64, f64) {
     v.sort_by(|a, b| a.partial_cmp(b).unwrap());
     let at = |q: f64| v[((q * (v.len() - 1) as f64).round() as usize).min(v.len() - 1)];
@@ -226,23 +247,7 @@ async fn the_viewer_in_a_real_browser() {
         .await
         .unwrap();
     let second_id = second["id"].as_i64().unwrap();
-    let deadline = Instant::now() + WAIT;
-    loop {
-        let v: Value = client
-            .get(format!("{base}/v1/reconstructions/{second_id}"))
-            .bearer_auth(&demo.reader)
-            .send()
-            .await
-            .unwrap()
-            .json()
-            .await
-            .unwrap();
-        if v["state"] == "done" {
-            break;
-        }
-        assert!(Instant::now() < deadline, "{v}");
-        tokio::time::sleep(Duration::from_millis(50)).await;
-    }
+    wait_done(&client, &base, &demo.reader, second_id).await;
     browser
         .click("tr[data-session=\"demo-usaf-hadamard\"] a")
         .await
@@ -874,23 +879,7 @@ async fn the_viewer_in_a_real_browser() {
         .json()
         .await
         .unwrap();
-    let deadline = Instant::now() + WAIT;
-    loop {
-        let v: Value = client
-            .get(format!("{base}/v1/reconstructions/{}", rgb["id"]))
-            .bearer_auth(&demo.reader)
-            .send()
-            .await
-            .unwrap()
-            .json()
-            .await
-            .unwrap();
-        if v["state"] == "done" {
-            break;
-        }
-        assert!(Instant::now() < deadline, "{v}");
-        tokio::time::sleep(Duration::from_millis(50)).await;
-    }
+    wait_done(&client, &base, &demo.reader, rgb["id"].as_i64().unwrap()).await;
     browser
         .goto(&format!("{base}/#/sessions/viewer-rgb"))
         .await
