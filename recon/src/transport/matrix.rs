@@ -133,6 +133,19 @@ impl Builder {
         self.row_ptr.push(self.value.len() as u64);
     }
 
+    /// Appends the next row from its coefficients, keeping those marked in `keep` that are
+    /// nonzero in f32.
+    pub fn push_kept(&mut self, coefficients: &[f64], keep: &[bool]) {
+        for (i, (&s, &kept)) in coefficients.iter().zip(keep).enumerate() {
+            let v = s as f32;
+            if kept && v != 0.0 {
+                self.index.push(i as u32);
+                self.value.push(v);
+            }
+        }
+        self.row_ptr.push(self.value.len() as u64);
+    }
+
     pub fn rows(&self) -> usize {
         self.row_ptr.len() - 1
     }

@@ -12,16 +12,25 @@
 //!   time ([`FrameSource::read_pixels`]); the block size comes from `memory_budget_bytes`, which
 //!   covers the operator, the frame block, the block's data and solutions, and the solver
 //!   scratch of every thread ([`plan_memory`]). A session is never held whole.
-//! - **Complete raster or Hadamard sets: the exact inverse**, stored sparse: each row's
-//!   coefficients in the transform below the noise the data show are dropped (noise `sigma`
-//!   from the median absolute finest diagonal Haar detail, `sigma = median |HH_1| / 0.6745`;
-//!   threshold `sqrt(2 ln k) sigma`, and never below f32 resolution of the row's largest
-//!   coefficient). With the transform left to the data, the one with the fewest coefficients
-//!   above that threshold on a sample of camera pixels is used.
+//! - **Complete raster or Hadamard sets: the exact inverse**, stored sparse: a coefficient in
+//!   the transform is kept when it stands out of the noise the data show, in its own row or in
+//!   its mean over a tile of neighbouring camera pixels ([`exact_support`]; noise `sigma` from
+//!   the median absolute finest diagonal Haar detail, `sigma = median |HH_1| / 0.6745`;
+//!   threshold `sqrt(2 ln k) sigma`, for a tile mean `sqrt(2 ln k) sqrt(sum sigma_j^2) / n`,
+//!   never below f32 resolution of the row's largest coefficient). A relight sums rows: light
+//!   that many camera pixels share, each below its own noise (interreflections), adds up
+//!   coherently when dropped, while the noise of what is kept averages out; so it is kept, at
+//!   each row's own (unbiased) value. With the transform left to the data, one pass over the
+//!   session estimates every candidate's full-light relight error ([`ExactChoice`]: the
+//!   coherent sum of what it drops, plus the noise of what it keeps); the one keeping the fewest
+//!   coefficients within 10 % of the lowest estimate is used, and the estimate is reported
+//!   (`relight_error_estimate`).
 //! - **Otherwise: l1 in an orthonormal transform** (`min 1/2 ||A Psi^T s - b||^2 + lambda ||s||_1`
 //!   per row, [`batch`]: batched FISTA over many rows at once, chunks of rows over the rayon
 //!   threads), `lambda` a fraction of each row's own `lambda_max`. The data choose the transform
-//!   and the fraction: on a sample of camera pixels (runs spread over the camera) each candidate
+//!   and the fraction: on a sample of camera pixels (drawn with probability in proportion to the
+//!   energy of their data, [`energy_sample`], so a scene lighting a third of the camera is
+//!   judged on the lit pixels) each candidate
 //!   transform is fitted along a warm-started path of fractions without the held-out rows
 //!   ([`crate::holdout`]) and scored on them. Held-out rows are hashed out of random
 //!   designs; of a Hadamard subset they are the LAST measured pairs ([`holdout::tail`]): its
@@ -418,7 +427,8 @@ fn plan_memory(
     let fixed = plan.op_bytes() * if selecting { 2 } else { 1 } + 8 * k * (threads + 2);
     let mut per_pixel = 4 * plan.frames + 8 * raw_rows + 8 * n + 8 * k;
     if plan.exact {
-        per_pixel += 8 * k;
+        // The block's rows, their coefficients and which of them are kept.
+        per_pixel += 17 * k;
     }
     if coarse {
         per_pixel += (8 * n + 8 * k).div_ceil(4);
@@ -497,6 +507,102 @@ fn sample_ranges(m: usize, sample: usize) -> Vec<Range<usize>> {
     out
 }
 
+/// The energy of a camera pixel's data: the sum of squares of its split-pair differences
+/// (Hadamard), else of its frames about their mean.
+fn data_energy(plan: &Plan, raw: &[f64]) -> f64 {
+    match plan.raw {
+        Raw::Hadamard(_) => raw.iter().map(|v| v * v).sum(),
+        _ => {
+            let mean = raw.iter().sum::<f64>() / raw.len().max(1) as f64;
+            raw.iter().map(|v| (v - mean) * (v - mean)).sum()
+        }
+    }
+}
+
+/// The camera pixels the model is chosen on: `sample` of them drawn with probability in
+/// proportion to the energy of their data (systematic sampling over the cumulative energy, so
+/// the draw is a deterministic function of the data), one pass over the session in blocks of
+/// `block` pixels. A scene that lights a third of the camera is judged on lit pixels, which
+/// are the ones a relight sums; dark pixels (data all noise) are drawn in proportion to the
+/// noise they carry. Sorted; fewer than `sample` only when fewer pixels carry any energy; the
+/// evenly spread runs of [`sample_ranges`] when none does.
+fn energy_sample(
+    plan: &Plan,
+    source: &mut dyn FrameSource,
+    m: usize,
+    block: usize,
+    sample: usize,
+    largest: &mut usize,
+    control: &Control,
+) -> Result<Vec<usize>, ReconError> {
+    let sample = sample.clamp(1, m);
+    let mut energy = Vec::with_capacity(m);
+    for r in blocks(m, block, None) {
+        if control.is_cancelled() {
+            return Err(ReconError::Cancelled);
+        }
+        let f = read(source, r.clone(), plan.rows_read, largest)?;
+        for c in 0..r.len() {
+            energy.push(data_energy(plan, &plan.raw_column(&f, r.len(), c)));
+        }
+    }
+    let mut picked = vec![false; m];
+    let mut count = 0;
+    // Pixels heavier than the step are drawn once; the draw is repeated over the rest.
+    while count < sample {
+        let total: f64 = (0..m).filter(|&j| !picked[j]).map(|j| energy[j]).sum();
+        if total <= 0.0 {
+            break;
+        }
+        let want = sample - count;
+        let step = total / want as f64;
+        let mut next = 0.5 * step;
+        let mut cum = 0.0;
+        let before = count;
+        for j in 0..m {
+            if picked[j] || energy[j] <= 0.0 {
+                continue;
+            }
+            cum += energy[j];
+            if cum > next {
+                picked[j] = true;
+                count += 1;
+                next += step * ((cum - next) / step).ceil().max(1.0);
+            }
+        }
+        if count == before {
+            break;
+        }
+    }
+    if count == 0 {
+        return Ok(sample_ranges(m, sample).into_iter().flatten().collect());
+    }
+    Ok((0..m).filter(|&j| picked[j]).collect())
+}
+
+/// The raw data of camera pixels `picked` (sorted), read block by block.
+fn read_columns(
+    plan: &Plan,
+    source: &mut dyn FrameSource,
+    picked: &[usize],
+    block: usize,
+    largest: &mut usize,
+) -> Result<Vec<Vec<f64>>, ReconError> {
+    let mut out = Vec::with_capacity(picked.len());
+    let mut at = 0;
+    while at < picked.len() {
+        let start = picked[at];
+        let end = (start + block.max(1)).min(picked[picked.len() - 1] + 1);
+        let r = start..end;
+        let f = read(source, r.clone(), plan.rows_read, largest)?;
+        while at < picked.len() && picked[at] < end {
+            out.push(plan.raw_column(&f, r.len(), picked[at] - start));
+            at += 1;
+        }
+    }
+    Ok(out)
+}
+
 /// Noise of an image from its finest diagonal Haar details (2x2 blocks), robustly:
 /// `median |(a - b - c + d) / 2| / 0.6745` (Donoho-Johnstone). The same `sigma` holds in every
 /// orthonormal basis for white noise.
@@ -525,6 +631,159 @@ fn noise_sigma(t: &[f64], w: usize, h: usize) -> f64 {
 fn exact_threshold(s: &[f64], sigma: f64, k: usize) -> f64 {
     let max = s.iter().fold(0.0f64, |m, v| m.max(v.abs()));
     ((2.0 * (k as f64).ln()).sqrt() * sigma).max(max * f32::EPSILON as f64 * 0.5)
+}
+
+/// What a transform's kept coefficients do to the full-light relight of an exact set (the sum
+/// of all rows): what is dropped adds up coherently, what is kept brings its noise. The dropped
+/// part is summed separately over the two halves of a camera checkerboard: their noise is
+/// independent and their coherent parts alike, so `4 <d_a, d_b>` estimates the square of the
+/// dropped light without any noise estimate (the transform is orthonormal: these norms are the
+/// relight's). The kept noise is `sum_j kept_j sigma_j^2`.
+struct ExactChoice {
+    kind: TransformKind,
+    kept: usize,
+    dropped: [Vec<f64>; 2],
+    kept_noise: f64,
+    relit: Vec<f64>,
+}
+
+impl ExactChoice {
+    fn new(kind: TransformKind, k: usize) -> Self {
+        ExactChoice {
+            kind,
+            kept: 0,
+            dropped: [vec![0.0; k], vec![0.0; k]],
+            kept_noise: 0.0,
+            relit: vec![0.0; k],
+        }
+    }
+
+    /// Rows `s` with their noise, kept coefficients and checkerboard half.
+    fn add(&mut self, s: &[f64], sigmas: &[f64], keep: &[bool], half: &[bool]) {
+        let k = self.relit.len();
+        for (((row, kept), sigma), &h) in s
+            .chunks_exact(k)
+            .zip(keep.chunks_exact(k))
+            .zip(sigmas)
+            .zip(half)
+        {
+            let dropped = &mut self.dropped[usize::from(h)];
+            let mut n = 0usize;
+            for (i, (&v, &kp)) in row.iter().zip(kept).enumerate() {
+                if kp {
+                    self.relit[i] += v;
+                    n += 1;
+                } else {
+                    dropped[i] += v;
+                }
+            }
+            self.kept += n;
+            self.kept_noise += n as f64 * sigma * sigma;
+        }
+    }
+
+    /// The estimated mean square error of the full-light relight.
+    fn relight_mse(&self) -> f64 {
+        let cross: f64 = self.dropped[0]
+            .iter()
+            .zip(&self.dropped[1])
+            .map(|(a, b)| a * b)
+            .sum();
+        (4.0 * cross).max(0.0) + self.kept_noise
+    }
+
+    fn relit_norm2(&self) -> f64 {
+        self.relit.iter().map(|v| v * v).sum()
+    }
+
+    /// [`ExactChoice::relight_mse`] relative to the relight's norm.
+    fn relative_relight_error(&self) -> f64 {
+        let norm2 = self.relit_norm2();
+        if norm2 > 0.0 {
+            (self.relight_mse() / norm2).sqrt()
+        } else {
+            0.0
+        }
+    }
+}
+
+/// Which coefficients of a block's exact rows are kept (module docs): `s` holds the block's
+/// rows (`sigmas.len()` rows of `k` transform coefficients), the block is camera pixels
+/// `first..` of a camera `width` pixels wide. A coefficient is kept in a row when it stands
+/// out of that row's noise ([`exact_threshold`]), or when the mean over a square tile of
+/// camera pixels around the row (sides 2, 4, 8, ... up to the block, fine to coarse) of what
+/// is not kept yet stands out of the mean's own noise `sqrt(sum sigma_j^2) / n`: light that
+/// many neighbouring camera pixels share (interreflections, a smooth halo) is kept in every row
+/// of the tile, at each row's own unbiased value, even where every single row's share is below
+/// its noise. (What single rows keep is left out of the means: one bright row does not make a
+/// coefficient kept in all its neighbours.) A relight sums rows,
+/// so what is dropped adds up coherently while the noise of what is kept averages out.
+fn exact_support(s: &[f64], sigmas: &[f64], k: usize, first: usize, width: usize) -> Vec<bool> {
+    let len = sigmas.len();
+    let z = (2.0 * (k as f64).ln()).sqrt();
+    let mut keep = vec![false; len * k];
+    let mut floors = Vec::with_capacity(len);
+    for (c, row) in s.chunks_exact(k).enumerate() {
+        let tau = exact_threshold(row, sigmas[c], k);
+        let max = row.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        floors.push(max * f32::EPSILON as f64 * 0.5);
+        keep[c * k..(c + 1) * k]
+            .iter_mut()
+            .zip(row)
+            .for_each(|(kp, v)| *kp = v.abs() > tau);
+    }
+    if len < 2 {
+        return keep;
+    }
+    let width = width.max(1);
+    let last = first + len - 1;
+    let lines = last / width - first / width + 1;
+    let extent = width.max(lines);
+    let mut mean = vec![0.0; k];
+    let mut g = 2usize;
+    loop {
+        // Tiles of g x g camera pixels on the camera's grid (clipped to the block).
+        let mut tiles: std::collections::BTreeMap<(usize, usize), Vec<usize>> = Default::default();
+        for c in 0..len {
+            let j = first + c;
+            tiles
+                .entry((j / width / g, j % width / g))
+                .or_default()
+                .push(c);
+        }
+        for members in tiles.values().filter(|m| m.len() >= 2) {
+            let n = members.len() as f64;
+            mean.iter_mut().for_each(|v| *v = 0.0);
+            let mut var = 0.0;
+            let mut floor = 0.0f64;
+            for &c in members {
+                // What is not kept yet: the residual the finer tests left.
+                mean.iter_mut()
+                    .zip(&s[c * k..(c + 1) * k])
+                    .zip(&keep[c * k..(c + 1) * k])
+                    .for_each(|((a, b), kept)| {
+                        if !kept {
+                            *a += b
+                        }
+                    });
+                var += sigmas[c] * sigmas[c];
+                floor = floor.max(floors[c]);
+            }
+            let tau = (z * var.sqrt() / n).max(floor);
+            for (i, v) in mean.iter().enumerate() {
+                if (v / n).abs() > tau {
+                    for &c in members {
+                        keep[c * k + i] = true;
+                    }
+                }
+            }
+        }
+        if g >= extent {
+            break;
+        }
+        g *= 2;
+    }
+    keep
 }
 
 fn free_coefficients(kind: TransformKind) -> usize {
@@ -694,36 +953,71 @@ fn plan_with(
         let transform = match config.transform {
             Some(t) => t,
             None => {
-                // The transform with the fewest coefficients above the noise on the sample.
-                let mut ts = Vec::new();
-                for r in sample_ranges(m, sample) {
+                // The transform whose kept coefficients relight the camera best
+                // ([`ExactChoice`]): one pass over the session in the solve's blocks.
+                let mut choices: Vec<ExactChoice> = CANDIDATE_TRANSFORMS
+                    .iter()
+                    .map(|&kind| ExactChoice::new(kind, k))
+                    .collect();
+                let psis: Vec<_> = CANDIDATE_TRANSFORMS
+                    .iter()
+                    .map(|kind| kind.build(pw, ph))
+                    .collect();
+                let w = camera.width as usize;
+                for r in blocks(m, mem.block_pixels, None) {
+                    if control.is_cancelled() {
+                        return Err(ReconError::Cancelled);
+                    }
                     let f = read(source, r.clone(), n_read, &mut largest)?;
-                    for c in 0..r.len() {
-                        ts.push(plan.exact_inverse(&plan.raw_column(&f, r.len(), c)));
+                    let ts: Vec<Vec<f64>> = (0..r.len())
+                        .map(|c| plan.exact_inverse(&plan.raw_column(&f, r.len(), c)))
+                        .collect();
+                    drop(f);
+                    let sig: Vec<f64> = ts.iter().map(|t| noise_sigma(t, pw, ph)).collect();
+                    let half: Vec<bool> = r.clone().map(|j| (j % w + j / w) % 2 == 1).collect();
+                    let mut s = vec![0.0; r.len() * k];
+                    for (choice, psi) in choices.iter_mut().zip(&psis) {
+                        for (t, row) in ts.iter().zip(s.chunks_exact_mut(k)) {
+                            psi.apply(t, row);
+                        }
+                        let keep = exact_support(&s, &sig, k, r.start, w);
+                        choice.add(&s, &sig, &keep, &half);
                     }
                 }
-                let mut counts = Vec::new();
-                for kind in CANDIDATE_TRANSFORMS {
-                    let psi = kind.build(pw, ph);
-                    let mut s = vec![0.0; k];
-                    let mut kept = 0usize;
-                    for t in &ts {
-                        psi.apply(t, &mut s);
-                        let tau = exact_threshold(&s, noise_sigma(t, pw, ph), k);
-                        kept += s.iter().filter(|v| v.abs() > tau).count();
-                    }
-                    counts.push((kind, kept));
-                }
-                let best = counts.iter().min_by_key(|c| c.1).expect("candidates").0;
+                let best_mse = choices
+                    .iter()
+                    .map(ExactChoice::relight_mse)
+                    .fold(f64::INFINITY, f64::min);
+                let norm2 = choices
+                    .iter()
+                    .map(ExactChoice::relit_norm2)
+                    .fold(0.0, f64::max);
+                // Within 10 % of the best relight error (or at f32 resolution): the fewest kept.
+                let within = (best_mse * 1.21).max(norm2 * 1e-14);
+                let best = choices
+                    .iter()
+                    .filter(|c| c.relight_mse() <= within)
+                    .min_by_key(|c| c.kept)
+                    .expect("the best is within");
                 details.insert(
                     "selection".into(),
                     json!({
-                        "rule": "fewest coefficients above the noise threshold on the sample pixels",
-                        "sample_pixels": ts.len(),
-                        "kept": counts.iter().map(|(kind, c)| json!({"transform": kind.name(), "kept": c})).collect::<Vec<_>>(),
+                        "rule": "among the transforms whose estimated full-light relight error is within 10 % of the lowest, the one keeping the fewest coefficients (kept: above the noise of their row, or of their mean over a camera tile); the estimate is the dropped part's coherent sum (the product of its sums over the two halves of a camera checkerboard, free of their independent noise) plus the noise of what is kept",
+                        "candidates": choices.iter().map(|c| json!({
+                            "transform": c.kind.name(),
+                            "kept": c.kept,
+                            "relight_error_estimate": c.relative_relight_error(),
+                        })).collect::<Vec<_>>(),
                     }),
                 );
-                best
+                details.insert(
+                    "relight_error_estimate".into(),
+                    json!({
+                        "light": "full (every camera pixel at 1)",
+                        "relative": best.relative_relight_error(),
+                    }),
+                );
+                best.kind
             }
         };
         held_out_unavailable = Some(
@@ -880,14 +1174,19 @@ fn solve_with(
         let frames = read(source, range.clone(), n_read, &mut largest)?;
         let len = range.len();
         if model.exact {
-            let mut s = vec![0.0; k];
-            for c in 0..len {
+            let mut s = vec![0.0; len * k];
+            let mut block_sigmas = Vec::with_capacity(len);
+            for (c, row) in s.chunks_exact_mut(k).enumerate() {
                 let t = plan.exact_inverse(&plan.raw_column(&frames, len, c));
-                let sigma = noise_sigma(&t, pw, ph);
-                sigmas.push(sigma);
-                psi.apply(&t, &mut s);
-                builder.push_row(&s, exact_threshold(&s, sigma, k));
+                block_sigmas.push(noise_sigma(&t, pw, ph));
+                psi.apply(&t, row);
             }
+            drop(frames);
+            let keep = exact_support(&s, &block_sigmas, k, b0, camera.width as usize);
+            for (row, kept) in s.chunks_exact(k).zip(keep.chunks_exact(k)) {
+                builder.push_kept(row, kept);
+            }
+            sigmas.extend(block_sigmas);
         } else {
             let n = plan.op().rows();
             let mut bs = Vec::with_capacity(len * n);
@@ -1195,13 +1494,8 @@ fn choose_model(
             return Ok((transform, lambda, false));
         }
     };
-    let mut raws = Vec::new();
-    for r in sample_ranges(m, sample) {
-        let f = read(source, r.clone(), plan.rows_read, largest)?;
-        for c in 0..r.len() {
-            raws.push(plan.raw_column(&f, r.len(), c));
-        }
-    }
+    let picked = energy_sample(plan, source, m, mem.block_pixels, sample, largest, control)?;
+    let raws = read_columns(plan, source, &picked, mem.block_pixels, largest)?;
     let rows = raws.len();
     let (train, test) = plan.holdout_ops(&split)?;
     let n = train.op().rows();
@@ -1334,6 +1628,7 @@ fn choose_model(
                 format!("{} of {} rows, chosen by a hash of the row index", split.test.len(), plan.raw_rows())
             },
             "sample_pixels": rows,
+            "sample": "camera pixels drawn with probability in proportion to the energy of their data (systematic, deterministic)",
             "best": {"transform": best.0.name(), "lambda": best.1, "refit": best.2, "held_out": best_value, "standard_error": best_se, "nonzeros_mean": best.5},
             "chosen": {"transform": transform.name(), "lambda": lambda, "refit": refit, "held_out": chosen.3, "nonzeros_mean": chosen.5},
             "candidates": candidates,

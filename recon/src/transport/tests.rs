@@ -134,6 +134,124 @@ fn a_complete_hadamard_set_reconstructs_to_f32_precision_and_stores_sparse() {
     );
 }
 
+/// [`synthetic_t`] plus interreflected light: every camera pixel also sees a dim, smooth glow
+/// from the whole projector (dense, each entry far below the direct blob's), smooth across the
+/// camera too, about `share` of the total light.
+fn interreflected_t(camera: CameraGrid, pw: usize, ph: usize, share: f64) -> Vec<f32> {
+    let (cw, ch) = (camera.width as usize, camera.height as usize);
+    let k = pw * ph;
+    let mut t = synthetic_t(camera, pw, ph);
+    let direct: f64 = t.iter().map(|v| *v as f64).sum();
+    let mut glow = vec![0.0f64; t.len()];
+    for cy in 0..ch {
+        for cx in 0..cw {
+            let (u, v) = (cx as f64 / cw as f64, cy as f64 / ch as f64);
+            for y in 0..ph {
+                for x in 0..pw {
+                    let (a, b) = (x as f64 / pw as f64, y as f64 / ph as f64);
+                    glow[(cy * cw + cx) * k + y * pw + x] = (1.0 + 0.6 * (3.0 * (a - u)).cos())
+                        * (1.0 + 0.4 * (2.5 * (b + v)).sin())
+                        * (0.5 + u);
+                }
+            }
+        }
+    }
+    let total: f64 = glow.iter().sum();
+    let scale = direct * share / (1.0 - share) / total;
+    t.iter_mut()
+        .zip(&glow)
+        .for_each(|(v, g)| *v += (g * scale) as f32);
+    t
+}
+
+/// `T^T c` of a dense row-major `T` (m x k).
+fn relit(t: &[f32], light: &[f32], k: usize) -> Vec<f32> {
+    let mut out = vec![0.0f64; k];
+    for (row, &c) in t.chunks_exact(k).zip(light) {
+        out.iter_mut()
+            .zip(row)
+            .for_each(|(o, v)| *o += *v as f64 * c as f64);
+    }
+    out.into_iter().map(|v| v as f32).collect()
+}
+
+#[test]
+fn a_noisy_complete_set_keeps_the_interreflected_light_a_relight_sums() {
+    // 32x32 projector, 16x16 camera; 20 % of the light interreflected, dense and dim; frame
+    // noise 1 % of the frames' RMS.
+    let camera = CameraGrid {
+        width: 16,
+        height: 16,
+    };
+    let (m, k) = (camera.pixels(), 1024);
+    let spec = PatternSpec::new(
+        Family::Hadamard {
+            ordering: HadamardOrdering::Sequency,
+        },
+        32,
+        32,
+        2048,
+        0,
+    )
+    .unwrap();
+    let truth = interreflected_t(camera, 32, 32, 0.2);
+    let clean = frames(&spec, &truth, m, 0.0);
+    let rms = (clean.iter().map(|v| (*v as f64).powi(2)).sum::<f64>() / clean.len() as f64).sqrt();
+    let f = frames(&spec, &truth, m, 0.01 * rms);
+    let (t, report, _) = run(&spec, camera, &f, &TransportConfig::default());
+    let plain = zero_filled(&spec, &f, m);
+    let ours = dense(&t);
+    let lights: Vec<(&str, Vec<f32>)> = vec![
+        ("full", vec![1.0; m]),
+        ("left half", (0..m).map(|j| f32::from(j % 16 < 8)).collect()),
+        (
+            "4x4 checker",
+            (0..m)
+                .map(|j| f32::from((j % 16 / 4 + j / 64) % 2 == 0))
+                .collect(),
+        ),
+    ];
+    let total = |t: &[f32]| t.iter().map(|v| *v as f64).sum::<f64>();
+    let light_ratio = total(&ours) / total(&truth);
+    println!(
+        "transform {}, nnz/row {:.1} of {k}, total light {light_ratio:.5} (plain {:.5}), T error {:.4} (plain {:.4})",
+        report.details["transform"],
+        t.nonzeros() as f64 / m as f64,
+        total(&plain) / total(&truth),
+        relative_error(&ours, &truth),
+        relative_error(&plain, &truth),
+    );
+    for (name, light) in &lights {
+        let want = relit(&truth, light, k);
+        let e_ours = relative_error(&t.relight(light), &want);
+        let e_plain = relative_error(&relit(&plain, light, k), &want);
+        println!("relit {name}: error {e_ours:.5} (plain inverse {e_plain:.5})");
+        // Dropping coefficients can only remove noise from a relight if nothing coherent is
+        // dropped with it: never worse than the plain inverse.
+        assert!(
+            e_ours < e_plain,
+            "{name} relight error {e_ours} (plain inverse {e_plain})"
+        );
+    }
+    assert!(
+        (light_ratio - 1.0).abs() < 0.005,
+        "total light {light_ratio} of the truth"
+    );
+    // The reported error of the full-light relight is calibrated: within 2x of the truth.
+    let estimate = report.details["relight_error_estimate"]["relative"]
+        .as_f64()
+        .unwrap();
+    let full = relative_error(&t.relight(&lights[0].1), &relit(&truth, &lights[0].1, k));
+    println!("full-light relight error estimate {estimate:.5}, true {full:.5}");
+    assert!(
+        estimate > full / 2.0 && estimate < full * 2.0,
+        "estimate {estimate} against the true {full}"
+    );
+    // Sparser than the plain inverse, and T itself no worse than it.
+    assert!(t.nonzeros() < m * k / 2, "{} nonzeros", t.nonzeros());
+    assert!(relative_error(&ours, &truth) < relative_error(&plain, &truth));
+}
+
 #[test]
 fn a_complete_raster_set_with_noise_drops_what_is_below_the_noise() {
     let spec = PatternSpec::new(Family::Raster { block: 1, scans: 1 }, 32, 32, 1024, 0).unwrap();

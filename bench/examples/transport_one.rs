@@ -1,0 +1,166 @@
+//! One camera session reconstructed into `T`, for probing: time, T error, relit-image errors
+//! (full, left-half and checkerboard lights), total light, against the scene's exact `T`.
+//!
+//! `transport_one FAMILY PROJ CAM RATIO NOISE [PARAMS_JSON]`: FAMILY `hadamard` (Russian doll)
+//! or `bernoulli`; PROJ and CAM square sizes (`32`, `64`); RATIO frames over projector pixels
+//! (Hadamard: pairs, so 1 is the complete set); NOISE Gaussian frame noise relative to the frames'
+//! RMS (`0.01`). `TRANSPORT_REPORT=1` prints the report's details.
+
+use std::time::Instant;
+
+use helmholtz_proto::{Family, HadamardOrdering, PatternGenerator, PatternSpec};
+use helmholtz_recon::Control;
+use helmholtz_recon::metrics::relative_error;
+use helmholtz_recon::transport::{CameraGrid, SliceFrames, TransportConfig, reconstruct_transport};
+use helmholtz_sim::{Camera, Relief};
+
+fn main() -> anyhow::Result<()> {
+    let a: Vec<String> = std::env::args().collect();
+    anyhow::ensure!(
+        a.len() >= 6,
+        "usage: transport_one FAMILY PROJ CAM RATIO NOISE [PARAMS_JSON]"
+    );
+    let (p, c): (u32, u32) = (a[2].parse()?, a[3].parse()?);
+    let ratio: f64 = a[4].parse()?;
+    let noise: f64 = a[5].parse()?;
+    let params: serde_json::Value = a
+        .get(6)
+        .map(|s| serde_json::from_str(s))
+        .transpose()?
+        .unwrap_or(serde_json::json!({}));
+    let k = (p * p) as u64;
+    let (family, count) = match a[1].as_str() {
+        "hadamard" => (
+            Family::Hadamard {
+                ordering: HadamardOrdering::RussianDoll,
+            },
+            2 * ((k as f64 * ratio).round() as u64),
+        ),
+        "bernoulli" => (
+            Family::Bernoulli { fill: 0.5 },
+            (k as f64 * ratio).round() as u64,
+        ),
+        f => anyhow::bail!("family {f}"),
+    };
+    let hadamard = matches!(family, Family::Hadamard { .. });
+    let spec = PatternSpec::new(family, p, p, count, 3)?;
+    let scene = Relief::demo(p, p, 7);
+    let view = scene.view(&Camera::tilted(c, c, 25.0));
+    let truth = view.dense();
+    let m = view.pixels();
+    let g = PatternGenerator::new(&spec);
+    let mut pat = vec![0f32; k as usize];
+    let mut frames = Vec::with_capacity(count as usize * m);
+    for i in 0..count {
+        g.fill_values(i, &mut pat);
+        let p64: Vec<f64> = pat.iter().map(|&v| v as f64).collect();
+        frames.extend(view.render(&p64));
+    }
+    let rms = (frames.iter().map(|v| v * v).sum::<f64>() / frames.len() as f64).sqrt();
+    let mut rng = 0x9E3779B97F4A7C15u64;
+    let mut normal = || {
+        let mut u = || {
+            rng ^= rng << 13;
+            rng ^= rng >> 7;
+            rng ^= rng << 17;
+            ((rng >> 11) as f64 + 0.5) / (1u64 << 53) as f64
+        };
+        let (u1, u2) = (u(), u());
+        (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+    };
+    let frames: Vec<f32> = frames
+        .iter()
+        .map(|v| (v + noise * rms * normal()) as f32)
+        .collect();
+    let config = TransportConfig::parse(&params)?;
+    let mut source = SliceFrames::new(&frames, m);
+    let start = Instant::now();
+    let (t, report) = reconstruct_transport(
+        &spec,
+        CameraGrid {
+            width: c,
+            height: c,
+        },
+        count,
+        &config,
+        &mut source,
+        &Control::new(),
+    )?;
+    let seconds = start.elapsed().as_secs_f64();
+    let est: Vec<f32> = (0..m).flat_map(|j| t.row(j)).collect();
+    let total = |v: &[f32]| v.iter().map(|x| *x as f64).sum::<f64>();
+    let lights: [(&str, Vec<f64>); 3] = [
+        ("full", vec![1.0; m]),
+        (
+            "half",
+            (0..m)
+                .map(|j| f64::from(2 * (j % c as usize) < c as usize))
+                .collect(),
+        ),
+        (
+            "checker",
+            (0..m)
+                .map(|j| f64::from(((j % c as usize) / 4 + (j / c as usize) / 4).is_multiple_of(2)))
+                .collect(),
+        ),
+    ];
+    // The plain least-squares baseline of Hadamard sets: the adjoint of the split pairs (the
+    // exact inverse of a complete set, the zero-filled one of a subset).
+    let plain: Option<Vec<f32>> = hadamard.then(|| {
+        use helmholtz_recon::linop::LinearOperator;
+        let op = helmholtz_recon::ops::HadamardOperator::from_spec(&spec, count).unwrap();
+        let scale = 1.0 / (k as f64).sqrt();
+        let mut out = Vec::with_capacity(m * k as usize);
+        let mut row = vec![0.0; k as usize];
+        for j in 0..m {
+            let d: Vec<f64> = (0..op.rows())
+                .map(|r| {
+                    (frames[2 * r * m + j] as f64 - frames[(2 * r + 1) * m + j] as f64) * scale
+                })
+                .collect();
+            op.adjoint(&d, &mut row);
+            out.extend(row.iter().map(|&v| v as f32));
+        }
+        out
+    });
+    let relit_of = |t: &[f32], l: &[f64]| -> Vec<f32> {
+        let mut out = vec![0.0f64; k as usize];
+        for (row, &c) in t.chunks_exact(k as usize).zip(l) {
+            out.iter_mut()
+                .zip(row)
+                .for_each(|(o, v)| *o += *v as f64 * c);
+        }
+        out.into_iter().map(|v| v as f32).collect()
+    };
+    let mut relit = String::new();
+    for (name, l) in &lights {
+        let l32: Vec<f32> = l.iter().map(|&v| v as f32).collect();
+        let want: Vec<f32> = view.relight(l).into_iter().map(|v| v as f32).collect();
+        relit += &format!(" {name} {:.4}", relative_error(&t.relight(&l32), &want));
+        if let Some(p) = &plain {
+            relit += &format!(" (plain {:.4})", relative_error(&relit_of(p, l), &want));
+        }
+    }
+    if let Some(p) = &plain {
+        println!(
+            "plain adjoint: T err {:.4}, total light {:.4}",
+            relative_error(p, &truth),
+            total(p) / total(&truth)
+        );
+    }
+    println!(
+        "{} {p}->{c} ratio {ratio} noise {noise}: {seconds:.2} s, transform {} lambda {} refit {}, nnz/row {:.1}, T err {:.4}, relit{relit}, total light {:.4}, held-out {:?}",
+        a[1],
+        report.details["transform"],
+        report.details["lambda"],
+        report.details["refit"],
+        t.nonzeros() as f64 / m as f64,
+        relative_error(&est, &truth),
+        total(&est) / total(&truth),
+        report.held_out.as_ref().and_then(|h| h.relative_residual),
+    );
+    if std::env::var_os("TRANSPORT_REPORT").is_some() {
+        println!("{}", serde_json::to_string_pretty(&report.details)?);
+    }
+    Ok(())
+}
