@@ -4,7 +4,7 @@
 //! 3 x 5 bitmaps in a grid of cells, grey ink 0.55-1, from the seed). The projector lights it
 //! head-on (orthographic, its pixel grid stretched over the card); its image on the card is the
 //! pattern interpolated bilinearly between pixel centres. The camera (pinhole, nothing behind the
-//! card) looks along the card from about 14 degrees above it. Each camera pixel averages two
+//! card) looks along the card from about 16 degrees above it. Each camera pixel averages two
 //! points (a quarter pixel left and right of its centre): its row of `T` is
 //! `sum_s ink(x_s) w_i(x_s) / 2`, `w_i` the bilinear weights of projector pixel `i` at `x_s`.
 //!
