@@ -17,13 +17,19 @@
 //! and what an orthographic camera sees ([`Scene::view`], a [`CameraView`]: frames `T p` and
 //! relighting `T^T c`). Reciprocity holds for both: a camera summed over its pixels is the bucket
 //! detector where it stands.
+//!
+//! Besides these, [`rendered`]: small camera scenes given as an exact dense `T`
+//! ([`RenderedTransport`]: a Cornell-like box with radiosity interreflection, glossy spheres with
+//! a caustic, a sparse slide at a grazing angle), with their first-bounce part.
 
 pub mod relief;
+pub mod rendered;
 pub mod target;
 
 use std::borrow::Cow;
 
 pub use relief::{Camera, CameraView, Relief, direction, unit_vector};
+pub use rendered::RenderedTransport;
 pub use target::Target;
 
 /// The name of the demo relief ([`Relief::demo`]) where a scene is named (`--scene lambert`).
