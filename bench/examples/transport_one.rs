@@ -11,8 +11,11 @@ use std::time::Instant;
 use helmholtz_proto::{Family, HadamardOrdering, PatternGenerator, PatternSpec};
 use helmholtz_recon::Control;
 use helmholtz_recon::metrics::relative_error;
-use helmholtz_recon::transport::{CameraGrid, SliceFrames, TransportConfig, reconstruct_transport};
-use helmholtz_sim::{Camera, Relief};
+use helmholtz_recon::transport::{
+    CameraGrid, SliceFrames, TransportConfig, assemble_transport, plan_transport,
+    solve_transport_blocks,
+};
+use helmholtz_sim::{Camera, CameraView, Relief, RenderedTransport};
 
 fn main() -> anyhow::Result<()> {
     let a: Vec<String> = std::env::args().collect();
@@ -44,8 +47,31 @@ fn main() -> anyhow::Result<()> {
     };
     let hadamard = matches!(family, Family::Hadamard { .. });
     let spec = PatternSpec::new(family, p, p, count, 3)?;
+    // SCENE=cornell|glossy|slide: a rendered scene; else the demo relief.
     let scene = Relief::demo(p, p, 7);
-    let view = scene.view(&Camera::tilted(c, c, 25.0));
+    let relief = scene.view(&Camera::tilted(c, c, 25.0));
+    let rendered = match std::env::var("SCENE").as_deref() {
+        Ok("cornell") => Some(RenderedTransport::cornell(
+            (p as usize, p as usize),
+            (c as usize, c as usize),
+            1,
+        )),
+        Ok("glossy") => Some(RenderedTransport::glossy(
+            (p as usize, p as usize),
+            (c as usize, c as usize),
+            1,
+        )),
+        Ok("slide") => Some(RenderedTransport::slide(
+            (p as usize, p as usize),
+            (c as usize, c as usize),
+            1,
+        )),
+        _ => None,
+    };
+    let view = View {
+        relief: &relief,
+        rendered: rendered.as_ref(),
+    };
     let truth = view.dense();
     let m = view.pixels();
     let g = PatternGenerator::new(&spec);
@@ -75,17 +101,19 @@ fn main() -> anyhow::Result<()> {
     let config = TransportConfig::parse(&params)?;
     let mut source = SliceFrames::new(&frames, m);
     let start = Instant::now();
-    let (t, report) = reconstruct_transport(
-        &spec,
-        CameraGrid {
-            width: c,
-            height: c,
-        },
-        count,
-        &config,
-        &mut source,
-        &Control::new(),
-    )?;
+    let grid = CameraGrid {
+        width: c,
+        height: c,
+    };
+    let control = Control::new();
+    let model = plan_transport(&spec, grid, count, &config, &mut source, &control)?;
+    let planned = start.elapsed().as_secs_f64();
+    let part = solve_transport_blocks(&spec, &model, 0..model.blocks.len(), &mut source, &control)?;
+    let (t, report) = assemble_transport(&model, std::slice::from_ref(&part))?;
+    println!(
+        "plan {planned:.2} s, solve {:.2} s",
+        start.elapsed().as_secs_f64() - planned
+    );
     let seconds = start.elapsed().as_secs_f64();
     let est: Vec<f32> = (0..m).flat_map(|j| t.row(j)).collect();
     let total = |v: &[f32]| v.iter().map(|x| *x as f64).sum::<f64>();
@@ -163,4 +191,29 @@ fn main() -> anyhow::Result<()> {
         println!("{}", serde_json::to_string_pretty(&report.details)?);
     }
     Ok(())
+}
+
+/// The scene's exact transport, rendered or the relief's.
+struct View<'a> {
+    relief: &'a CameraView<'a>,
+    rendered: Option<&'a RenderedTransport>,
+}
+
+impl View<'_> {
+    fn dense(&self) -> Vec<f32> {
+        self.rendered
+            .map_or_else(|| self.relief.dense(), |r| r.dense())
+    }
+    fn pixels(&self) -> usize {
+        self.rendered
+            .map_or_else(|| self.relief.pixels(), |r| r.pixels())
+    }
+    fn render(&self, p: &[f64]) -> Vec<f64> {
+        self.rendered
+            .map_or_else(|| self.relief.render(p), |r| r.render(p))
+    }
+    fn relight(&self, c: &[f64]) -> Vec<f64> {
+        self.rendered
+            .map_or_else(|| self.relief.relight(c), |r| r.relight(c))
+    }
 }

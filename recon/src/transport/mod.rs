@@ -32,7 +32,9 @@
 //!   energy of their data, [`energy_sample`], so a scene lighting a third of the camera is
 //!   judged on the lit pixels) each candidate
 //!   transform is fitted along a warm-started path of fractions without the held-out rows
-//!   ([`crate::holdout`]) and scored on them. Held-out rows are hashed out of random
+//!   ([`crate::holdout`]) and scored on them (a transform's path stops early when its score
+//!   rises twice, or when it is 3x worse than another transform's best and not catching up).
+//!   Held-out rows are hashed out of random
 //!   designs; of a Hadamard subset they are the LAST measured pairs ([`holdout::tail`]): its
 //!   rows are ordered coarse to fine, the unmeasured ones lie beyond the measured ones, and
 //!   randomly held-out pairs (among the fitted ones) would be predicted well by any model that
@@ -50,7 +52,8 @@
 //!   zeroes the rest), so the stored size follows the scene's complexity.
 //!   `t >= 0` is not imposed (the prox would become iterative); the reported held-out error is
 //!   that of the chosen model on the sample pixels.
-//!   The final fit of every row runs down a continuation path (the larger fractions of
+//!   The final fit of every row runs down a continuation path (its stages before the last
+//!   solved to a tenth of the precision: they are warm starts; the larger fractions of
 //!   [`LAMBDA_PATH`], each warm-starting the next), which converges in far fewer iterations than
 //!   a cold start at a small weight.
 //! - **Coarse-to-fine** (Peers et al. 2009, optional): each block (whole pairs of camera lines)
@@ -1384,7 +1387,11 @@ fn continuation(lambda: f64) -> Vec<f64> {
     path
 }
 
-/// Solves rows along `path` (fractions of each row's `lambda_max`), warm-starting `s`.
+/// How much looser than `tol` the stages of a continuation path before its last are solved.
+const WARM_STAGE_TOL_FACTOR: f64 = 10.0;
+
+/// Solves rows along `path` (fractions of each row's `lambda_max`), warm-starting `s`; every
+/// stage but the last to [`WARM_STAGE_TOL_FACTOR`] times the tolerance (they are warm starts).
 /// Returns the iterations of every row summed over the path.
 fn solve_path(
     sh: &Shared,
@@ -1396,9 +1403,15 @@ fn solve_path(
 ) -> Result<Vec<usize>, ReconError> {
     let lam_max = batch::lambda_max(sh, bs, chunk);
     let mut total = vec![0usize; lam_max.len()];
-    for &frac in path {
+    // The stages before the last only warm-start the next: solved to a tenth of the precision.
+    let loose = Shared {
+        tol: sh.tol * WARM_STAGE_TOL_FACTOR,
+        ..*sh
+    };
+    for (stage, &frac) in path.iter().enumerate() {
         let lams: Vec<f64> = lam_max.iter().map(|l| l * frac).collect();
-        let it = batch::solve_rows(sh, bs, &lams, s, chunk, control)?;
+        let at = if stage + 1 < path.len() { &loose } else { sh };
+        let it = batch::solve_rows(at, bs, &lams, s, chunk, control)?;
         total.iter_mut().zip(&it).for_each(|(t, i)| *t += i);
     }
     Ok(total)
@@ -1517,6 +1530,7 @@ fn choose_model(
         .min(rows.div_ceil(rayon::current_num_threads().max(1)))
         .max(1);
     let mut candidates = Vec::new();
+    let mut pruned = Vec::new();
     // Every point scored: (transform, fraction, refitted, held-out score, its standard error,
     // mean nonzeros, score).
     let mut scored: Vec<(TransformKind, f64, bool, f64, f64, f64, Score)> = Vec::new();
@@ -1583,7 +1597,18 @@ fn choose_model(
             }
             step += 1;
             control.set_progress(0.2 * step as f64 / steps);
-            // Down the path: stop once the held-out error has risen twice in a row.
+            // Down the path: stop once the held-out error has risen twice in a row, or once
+            // it is more than 3x the best of the transforms before and its last step bought
+            // less than a quarter (it is not catching up).
+            let others = scored
+                .iter()
+                .filter(|c| c.0 != kind)
+                .map(|c| c.3)
+                .fold(f64::INFINITY, f64::min);
+            if value > 3.0 * others && value > 0.75 * best_here {
+                pruned.push(kind.name());
+                break;
+            }
             if value < best_here {
                 best_here = value;
                 worse = 0;
@@ -1628,6 +1653,7 @@ fn choose_model(
                 format!("{} of {} rows, chosen by a hash of the row index", split.test.len(), plan.raw_rows())
             },
             "sample_pixels": rows,
+            "pruned": pruned,
             "sample": "camera pixels drawn with probability in proportion to the energy of their data (systematic, deterministic)",
             "best": {"transform": best.0.name(), "lambda": best.1, "refit": best.2, "held_out": best_value, "standard_error": best_se, "nonzeros_mean": best.5},
             "chosen": {"transform": transform.name(), "lambda": lambda, "refit": refit, "held_out": chosen.3, "nonzeros_mean": chosen.5},

@@ -1255,3 +1255,48 @@ fn a_part_solved_from_a_process_with_other_threads_is_the_same() {
         }
     );
 }
+
+#[test]
+fn the_model_is_chosen_on_the_pixels_that_carry_light() {
+    // A camera where only every fifth pixel sees anything (a sparse slide): the sample the
+    // model is chosen on is drawn from those pixels, in proportion to their light.
+    let spec = PatternSpec::new(Family::Bernoulli { fill: 0.5 }, 16, 16, 64, 5).unwrap();
+    let plan = Plan::new(&spec, 64).unwrap();
+    let m = 100;
+    let g = PatternGenerator::new(&spec);
+    let mut p = vec![0f32; 256];
+    let mut frames = Vec::new();
+    for i in 0..64 {
+        g.fill_values(i, &mut p);
+        for j in 0..m {
+            frames.push(if j % 5 == 2 {
+                p[j * 2] * (1.0 + j as f32) + p[j * 2 + 1]
+            } else {
+                0.0
+            });
+        }
+    }
+    let mut source = SliceFrames::new(&frames, m);
+    let mut largest = 0;
+    let picked =
+        energy_sample(&plan, &mut source, m, 7, 12, &mut largest, &Control::new()).unwrap();
+    assert_eq!(picked.len(), 12, "{picked:?}");
+    assert!(picked.iter().all(|j| j % 5 == 2), "{picked:?}");
+    // Brighter pixels are drawn more often: more from the bright half of the lit ones.
+    assert!(
+        picked.iter().filter(|&&j| j >= 50).count() > 6,
+        "{picked:?}"
+    );
+    // Their columns are read back as they are.
+    let columns = read_columns(&plan, &mut source, &picked, 7, &mut largest).unwrap();
+    for (&j, col) in picked.iter().zip(&columns) {
+        let want: Vec<f64> = (0..64).map(|i| frames[i * m + j] as f64).collect();
+        assert_eq!(col, &want);
+    }
+    // All dark: the evenly spread runs.
+    let dark = vec![0f32; 64 * m];
+    let mut source = SliceFrames::new(&dark, m);
+    let picked =
+        energy_sample(&plan, &mut source, m, 7, 12, &mut largest, &Control::new()).unwrap();
+    assert_eq!(picked.len(), 12);
+}
