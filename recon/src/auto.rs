@@ -1339,7 +1339,7 @@ fn error_estimate(
 ///   extrapolation to none at all.
 ///
 /// `None` when the noise is unknown or the rows are not a subset this can judge.
-fn orthonormal_error(
+pub(crate) fn orthonormal_error(
     measured: &[usize],
     noise: Option<&NoiseEstimate>,
     (full, all, size): (&dyn LinearOperator, &[f64], (usize, usize)),

@@ -527,8 +527,8 @@ fn data_energy(plan: &Plan, raw: &[f64]) -> f64 {
 /// the draw is a deterministic function of the data), one pass over the session in blocks of
 /// `block` pixels. A scene that lights a third of the camera is judged on lit pixels, which
 /// are the ones a relight sums; dark pixels (data all noise) are drawn in proportion to the
-/// noise they carry. Sorted; fewer than `sample` only when fewer pixels carry any energy; the
-/// evenly spread runs of [`sample_ranges`] when none does.
+/// noise they carry. Sorted, each with its energy; fewer than `sample` only when fewer pixels
+/// carry any energy; the evenly spread runs of [`sample_ranges`] (energy 0) when none does.
 fn energy_sample(
     plan: &Plan,
     source: &mut dyn FrameSource,
@@ -537,7 +537,7 @@ fn energy_sample(
     sample: usize,
     largest: &mut usize,
     control: &Control,
-) -> Result<Vec<usize>, ReconError> {
+) -> Result<Vec<(usize, f64)>, ReconError> {
     let sample = sample.clamp(1, m);
     let mut energy = Vec::with_capacity(m);
     for r in blocks(m, block, None) {
@@ -578,20 +578,29 @@ fn energy_sample(
         }
     }
     if count == 0 {
-        return Ok(sample_ranges(m, sample).into_iter().flatten().collect());
+        return Ok(sample_ranges(m, sample)
+            .into_iter()
+            .flatten()
+            .map(|j| (j, 0.0))
+            .collect());
     }
-    Ok((0..m).filter(|&j| picked[j]).collect())
+    Ok((0..m)
+        .filter(|&j| picked[j])
+        .map(|j| (j, energy[j]))
+        .collect())
 }
 
-/// The raw data of camera pixels `picked` (sorted), read block by block.
+/// The raw data of camera pixels `picked` (sorted), read block by block, and (Hadamard) their
+/// split-pair sums `y+ + y-` (empty otherwise).
 fn read_columns(
     plan: &Plan,
     source: &mut dyn FrameSource,
     picked: &[usize],
     block: usize,
     largest: &mut usize,
-) -> Result<Vec<Vec<f64>>, ReconError> {
+) -> Result<(Vec<Vec<f64>>, Vec<Vec<f64>>), ReconError> {
     let mut out = Vec::with_capacity(picked.len());
+    let mut sums = Vec::new();
     let mut at = 0;
     while at < picked.len() {
         let start = picked[at];
@@ -599,11 +608,100 @@ fn read_columns(
         let r = start..end;
         let f = read(source, r.clone(), plan.rows_read, largest)?;
         while at < picked.len() && picked[at] < end {
-            out.push(plan.raw_column(&f, r.len(), picked[at] - start));
+            let col = picked[at] - start;
+            out.push(plan.raw_column(&f, r.len(), col));
+            if matches!(plan.raw, Raw::Hadamard(_)) {
+                sums.push(
+                    (0..plan.raw_rows())
+                        .map(|p| {
+                            f[2 * p * r.len() + col] as f64 + f[(2 * p + 1) * r.len() + col] as f64
+                        })
+                        .collect(),
+                );
+            }
             at += 1;
         }
     }
-    Ok(out)
+    Ok((out, sums))
+}
+
+/// The error of `T` from a Hadamard subset, estimated on the sample pixels (drawn in
+/// proportion to `energy`): each row fitted with the chosen model on all measured pairs, its
+/// error estimated as a bucket image's is ([`crate::auto::orthonormal_error`]: the residual on
+/// the measured coefficients less the noise the pair sums show, plus the scene's energy in the
+/// unmeasured coefficients extrapolated across the measured scale orders, against the row's
+/// own), then pooled with weights `1 / energy` (the draw's inverse probability): the relative
+/// error of the whole `T`. `None` for other families, or when no row could be judged.
+#[allow(clippy::too_many_arguments)]
+fn hadamard_subset_error(
+    plan: &Plan,
+    model: (TransformKind, f64, bool),
+    (raws, sums, energy): (&[Vec<f64>], &[Vec<f64>], &[f64]),
+    config: &TransportConfig,
+    chunk: usize,
+    control: &Control,
+) -> Result<Option<Value>, ReconError> {
+    let Raw::Hadamard(op) = &plan.raw else {
+        return Ok(None);
+    };
+    if raws.is_empty() || sums.len() != raws.len() {
+        return Ok(None);
+    }
+    let (pw, ph) = (plan.spec.width() as usize, plan.spec.height() as usize);
+    let k = plan.k();
+    let (kind, lambda, refit) = model;
+    let psi = kind.build(pw, ph);
+    let sh = Shared {
+        op,
+        psi: psi.as_ref(),
+        identity: kind == TransformKind::Identity,
+        lipschitz: 1.0,
+        free: free_coefficients(kind),
+        max_iter: config.max_iter,
+        tol: config.tol,
+    };
+    let bs: Vec<f64> = raws.iter().flatten().copied().collect();
+    let mut tally = Tally::default();
+    let mut s = solve_block(&sh, &bs, lambda, None, chunk, &mut tally, control)?;
+    if refit {
+        batch::refit_rows(&sh, &bs, &mut s, chunk, control)?;
+    }
+    let mut t = vec![0.0; s.len()];
+    sh.inverse(&s, &mut t);
+    let measured = op.natural_indices();
+    let scale = 1.0 / (k as f64).sqrt();
+    let (mut e2, mut lo2, mut hi2, mut norm2, mut judged) = (0.0, 0.0, 0.0, 0.0, 0usize);
+    for (((raw, sum), &e), row) in raws.iter().zip(sums).zip(energy).zip(t.chunks_exact(k)) {
+        if e <= 0.0 {
+            continue;
+        }
+        let noise = super::noise::from_pair_sums(sum, scale, raw);
+        let Some(est) =
+            super::auto::orthonormal_error(measured, noise.as_ref(), (op, raw, (pw, ph)), row)
+        else {
+            continue;
+        };
+        let (Some(rel), Some((lo, hi))) = (est.relative_error, est.relative_error_range) else {
+            continue;
+        };
+        let n2: f64 = row.iter().map(|v| v * v).sum();
+        let w = 1.0 / e;
+        e2 += w * rel * rel * n2;
+        lo2 += w * lo * lo * n2;
+        hi2 += w * hi * hi * n2;
+        norm2 += w * n2;
+        judged += 1;
+    }
+    if judged == 0 || norm2 <= 0.0 {
+        return Ok(None);
+    }
+    let rel = (e2 / norm2).sqrt();
+    Ok(Some(json!({
+        "relative": rel,
+        "range": [(lo2 / norm2).sqrt(), (hi2 / norm2).sqrt()],
+        "sample_pixels": judged,
+        "basis": "relative error of T (Frobenius) on the sample pixels, each row fitted with the chosen model on all measured pairs: its residual on the measured coefficients less the noise its pair sums show, plus the scene's energy in the unmeasured coefficients extrapolated from the measured scale orders (a power law), against the row's own; pooled with weights 1 / (the pixel's data energy), the inverse of its chance of being drawn",
+    })))
 }
 
 /// Noise of an image from its finest diagonal Haar details (2x2 blocks), robustly:
@@ -1387,6 +1485,9 @@ fn continuation(lambda: f64) -> Vec<f64> {
     path
 }
 
+/// Estimated relative error of `T` from a Hadamard subset above which the report warns.
+const SUBSET_ERROR_WARNING: f64 = 0.2;
+
 /// How much looser than `tol` the stages of a continuation path before its last are solved.
 const WARM_STAGE_TOL_FACTOR: f64 = 10.0;
 
@@ -1507,8 +1608,10 @@ fn choose_model(
             return Ok((transform, lambda, false));
         }
     };
-    let picked = energy_sample(plan, source, m, mem.block_pixels, sample, largest, control)?;
-    let raws = read_columns(plan, source, &picked, mem.block_pixels, largest)?;
+    let drawn = energy_sample(plan, source, m, mem.block_pixels, sample, largest, control)?;
+    let picked: Vec<usize> = drawn.iter().map(|d| d.0).collect();
+    let energy: Vec<f64> = drawn.iter().map(|d| d.1).collect();
+    let (raws, sums) = read_columns(plan, source, &picked, mem.block_pixels, largest)?;
     let rows = raws.len();
     let (train, test) = plan.holdout_ops(&split)?;
     let n = train.op().rows();
@@ -1519,7 +1622,6 @@ fn choose_model(
         bs.extend(train.data(&train_raw));
         observed.push(split.test.iter().map(|&i| raw[i]).collect::<Vec<f64>>());
     }
-    drop(raws);
     let lipschitz = plan.lipschitz(train.op());
     let transforms: Vec<TransformKind> = config
         .transform
@@ -1641,6 +1743,30 @@ fn choose_model(
         .expect("the best is within");
     let (transform, lambda, refit) = (chosen.0, chosen.1, chosen.2);
     *held_out = Some(chosen.6.finish(split.fraction));
+    if let Some(estimate) = hadamard_subset_error(
+        plan,
+        (transform, lambda, refit),
+        (&raws, &sums, &energy),
+        config,
+        chunk,
+        control,
+    )? {
+        if let Some(rel) = estimate["relative"].as_f64()
+            && rel > SUBSET_ERROR_WARNING
+        {
+            details.insert(
+                "warnings".into(),
+                json!([format!(
+                    "the measured pairs cannot support T at {}x{}: its estimated relative error is {rel:.2} (most of it in \
+                     the finer Hadamard coefficients no pair measured); measure more pairs, or reconstruct on a coarser \
+                     projector grid",
+                    plan.spec.width(),
+                    plan.spec.height()
+                )]),
+            );
+        }
+        details.insert("error_estimate".into(), estimate);
+    }
 
     details.insert(
         "selection".into(),
