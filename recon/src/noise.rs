@@ -110,7 +110,7 @@ pub fn from_random_rows(op: &dyn LinearOperator, b: &[f64]) -> Option<NoiseEstim
     op.apply(&vec![1.0; k], &mut row_sums);
     let p = row_sums.iter().sum::<f64>() / (n * k) as f64;
     let v = p * (1.0 - p);
-    if !(v > 0.0) {
+    if v.is_nan() || v <= 0.0 {
         return None;
     }
     let nf = n as f64;

@@ -590,6 +590,9 @@ fn energy_sample(
         .collect())
 }
 
+/// Raw data per camera pixel, and (Hadamard) split-pair sums per camera pixel.
+type Columns = (Vec<Vec<f64>>, Vec<Vec<f64>>);
+
 /// The raw data of camera pixels `picked` (sorted), read block by block, and (Hadamard) their
 /// split-pair sums `y+ + y-` (empty otherwise).
 fn read_columns(
@@ -598,7 +601,7 @@ fn read_columns(
     picked: &[usize],
     block: usize,
     largest: &mut usize,
-) -> Result<(Vec<Vec<f64>>, Vec<Vec<f64>>), ReconError> {
+) -> Result<Columns, ReconError> {
     let mut out = Vec::with_capacity(picked.len());
     let mut sums = Vec::new();
     let mut at = 0;
