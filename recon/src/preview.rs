@@ -346,8 +346,8 @@ mod tests {
             }
             assert_eq!(preview.rows(), end);
             let want = reference(spec, buckets, channels, end, method);
-            for ch in 0..channels {
-                close(&preview.image(ch), &want[ch], 1e-5);
+            for (ch, image) in want.iter().enumerate() {
+                close(&preview.image(ch), image, 1e-5);
             }
         }
     }
