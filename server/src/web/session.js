@@ -1,7 +1,7 @@
-// A session's page: its declaration, the live preview while it uploads, its reconstructions with
-// their reports, the speed against the error of all of them, the dual images (per channel, colour
-// composite, side by side),
-// relighting, the primal prediction, photometric normals and albedo, and reconstruction jobs.
+// A session's page: its declaration, its reconstructions with their reports, the speed against
+// the error of all of them, the dual images (per channel, colour composite, side by side), the
+// live preview while it uploads, relighting, the primal prediction, photometric normals and
+// albedo, and reconstruction jobs.
 
 import { json, bytes, download, events } from "./api.js";
 import { h, say, fmt } from "./dom.js";
@@ -232,8 +232,8 @@ export async function sessionPage(main, id, signal, setTimer) {
   main.append(h("h1", { id: "session-title" }, `Session ${session.id}`));
   main.append(h("div", { class: "grid" }, detailsCard(session), h("section", { class: "card", "aria-labelledby": "recon-h" },
     h("h2", { id: "recon-h" }, "Reconstructions"), reconTable(reconstructions), plot(reconstructions))));
-  if (session.state === "open") main.append(previewPanel(session, signal));
   main.append(imagesPanel(session, reconstructions));
+  if (session.state === "open") main.append(previewPanel(session, signal));
   const latestDone = reconstructions.filter((r) => r.state === "done").pop();
   if (latestDone) {
     main.append(relightPanel(session, latestDone));
