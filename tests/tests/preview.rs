@@ -356,6 +356,100 @@ async fn hadamard_preview_is_the_zero_filled_inverse_and_ends_exact() {
     assert_eq!(again.len(), 1);
     assert!(again[0].last && again[0].rows == count);
     assert_eq!(&again[0].values, last);
+
+    // The CLI: `helmholtz preview` prints the frames and writes the final image.
+    let out = dir.path().join("final.npy");
+    let run = std::process::Command::new(helmholtz_tests::binary("helmholtz"))
+        .args([
+            "--server",
+            &server.address,
+            "--token",
+            &server.token,
+            "--json",
+        ])
+        .args(["preview", "--session-id", id, "--out"])
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let printed: Value = serde_json::from_slice(&run.stdout).unwrap();
+    assert_eq!(
+        (&printed["frames"], &printed["rows"], &printed["final"]),
+        (&json!(1), &json!(count), &json!(true)),
+        "{printed}"
+    );
+    assert_eq!(printed["method"], "zero_filled");
+    let written = parse_npy(&std::fs::read(&out).unwrap()).unwrap().1;
+    assert_eq!(written, to_f64(last));
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_camera_session_is_previewed_as_the_sum_over_its_pixels() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = ServerProcess::start(dir.path(), 0, &[]).unwrap();
+    let (id, side, count) = ("preview-camera", 16u32, 256u64);
+    helmholtz_tests::simulate_camera_session(&server, id, "8x6", side, count);
+    let frames = watch_grpc(&server, id, 0).await.await.unwrap();
+    let last = frames.last().unwrap();
+    assert!(last.last && last.rows == count && last.method == "dgi");
+    assert_eq!(last.values.len(), (side * side) as usize);
+    assert!(last.values.iter().all(|v| v.is_finite()));
+    assert!(last.values.iter().any(|&v| v != 0.0));
+    // The camera's frames summed per pattern, correlated by DGI here, give the same image.
+    let npy = reqwest::get(server.url(&format!("/v1/sessions/{id}/measurements.npy")))
+        .await
+        .unwrap()
+        .bytes()
+        .await
+        .unwrap();
+    let (_, pixels) = helmholtz_proto::npy::decode_f64(&npy).unwrap();
+    let per_row = pixels.len() / count as usize;
+    let buckets: Vec<f64> = pixels.chunks(per_row).map(|f| f.iter().sum()).collect();
+    let spec: helmholtz_client::PatternSpec = serde_json::from_value(json!({
+        "family": "bernoulli", "width": side, "height": side, "count": count, "seed": 4
+    }))
+    .unwrap();
+    let generator = helmholtz_proto::PatternGenerator::new(&spec);
+    let k = (side * side) as usize;
+    let (mut cp, mut rp, mut sum_c, mut sum_r) = (vec![0f64; k], vec![0f64; k], 0f64, 0f64);
+    let mut p = vec![0f32; k];
+    for (i, &c) in buckets.iter().enumerate() {
+        generator.fill_values(i as u64, &mut p);
+        let r: f64 = p.iter().map(|&v| v as f64).sum();
+        sum_c += c;
+        sum_r += r;
+        for x in 0..k {
+            cp[x] += c * p[x] as f64;
+            rp[x] += r * p[x] as f64;
+        }
+    }
+    let n = count as f64;
+    let dgi: Vec<f32> = (0..k)
+        .map(|x| ((cp[x] - sum_c / sum_r * rp[x]) / n) as f32)
+        .collect();
+    let diff = max_rel_diff(&last.values, &dgi);
+    assert!(
+        diff < 1e-3,
+        "camera preview vs DGI of the pixel sums: {diff}"
+    );
+    // A camera session takes no channel.
+    let status = server
+        .grpc()
+        .await
+        .unwrap()
+        .watch_preview(v1::PreviewRequest {
+            session_id: id.into(),
+            channel: "camera".into(),
+            ..Default::default()
+        })
+        .await
+        .unwrap_err();
+    assert_eq!(status.code(), tonic::Code::InvalidArgument);
+    assert!(status.message().starts_with("channel"), "{status:?}");
 }
 
 fn to_f64(v: &[f32]) -> Vec<f64> {
