@@ -10,6 +10,7 @@
 //! - creates a session and streams the rows to the server over gRPC with resume after any
 //!   failure ([`upload`]),
 //! - requests reconstructions and downloads dual images over REST ([`rest`]),
+//! - watches a session's live preview while it uploads ([`preview`]),
 //! - writes pattern frames as PNGs for a projector or DMD ([`frames`]),
 //! - and is the `helmholtz` command line ([`cli`]).
 //!
@@ -46,6 +47,7 @@ pub mod auth;
 pub mod cli;
 pub mod frames;
 pub mod measurements;
+pub mod preview;
 pub mod rest;
 pub mod spool;
 pub mod tls;

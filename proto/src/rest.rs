@@ -83,6 +83,33 @@ impl Problem {
 }
 
 // ---------------------------------------------------------------------------------------------
+// Live preview
+
+/// One event of `GET /v1/sessions/{id}/preview` (`event: preview`): a progressive dual image of
+/// the rows committed so far, the same frame as gRPC `WatchPreview`'s `PreviewFrame`.
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PreviewEvent {
+    pub session_id: String,
+    /// The channel's name (`camera` for a camera session's pixel sum).
+    pub channel: String,
+    /// Rows (pattern frames) the image uses: a prefix of the session's rows.
+    pub rows: u64,
+    pub expected_rows: u64,
+    pub width: u32,
+    pub height: u32,
+    /// The method the image equals on those rows: `dgi` (bernoulli, speckle), `zero_filled`
+    /// (hadamard) or `direct` (raster; unmeasured blocks are 0).
+    pub method: String,
+    /// The image, row-major `height x width` little-endian IEEE-754 float32, base64 (RFC 4648,
+    /// with padding).
+    pub values_f32le: String,
+    /// The session is finished and the image holds every row: the stream's last event.
+    #[serde(rename = "final")]
+    pub last: bool,
+}
+
+// ---------------------------------------------------------------------------------------------
 // Service
 
 /// `GET /healthz`: `{"status": "serving"}` (200) or `{"status": "not serving"}` (503).

@@ -29,6 +29,7 @@ pub mod metrics;
 pub mod noise;
 pub mod ops;
 pub mod photometric;
+pub mod preview;
 pub mod request;
 pub(crate) mod simd;
 pub mod solve;

@@ -283,6 +283,7 @@ enum TokenCommand {
 }
 
 #[derive(Subcommand, Debug)]
+#[allow(clippy::large_enum_variant)] // parsed once
 enum Command {
     /// Run the service until Ctrl-C (or SIGTERM).
     Serve(ServeArgs),

@@ -11,6 +11,7 @@ pub mod cli;
 pub mod edge;
 pub mod jobs;
 pub mod limits;
+pub mod preview;
 /// The numerics live in their own crate (no async, SQL or HTTP); the server calls them as `recon`.
 pub use helmholtz_recon as recon;
 pub mod store;

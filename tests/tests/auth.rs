@@ -282,6 +282,16 @@ async fn every_route_and_rpc_by_role_and_lab() {
         RestCase {
             method: "GET",
             paths: (
+                "/v1/sessions/sa/preview".into(),
+                "/v1/sessions/sb/preview".into(),
+            ),
+            body: None,
+            need: Need::RigOrReader,
+            ok: (200, 404),
+        },
+        RestCase {
+            method: "GET",
+            paths: (
                 "/v1/sessions/sa/measurements.npy".into(),
                 "/v1/sessions/sb/measurements.npy".into(),
             ),
@@ -494,7 +504,7 @@ async fn every_route_and_rpc_by_role_and_lab() {
         .connect()
         .await
         .unwrap();
-    let rpcs: [(&str, Need, (Code, Code)); 8] = [
+    let rpcs: [(&str, Need, (Code, Code)); 9] = [
         // Creating a new id succeeds; another lab's existing id is taken (ids are global).
         ("CreateSession", Need::Rig, (Code::Ok, Code::AlreadyExists)),
         ("UploadMeasurements", Need::Rig, (Code::Ok, Code::NotFound)),
@@ -519,6 +529,11 @@ async fn every_route_and_rpc_by_role_and_lab() {
             "CancelReconstruction",
             Need::Reader,
             (Code::FailedPrecondition, Code::NotFound),
+        ),
+        (
+            "WatchPreview",
+            Need::RigOrReader,
+            (Code::Ok, Code::NotFound),
         ),
         (
             "grpc.health.v1.Health/Check",
@@ -591,6 +606,13 @@ async fn every_route_and_rpc_by_role_and_lab() {
                         })
                         .await
                         .map(|_| ()),
+                    "WatchPreview" => client
+                        .watch_preview(v1::PreviewRequest {
+                            session_id: session.into(),
+                            ..Default::default()
+                        })
+                        .await
+                        .map(|_| ()),
                     _ => {
                         let mut health =
                             tonic_health::pb::health_client::HealthClient::new(channel.clone());
@@ -622,7 +644,7 @@ async fn every_route_and_rpc_by_role_and_lab() {
         failures.len(),
         failures.join("\n")
     );
-    assert_eq!(checked, (rest.len() + 8) * callers.len() * 2);
+    assert_eq!(checked, (rest.len() + 9) * callers.len() * 2);
 
     // Another lab's resources answer exactly as missing ones do (same problem, same words).
     let reader = callers[1].header.clone().unwrap();

@@ -346,7 +346,7 @@ async fn the_viewer_in_a_real_browser() {
     // Side by side with the second reconstruction: two different images.
     browser
         .execute(
-            &format!("const pick = document.querySelector('#image-recon').value; const s = document.querySelector('#image-compare'); s.value = [...s.options].map(o => o.value).find(v => v && v !== pick); s.dispatchEvent(new Event('change'));"),
+            "const pick = document.querySelector('#image-recon').value; const s = document.querySelector('#image-compare'); s.value = [...s.options].map(o => o.value).find(v => v && v !== pick); s.dispatchEvent(new Event('change'));",
             json!([]),
         )
         .await
@@ -803,6 +803,41 @@ async fn the_viewer_in_a_real_browser() {
     assert_eq!(r.status(), 201, "{}", r.text().await.unwrap());
     let r = put_rows(0, 24).await.unwrap();
     assert!(r.status().is_success(), "{}", r.text().await.unwrap());
+    // The open session's page shows its live preview, redrawn as more rows arrive.
+    browser
+        .goto(&format!("{base}/#/sessions/viewer-upload"))
+        .await
+        .unwrap();
+    let first = browser
+        .wait_for(
+            "window.hz.preview && window.hz.preview.session === 'viewer-upload' && window.hz.preview.rows === 24 && window.hz.preview",
+            WAIT,
+        )
+        .await
+        .unwrap();
+    assert_eq!(first["final"], false, "{first}");
+    let r = put_rows(24, 16).await.unwrap();
+    assert!(r.status().is_success(), "{}", r.text().await.unwrap());
+    let second = browser
+        .wait_for("window.hz.preview.rows === 40 && window.hz.preview", WAIT)
+        .await
+        .unwrap();
+    assert_ne!(
+        first["hash"], second["hash"],
+        "the preview was redrawn: {second}"
+    );
+    let status = browser
+        .execute(
+            "return document.querySelector('#preview-status').textContent",
+            json!([]),
+        )
+        .await
+        .unwrap();
+    assert!(
+        status.as_str().unwrap().contains("dgi of 40 of 64 rows"),
+        "{status}"
+    );
+    browser.screenshot(&shot("09-live-preview")).await.unwrap();
     browser
         .execute("window.hz.sessions = null", json!([]))
         .await
@@ -813,8 +848,8 @@ async fn the_viewer_in_a_real_browser() {
             "document.querySelector('tr[data-session=\"viewer-upload\"] progress')?.value === {rows}"
         )
     };
-    browser.wait_for(&progress(24), WAIT).await.unwrap();
-    let r = put_rows(24, 40).await.unwrap();
+    browser.wait_for(&progress(40), WAIT).await.unwrap();
+    let r = put_rows(40, 24).await.unwrap();
     assert!(r.status().is_success(), "{}", r.text().await.unwrap());
     browser.wait_for(&progress(64), WAIT).await.unwrap();
     let text = browser

@@ -338,6 +338,17 @@ async fn every_operation_lists_its_parameters_media_types_and_problem_answers() 
         query("POST", "/v1/reconstructions/{id}/relight"),
         set(&["format", "scale"])
     );
+    // The live preview: its parameters, and the event's data as a schema.
+    assert_eq!(
+        query("GET", "/v1/sessions/{id}/preview"),
+        set(&["channel", "every_rows", "every_ms"])
+    );
+    let preview = &op("GET", "/v1/sessions/{id}/preview")["responses"]["200"]["content"];
+    assert!(preview.get("text/event-stream").is_some(), "{preview}");
+    let event = &doc["components"]["schemas"]["PreviewEvent"]["properties"];
+    for field in ["rows", "method", "values_f32le", "final"] {
+        assert!(event.get(field).is_some(), "PreviewEvent.{field}: {event}");
+    }
     assert_eq!(
         query("POST", "/v1/reconstructions/{id}/primal"),
         set(&["format", "scale", "ambient"])

@@ -560,7 +560,7 @@ async fn two_api_nodes_and_three_workers_lose_nothing_when_nodes_are_killed() {
                 .unwrap();
                 helmholtz_client::create_session(
                     &node,
-                    &NewSession::new(&format!("capped-{i}"), spec, vec!["bucket".into()]),
+                    &NewSession::new(format!("capped-{i}"), spec, vec!["bucket".into()]),
                 )
                 .await
             })
@@ -584,7 +584,7 @@ async fn two_api_nodes_and_three_workers_lose_nothing_when_nodes_are_killed() {
         let node = if i % 2 == 0 { &a } else { &b };
         helmholtz_client::create_session(
             &node.base_url,
-            &NewSession::new(&format!("rig-{i}"), spec, vec!["bucket".into()]),
+            &NewSession::new(format!("rig-{i}"), spec, vec!["bucket".into()]),
         )
         .await
         .unwrap();
@@ -605,10 +605,10 @@ async fn two_api_nodes_and_three_workers_lose_nothing_when_nodes_are_killed() {
     // has stored rows. Refused: ABORTED while the rig holds the session, ALREADY_EXISTS on the
     // first differing row otherwise; either way nothing of theirs is stored.
     let mut rogues = Vec::new();
-    for i in 0..4 {
+    for (i, sent) in sent.iter().enumerate().take(4) {
         let id = format!("rig-{i}");
         let node = if i % 2 == 0 { &b } else { &a }.base_url.clone();
-        let values: Vec<f64> = sent[i].iter().map(|v| v + 1.0).collect();
+        let values: Vec<f64> = sent.iter().map(|v| v + 1.0).collect();
         rogues.push(tokio::spawn(async move {
             loop {
                 let once = helmholtz_client::upload::RetryPolicy {

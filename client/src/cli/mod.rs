@@ -7,6 +7,7 @@
 mod acquire;
 mod args;
 mod patterns;
+mod preview;
 mod reconstruct;
 mod relight;
 mod report;
@@ -19,6 +20,7 @@ pub use args::{
     FamilyArg, FrameFormatArg, OrderingArg, PatternArgs, ResultArgs, SpecSource, TransferArgs,
 };
 pub use patterns::PatternsArgs;
+pub use preview::PreviewArgs;
 pub use reconstruct::{CancelArgs, FetchArgs, ReconstructArgs, StatusArgs};
 pub use relight::{NormalsArgs, PrimalArgs, RelightArgs, light_of, pattern_of};
 pub use simulate::{NoiseArgs, SimulateArgs};
@@ -35,6 +37,7 @@ use serde_json::{Value, json};
 use crate::spool::SpoolDir;
 use acquire::acquire_cmd;
 use patterns::patterns_cmd;
+use preview::preview_cmd;
 use reconstruct::{cancel_cmd, fetch_cmd, reconstruct_cmd, status_cmd};
 use relight::{normals_cmd, primal_cmd, relight_cmd};
 use simulate::simulate_cmd;
@@ -149,6 +152,14 @@ pub enum Command {
     Normals(NormalsArgs),
     /// Cancel a queued or running reconstruction (an ended one is refused with 409).
     Cancel(CancelArgs),
+    /// Watch a session's live preview while it uploads: one line per frame.
+    ///
+    /// gRPC WatchPreview: a progressive dual image of the rows committed so far (DGI for
+    /// bernoulli and speckle patterns, the zero-filled inverse for hadamard, the running scan
+    /// for raster; a camera session as the sum over its pixels), every --every-rows rows or
+    /// --every-ms milliseconds, until the final frame once every row is in. Run it beside
+    /// `simulate`, `upload` or `acquire`; watching never slows the upload.
+    Preview(PreviewArgs),
     /// Write pattern frames for a projector or DMD: 8-bit grey PNGs (frame_000000.png, ...)
     /// with --out DIR, and/or one float32 NPY stack (frames, height, width) with --npy FILE.
     Patterns(PatternsArgs),
@@ -247,6 +258,7 @@ pub async fn run(cli: Cli) -> anyhow::Result<Outcome> {
         Command::Primal(a) => primal_cmd(server, a).await,
         Command::Normals(a) => normals_cmd(server, a).await,
         Command::Cancel(a) => cancel_cmd(server, a).await,
+        Command::Preview(a) => preview_cmd(server, a, cli.json).await,
         Command::Acquire(a) => acquire_cmd(server, &spools, a).await,
         Command::Completions { shell } => {
             let mut script = Vec::new();

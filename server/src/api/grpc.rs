@@ -250,8 +250,55 @@ fn checked_payload<'c>(
     Ok(bytes)
 }
 
+fn preview_message(f: crate::preview::Frame) -> v1::PreviewFrame {
+    v1::PreviewFrame {
+        session_id: f.session_id,
+        channel: f.channel,
+        rows: f.rows,
+        expected_rows: f.expected_rows,
+        width: f.width,
+        height: f.height,
+        method: f.method.into(),
+        values: f.values,
+        r#final: f.last,
+    }
+}
+
+/// The frames of one `WatchPreview` call; dropping it (the watcher went away) stops the preview.
+pub type PreviewStream =
+    std::pin::Pin<Box<dyn futures::Stream<Item = Result<v1::PreviewFrame, Status>> + Send>>;
+
 #[tonic::async_trait]
 impl Acquisition for AcquisitionService {
+    type WatchPreviewStream = PreviewStream;
+
+    async fn watch_preview(
+        &self,
+        request: Request<v1::PreviewRequest>,
+    ) -> Result<Response<Self::WatchPreviewStream>, Status> {
+        let caller = self.caller(&request, &[Role::Rig, Role::Reader]).await?;
+        let req = request.get_ref();
+        validate::session_id(&req.session_id, "session_id")?;
+        let session = self.state.own_session(&caller, &req.session_id).await?;
+        let watch = crate::preview::Watch::parse(
+            &session,
+            Some(&req.channel),
+            req.every_rows,
+            req.every_ms as u64,
+        )?;
+        let frames = crate::preview::watch(
+            self.state.store.clone(),
+            &self.state.previews,
+            session,
+            watch,
+        )?;
+        let stream = futures::StreamExt::map(
+            tokio_stream::wrappers::ReceiverStream::new(frames),
+            |frame| frame.map(preview_message).map_err(Status::from),
+        );
+        Ok(Response::new(Box::pin(stream)))
+    }
+
     async fn create_session(
         &self,
         request: Request<v1::CreateSessionRequest>,

@@ -6,6 +6,7 @@ pub mod grpc;
 pub mod images;
 pub mod json;
 pub mod openapi;
+pub mod preview;
 pub mod relight;
 pub mod rest;
 pub mod upload;
@@ -35,6 +36,8 @@ pub struct AppState {
     pub responses: Arc<relight::ResponseCache>,
     /// The working-set budget of one transport reconstruction (its memory estimate), bytes.
     pub transport_memory: u64,
+    /// The live previews being watched ([`crate::preview`]).
+    pub previews: Arc<crate::preview::Watchers>,
 }
 
 /// Holds a session's upload lease (one writer per session, across every server process that
@@ -115,6 +118,7 @@ impl AppState {
             transports: Arc::new(relight::TransportCache::new(2 << 30)),
             responses: Arc::new(relight::ResponseCache::new(64 << 20)),
             transport_memory: crate::recon::transport::DEFAULT_MEMORY_BUDGET as u64,
+            previews: Arc::default(),
         }
     }
 

@@ -56,6 +56,7 @@ pub fn api() -> OpenApiRouter<AppState> {
         .routes(routes!(revoke_token))
         .routes(routes!(super::web::asset))
         .routes(routes!(super::web::reconstruction_events))
+        .routes(routes!(super::preview::session_preview))
 }
 
 /// The REST router: [`routes`] with the state.

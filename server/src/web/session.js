@@ -1,8 +1,9 @@
 // A session's page: its declaration, its reconstructions with their reports, the speed against
-// the error of all of them, the dual images (per channel, colour composite, side by side),
-// relighting, the primal prediction, photometric normals and albedo, and reconstruction jobs.
+// the error of all of them, the dual images (per channel, colour composite, side by side), the
+// live preview while it uploads, relighting, the primal prediction, photometric normals and
+// albedo, and reconstruction jobs.
 
-import { json, bytes, download } from "./api.js";
+import { json, bytes, download, events } from "./api.js";
 import { h, say, fmt } from "./dom.js";
 import { parseNpy } from "./npy.js";
 import { ImageView } from "./image.js";
@@ -186,6 +187,45 @@ function imagesPanel(session, recons) {
   return section;
 }
 
+/** Little-endian float32 from base64 (the preview events' `values_f32le`). */
+export function floatsOfBase64(b64) {
+  const bin = atob(b64);
+  const out = new Uint8Array(bin.length);
+  for (let i = 0; i < bin.length; i++) out[i] = bin.charCodeAt(i);
+  const view = new DataView(out.buffer);
+  const values = new Float32Array(out.length / 4);
+  for (let i = 0; i < values.length; i++) values[i] = view.getFloat32(4 * i, true);
+  return values;
+}
+
+/**
+ * The live preview of an uploading session: server-sent events of GET .../preview (a DGI,
+ * zero-filled or raster image of the rows committed so far), drawn as they come until the final
+ * one or until the page is left (`signal`).
+ */
+function previewPanel(session, signal) {
+  const view = new ImageView("Live preview");
+  const status = h("p", { id: "preview-status", role: "status" }, "Waiting for the first rows…");
+  const section = h("section", { class: "card", id: "preview", "aria-labelledby": "preview-h" },
+    h("h2", { id: "preview-h" }, "Live preview"), status, view.el);
+  let frames = 0;
+  const path = `/v1/sessions/${encodeURIComponent(session.id)}/preview?every_ms=500`;
+  events(path, (name, f) => {
+    if (name === "error") {
+      status.textContent = `The preview stopped: ${f.detail}`;
+      return;
+    }
+    if (name !== "preview") return;
+    frames += 1;
+    view.set(f.width, f.height, [floatsOfBase64(f.values_f32le)], "percentile", `${f.method}, ${f.rows.toLocaleString()} rows`);
+    status.textContent = `${f.method} of ${f.rows.toLocaleString()} of ${f.expected_rows.toLocaleString()} rows${f.final ? " — every row is in" : ", updating as rows arrive"}`;
+    window.hz.preview = { session: session.id, rows: f.rows, final: f.final, frames, hash: view.hash };
+  }, signal).catch((e) => {
+    if (e.name !== "AbortError") status.textContent = `No preview: ${e.message}`;
+  });
+  return section;
+}
+
 export async function sessionPage(main, id, signal, setTimer) {
   const session = await json(`/v1/sessions/${encodeURIComponent(id)}`, { signal });
   const { reconstructions } = await json(`/v1/sessions/${encodeURIComponent(id)}/reconstructions`, { signal });
@@ -193,6 +233,7 @@ export async function sessionPage(main, id, signal, setTimer) {
   main.append(h("div", { class: "grid" }, detailsCard(session), h("section", { class: "card", "aria-labelledby": "recon-h" },
     h("h2", { id: "recon-h" }, "Reconstructions"), reconTable(reconstructions), plot(reconstructions))));
   main.append(imagesPanel(session, reconstructions));
+  if (session.state === "open") main.append(previewPanel(session, signal));
   const latestDone = reconstructions.filter((r) => r.state === "done").pop();
   if (latestDone) {
     main.append(relightPanel(session, latestDone));

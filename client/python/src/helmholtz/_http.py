@@ -13,7 +13,7 @@ import urllib.error
 import urllib.parse
 import urllib.request
 from dataclasses import dataclass
-from typing import Any, Mapping, Optional
+from typing import Any, Iterator, Mapping, Optional
 
 from .errors import ApiError, ServerUnreachable
 from .retry import RetryPolicy
@@ -108,6 +108,47 @@ class Http:
                     delay = max(delay, e.retry_after)
                 time.sleep(min(delay, max(0.0, self.policy.retry_for - elapsed)))
                 attempt += 1
+
+    def events(
+        self, path: str, *, query: Optional[Mapping[str, Any]] = None
+    ) -> Iterator[tuple[str, Any]]:
+        """``GET path`` as server-sent events: yields ``(event name, JSON data)`` until the
+        server ends the stream (comment lines, which keep a quiet stream open, are skipped).
+        Closing the generator closes the connection.
+
+        Raises:
+            ApiError: the server refused the request (problem+json as attributes).
+            ServerUnreachable: no answer.
+        """
+        url = self.url(path, query)
+        headers = {"Accept": "text/event-stream"}
+        if self.token:
+            headers["Authorization"] = f"Bearer {self.token}"
+        req = urllib.request.Request(url, headers=headers, method="GET")
+        try:
+            # No read timeout: a stream may be quiet between events for as long as the rows
+            # take to come (the server sends a comment line every 15 s).
+            r = self._opener.open(req, timeout=None)
+        except urllib.error.HTTPError as e:
+            data = e.read() if e.fp is not None else b""
+            raise _api_error("GET", url, e.code, e.headers, data) from None
+        except (urllib.error.URLError, ConnectionError, socket.timeout, http.client.HTTPException, OSError) as e:
+            reason = getattr(e, "reason", None) or e
+            raise ServerUnreachable("GET", url, str(reason)) from None
+        with r:
+            name, data = "message", []
+            for raw in r:
+                line = raw.decode("utf-8").rstrip("\r\n")
+                if not line:
+                    if data:
+                        yield name, json.loads("\n".join(data))
+                    name, data = "message", []
+                elif line.startswith(":"):
+                    continue
+                elif line.startswith("event:"):
+                    name = line[6:].strip()
+                elif line.startswith("data:"):
+                    data.append(line[5:].removeprefix(" "))
 
     def _once(
         self, method: str, url: str, headers: Mapping[str, str], body: Optional[bytes]

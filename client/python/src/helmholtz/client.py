@@ -7,6 +7,7 @@ requests reconstructions and reads images. A token with both roles does everythi
 
 from __future__ import annotations
 
+import base64
 import io
 import os
 import secrets
@@ -274,6 +275,35 @@ class Reconstruction:
             started_unix_ms=view.get("started_unix_ms"),
             finished_unix_ms=view.get("finished_unix_ms"),
             raw=dict(view),
+        )
+
+
+@dataclass
+class PreviewFrame:
+    """One frame of a session's live preview (:meth:`Client.watch_preview`): the dual image of
+    the session's first ``rows`` rows by ``method`` (``"dgi"`` for bernoulli and speckle
+    patterns, ``"zero_filled"`` for hadamard, ``"direct"`` for raster, unmeasured blocks 0).
+    ``final``: every row is in; the last frame."""
+
+    session_id: str
+    channel: str
+    rows: int
+    expected_rows: int
+    method: str
+    image: np.ndarray
+    final: bool
+
+    @classmethod
+    def from_event(cls, data: Mapping[str, Any]) -> "PreviewFrame":
+        values = np.frombuffer(base64.b64decode(data["values_f32le"]), dtype="<f4")
+        return cls(
+            session_id=data["session_id"],
+            channel=data["channel"],
+            rows=int(data["rows"]),
+            expected_rows=int(data["expected_rows"]),
+            method=data["method"],
+            image=values.reshape(int(data["height"]), int(data["width"])),
+            final=bool(data["final"]),
         )
 
 
@@ -691,6 +721,35 @@ class Client:
         if rec.report is None:
             raise HelmholtzError(f"reconstruction {rec.id} is {rec.state}: no report yet")
         return rec.report
+
+    def watch_preview(
+        self,
+        session: SessionRef,
+        *,
+        every_rows: Optional[int] = None,
+        every_ms: Optional[int] = None,
+        channel: Optional[str] = None,
+    ) -> Iterator[PreviewFrame]:
+        """``GET /v1/sessions/{id}/preview``: the session's live preview while it uploads, as
+        :class:`PreviewFrame` s (server-sent events) with increasing ``rows``, a frame every
+        ``every_rows`` new rows or ``every_ms`` milliseconds (default every 500 ms), ending with
+        the ``final`` frame once every row is in. Stop early by breaking out of the loop (or
+        closing the generator): the server's preview stops with it. Role rig or reader.
+
+        Raises:
+            ApiError: a bad parameter (400 naming ``every_rows``, ``every_ms`` or ``channel``),
+                another lab's or an unknown session (404).
+        """
+        sid = _session_id(session)
+        query = {"every_rows": every_rows, "every_ms": every_ms, "channel": channel}
+        for name, data in self._http.events(f"/v1/sessions/{_quote(sid)}/preview", query=query):
+            if name == "error":
+                raise HelmholtzError(f"the preview of session {sid} stopped: {data.get('detail')}")
+            if name == "preview":
+                frame = PreviewFrame.from_event(data)
+                yield frame
+                if frame.final:
+                    return
 
     def dual_image(
         self, reconstruction: ReconstructionRef, channel: Optional[str] = None

@@ -104,8 +104,8 @@ fn decode_png(bytes: &[u8]) -> Result<(usize, usize, Vec<f32>), String> {
 pub(super) fn decode_npy(bytes: &[u8]) -> Result<(usize, usize, Vec<f32>), String> {
     let header = npy::read_header(&mut &bytes[..]).map_err(|e| e.to_string())?;
     let (height, width) = match header.shape.as_slice() {
-        &[n] => (1, n as usize),
-        &[h, w] => (h as usize, w as usize),
+        [n] => (1, *n as usize),
+        [h, w] => (*h as usize, *w as usize),
         _ => {
             return Err(format!(
                 "the array must be 1-D or 2-D, got shape {}",

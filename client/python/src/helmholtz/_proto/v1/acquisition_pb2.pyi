@@ -290,3 +290,37 @@ class Reconstruction(_message.Message):
     error: str
     report_json: str
     def __init__(self, reconstruction_id: _Optional[int] = ..., session_id: _Optional[str] = ..., method: _Optional[str] = ..., params_json: _Optional[str] = ..., state: _Optional[str] = ..., progress: _Optional[float] = ..., rows: _Optional[int] = ..., seconds: _Optional[float] = ..., error: _Optional[str] = ..., report_json: _Optional[str] = ...) -> None: ...
+
+class PreviewRequest(_message.Message):
+    __slots__ = ("session_id", "channel", "every_rows", "every_ms")
+    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    CHANNEL_FIELD_NUMBER: _ClassVar[int]
+    EVERY_ROWS_FIELD_NUMBER: _ClassVar[int]
+    EVERY_MS_FIELD_NUMBER: _ClassVar[int]
+    session_id: str
+    channel: str
+    every_rows: int
+    every_ms: int
+    def __init__(self, session_id: _Optional[str] = ..., channel: _Optional[str] = ..., every_rows: _Optional[int] = ..., every_ms: _Optional[int] = ...) -> None: ...
+
+class PreviewFrame(_message.Message):
+    __slots__ = ("session_id", "channel", "rows", "expected_rows", "width", "height", "method", "values", "final")
+    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    CHANNEL_FIELD_NUMBER: _ClassVar[int]
+    ROWS_FIELD_NUMBER: _ClassVar[int]
+    EXPECTED_ROWS_FIELD_NUMBER: _ClassVar[int]
+    WIDTH_FIELD_NUMBER: _ClassVar[int]
+    HEIGHT_FIELD_NUMBER: _ClassVar[int]
+    METHOD_FIELD_NUMBER: _ClassVar[int]
+    VALUES_FIELD_NUMBER: _ClassVar[int]
+    FINAL_FIELD_NUMBER: _ClassVar[int]
+    session_id: str
+    channel: str
+    rows: int
+    expected_rows: int
+    width: int
+    height: int
+    method: str
+    values: _containers.RepeatedScalarFieldContainer[float]
+    final: bool
+    def __init__(self, session_id: _Optional[str] = ..., channel: _Optional[str] = ..., rows: _Optional[int] = ..., expected_rows: _Optional[int] = ..., width: _Optional[int] = ..., height: _Optional[int] = ..., method: _Optional[str] = ..., values: _Optional[_Iterable[float]] = ..., final: _Optional[bool] = ...) -> None: ...

@@ -69,6 +69,11 @@ class AcquisitionStub:
                 request_serializer=helmholtz_dot___proto_dot_v1_dot_acquisition__pb2.ReconstructionRef.SerializeToString,
                 response_deserializer=helmholtz_dot___proto_dot_v1_dot_acquisition__pb2.Reconstruction.FromString,
                 _registered_method=True)
+        self.WatchPreview = channel.unary_stream(
+                '/helmholtz.v1.Acquisition/WatchPreview',
+                request_serializer=helmholtz_dot___proto_dot_v1_dot_acquisition__pb2.PreviewRequest.SerializeToString,
+                response_deserializer=helmholtz_dot___proto_dot_v1_dot_acquisition__pb2.PreviewFrame.FromString,
+                _registered_method=True)
 
 
 class AcquisitionServicer:
@@ -133,6 +138,18 @@ class AcquisitionServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def WatchPreview(self, request, context):
+        """Server streaming: the session's live preview (a progressive GI/DGI, zero-filled or raster
+        image) every `every_rows` rows or `every_ms` milliseconds while it uploads, computed from
+        the rows already committed, in a task of its own that never delays an upload; ends with a
+        `final` frame once every row is in: every declared row committed, or the session finished
+        (at once for such a session). Role rig or
+        reader; another lab's session is NOT_FOUND; a bad parameter is INVALID_ARGUMENT naming it.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
 
 def add_AcquisitionServicer_to_server(servicer, server):
     rpc_method_handlers = {
@@ -170,6 +187,11 @@ def add_AcquisitionServicer_to_server(servicer, server):
                     servicer.CancelReconstruction,
                     request_deserializer=helmholtz_dot___proto_dot_v1_dot_acquisition__pb2.ReconstructionRef.FromString,
                     response_serializer=helmholtz_dot___proto_dot_v1_dot_acquisition__pb2.Reconstruction.SerializeToString,
+            ),
+            'WatchPreview': grpc.unary_stream_rpc_method_handler(
+                    servicer.WatchPreview,
+                    request_deserializer=helmholtz_dot___proto_dot_v1_dot_acquisition__pb2.PreviewRequest.FromString,
+                    response_serializer=helmholtz_dot___proto_dot_v1_dot_acquisition__pb2.PreviewFrame.SerializeToString,
             ),
     }
     generic_handler = grpc.method_handlers_generic_handler(
@@ -361,6 +383,33 @@ class Acquisition:
             '/helmholtz.v1.Acquisition/CancelReconstruction',
             helmholtz_dot___proto_dot_v1_dot_acquisition__pb2.ReconstructionRef.SerializeToString,
             helmholtz_dot___proto_dot_v1_dot_acquisition__pb2.Reconstruction.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def WatchPreview(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_stream(
+            request,
+            target,
+            '/helmholtz.v1.Acquisition/WatchPreview',
+            helmholtz_dot___proto_dot_v1_dot_acquisition__pb2.PreviewRequest.SerializeToString,
+            helmholtz_dot___proto_dot_v1_dot_acquisition__pb2.PreviewFrame.FromString,
             options,
             channel_credentials,
             insecure,
