@@ -47,6 +47,29 @@ pub fn report_lines(report: &Report) -> Vec<String> {
             s.push_str(&format!(", weight {l:.3e}"));
         }
         lines.push(s);
+        let details = &report.recon.details;
+        if let Some(e) = details.get("error_estimate") {
+            if let Some(rel) = e.get("relative").and_then(Value::as_f64) {
+                let mut s = format!("estimated error of T {rel:.3}");
+                if let Some([lo, hi]) = e
+                    .get("range")
+                    .and_then(Value::as_array)
+                    .map(|r| [0, 1].map(|i| r.get(i).and_then(Value::as_f64).unwrap_or(f64::NAN)))
+                {
+                    s.push_str(&format!(" ({lo:.3} to {hi:.3})"));
+                }
+                lines.push(s);
+            }
+        }
+        if let Some(rel) = details
+            .get("relight_error_estimate")
+            .and_then(|e| e.get("relative"))
+            .and_then(Value::as_f64)
+        {
+            lines.push(format!(
+                "estimated error of the full-light relight {rel:.4}"
+            ));
+        }
     }
     if let Some(warnings) = report
         .recon
@@ -231,7 +254,10 @@ mod tests {
     fn a_transport_report_shows_its_transform_and_t_error_and_an_unavailable_held_out() {
         let report: Report = serde_json::from_value(json!({
             "method": "transport", "params": {}, "rows_used": 64, "iterations": 0,
-            "details": {"transform": "haar", "lambda": 0.5},
+            "details": {"transform": "haar", "lambda": 0.5,
+                        "error_estimate": {"relative": 0.31, "range": [0.2, 0.9]},
+                        "relight_error_estimate": {"relative": 0.0042},
+                        "warnings": ["the measured pairs cannot support T at 32x32"]},
             "held_out": null, "held_out_unavailable": "complete set: nothing to hold out",
             "quality": {"transport_relative_error": 0.032, "worst_row_relative_error": 0.2,
                         "camera_dual_psnr_db": "inf", "camera_dual_ssim": null}
@@ -240,6 +266,9 @@ mod tests {
         let text = report_lines(&report).join("\n");
         for want in [
             "transform haar, weight 5.000e-1",
+            "estimated error of T 0.310 (0.200 to 0.900)",
+            "estimated error of the full-light relight 0.0042",
+            "warning: the measured pairs cannot support T at 32x32",
             "held-out error: unavailable (complete set: nothing to hold out)",
             "T relative error 0.0320, worst camera pixel 0.2000, dual under the whole camera PSNR inf dB, SSIM n/a",
         ] {
