@@ -296,6 +296,10 @@ pub struct ReconstructionView<R = Report> {
     pub error: Option<String>,
     /// Null until the reconstruction is done.
     pub report: Option<R>,
+    /// What the user should know about the result, from its report: the data cannot support
+    /// the resolution asked for, too few rows, ... (`Report::warnings`). Empty until done.
+    #[serde(default)]
+    pub warnings: Vec<String>,
     #[serde(default)]
     pub created_unix_ms: i64,
     #[serde(default)]
@@ -605,6 +609,38 @@ impl Report {
     pub fn auto_choice(&self) -> Option<AutoChoice> {
         let first = self.recon.details.get("auto")?.get(0)?;
         AutoChoice::deserialize(first).ok()
+    }
+
+    /// Everything the user should know about the result: `details.warnings` (a transport
+    /// matrix the pairs cannot support, ...) and every `auto` choice's warnings (prefixed with
+    /// its channel when there are several), in that order.
+    pub fn warnings(&self) -> Vec<String> {
+        let mut out: Vec<String> = self
+            .recon
+            .details
+            .get("warnings")
+            .and_then(Value::as_array)
+            .into_iter()
+            .flatten()
+            .filter_map(Value::as_str)
+            .map(str::to_string)
+            .collect();
+        if let Some(choices) = self.recon.details.get("auto").and_then(Value::as_array) {
+            for (i, c) in choices.iter().enumerate() {
+                let Ok(choice) = AutoChoice::deserialize(c) else {
+                    continue;
+                };
+                let channel = c.get("channel").and_then(Value::as_str).map_or_else(
+                    || (choices.len() > 1).then(|| format!("channel {i}")),
+                    |s| (choices.len() > 1).then(|| s.to_string()),
+                );
+                out.extend(choice.warnings.into_iter().map(|w| match &channel {
+                    Some(ch) => format!("{ch}: {w}"),
+                    None => w,
+                }));
+            }
+        }
+        out
     }
 
     /// A method-specific figure of `details` as a number.
@@ -959,6 +995,34 @@ mod openapi {
 mod tests {
     use super::*;
     use serde_json::json;
+
+    #[test]
+    fn a_reports_warnings_are_its_details_then_every_auto_choices() {
+        let r: Report = serde_json::from_value(json!({
+            "method": "auto", "params": {}, "rows_used": 10, "iterations": 1,
+            "details": {"warnings": ["pairs cannot support T"],
+                "auto": [{"model": "tv", "channel": "r", "warnings": ["few rows"]},
+                         {"model": "tv", "warnings": []},
+                         {"model": "db4", "warnings": ["a resolution cut"]}]},
+            "held_out": null
+        }))
+        .unwrap();
+        assert_eq!(
+            r.warnings(),
+            [
+                "pairs cannot support T",
+                "r: few rows",
+                "channel 2: a resolution cut"
+            ]
+        );
+        let one: Report = serde_json::from_value(json!({
+            "method": "auto", "params": {}, "rows_used": 10, "iterations": 1,
+            "details": {"auto": [{"model": "tv", "warnings": ["few rows"]}]}, "held_out": null
+        }))
+        .unwrap();
+        assert_eq!(one.warnings(), ["few rows"]);
+        assert!(Report::default().warnings().is_empty());
+    }
 
     #[test]
     fn reports_of_both_kinds_read_and_write_back_the_same_json() {

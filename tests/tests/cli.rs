@@ -320,6 +320,42 @@ fn text_output_says_what_the_report_knows() {
     for want in ["auto: model ", "warning: too few rows for 64x64", "PSNR "] {
         assert!(status.contains(want), "{want:?} missing from:\n{status}");
     }
+    // The job state carries the same warnings (REST and gRPC), for clients that never read
+    // the report.
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    let (rest, grpc) = rt.block_on(async {
+        let list: serde_json::Value =
+            reqwest::get(server.url("/v1/sessions/cli-report/reconstructions"))
+                .await
+                .unwrap()
+                .json()
+                .await
+                .unwrap();
+        let job = list["reconstructions"][0].clone();
+        let id = job["id"].as_i64().unwrap();
+        let mut c = server.grpc().await.unwrap();
+        let grpc = c
+            .get_reconstruction(helmholtz_proto::v1::ReconstructionRef {
+                reconstruction_id: id,
+            })
+            .await
+            .unwrap()
+            .into_inner();
+        (job, grpc)
+    });
+    let warnings: Vec<&str> = rest["warnings"]
+        .as_array()
+        .unwrap_or_else(|| panic!("no warnings in the job state: {rest}"))
+        .iter()
+        .filter_map(serde_json::Value::as_str)
+        .collect();
+    assert!(
+        warnings
+            .iter()
+            .any(|w| w.starts_with("too few rows for 64x64")),
+        "REST job state warnings: {warnings:?}"
+    );
+    assert_eq!(grpc.warnings, warnings, "gRPC and REST job states differ");
 }
 
 /// `completions SHELL` prints a script that names the subcommands, for both binaries; bash

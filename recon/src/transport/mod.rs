@@ -43,7 +43,16 @@
 //!   (fewest nonzeros) whose held-out score is within one standard error of the best one (the
 //!   error from the spread of the held-out rows' residuals): noise-free data otherwise pull the
 //!   weight to the smallest one tried, where hundreds of tiny coefficients buy a fraction of a
-//!   percent of held-out error. Every lasso point is scored twice: as solved, and refitted by
+//!   percent of held-out error. A Hadamard subset needs more: its tail pairs, one class of
+//!   patterns at the end of the ordering, rated a Haar fit of a glossy scene as good as the
+//!   pixel basis where its relit images were 45 % off against 3 %. There the transform is
+//!   chosen by a [`LevelTest`] (half of the measured pairs in the scale orders the set measures
+//!   only partly, where the unmeasured coefficients are, held out and predicted by a fit on the
+//!   rest; near-ties go to the sparser transform), and the points are held to the total light
+//!   they keep ([`subset_light_error`]: the sample rows' fitted sums against the measured
+//!   all-on pair's; a lasso that drops a dense, dim interreflection loses it in every row, which
+//!   a relight adds up) before the one-standard-error rule picks among them.
+//!   Every lasso point is scored twice: as solved, and refitted by
 //!   least squares on its own support ([`batch::refit_rows`], the relaxed lasso): the soft
 //!   threshold shrinks every kept coefficient by the weight, so a larger weight (fewer
 //!   coefficients) with the refit often predicts as well as a small one without it.
@@ -648,41 +657,27 @@ fn read_columns(
 /// own), then pooled with weights `1 / chance` (the draw's inverse probability): the relative
 /// error of the whole `T`. `None` for other families, or when no row could be judged.
 #[allow(clippy::too_many_arguments)]
-fn hadamard_subset_error(
-    plan: &Plan,
-    model: (TransformKind, f64, bool),
+/// A Hadamard subset's relative error of T, pooled over sample pixels ([`subset_error`]).
+struct SubsetError {
+    relative: f64,
+    range: (f64, f64),
+    judged: usize,
+}
+
+/// The relative error of the rows `t` (one per sample pixel, fitted by any model on any of the
+/// measured pairs) estimated from all the measured pairs `raws` (split-pair data of `op`'s rows)
+/// and their sums: each row's residual on every measured coefficient less the noise its pair
+/// sums show, plus the scene's energy in the unmeasured coefficients extrapolated from the
+/// measured scale orders, against the row's own there (`auto::orthonormal_error`). Rows are
+/// pooled by their squared norms with weights 1 / (their chance of being drawn). `None` when no
+/// row can be judged (no noise estimate, or no energy).
+fn subset_error(
+    op: &HadamardOperator,
     (raws, sums, chance): (&[Vec<f64>], &[Vec<f64>], &[f64]),
-    config: &TransportConfig,
-    chunk: usize,
-    control: &Control,
-) -> Result<Option<Value>, ReconError> {
-    let Raw::Hadamard(op) = &plan.raw else {
-        return Ok(None);
-    };
-    if raws.is_empty() || sums.len() != raws.len() {
-        return Ok(None);
-    }
-    let (pw, ph) = (plan.spec.width() as usize, plan.spec.height() as usize);
-    let k = plan.k();
-    let (kind, lambda, refit) = model;
-    let psi = kind.build(pw, ph);
-    let sh = Shared {
-        op,
-        psi: psi.as_ref(),
-        identity: kind == TransformKind::Identity,
-        lipschitz: 1.0,
-        free: free_coefficients(kind),
-        max_iter: config.max_iter,
-        tol: config.tol,
-    };
-    let bs: Vec<f64> = raws.iter().flatten().copied().collect();
-    let mut tally = Tally::default();
-    let mut s = solve_block(&sh, &bs, lambda, None, chunk, &mut tally, control)?;
-    if refit {
-        batch::refit_rows(&sh, &bs, &mut s, chunk, control)?;
-    }
-    let mut t = vec![0.0; s.len()];
-    sh.inverse(&s, &mut t);
+    t: &[f64],
+) -> Option<SubsetError> {
+    let (pw, ph) = (op.width() as usize, op.height() as usize);
+    let k = pw * ph;
     let measured = op.natural_indices();
     let scale = 1.0 / (k as f64).sqrt();
     let (mut e2, mut lo2, mut hi2, mut norm2, mut judged) = (0.0, 0.0, 0.0, 0.0, 0usize);
@@ -708,12 +703,203 @@ fn hadamard_subset_error(
         judged += 1;
     }
     if judged == 0 || norm2 <= 0.0 {
+        return None;
+    }
+    Some(SubsetError {
+        relative: (e2 / norm2).sqrt(),
+        range: ((lo2 / norm2).sqrt(), (hi2 / norm2).sqrt()),
+        judged,
+    })
+}
+
+/// A Hadamard subset's total-light error: how far the fitted rows' sums `1 . t_j` fall from the
+/// measured ones (the all-on pattern, natural row 0, is a measured pair: `d_0 = 1 . t / sqrt(k)`),
+/// summed over the sample pixels with weights 1 / their chance of being drawn, relative to the
+/// measured sum; and the standard error of that ratio from the rows' noise (their pair sums).
+/// Light a model drops in every row (a lasso shrinking a dense, dim interreflection) adds up in
+/// every relight; a per-row error of T counts it once per row. `None` without the all-on pair.
+fn subset_light_error(
+    op: &HadamardOperator,
+    (raws, sums, chance): (&[Vec<f64>], &[Vec<f64>], &[f64]),
+    t: &[f64],
+) -> Option<(f64, f64)> {
+    let k = op.cols();
+    let dc = op.natural_indices().iter().position(|&n| n == 0)?;
+    let root = (k as f64).sqrt();
+    let (mut fitted, mut measured, mut var) = (0.0, 0.0, 0.0);
+    for (j, (raw, row)) in raws.iter().zip(t.chunks_exact(k)).enumerate() {
+        if chance[j] <= 0.0 {
+            continue;
+        }
+        let w = 1.0 / chance[j];
+        fitted += w * row.iter().sum::<f64>();
+        measured += w * root * raw[dc];
+        if let Some(n) = super::noise::from_pair_sums(&sums[j], 1.0 / root, raw) {
+            var += (w * root * n.sigma).powi(2);
+        }
+    }
+    (measured > 0.0).then(|| ((fitted - measured).abs() / measured, var.sqrt() / measured))
+}
+
+/// A Hadamard subset's test of how a model fills in what no pair measured. The scale orders
+/// ([`auto::hadamard_level`]) a set measures partly (a Russian-doll set stopped inside a
+/// level) are where the unmeasured coefficients are; half of the measured pairs in those
+/// orders, chosen by a hash of their index, are held out, and the model, fitted on the rest
+/// (every coarser order and the other half), predicts them, as the whole set must predict the
+/// unmeasured ones. The usual held-out pairs, the last measured, are one class of patterns at
+/// the end of the ordering: a model coherent with the finest Walsh patterns (a wavelet)
+/// predicted them as well as the pixel basis where its T was 12x further off.
+///
+/// [`auto::hadamard_level`]: super::auto::hadamard_level
+struct LevelTest {
+    train: HadamardOperator,
+    test: HadamardOperator,
+    /// Training data of the sample pixels, row-major.
+    data: Vec<f64>,
+    /// The sample pixels' held-out data.
+    observed: Vec<Vec<f64>>,
+    size: (usize, usize),
+}
+
+impl LevelTest {
+    /// `None` when the pairs are too few to halve.
+    fn new(plan: &Plan, raws: &[Vec<f64>]) -> Result<Option<Self>, ReconError> {
+        let Raw::Hadamard(op) = &plan.raw else {
+            return Ok(None);
+        };
+        let size = (plan.spec.width() as usize, plan.spec.height() as usize);
+        let k = plan.k();
+        let order = |n: usize| super::auto::hadamard_level(n, size) as usize;
+        let top = order(k - 1);
+        let (mut measured, mut total) = (vec![0usize; top + 1], vec![0usize; top + 1]);
+        (0..k).for_each(|n| total[order(n)] += 1);
+        op.natural_indices()
+            .iter()
+            .for_each(|&n| measured[order(n)] += 1);
+        let partial = |n: usize| {
+            let l = order(n);
+            measured[l] > 0 && measured[l] < total[l]
+        };
+        let (mut train, mut test) = (Vec::new(), Vec::new());
+        for (i, &n) in op.natural_indices().iter().enumerate() {
+            if partial(n) && holdout::is_held_out(i as u64, 0.5) {
+                test.push(i);
+            } else {
+                train.push(i);
+            }
+        }
+        if test.len() < holdout::MIN_HELD_OUT || train.len() < holdout::MIN_HELD_OUT {
+            return Ok(None);
+        }
+        let split = holdout::Split {
+            fraction: test.len() as f64 / op.rows() as f64,
+            train,
+            test,
+        };
+        Ok(Some(LevelTest {
+            train: op.select_rows(&split.train),
+            test: op.select_rows(&split.test),
+            data: raws
+                .iter()
+                .flat_map(|raw| split.train.iter().map(|&i| raw[i]))
+                .collect(),
+            observed: raws
+                .iter()
+                .map(|raw| split.test.iter().map(|&i| raw[i]).collect())
+                .collect(),
+            size,
+        }))
+    }
+
+    /// The relative residual (pooled over the sample pixels) of transform `kind` at weight
+    /// `lambda` (a fraction of each row's lambda_max), refitted or not, on the second half.
+    fn score(
+        &self,
+        kind: TransformKind,
+        (lambda, refit): (f64, bool),
+        config: &TransportConfig,
+        chunk: usize,
+        control: &Control,
+    ) -> Result<Option<f64>, ReconError> {
+        let (pw, ph) = self.size;
+        let k = pw * ph;
+        let rows = self.observed.len();
+        let psi = kind.build(pw, ph);
+        let sh = Shared {
+            op: &self.train,
+            psi: psi.as_ref(),
+            identity: kind == TransformKind::Identity,
+            lipschitz: 1.0,
+            free: free_coefficients(kind),
+            max_iter: config.max_iter,
+            tol: config.tol,
+        };
+        let lams: Vec<f64> = batch::lambda_max(&sh, &self.data, chunk)
+            .iter()
+            .map(|l| l * lambda)
+            .collect();
+        let mut s = vec![0.0; rows * k];
+        batch::solve_rows(&sh, &self.data, &lams, &mut s, chunk, control)?;
+        if refit {
+            batch::refit_rows(&sh, &self.data, &mut s, chunk, control)?;
+        }
+        let mut t = vec![0.0; rows * k];
+        sh.inverse(&s, &mut t);
+        let h = self.test.rows();
+        let mut pred = vec![0.0; rows * h];
+        self.test.apply_batch(&t, &mut pred, rows);
+        let (mut r2, mut o2) = (0.0f64, 0.0f64);
+        for (obs, p) in self.observed.iter().zip(pred.chunks_exact(h)) {
+            for (o, p) in obs.iter().zip(p) {
+                r2 += (o - p) * (o - p);
+                o2 += o * o;
+            }
+        }
+        Ok((o2 > 0.0).then(|| (r2 / o2).sqrt()))
+    }
+}
+
+fn hadamard_subset_error(
+    plan: &Plan,
+    model: (TransformKind, f64, bool),
+    (raws, sums, chance): (&[Vec<f64>], &[Vec<f64>], &[f64]),
+    config: &TransportConfig,
+    chunk: usize,
+    control: &Control,
+) -> Result<Option<Value>, ReconError> {
+    let Raw::Hadamard(op) = &plan.raw else {
+        return Ok(None);
+    };
+    if raws.is_empty() || sums.len() != raws.len() {
         return Ok(None);
     }
-    let rel = (e2 / norm2).sqrt();
+    let (pw, ph) = (plan.spec.width() as usize, plan.spec.height() as usize);
+    let (kind, lambda, refit) = model;
+    let psi = kind.build(pw, ph);
+    let sh = Shared {
+        op,
+        psi: psi.as_ref(),
+        identity: kind == TransformKind::Identity,
+        lipschitz: 1.0,
+        free: free_coefficients(kind),
+        max_iter: config.max_iter,
+        tol: config.tol,
+    };
+    let bs: Vec<f64> = raws.iter().flatten().copied().collect();
+    let mut tally = Tally::default();
+    let mut s = solve_block(&sh, &bs, lambda, None, chunk, &mut tally, control)?;
+    if refit {
+        batch::refit_rows(&sh, &bs, &mut s, chunk, control)?;
+    }
+    let mut t = vec![0.0; s.len()];
+    sh.inverse(&s, &mut t);
+    let Some(pooled) = subset_error(op, (raws, sums, chance), &t) else {
+        return Ok(None);
+    };
+    let (rel, (lo, hi), judged) = (pooled.relative, pooled.range, pooled.judged);
     Ok(Some(json!({
         "relative": rel,
-        "range": [(lo2 / norm2).sqrt(), (hi2 / norm2).sqrt()],
+        "range": [lo, hi],
         "sample_pixels": judged,
         "basis": "relative error of T (Frobenius) on the sample pixels, each row fitted with the chosen model on all measured pairs: its residual on the measured coefficients less the noise its pair sums show, plus the scene's energy in the unmeasured coefficients extrapolated from the measured scale orders (a power law), against the row's own; pooled with weights 1 / (the pixel's chance of being drawn)",
     })))
@@ -949,6 +1135,30 @@ fn relative_standard_error(e: &[f64]) -> f64 {
     0.5 * (h as f64 * var).sqrt() / sum
 }
 
+/// Level-test residuals ([`LevelTest`]) within 10 % of the lowest plus this are a tie: both
+/// predict the held-out pairs to 0.1 % of their norm, and the sparser transform is chosen.
+const LEVEL_TIE: f64 = 1e-3;
+
+/// A Hadamard subset's points must keep the total light within this (relative) or three
+/// standard errors of its noise, whichever is larger ([`choose_model`]).
+const LIGHT_TOLERANCE: f64 = 0.005;
+
+/// One point of the model choice's paths, scored.
+struct Point {
+    kind: TransformKind,
+    lambda: f64,
+    refit: bool,
+    /// Held-out relative residual on the sample pixels (infinite when there is none).
+    held_out: f64,
+    /// Its standard error.
+    se: f64,
+    /// Mean nonzeros per row.
+    nonzeros: f64,
+    score: Score,
+    /// A Hadamard subset's total-light error and its standard error ([`subset_light_error`]).
+    light: Option<(f64, f64)>,
+}
+
 /// One candidate of the model choice, as reported.
 #[derive(Clone, Debug, serde::Serialize)]
 struct Candidate {
@@ -957,6 +1167,12 @@ struct Candidate {
     held_out: Option<f64>,
     /// Standard error of `held_out` (from the spread of the held-out rows' residuals).
     held_out_se: Option<f64>,
+    /// A Hadamard subset's estimated relative error of T ([`subset_error`]).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    error_estimate: Option<f64>,
+    /// A Hadamard subset's relative total-light error ([`subset_light_error`]).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    light_error: Option<f64>,
     iterations_mean: f64,
     nonzeros_mean: f64,
     /// Least-squares refit on the lasso's support ([`batch::refit_rows`]).
@@ -1648,9 +1864,21 @@ fn choose_model(
         .max(1);
     let mut candidates = Vec::new();
     let mut pruned = Vec::new();
-    // Every point scored: (transform, fraction, refitted, held-out score, its standard error,
-    // mean nonzeros, score).
-    let mut scored: Vec<(TransformKind, f64, bool, f64, f64, f64, Score)> = Vec::new();
+    // A Hadamard subset's held-out pairs are its last measured ones: they cannot see how a
+    // model fills in what no pair measured. There the transforms are compared on the partly
+    // measured scale orders ([`LevelTest`]) and the points are held to the light they keep
+    // ([`subset_light_error`]).
+    let subset_op = match &plan.raw {
+        Raw::Hadamard(op) if sums.len() == raws.len() => Some(op),
+        _ => None,
+    };
+    let level = match subset_op {
+        Some(_) => LevelTest::new(plan, &raws)?,
+        None => None,
+    };
+    // (transform, level-test residual, nonzeros of the point it was tested at).
+    let mut level_scores: Vec<(TransformKind, f64, f64)> = Vec::new();
+    let mut scored: Vec<Point> = Vec::new();
     let steps = (transforms.len() * lambdas.len()) as f64;
     let mut step = 0usize;
     for &kind in &transforms {
@@ -1699,18 +1927,34 @@ fn choose_model(
                 }
                 let rho = score.finish(split.fraction).relative_residual;
                 let se = rho.map(|r| r * relative_standard_error(&per_row));
+                let estimate = subset_op
+                    .and_then(|op| subset_error(op, (&raws, &sums, &chance), &t))
+                    .map(|e| e.relative);
+                let light =
+                    subset_op.and_then(|op| subset_light_error(op, (&raws, &sums, &chance), &t));
                 candidates.push(Candidate {
                     transform: kind.name(),
                     lambda: frac,
                     held_out: rho,
                     held_out_se: se,
+                    error_estimate: estimate,
+                    light_error: light.map(|l| l.0),
                     iterations_mean: iterations.iter().sum::<usize>() as f64 / rows as f64,
                     nonzeros_mean: nnz,
                     refit,
                 });
                 let v = rho.unwrap_or(f64::INFINITY);
                 value = value.min(v);
-                scored.push((kind, frac, refit, v, se.unwrap_or(0.0), nnz, score));
+                scored.push(Point {
+                    kind,
+                    lambda: frac,
+                    refit,
+                    held_out: v,
+                    se: se.unwrap_or(0.0),
+                    nonzeros: nnz,
+                    score,
+                    light,
+                });
             }
             step += 1;
             control.set_progress(0.2 * step as f64 / steps);
@@ -1719,8 +1963,8 @@ fn choose_model(
             // less than a quarter (it is not catching up).
             let others = scored
                 .iter()
-                .filter(|c| c.0 != kind)
-                .map(|c| c.3)
+                .filter(|c| c.kind != kind)
+                .map(|c| c.held_out)
                 .fold(f64::INFINITY, f64::min);
             if value > 3.0 * others && value > 0.75 * best_here {
                 pruned.push(kind.name());
@@ -1737,27 +1981,79 @@ fn choose_model(
             }
         }
     }
+    if let Some(level) = &level {
+        for &kind in &transforms {
+            // At the weight (and refit) the held-out pairs like best for this transform.
+            let Some(at) = scored
+                .iter()
+                .filter(|c| c.kind == kind)
+                .min_by(|a, b| a.held_out.total_cmp(&b.held_out))
+            else {
+                continue;
+            };
+            if let Some(v) = level.score(kind, (at.lambda, at.refit), config, chunk, control)? {
+                level_scores.push((kind, v, at.nonzeros));
+            }
+        }
+    }
     let identifiable = super::auto::identifiable_coefficients(plan.op().rows(), k);
-    let best = scored
+    // A Hadamard subset: the transform that fills in partly measured scale orders best
+    // ([`LevelTest`]); within it, the points that keep the total light (the fitted rows' sum
+    // within max(0.5 %, three standard errors of its noise) of the measured one:
+    // [`subset_light_error`]; if none does, the one nearest), and among those the one the
+    // held-out pairs choose.
+    let by_level = !level_scores.is_empty();
+    let transform_by_level = level_scores
         .iter()
-        .min_by(|a, b| a.3.total_cmp(&b.3))
+        .map(|l| l.1)
+        .min_by(f64::total_cmp)
+        .and_then(|best| {
+            level_scores
+                .iter()
+                .filter(|l| l.1 <= best * 1.1 + LEVEL_TIE)
+                .min_by(|a, b| a.2.total_cmp(&b.2))
+                .map(|l| l.0)
+        });
+    let mut eligible: Vec<&Point> = scored
+        .iter()
+        .filter(|c| transform_by_level.is_none_or(|t| c.kind == t))
+        .collect();
+    if subset_op.is_some() {
+        let keeps = |c: &Point| {
+            c.light
+                .is_some_and(|(e, se)| e <= (3.0 * se).max(LIGHT_TOLERANCE))
+        };
+        if eligible.iter().any(|c| keeps(c)) {
+            eligible.retain(|c| keeps(c));
+        } else if let Some(nearest) = eligible
+            .iter()
+            .filter_map(|c| c.light.map(|l| l.0))
+            .min_by(f64::total_cmp)
+        {
+            eligible.retain(|c| c.light.is_some_and(|l| l.0 <= nearest));
+        }
+    }
+    let best = *eligible
+        .iter()
+        .min_by(|a, b| a.held_out.total_cmp(&b.held_out))
         .expect("at least one candidate");
-    let (best_value, best_se) = (best.3, best.4);
+    let (best_value, best_se) = (best.held_out, best.se);
     // The sparsest model within one standard error of the best held-out score (ties: the
     // larger weight, which comes first along each path, then the lower score: a lasso point
     // and its refit keep the same coefficients).
     let within = best_value + best_se;
-    let chosen = scored
+    let chosen = *eligible
         .iter()
-        .filter(|c| c.3 <= within)
+        .filter(|c| c.held_out <= within)
         .min_by(|a, b| {
-            a.5.total_cmp(&b.5)
-                .then(b.1.total_cmp(&a.1))
-                .then(a.3.total_cmp(&b.3))
+            a.nonzeros
+                .total_cmp(&b.nonzeros)
+                .then(b.lambda.total_cmp(&a.lambda))
+                .then(a.held_out.total_cmp(&b.held_out))
         })
         .expect("the best is within");
-    let (transform, lambda, refit) = (chosen.0, chosen.1, chosen.2);
-    *held_out = Some(chosen.6.finish(split.fraction));
+    let (transform, lambda, refit) = (chosen.kind, chosen.lambda, chosen.refit);
+    *held_out = Some(chosen.score.finish(split.fraction));
     if let Some(estimate) = hadamard_subset_error(
         plan,
         (transform, lambda, refit),
@@ -1786,7 +2082,11 @@ fn choose_model(
     details.insert(
         "selection".into(),
         json!({
-            "rule": "the fewest nonzeros among the candidates (every lasso point and its least-squares refit on the same support) whose held-out relative residual on the sample pixels is within one standard error of the lowest (the one-standard-error rule)",
+            "rule": if by_level {
+                "the transform that fills in the partly measured scale orders best, of those within 10 % + 0.001 of the best the one with the fewest nonzeros (level_test: each transform at its best held-out weight, fitted without half of the measured pairs in the scale orders the set measures only partly, where the unmeasured coefficients are, predicting that half, as the whole set must predict the unmeasured ones; the held-out pairs, the last measured, are one class of patterns and cannot see that); within it, the points that keep the total light (light_error: the fitted rows' sums against the measured all-on pair's, weighted by 1 / the pixel's chance of being drawn, within max(0.5 %, three standard errors of its noise); if none does, the nearest), and among those the fewest nonzeros whose held-out relative residual is within one standard error of the lowest"
+            } else {
+                "the fewest nonzeros among the candidates (every lasso point and its least-squares refit on the same support) whose held-out relative residual on the sample pixels is within one standard error of the lowest (the one-standard-error rule)"
+            },
             "identifiable_per_row_l1": if identifiable.is_finite() { json!(identifiable.round()) } else { Value::Null },
             "held_out_rows": if ordered {
                 format!("the last {} of the {} measured split pairs (Hadamard rows are ordered: the unmeasured ones lie beyond them)", split.test.len(), plan.raw_rows())
@@ -1796,8 +2096,9 @@ fn choose_model(
             "sample_pixels": rows,
             "pruned": pruned,
             "sample": "camera pixels drawn with probability in proportion to the energy of their data (systematic, deterministic)",
-            "best": {"transform": best.0.name(), "lambda": best.1, "refit": best.2, "held_out": best_value, "standard_error": best_se, "nonzeros_mean": best.5},
-            "chosen": {"transform": transform.name(), "lambda": lambda, "refit": refit, "held_out": chosen.3, "nonzeros_mean": chosen.5},
+            "best": {"transform": best.kind.name(), "lambda": best.lambda, "refit": best.refit, "held_out": best.held_out, "standard_error": best.se, "nonzeros_mean": best.nonzeros},
+            "chosen": {"transform": transform.name(), "lambda": lambda, "refit": refit, "held_out": chosen.held_out, "light_error": chosen.light.map(|l| l.0), "nonzeros_mean": chosen.nonzeros},
+            "level_test": level_scores.iter().map(|(kind, v, nnz)| json!({"transform": kind.name(), "relative_residual": v, "nonzeros_mean": nnz})).collect::<Vec<_>>(),
             "candidates": candidates,
         }),
     );

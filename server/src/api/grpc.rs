@@ -188,6 +188,7 @@ fn reconstruction_message(r: &ReconstructionRow) -> v1::Reconstruction {
         seconds: r.seconds.unwrap_or(0.0),
         error: r.last_error.clone().unwrap_or_default(),
         report_json: r.report_json.clone().unwrap_or_default(),
+        warnings: super::rest::report_warnings(r),
     }
 }
 

@@ -441,12 +441,23 @@ pub fn reconstruction_view(r: &ReconstructionRow) -> ReconstructionView<Box<RawV
             .report_json
             .as_deref()
             .and_then(|s| RawValue::from_string(s.to_string()).ok()),
+        warnings: report_warnings(r),
         created_unix_ms: r.created_ms,
         started_unix_ms: r.started_ms,
         finished_unix_ms: r.finished_ms,
         links: ReconstructionLinks::of(r.id),
         extra: Default::default(),
     }
+}
+
+/// The stored report's warnings ([`helmholtz_proto::rest::Report::warnings`]); none when there
+/// is no report yet or it is not one this version reads.
+pub(super) fn report_warnings(r: &ReconstructionRow) -> Vec<String> {
+    r.report_json
+        .as_deref()
+        .and_then(|s| serde_json::from_str::<helmholtz_proto::rest::Report>(s).ok())
+        .map(|report| report.warnings())
+        .unwrap_or_default()
 }
 
 pub(super) fn session_path(id: &str) -> Result<(), ApiError> {

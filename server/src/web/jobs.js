@@ -38,6 +38,9 @@ function watch(rec, list, onFinished) {
     const ended = ["done", "failed", "cancelled"].includes(r.state);
     cancel.hidden = ended;
     row.dataset.events = String((Number(row.dataset.events) || 0) + 1);
+    if (ended && (r.warnings || []).length && !row.querySelector(".warnings")) {
+      row.append(h("ul", { class: "warnings", role: "status" }, ...r.warnings.map((w) => h("li", {}, `warning: ${w}`))));
+    }
     if (ended) {
       say(`Reconstruction ${r.id} ${r.state}`);
       if (r.state === "done") onFinished?.(r);

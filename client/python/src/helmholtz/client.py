@@ -229,7 +229,9 @@ class Reconstruction:
     """A reconstruction job as ``GET /v1/reconstructions/{id}`` returns it.
 
     ``state`` is ``"queued"``, ``"running"``, ``"done"``, ``"failed"`` or ``"cancelled"``;
-    ``progress`` is in [0, 1]; ``report`` is the report JSON (a dict) once done.
+    ``progress`` is in [0, 1]; ``report`` is the report JSON (a dict) once done;
+    ``warnings`` what the user should know about the result (e.g. the data cannot support the
+    resolution asked for), from its report.
     """
 
     id: int
@@ -243,6 +245,7 @@ class Reconstruction:
     seconds: Optional[float] = None
     error: Optional[str] = None
     report: Optional[dict[str, Any]] = None
+    warnings: list[str] = field(default_factory=list)
     created_unix_ms: int = 0
     started_unix_ms: Optional[int] = None
     finished_unix_ms: Optional[int] = None
@@ -271,6 +274,7 @@ class Reconstruction:
             seconds=view.get("seconds"),
             error=view.get("error"),
             report=view.get("report"),
+            warnings=list(view.get("warnings") or []),
             created_unix_ms=int(view.get("created_unix_ms") or 0),
             started_unix_ms=view.get("started_unix_ms"),
             finished_unix_ms=view.get("finished_unix_ms"),

@@ -268,7 +268,7 @@ class ReconstructionRef(_message.Message):
     def __init__(self, reconstruction_id: _Optional[int] = ...) -> None: ...
 
 class Reconstruction(_message.Message):
-    __slots__ = ("reconstruction_id", "session_id", "method", "params_json", "state", "progress", "rows", "seconds", "error", "report_json")
+    __slots__ = ("reconstruction_id", "session_id", "method", "params_json", "state", "progress", "rows", "seconds", "error", "report_json", "warnings")
     RECONSTRUCTION_ID_FIELD_NUMBER: _ClassVar[int]
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]
     METHOD_FIELD_NUMBER: _ClassVar[int]
@@ -279,6 +279,7 @@ class Reconstruction(_message.Message):
     SECONDS_FIELD_NUMBER: _ClassVar[int]
     ERROR_FIELD_NUMBER: _ClassVar[int]
     REPORT_JSON_FIELD_NUMBER: _ClassVar[int]
+    WARNINGS_FIELD_NUMBER: _ClassVar[int]
     reconstruction_id: int
     session_id: str
     method: str
@@ -289,7 +290,8 @@ class Reconstruction(_message.Message):
     seconds: float
     error: str
     report_json: str
-    def __init__(self, reconstruction_id: _Optional[int] = ..., session_id: _Optional[str] = ..., method: _Optional[str] = ..., params_json: _Optional[str] = ..., state: _Optional[str] = ..., progress: _Optional[float] = ..., rows: _Optional[int] = ..., seconds: _Optional[float] = ..., error: _Optional[str] = ..., report_json: _Optional[str] = ...) -> None: ...
+    warnings: _containers.RepeatedScalarFieldContainer[str]
+    def __init__(self, reconstruction_id: _Optional[int] = ..., session_id: _Optional[str] = ..., method: _Optional[str] = ..., params_json: _Optional[str] = ..., state: _Optional[str] = ..., progress: _Optional[float] = ..., rows: _Optional[int] = ..., seconds: _Optional[float] = ..., error: _Optional[str] = ..., report_json: _Optional[str] = ..., warnings: _Optional[_Iterable[str]] = ...) -> None: ...
 
 class PreviewRequest(_message.Message):
     __slots__ = ("session_id", "channel", "every_rows", "every_ms")
