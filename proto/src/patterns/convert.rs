@@ -50,17 +50,7 @@ impl TryFrom<&v1::PatternSpec> for PatternSpec {
                     None => (0, 0.0),
                     Some(_) => return Err(params_mismatch("an adaptive family")),
                 };
-                if f == v1::PatternFamily::AdaptiveHaar {
-                    Family::AdaptiveHaar {
-                        batch,
-                        target_error,
-                    }
-                } else {
-                    Family::AdaptiveHadamard {
-                        batch,
-                        target_error,
-                    }
-                }
+                Family::adaptive(f == v1::PatternFamily::AdaptiveHaar, batch, target_error)
             }
             Ok(v1::PatternFamily::Unspecified) | Err(_) => {
                 return Err(SpecError {

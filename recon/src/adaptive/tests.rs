@@ -6,17 +6,7 @@ use helmholtz_proto::{Family, HaarFunction, PatternGenerator, PatternSpec};
 use super::*;
 
 fn spec(haar: bool, width: u32, pairs: u64, batch: u32, target_error: f64) -> PatternSpec {
-    let family = if haar {
-        Family::AdaptiveHaar {
-            batch,
-            target_error,
-        }
-    } else {
-        Family::AdaptiveHadamard {
-            batch,
-            target_error,
-        }
-    };
+    let family = Family::adaptive(haar, batch, target_error);
     PatternSpec::new(family, width, width, 2 * pairs, 0).unwrap()
 }
 
