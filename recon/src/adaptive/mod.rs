@@ -428,6 +428,37 @@ impl Planner {
         &self.values[channel * k..(channel + 1) * k]
     }
 
+    /// Channel `channel`'s image with every unobserved coefficient set to its prediction from
+    /// the observed ones (the bicubic guess of the module docs) instead of 0: the zero-filled
+    /// inverse made smooth where nothing was measured. Row-major `W x W`.
+    pub fn predicted_image(&mut self, channel: usize) -> Vec<f64> {
+        let k = self.issued.len();
+        let values = &self.values[channel * k..(channel + 1) * k];
+        let mut pred = vec![0.0; k];
+        self.predictor.predict(values, &mut pred);
+        let mut observed = vec![false; k];
+        let observed_pairs = self.observed as usize;
+        for &n in &self.order[..observed_pairs] {
+            observed[n as usize] = true;
+        }
+        let mut c: Vec<f64> = (0..k)
+            .map(|n| if observed[n] { values[n] } else { pred[n] })
+            .collect();
+        let w = self.width as usize;
+        match self.basis {
+            Basis::Haar => {
+                use crate::linop::LinearOperator;
+                let mut x = vec![0.0; k];
+                crate::transforms::wavelet::Wavelet2d::haar(w, w).adjoint(&c, &mut x);
+                x
+            }
+            Basis::Hadamard => {
+                crate::fwht::fwht(&mut c);
+                c.iter().map(|v| v / w as f64).collect()
+            }
+        }
+    }
+
     pub fn decision_stats(&self) -> DecisionStats {
         self.stats
     }
