@@ -41,11 +41,13 @@
 //! prediction per channel, O(k) for Haar and O(k log k) for Walsh-Hadamard, plus an O(k)
 //! selection) must finish within one batch's display time. [`batch_pairs`] sizes automatic
 //! batches as `max(16, ceil(k C / 1024), ceil(P / 128))` pairs (`C` channels, `P` the pair
-//! budget): the decision measured in `bench --preset adaptive` costs about 10-30 ns per
-//! coefficient per channel, and a batch of `k C / 1024` pairs lasts `k C / 1024 * 100 us` at
-//! 20 kHz binary frames, i.e. ~100 ns per coefficient per channel: the DMD is never starved by the
-//! decision (the margin is stated per size in `docs/benchmarks-adaptive.md`). The `P / 128` term
-//! caps the number of batches of large budgets.
+//! budget). A batch of `k C / 1024` pairs lasts `k C / 1024 * 100 us` at 20 kHz binary frames,
+//! about 100 ns per coefficient and channel; the decision measured by `bench --preset adaptive`
+//! (`docs/benchmarks-adaptive.md`, one channel, a 2-core machine at load 6-7) costs a median
+//! 0.3 ms at 128x128 (12-18 ns per coefficient; a 16-pair batch shows for 1.6 ms) and 2 ms at
+//! 256x256 (a 64-pair batch: 6.4 ms). Under that load single decisions took up to 41 ms, longer
+//! than a batch: the DMD then idles. The `P / 128` term caps the number of batches of large
+//! budgets.
 //!
 //! # Determinism
 //!
