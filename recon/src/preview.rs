@@ -265,7 +265,7 @@ impl Preview {
                 let Some(n) = self.generator.adaptive_index(i) else {
                     return; // not resolved yet: counted, not shown
                 };
-                if i % 2 == 0 {
+                if i.is_multiple_of(2) {
                     s.positive.copy_from_slice(c);
                 } else {
                     let gain = HaarFunction::new(self.spec.width(), n).side() as f64;
