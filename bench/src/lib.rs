@@ -5,8 +5,10 @@
 //! `cargo run --release -p helmholtz-bench -- --preset full`
 //!
 //! `--preset compare` runs the side-by-side comparison with other tools instead ([`compare`]);
-//! `--preset transport` the camera-session (transport matrix) benchmark ([`transport`]).
+//! `--preset transport` the camera-session (transport matrix) benchmark ([`transport`]);
+//! `--preset adaptive` adaptive acquisition against the non-adaptive families ([`adaptive`]).
 
+pub mod adaptive;
 pub mod compare;
 mod grid;
 pub mod machine;
@@ -38,7 +40,7 @@ struct Args {
     /// compare: the target problems against other tools; transport: camera sessions (transport
     /// matrix time, size and error, relight/primal latency); noisy: `auto` on noisy buckets
     /// against the solvers at their ground-truth-best weight, with its error estimates' calibration.
-    #[arg(long, default_value = "targets", value_parser = ["smoke", "targets", "full", "compare", "transport", "noisy"])]
+    #[arg(long, default_value = "targets", value_parser = ["smoke", "targets", "full", "compare", "transport", "noisy", "adaptive"])]
     preset: String,
     /// Output directory.
     #[arg(long, default_value = "docs")]
@@ -73,7 +75,11 @@ struct Args {
     /// (comma-separated, e.g. "hadamard 50,bernoulli 10").
     #[arg(long, value_delimiter = ',')]
     cases: Option<Vec<String>>,
-    /// noisy: scenes (comma-separated; built-in names or PNG paths).
+    /// adaptive: image sides (powers of two).
+    #[arg(long, value_delimiter = ',', default_value = "128,256")]
+    sizes: Vec<u32>,
+    /// noisy, adaptive: scenes (comma-separated; built-in names or PNG paths; adaptive also
+    /// takes "relief").
     #[arg(long, value_delimiter = ',')]
     scenes: Option<Vec<String>>,
     /// noisy: pattern families (bernoulli, hadamard).
@@ -181,6 +187,26 @@ pub fn main() {
         }
         eprintln!(
             "wrote {}/benchmarks-noisy.md and benchmarks-noisy.json",
+            args.out.display()
+        );
+        return;
+    }
+    if args.preset == "adaptive" {
+        let opts = adaptive::Options {
+            out: args.out.clone(),
+            sizes: args.sizes.clone(),
+            scenes: args
+                .scenes
+                .clone()
+                .unwrap_or_else(adaptive::Options::default_scenes),
+            ratios: adaptive::Options::RATIOS.to_vec(),
+        };
+        if let Err(e) = adaptive::run(&opts) {
+            eprintln!("helmholtz-bench: {e:#}");
+            std::process::exit(1);
+        }
+        eprintln!(
+            "wrote {}/benchmarks-adaptive.md and benchmarks-adaptive.json",
             args.out.display()
         );
         return;
@@ -378,7 +404,9 @@ fn without_histories(v: serde_json::Value) -> serde_json::Value {
 pub fn frames_for(family: &Family, k: usize, ratio: f64) -> u64 {
     let rows = ((ratio * k as f64).round() as u64).clamp(1, k as u64);
     match family {
-        Family::Hadamard { .. } => 2 * rows,
+        Family::Hadamard { .. } | Family::AdaptiveHaar { .. } | Family::AdaptiveHadamard { .. } => {
+            2 * rows
+        }
         _ => rows,
     }
 }

@@ -25,4 +25,6 @@ pub mod v1 {
         include_bytes!(concat!(env!("OUT_DIR"), "/helmholtz_descriptor.bin"));
 }
 
-pub use patterns::{Family, HadamardOrdering, PatternGenerator, PatternSpec, SpecError};
+pub use patterns::{
+    Family, HaarFunction, HadamardOrdering, PatternGenerator, PatternSpec, SpecError,
+};

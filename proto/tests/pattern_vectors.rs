@@ -288,6 +288,17 @@ fn check_vector(vec: &Value) -> &str {
         );
     }
     assert_eq!(spec.pixels() as u64, u64_of(vec, "pixels"), "{name}");
+    // An adaptive session's patterns need its index sequence.
+    let spec = if spec.is_adaptive() {
+        let basis: Vec<u32> = array(vec, "basis_indices")
+            .iter()
+            .map(|n| n.as_u64().unwrap() as u32)
+            .collect();
+        spec.with_indices(basis.into())
+            .unwrap_or_else(|e| panic!("{name}: basis_indices refused: {e}"))
+    } else {
+        spec
+    };
     let g = PatternGenerator::new(&spec);
     assert_eq!(
         g.words_per_pattern() as u64,
@@ -335,6 +346,19 @@ fn check_vector(vec: &Value) -> &str {
                         );
                         assert_eq!(
                             Some(f.positive),
+                            pat["positive"].as_bool(),
+                            "{name}: frame {i}"
+                        );
+                    }
+                    Family::AdaptiveHaar { .. } | Family::AdaptiveHadamard { .. } => {
+                        assert_eq!(i / 2, u64_of(pat, "pair"), "{name}: frame {i}");
+                        assert_eq!(
+                            g.adaptive_index(i).map(u64::from),
+                            Some(u64_of(pat, "basis_index")),
+                            "{name}: frame {i} basis index"
+                        );
+                        assert_eq!(
+                            Some(i.is_multiple_of(2)),
                             pat["positive"].as_bool(),
                             "{name}: frame {i}"
                         );
@@ -424,6 +448,22 @@ fn vectors_cover_the_contract() {
     assert!(any(
         &|s, _| matches!(s.family(), Family::Speckle { .. }) && s.seed() == u64::MAX
     ));
+    for family in ["adaptive_haar", "adaptive_hadamard"] {
+        assert!(
+            any(&|s, _| s.family().name() == family
+                && s.width() == 16
+                && s.count() == 2 * s.pixels() as u64),
+            "complete {family} set"
+        );
+        assert!(
+            any(&|s, _| s.family().name() == family
+                && s.family()
+                    .adaptive_params()
+                    .is_some_and(|(b, t)| b > 0 && t > 0.0)),
+            "{family} with a batch and a target error"
+        );
+    }
+    assert_eq!(array(&v, "adaptive_replays").len(), 8);
 }
 
 fn g_blocks(s: &PatternSpec) -> u64 {

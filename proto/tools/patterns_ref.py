@@ -82,8 +82,47 @@ def _is_uint(v) -> bool:
     return isinstance(v, int) and not isinstance(v, bool) and v >= 0
 
 
+ADAPTIVE = ("adaptive_haar", "adaptive_hadamard")
+
+
+def canonical_adaptive(raw: dict) -> dict:
+    """An adaptive spec (PATTERNS.md, "Adaptive families"), canonicalised."""
+    allowed = {"family", "width", "height", "count", "seed", "batch", "target_error"}
+    for key in raw:
+        if key not in allowed:
+            raise SpecError(key, "unknown field")
+    for key in ("width", "height", "count"):
+        if key not in raw:
+            raise SpecError(key, "missing")
+    width, height, count = raw["width"], raw["height"], raw["count"]
+    seed, batch = raw.get("seed", 0), raw.get("batch", 0)
+    target = raw.get("target_error", 0.0)
+    for key, v, top in (("width", width, 2**32), ("height", height, 2**32),
+                        ("count", count, 2**64), ("seed", seed, 2**64), ("batch", batch, 2**32)):
+        if not _is_uint(v) or v >= top:
+            raise SpecError(key, f"not an unsigned integer of the right size: {v!r}")
+    if not 1 <= width <= MAX_SIDE or width & (width - 1):
+        raise SpecError("width", "must be a power of two")
+    if height != width:
+        raise SpecError("height", "must equal width")
+    k = width * height
+    if k > MAX_PIXELS:
+        raise SpecError("width", "too many pixels")
+    if not 1 <= count <= MAX_COUNT or count % 2 or count > 2 * k:
+        raise SpecError("count", "must be even and at most 2 * width * height")
+    if batch > k:
+        raise SpecError("batch", "at most width * height")
+    if isinstance(target, bool) or not isinstance(target, (int, float)) \
+            or not math.isfinite(target) or target < 0:
+        raise SpecError("target_error", "a finite number >= 0")
+    return {"family": raw["family"], "batch": batch, "target_error": float(target),
+            "width": width, "height": height, "count": count, "seed": seed}
+
+
 def canonical_spec(raw: dict) -> dict:
     """Validates a spec object and returns it canonicalised, keys in the canonical order."""
+    if raw.get("family") in ADAPTIVE:
+        return canonical_adaptive(raw)
     params = {"raster": ("block", 1), "bernoulli": ("fill", 0.5),
               "hadamard": ("ordering", "natural"), "speckle": ("grain", 1)}
     family = raw.get("family")
@@ -324,12 +363,265 @@ def speckle_levels(spec: dict, i: int) -> list[int]:
 
 
 # ---------------------------------------------------------------------------------------------
+# adaptive_haar, adaptive_hadamard (PATTERNS.md, "Adaptive families")
+# ---------------------------------------------------------------------------------------------
+def log2(w: int) -> int:
+    return w.bit_length() - 1
+
+
+def haar_sign(w: int, n: int, x: int, y: int) -> int:
+    """The Haar function with Mallat index n at pixel (x, y): +1, -1 or 0."""
+    m = log2(w)
+    if n == 0:
+        return 1
+    r, c = divmod(n, w)
+    s = m - log2(max(r, c))
+    h = w >> s
+    x0, y0 = (c % h) << s, (r % h) << s
+    dx, dy = x - x0, y - y0
+    if not (0 <= dx < 1 << s and 0 <= dy < 1 << s):
+        return 0
+    half = 1 << (s - 1)
+    return -1 if ((c >= h and dx >= half) != (r >= h and dy >= half)) else 1
+
+
+def haar_scale(w: int, n: int) -> int:
+    r, c = divmod(n, w)
+    return log2(w) if n == 0 else log2(w) - log2(max(r, c))
+
+
+def basis_sign(spec: dict, n: int, x: int, y: int) -> int:
+    w = spec["width"]
+    if spec["family"] == "adaptive_haar":
+        return haar_sign(w, n, x, y)
+    u, v = divmod(n, w)
+    return 1 if (popcount(u & y) + popcount(v & x)) % 2 == 0 else -1
+
+
+def adaptive(spec: dict, i: int, indices: list[int]) -> list[bool]:
+    n, want = indices[i // 2], (1 if i % 2 == 0 else -1)
+    w = spec["width"]
+    return [basis_sign(spec, n, x, y) == want for y in range(w) for x in range(w)]
+
+
+def gain(spec: dict, n: int) -> float:
+    w = spec["width"]
+    return float(1 << haar_scale(w, n)) if spec["family"] == "adaptive_haar" else float(w)
+
+
+def level(spec: dict, n: int) -> int:
+    w = spec["width"]
+    m = log2(w)
+    if spec["family"] == "adaptive_haar":
+        return m if n == 0 else haar_scale(w, n) - 1
+    u, v = divmod(n, w)
+    tz = lambda a: m if a == 0 else (a & -a).bit_length() - 1  # noqa: E731
+    return min(tz(u), tz(v))
+
+
+def parent(spec: dict, n: int):
+    if n == 0:
+        return None
+    w = spec["width"]
+    r, c = divmod(n, w)
+    if spec["family"] == "adaptive_haar":
+        h = w >> haar_scale(w, n)
+        if h == 1:
+            return 0
+        up = lambda a: (h // 2 if a >= h else 0) + (a % h) // 2  # noqa: E731
+        return up(r) * w + up(c)
+    b = 1 << level(spec, n)
+    return (r & ~b) * w + (c & ~b)
+
+
+def fwht_list(x: list[float]) -> list[float]:
+    x, h = x[:], 1
+    while h < len(x):
+        for i in range(len(x)):
+            if i & h == 0:
+                x[i], x[i + h] = x[i] + x[i + h], x[i] - x[i + h]
+        h *= 2
+    return x
+
+
+def upsample(a: list[float], n: int) -> list[float]:
+    """Bicubic 2x upsampling of an n x n array (rows, then columns; clamped indices)."""
+    def step(x: list[float]) -> list[float]:
+        at = lambda j: x[min(max(j, 0), n - 1)]  # noqa: E731
+        out = []
+        for j in range(n):
+            out.append((((-3.0 * at(j - 2) + 29.0 * at(j - 1)) + 111.0 * at(j)) + -9.0 * at(j + 1))
+                       * (1 / 128))
+            out.append((((-9.0 * at(j - 1) + 111.0 * at(j)) + 29.0 * at(j + 1)) + -3.0 * at(j + 2))
+                       * (1 / 128))
+        return out
+    rows = [step(a[i * n:(i + 1) * n]) for i in range(n)]
+    cols = [step([rows[i][x] for i in range(n)]) for x in range(2 * n)]
+    return [cols[x][y] for y in range(2 * n) for x in range(2 * n)]
+
+
+def predict(spec: dict, v: list[float]) -> list[float]:
+    w = spec["width"]
+    m, k = log2(w), w * w
+    p = [0.0] * k
+    if m == 0:
+        return p
+    avg = {}
+    if spec["family"] == "adaptive_haar":
+        avg[m] = [v[0] * (1 / w)]
+        for lv in range(m - 1, 0, -1):
+            h, t = w >> (lv + 1), 2.0 ** -(lv + 1)
+            out = [0.0] * (4 * h * h)
+            for pr in range(h):
+                for pc in range(h):
+                    a = avg[lv + 1][pr * h + pc]
+                    dx, dy = v[pr * w + h + pc], v[(h + pr) * w + pc]
+                    dxy = v[(h + pr) * w + h + pc]
+                    n2 = 2 * h
+                    out[2 * pr * n2 + 2 * pc] = a + t * ((dx + dy) + dxy)
+                    out[2 * pr * n2 + 2 * pc + 1] = a + t * ((dy - dx) - dxy)
+                    out[(2 * pr + 1) * n2 + 2 * pc] = a + t * ((dx - dy) - dxy)
+                    out[(2 * pr + 1) * n2 + 2 * pc + 1] = a + t * ((dxy - dx) - dy)
+            avg[lv] = out
+    else:
+        for lv in range(1, m + 1):
+            nl = w >> lv
+            g = [v[((u << lv) * w) + (x << lv)] for u in range(nl) for x in range(nl)]
+            avg[lv] = [a * (1 / w) for a in fwht_list(g)]
+    for lv in range(m):
+        n = w >> (lv + 1)
+        up = upsample(avg[lv + 1], n)
+        big = 2 * n
+        if spec["family"] == "adaptive_haar":
+            q = 2.0 ** (lv - 1)
+            for pr in range(n):
+                for pc in range(n):
+                    a, b = up[2 * pr * big + 2 * pc], up[2 * pr * big + 2 * pc + 1]
+                    c, d = up[(2 * pr + 1) * big + 2 * pc], up[(2 * pr + 1) * big + 2 * pc + 1]
+                    p[pr * w + n + pc] = q * ((a - b) + (c - d))
+                    p[(n + pr) * w + pc] = q * ((a + b) - (c + d))
+                    p[(n + pr) * w + n + pc] = q * ((a - b) - (c - d))
+        else:
+            f = fwht_list(up)
+            q = 2.0 ** (2 * lv - m)
+            for u in range(big):
+                for x in range(big):
+                    if (u | x) & 1:
+                        p[(u << lv) * w + (x << lv)] = f[u * big + x] * q
+    p[0] = 0.0
+    return p
+
+
+class AdaptivePlanner:
+    """The planner of PATTERNS.md, "The planner", written from the text."""
+
+    def __init__(self, spec: dict, channels: int):
+        self.spec, self.c = canonical_spec(spec), channels
+        w = self.spec["width"]
+        self.k = w * w
+        self.budget = min(self.spec["count"] // 2, self.k)
+        batch = self.spec["batch"]
+        self.batch = batch if batch else max(16, -(-self.k * channels // 1024),
+                                             -(-self.budget // 128))
+        self.target = self.spec["target_error"]
+        self.issued, self.order, self.outstanding = [False] * self.k, [], []
+        self.v = [[0.0] * self.k for _ in range(channels)]
+        self.energy = [0.0] * channels
+        self.score = [0.0] * self.k
+        self.estimate, self.stopped = None, False
+
+    def poll(self):
+        if len(self.outstanding) >= 2 or self.stopped or len(self.order) >= self.budget:
+            return None
+        if self.target > 0 and self.estimate is not None and self.estimate < self.target:
+            self.stopped = True
+            return None
+        size = min(self.batch, self.budget - len(self.order))
+
+        def key(n):
+            par = parent(self.spec, n)
+            eligible = par is None or self.issued[par]
+            return (0 if eligible else 1, -self.score[n], -level(self.spec, n), n)
+        chosen = sorted((n for n in range(self.k) if not self.issued[n]), key=key)[:size]
+        for n in chosen:
+            self.issued[n] = True
+        first = len(self.order)
+        self.order += chosen
+        self.outstanding.append((first, len(chosen)))
+        return chosen
+
+    def observe(self, frames: list[float]) -> None:
+        first, pairs = self.outstanding.pop(0)
+        c = self.c
+        assert len(frames) == 2 * pairs * c and all(math.isfinite(f) for f in frames)
+        for j in range(pairs):
+            n = self.order[first + j]
+            for ch in range(c):
+                val = (frames[2 * j * c + ch] - frames[(2 * j + 1) * c + ch]) / gain(self.spec, n)
+                self.v[ch][n] = val
+                self.energy[ch] += val * val
+        self.score = [0.0] * self.k
+        ratio, lit = 0.0, 0
+        for ch in range(c):
+            if self.energy[ch] == 0.0:
+                continue
+            norm, e = math.sqrt(self.energy[ch]), 0.0
+            p = predict(self.spec, self.v[ch])
+            for n in range(self.k):
+                self.score[n] += abs(p[n]) / norm
+                if not self.issued[n]:
+                    e += p[n] * p[n]
+            ratio += e / self.energy[ch]
+            lit += 1
+        self.estimate = math.sqrt(ratio / lit) if lit else None
+
+
+def replay(spec: dict, channels: int, frames: list[float]) -> list[int]:
+    planner, queue, at = AdaptivePlanner(spec, channels), [], 0
+    while True:
+        while (b := planner.poll()) is not None:
+            queue.append(b)
+        if not queue:
+            break
+        need = 2 * len(queue.pop(0)) * channels
+        if len(frames) - at < need:
+            break
+        planner.observe(frames[at:at + need])
+        at += need
+    return planner.order
+
+
+def simulate_adaptive(spec: dict, scenes: list[list[int]], dark: int) -> list[float]:
+    """A simulated rig: shows what the planner asks, returns every frame value (integers, so
+    the JSON is exact)."""
+    c = len(scenes)
+    planner, queue, frames = AdaptivePlanner(spec, c), [], []
+    while True:
+        while (b := planner.poll()) is not None:
+            queue.append(b)
+        if not queue:
+            break
+        batch, values = queue.pop(0), []
+        for n in batch:
+            for sign in (1, -1):
+                pat = adaptive(planner.spec, 0 if sign == 1 else 1, [n])
+                for t in scenes:
+                    values.append(float(dark + sum(tv for on, tv in zip(pat, t) if on)))
+        planner.observe(values)
+        frames += values
+    return frames
+
+
+# ---------------------------------------------------------------------------------------------
 # One pattern of any spec
 # ---------------------------------------------------------------------------------------------
 class Generator:
-    def __init__(self, spec: dict):
+    def __init__(self, spec: dict, indices: list[int] | None = None):
         self.spec = canonical_spec(spec)
         self.table = None
+        self.indices = indices
+        if self.spec["family"] in ADAPTIVE:
+            assert indices is not None, "an adaptive spec needs its indices"
         if self.spec["family"] == "hadamard":
             self.table = ordering_table(self.spec["width"], self.spec["height"],
                                         self.spec["ordering"])
@@ -344,6 +636,8 @@ class Generator:
             return words
         if f == "hadamard":
             return pack(hadamard(self.spec, i, self.table))
+        if f in ADAPTIVE:
+            return pack(adaptive(self.spec, i, self.indices))
         raise ValueError("speckle has grey levels, not bits")
 
     def levels(self, i: int) -> list[int]:
@@ -382,14 +676,16 @@ def encode_values(values: list[float]) -> bytes:
 # The vectors
 # ---------------------------------------------------------------------------------------------
 def vector(name: str, raw: dict, indices: list[int], runs: list[tuple[int, int]],
-           note: str = "") -> dict:
-    g = Generator(raw)
+           note: str = "", basis: list[int] | None = None) -> dict:
+    g = Generator(raw, basis)
     spec = g.spec
     out = {"name": name}
     if note:
         out["note"] = note
     out["input"] = raw
     out["spec"] = spec
+    if basis is not None:
+        out["basis_indices"] = basis
     out["pixels"] = pixels(spec)
     out["words_per_pattern"] = words_per_pattern(spec)
     fam = spec["family"]
@@ -407,6 +703,8 @@ def vector(name: str, raw: dict, indices: list[int], runs: list[tuple[int, int]]
         if fam == "hadamard":
             row, n, pos = hadamard_frame(spec, i, g.table)
             e.update({"row": row, "natural": n, "positive": pos})
+        if fam in ADAPTIVE:
+            e.update({"pair": i // 2, "basis_index": basis[i // 2], "positive": i % 2 == 0})
         if fam == "speckle":
             e["levels"] = g.levels(i)
         else:
@@ -505,6 +803,25 @@ def build() -> dict:
                            "ordering": "russian_doll", "seed": 99},
                           [0, 1, 2, 7, 31, 511, 1023], [(0, 1024)]))
 
+    # adaptive -----------------------------------------------------------------------------
+    for fam in ADAPTIVE:
+        for w in (1, 4, 16):
+            k = w * w
+            order = [(n * 5 + 3) % k for n in range(k)] if w > 1 else [0]
+            assert sorted(order) == list(range(k))
+            vectors.append(vector(f"{fam} {w}x{w}", {"family": fam, "width": w, "height": w,
+                                                     "count": 2 * k},
+                                  sorted({i for i in (0, 1, 2, 3, 2 * k - 2, 2 * k - 1) if i < 2 * k}),
+                                  [(0, 2 * k)],
+                                  "basis_indices: the session's index sequence (5n + 3 mod k)",
+                                  basis=order))
+        vectors.append(vector(f"{fam} 32x32 partial", {"family": fam, "width": 32, "height": 32,
+                                                       "count": 400, "batch": 10,
+                                                       "target_error": 0.05},
+                              [0, 1, 198, 199], [(0, 200)],
+                              "100 of the 200 budgeted pairs shown",
+                              basis=[(n * 37 + 11) % 1024 for n in range(100)]))
+
     # speckle ------------------------------------------------------------------------------
     vectors.append(vector("speckle 10x7 grain 3 seed 99",
                           {"family": "speckle", "width": 10, "height": 7, "count": 2 * B,
@@ -541,6 +858,22 @@ def build() -> dict:
         wire.append({"values": values, "channels": channels, "bytes_hex": data.hex(),
                      "crc32c": f"{crc32c(data):08x}"})
 
+    adaptive_replays = []
+    for fam in ADAPTIVE:
+        for w, c, count, batch, target, dark in ((16, 1, 160, 0, 0.0, 7), (16, 2, 200, 12, 0.0, 0),
+                                                 (8, 1, 128, 0, 0.0, 3), (16, 1, 512, 16, 0.02, 1)):
+            def scene(shift: int) -> list[int]:
+                # An edge, a bright square and a ramp, in integers (exact JSON).
+                return [(3 * x + (40 if (x - shift) ** 2 + (y - 9) ** 2 < 20 else 0)
+                         + (25 if y > 12 else 0)) for y in range(w) for x in range(w)]
+            raw = {"family": fam, "width": w, "height": w, "count": count, "batch": batch,
+                   "target_error": target}
+            scenes = [scene(6 + 4 * i) for i in range(c)]
+            frames = simulate_adaptive(raw, scenes, dark)
+            order = replay(raw, c, frames)
+            adaptive_replays.append({"spec": canonical_spec(raw), "channels": c,
+                                     "frames": [int(f) for f in frames], "indices": order})
+
     return {
         "format": "helmholtz-pattern-vectors/1",
         "generated_by": "python3 proto/tools/patterns_ref.py",
@@ -556,12 +889,18 @@ def build() -> dict:
             "random_words.word": "random_word(seed, counter), 16 hex digits",
             "fills.fill_f64": "the requested fill's IEEE-754 binary64 bits, big-endian hex",
             "orderings.natural": "natural index u * W + v of each row of the ordering",
+            "basis_indices": "adaptive families: the basis index of each split pair (frames "
+                             "2r, 2r + 1 show basis_indices[r])",
+            "adaptive_replays": "adaptive sessions of a simulated rig: the frames (integers, "
+                                "frame-major, channels inner) replay through the planner to "
+                                "the issued indices",
         },
         "random_words": random_words,
         "fills": fills,
         "orderings": orderings,
         "wire": wire,
         "vectors": vectors,
+        "adaptive_replays": adaptive_replays,
     }
 
 

@@ -144,13 +144,18 @@ pub const EXACT_REASON: &str = "the rows are a complete orthogonal set (raster o
      non-negative least-squares solution, which for an orthogonal set is the exact inverse clipped at 0. (Held-out error cannot \
      judge a model here either: a held-out raster pixel or Hadamard coefficient is orthogonal to every fitted row.)";
 
-/// Whether the session is a complete raster or Hadamard set, which `auto` inverts exactly.
+/// Whether the session is a complete raster, Hadamard or adaptive set (an adaptive session that
+/// showed every basis function), which `auto` inverts exactly.
 pub fn exact_inverse_applies(problem: &super::Problem) -> bool {
     use helmholtz_proto::Family;
-    matches!(
-        problem.spec.family(),
-        Family::Raster { .. } | Family::Hadamard { .. }
-    ) && super::MethodConfig::Direct.check(problem).is_ok()
+    let complete_adaptive =
+        problem.spec.is_adaptive() && problem.rows >= 2 * problem.spec.pixels() as u64;
+    (complete_adaptive
+        || matches!(
+            problem.spec.family(),
+            Family::Raster { .. } | Family::Hadamard { .. }
+        ))
+        && super::MethodConfig::Direct.check(problem).is_ok()
 }
 
 /// One channel's problem.

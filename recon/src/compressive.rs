@@ -23,7 +23,7 @@ use super::holdout::{self, Score};
 use super::linop::LinearOperator;
 use super::method::{Fit, MethodConfig, Model};
 use super::noise::{self, NoiseEstimate};
-use super::ops::{self, BernoulliOperator, HadamardOperator, RowSubset};
+use super::ops::{self, BernoulliOperator, HaarSubsetOperator, HadamardOperator, RowSubset};
 use super::solve::{self, Lambda, Solution, SolveOptions};
 use super::stream::RowStream;
 use super::{BucketSource, Control, DualImage, Problem, ReconError, Reconstruction, Report};
@@ -44,6 +44,7 @@ pub(crate) struct Planned<'a> {
 enum PlannedOp {
     Bernoulli(BernoulliOperator),
     Hadamard(HadamardOperator),
+    Haar(HaarSubsetOperator),
     Other(Box<dyn LinearOperator>),
 }
 
@@ -63,7 +64,29 @@ impl<'a> Planned<'a> {
         let unsolvable = |e: ops::OpError| ReconError::Unsolvable(e.to_string());
         let mut details = serde_json::Map::new();
         let (op, data, noise) = match spec.family() {
-            Family::Hadamard { .. } => {
+            Family::AdaptiveHaar { .. } => {
+                let frames = problem.rows - problem.rows % 2;
+                if frames == 0 {
+                    return Err(ReconError::Unsolvable(
+                        "adaptive_haar needs at least one P+/P- pair of frames; the session has 1 frame"
+                            .into(),
+                    ));
+                }
+                let op = HaarSubsetOperator::from_spec(spec, frames).map_err(unsolvable)?;
+                let used = &buckets[..frames as usize * channels];
+                let indices: Vec<u32> = op.indices().iter().map(|&n| n as u32).collect();
+                let all = crate::adaptive::pair_coefficients(spec, &indices, channels, used);
+                let data: Vec<Vec<f64>> = (0..channels)
+                    .map(|ch| all.iter().skip(ch).step_by(channels).copied().collect())
+                    .collect();
+                details.insert(
+                    "data".into(),
+                    json!("split-pair differences (y+ - y-)/2^s, s the Haar function's scale"),
+                );
+                // The pair sums light supports of every size: no noise estimate from them.
+                (PlannedOp::Haar(op), data, vec![None; channels])
+            }
+            Family::Hadamard { .. } | Family::AdaptiveHadamard { .. } => {
                 // Only whole P+/P- pairs are used.
                 let frames = problem.rows - problem.rows % 2;
                 if frames == 0 {
@@ -124,6 +147,7 @@ impl<'a> Planned<'a> {
         match &self.op {
             PlannedOp::Bernoulli(op) => op,
             PlannedOp::Hadamard(op) => op,
+            PlannedOp::Haar(op) => op,
             PlannedOp::Other(op) => op.as_ref(),
         }
     }
@@ -148,6 +172,11 @@ impl<'a> Planned<'a> {
             (PlannedOp::Hadamard(op), _) => auto::Design::Orthonormal {
                 measured: op.natural_indices().to_vec(),
             },
+            // Orthonormal rows, but not Walsh-Hadamard ones: no extrapolation of the unmeasured
+            // energy by Hadamard level.
+            (PlannedOp::Haar(_), _) => auto::Design::Orthonormal {
+                measured: Vec::new(),
+            },
             (PlannedOp::Bernoulli(op), Family::Bernoulli { .. }) => {
                 // The rows' actual fill (the operator keeps the pattern sums).
                 let sums = op.row_sums();
@@ -161,14 +190,16 @@ impl<'a> Planned<'a> {
         }
     }
 
-    pub fn is_hadamard(&self) -> bool {
-        matches!(self.op, PlannedOp::Hadamard(_))
+    /// Split pairs over their gain: orthonormal rows (Hadamard, adaptive Hadamard or Haar).
+    pub fn has_orthonormal_rows(&self) -> bool {
+        matches!(self.op, PlannedOp::Hadamard(_) | PlannedOp::Haar(_))
     }
 
     /// Structured designs: the finest grid the rows measure (see [`auto::Channel`]).
     pub fn measured_resolution(&self) -> Option<(usize, usize)> {
         match &self.op {
             PlannedOp::Hadamard(op) => Some(op.finest_resolution()),
+            PlannedOp::Haar(op) => Some(op.finest_resolution()),
             _ => None,
         }
     }
@@ -183,6 +214,7 @@ impl<'a> Planned<'a> {
         Ok(match &self.op {
             PlannedOp::Bernoulli(op) => Box::new(op.select_rows(rows)),
             PlannedOp::Hadamard(op) => Box::new(op.select_rows(rows)),
+            PlannedOp::Haar(op) => Box::new(op.select_rows(rows)),
             PlannedOp::Other(op) => {
                 let again = ops::try_measurement_operator(self.spec, op.rows() as u64)
                     .map_err(|e| ReconError::Unsolvable(e.to_string()))?;
@@ -325,7 +357,7 @@ pub fn run(
                 let b_train = gather(b, &split.train);
                 let (op_fit, b_fit) = fitting(train.as_ref(), &b_train, offset);
                 let warm_start =
-                    Planned::cold_start(op_fit.as_ref(), &b_fit, planned.is_hadamard());
+                    Planned::cold_start(op_fit.as_ref(), &b_fit, planned.has_orthonormal_rows());
                 let opts = SolveOptions {
                     progress: (span.0, mid),
                     warm_start,
@@ -354,7 +386,7 @@ pub fn run(
             _ => {
                 let (op_fit, b_fit) = fitting(planned.op(), b, offset);
                 let warm_start =
-                    Planned::cold_start(op_fit.as_ref(), &b_fit, planned.is_hadamard());
+                    Planned::cold_start(op_fit.as_ref(), &b_fit, planned.has_orthonormal_rows());
                 let opts = SolveOptions {
                     progress: span,
                     warm_start,

@@ -40,6 +40,18 @@ pub fn run(
     let (images, details) = match (problem.spec.family(), config) {
         (Family::Raster { .. }, MethodConfig::Direct) => raster(problem, stream, control)?,
         (Family::Hadamard { .. }, MethodConfig::Direct) => hadamard(problem, stream, control, k)?,
+        // The adaptive scheme's own image: the zero-filled inverse of the pairs it chose.
+        (Family::AdaptiveHadamard { .. }, MethodConfig::Direct | MethodConfig::ZeroFilled) => {
+            let pairs = (problem.rows / 2) as usize;
+            let mut out = hadamard(problem, stream, control, pairs)?;
+            out.1.insert("family".into(), json!("adaptive_hadamard"));
+            out.1.insert("pairs_used".into(), json!(pairs));
+            out.1.insert("pairs_missing".into(), json!(k - pairs));
+            out
+        }
+        (Family::AdaptiveHaar { .. }, MethodConfig::Direct | MethodConfig::ZeroFilled) => {
+            adaptive_haar(problem, stream, control)?
+        }
         (Family::Hadamard { .. }, MethodConfig::ZeroFilled) => {
             let mut out = hadamard(problem, stream, control, (problem.rows / 2) as usize)?;
             out.1.insert("pairs_used".into(), json!(problem.rows / 2));
@@ -319,6 +331,72 @@ fn hadamard(
     // Per channel, in the units of (y+ - y-) / sqrt(k); for the exact inverse this is also
     // each pixel's noise (the transform is orthonormal).
     details.insert("noise_estimate".into(), json!(noise));
+    Ok((images, details))
+}
+
+/// The zero-filled Haar inverse of a resolved adaptive_haar session's pairs: coefficient
+/// `(y+ - y-) / 2^s` at its Mallat index (`ops::haar`), then the inverse orthonormal transform.
+fn adaptive_haar(
+    problem: &Problem,
+    mut stream: RowStream,
+    control: &Control,
+) -> Result<Output, ReconError> {
+    use crate::linop::LinearOperator;
+    let spec = problem.spec;
+    let m = problem.channels;
+    let k = spec.pixels();
+    let w = spec.width();
+    let indices = spec
+        .adaptive_indices()
+        .expect("check() requires a resolved spec");
+    let pairs = (problem.rows / 2) as usize;
+    let mut coefficients = vec![0.0f64; m * k];
+    let mut positive = vec![0.0f64; m];
+    let mut dark = vec![f64::NAN; m];
+    while let Some(b) = stream.next_block()? {
+        for (i, row) in b.values.chunks_exact(m).enumerate() {
+            let frame = b.first_row + i as u64;
+            let pair = (frame / 2) as usize;
+            if pair >= pairs {
+                break;
+            }
+            if frame.is_multiple_of(2) {
+                positive.copy_from_slice(row);
+                continue;
+            }
+            let n = indices[pair];
+            let gain = helmholtz_proto::HaarFunction::new(w, n).side() as f64;
+            for ch in 0..m {
+                coefficients[ch * k + n as usize] = (positive[ch] - row[ch]) / gain;
+                if n == 0 {
+                    dark[ch] = row[ch]; // P- of the scaling function lights nothing
+                }
+            }
+        }
+        control.set_progress(0.95 * stream.rows_seen() as f64 / stream.total() as f64);
+    }
+    let wavelet = crate::transforms::wavelet::Wavelet2d::haar(w as usize, w as usize);
+    let mut image = vec![0.0f64; k];
+    let mut images = Vec::with_capacity(m);
+    for c in coefficients.chunks_exact(k) {
+        if control.is_cancelled() {
+            return Err(ReconError::Cancelled);
+        }
+        wavelet.adjoint(c, &mut image);
+        images.push(DualImage {
+            width: w,
+            height: w,
+            data: image.iter().map(|&v| v as f32).collect(),
+        });
+    }
+    let mut details = Map::new();
+    details.insert("family".into(), json!("adaptive_haar"));
+    details.insert("pairs_used".into(), json!(pairs));
+    details.insert("pairs_missing".into(), json!(k - pairs));
+    details.insert(
+        "dark_level".into(),
+        Value::Array(dark.iter().map(|&v| finite(v)).collect()),
+    );
     Ok((images, details))
 }
 

@@ -13,6 +13,7 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 
 use helmholtz_proto::PatternSpec;
 
+pub mod adaptive;
 pub mod auto;
 pub mod colour;
 pub mod compressive;

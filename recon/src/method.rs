@@ -529,7 +529,10 @@ impl MethodConfig {
                     2.0 * (k * (n / (g * g)).ceil() * 4.0 + n * 4.0)
                 }
                 // Fast transforms and index lists: no stored matrix.
-                Family::Hadamard { .. } | Family::Raster { .. } => 16.0 * k,
+                Family::Hadamard { .. }
+                | Family::Raster { .. }
+                | Family::AdaptiveHadamard { .. }
+                | Family::AdaptiveHaar { .. } => 16.0 * k,
             }
         };
         let buckets = 16.0 * k * ch;
@@ -550,7 +553,28 @@ impl MethodConfig {
                 problem.spec.count()
             )));
         }
-        let hadamard = matches!(problem.spec.family(), Family::Hadamard { .. });
+        // Split-pair families: y+ - y- per pair.
+        let hadamard = matches!(
+            problem.spec.family(),
+            Family::Hadamard { .. } | Family::AdaptiveHadamard { .. } | Family::AdaptiveHaar { .. }
+        );
+        if problem.spec.is_adaptive() {
+            let Some(indices) = problem.spec.adaptive_indices() else {
+                return Err(ReconError::Unsolvable(format!(
+                    "this {} session's spec is not resolved: its reconstruction needs the pattern \
+                     indices the session showed (its issued batches)",
+                    problem.spec.family().name()
+                )));
+            };
+            if problem.rows > 2 * indices.len() as u64 {
+                return Err(ReconError::Unsolvable(format!(
+                    "{} rows requested but the session issued {} split pairs ({} frames)",
+                    problem.rows,
+                    indices.len(),
+                    2 * indices.len()
+                )));
+            }
+        }
         if let Some(Fit {
             noise: Noise::Poisson { .. },
             ..
@@ -584,9 +608,11 @@ impl MethodConfig {
                             .into(),
                     ));
                 }
-                Family::Hadamard { .. } => {
+                Family::Hadamard { .. }
+                | Family::AdaptiveHadamard { .. }
+                | Family::AdaptiveHaar { .. } => {
                     return Err(ReconError::Unsolvable(
-                        "offset \"fit\" does not apply to Hadamard split pairs: y+ - y- cancels a constant dark level exactly".into(),
+                        "offset \"fit\" does not apply to split pairs: y+ - y- cancels a constant dark level exactly".into(),
                     ));
                 }
                 _ => {}
@@ -599,7 +625,7 @@ impl MethodConfig {
         }
         if matches!(self, MethodConfig::ZeroFilled | MethodConfig::Levels { .. }) && !hadamard {
             return Err(ReconError::Unsolvable(format!(
-                "{} inverts Hadamard split pairs; this session's patterns are {}",
+                "{} inverts Hadamard or adaptive split pairs; this session's patterns are {}",
                 self.name(),
                 problem.spec.family().name()
             )));
@@ -640,6 +666,9 @@ impl MethodConfig {
                         )));
                     }
                 }
+                // The adaptive scheme's own image: the zero-filled inverse of the coefficients it
+                // chose (exact when the budget covered them all).
+                Family::AdaptiveHadamard { .. } | Family::AdaptiveHaar { .. } => {}
                 other => {
                     return Err(ReconError::Unsolvable(format!(
                         "direct inverts complete raster or hadamard sets; this session's patterns are {}",

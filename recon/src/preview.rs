@@ -13,6 +13,11 @@
 //! - **Hadamard** (split pairs): the zero-filled inverse, `t = H d / k` with `d_n = y+ - y-` at the
 //!   natural index of every complete pair seen and 0 elsewhere: `zero_filled` on those rows, and
 //!   after all `2k` frames the exact image (`direct`).
+//! - **adaptive_hadamard**: as Hadamard, at the natural indices the session chose;
+//!   **adaptive_haar**: the zero-filled Haar inverse, coefficient `(y+ - y-) / 2^s` at each
+//!   chosen Mallat index (`zero_filled` and `direct` on those rows). The preview needs the
+//!   indices: build it from the spec resolved so far and call [`Preview::resolve`] as batches are
+//!   issued.
 //! - **Raster**: the running raster image, each measured block its mean bucket over its pixels and
 //!   unmeasured blocks 0: after one complete scan it equals `direct`.
 //!
@@ -20,10 +25,12 @@
 //! camera pixels (the camera as a bucket detector: by reciprocity the dual image seen from the
 //! projector); the numerics here see one channel.
 
-use helmholtz_proto::{Family, PatternGenerator, PatternSpec};
+use helmholtz_proto::{Family, HaarFunction, PatternGenerator, PatternSpec};
 
 use crate::DualImage;
 use crate::fwht::fwht;
+use crate::linop::LinearOperator;
+use crate::transforms::wavelet::Wavelet2d;
 
 /// The progressive image of one session, per channel (see the module docs).
 #[derive(Clone, Debug)]
@@ -39,7 +46,16 @@ pub struct Preview {
 enum State {
     Dgi(Dgi),
     Hadamard(Hadamard),
+    Haar(Haar),
     Raster(Raster),
+}
+
+/// adaptive_haar: orthonormal coefficients at their Mallat index.
+#[derive(Clone, Debug)]
+struct Haar {
+    /// `(y+ - y-) / 2^s`, channel after channel (`channels * k`).
+    coefficients: Vec<f64>,
+    positive: Vec<f64>,
 }
 
 /// DGI sums (module docs of [`crate::correlate`], "Formulas").
@@ -93,10 +109,16 @@ impl Preview {
                     vec![0.0; k]
                 },
             }),
-            Family::Hadamard { .. } => State::Hadamard(Hadamard {
-                d: vec![0.0; channels * k],
+            Family::AdaptiveHaar { .. } => State::Haar(Haar {
+                coefficients: vec![0.0; channels * k],
                 positive: vec![0.0; channels],
             }),
+            Family::Hadamard { .. } | Family::AdaptiveHadamard { .. } => {
+                State::Hadamard(Hadamard {
+                    d: vec![0.0; channels * k],
+                    positive: vec![0.0; channels],
+                })
+            }
             Family::Raster { .. } => {
                 let (_, bx, by) = spec.raster_grid().expect("raster");
                 let blocks = bx as usize * by as usize;
@@ -120,9 +142,27 @@ impl Preview {
     pub fn method(&self) -> &'static str {
         match self.state {
             State::Dgi(_) => "dgi",
-            State::Hadamard(_) => "zero_filled",
+            State::Hadamard(_) | State::Haar(_) => "zero_filled",
             State::Raster(_) => "direct",
         }
+    }
+
+    /// An adaptive session: `spec` is the session's spec resolved with every index issued so
+    /// far (the same declaration, and a sequence that extends the one this preview had). Rows
+    /// of pairs not resolved when they are pushed are counted but never shown: resolve first.
+    pub fn resolve(&mut self, spec: &PatternSpec) {
+        assert!(
+            spec == &self.spec,
+            "a preview resolves its own session's spec"
+        );
+        let old = self.spec.adaptive_indices().unwrap_or(&[]);
+        let new = spec.adaptive_indices().unwrap_or(&[]);
+        assert!(
+            new.starts_with(old),
+            "an adaptive session's indices only grow"
+        );
+        self.spec = spec.clone();
+        self.generator = PatternGenerator::new(spec);
     }
 
     /// Rows seen so far.
@@ -207,13 +247,30 @@ impl Preview {
                 if i >= 2 * k as u64 {
                     return;
                 }
-                let frame = self.generator.split_frame(i).expect("hadamard");
+                // An adaptive session's pair whose index is not resolved yet cannot be shown.
+                let Some(frame) = self.generator.split_frame(i) else {
+                    debug_assert!(self.spec.is_adaptive(), "hadamard frames are known");
+                    return;
+                };
                 if frame.positive {
                     s.positive.copy_from_slice(c);
                 } else {
                     let n = frame.natural as usize;
                     for (ch, (&yp, &ym)) in s.positive.iter().zip(c).enumerate() {
                         s.d[ch * k + n] = yp - ym;
+                    }
+                }
+            }
+            State::Haar(s) => {
+                let Some(n) = self.generator.adaptive_index(i) else {
+                    return; // not resolved yet: counted, not shown
+                };
+                if i.is_multiple_of(2) {
+                    s.positive.copy_from_slice(c);
+                } else {
+                    let gain = HaarFunction::new(self.spec.width(), n).side() as f64;
+                    for (ch, (&yp, &ym)) in s.positive.iter().zip(c).enumerate() {
+                        s.coefficients[ch * k + n as usize] = (yp - ym) / gain;
                     }
                 }
             }
@@ -256,6 +313,12 @@ impl Preview {
                 fwht(&mut t);
                 let scale = 1.0 / k as f64;
                 t.iter().map(|v| (v * scale) as f32).collect()
+            }
+            State::Haar(s) => {
+                let wavelet = Wavelet2d::haar(w, h);
+                let mut t = vec![0.0; k];
+                wavelet.adjoint(&s.coefficients[channel * k..(channel + 1) * k], &mut t);
+                t.iter().map(|&v| v as f32).collect()
             }
             State::Raster(s) => {
                 let (block, bx, _) = self.spec.raster_grid().expect("raster");

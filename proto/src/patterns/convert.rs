@@ -44,11 +44,19 @@ impl TryFrom<&v1::PatternSpec> for PatternSpec {
                 };
                 Family::Speckle { grain }
             }
+            Ok(f @ (v1::PatternFamily::AdaptiveHaar | v1::PatternFamily::AdaptiveHadamard)) => {
+                let (batch, target_error) = match &m.params {
+                    Some(Params::Adaptive(p)) => (p.batch, p.target_error),
+                    None => (0, 0.0),
+                    Some(_) => return Err(params_mismatch("an adaptive family")),
+                };
+                Family::adaptive(f == v1::PatternFamily::AdaptiveHaar, batch, target_error)
+            }
             Ok(v1::PatternFamily::Unspecified) | Err(_) => {
                 return Err(SpecError {
                     field: "family",
                     message: format!(
-                        "must be raster, bernoulli, hadamard or speckle (got enum value {})",
+                        "must be raster, bernoulli, hadamard, speckle, adaptive_haar or adaptive_hadamard (got enum value {})",
                         m.family
                     ),
                 });
@@ -112,6 +120,26 @@ impl From<&PatternSpec> for v1::PatternSpec {
                 v1::PatternFamily::Speckle,
                 Params::Speckle(v1::SpeckleParams { grain }),
             ),
+            Family::AdaptiveHaar {
+                batch,
+                target_error,
+            } => (
+                v1::PatternFamily::AdaptiveHaar,
+                Params::Adaptive(v1::AdaptiveParams {
+                    batch,
+                    target_error,
+                }),
+            ),
+            Family::AdaptiveHadamard {
+                batch,
+                target_error,
+            } => (
+                v1::PatternFamily::AdaptiveHadamard,
+                Params::Adaptive(v1::AdaptiveParams {
+                    batch,
+                    target_error,
+                }),
+            ),
         };
         v1::PatternSpec {
             family: family as i32,
@@ -121,5 +149,51 @@ impl From<&PatternSpec> for v1::PatternSpec {
             seed: s.seed(),
             params: Some(params),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn adaptive_specs_round_trip_through_protobuf() {
+        for family in [
+            Family::AdaptiveHaar {
+                batch: 32,
+                target_error: 0.02,
+            },
+            Family::AdaptiveHadamard {
+                batch: 0,
+                target_error: 0.0,
+            },
+        ] {
+            let spec = PatternSpec::new(family, 16, 16, 100, 3).unwrap();
+            let m = v1::PatternSpec::from(&spec);
+            assert_eq!(PatternSpec::try_from(&m).unwrap(), spec);
+        }
+        // No params: the defaults (automatic batches, the whole budget).
+        let m = v1::PatternSpec {
+            family: v1::PatternFamily::AdaptiveHadamard as i32,
+            width: 8,
+            height: 8,
+            count: 16,
+            seed: 0,
+            params: None,
+        };
+        assert_eq!(
+            PatternSpec::try_from(&m).unwrap().family(),
+            &Family::AdaptiveHadamard {
+                batch: 0,
+                target_error: 0.0
+            }
+        );
+        let wrong = v1::PatternSpec {
+            params: Some(v1::pattern_spec::Params::Speckle(v1::SpeckleParams {
+                grain: 2,
+            })),
+            ..m
+        };
+        assert_eq!(PatternSpec::try_from(&wrong).unwrap_err().field, "params");
     }
 }

@@ -4,11 +4,13 @@
 //! patterns can be generated in any order and in parallel. `PatternGenerator` only precomputes
 //! what depends on the spec alone (the Hadamard ordering table, the Bernoulli fill digits).
 
+pub mod adaptive;
 mod convert;
 pub mod hadamard;
 pub mod rng;
 mod spec;
 
+pub use adaptive::HaarFunction;
 pub use convert::ProtoSpecError;
 pub use hadamard::{HadamardOrdering, HadamardPlan};
 pub use spec::{
@@ -55,6 +57,11 @@ enum Kind {
         cells_x: u64,
         cells: u64,
     },
+    /// Pair `r` shows basis function `indices[r]` (None: an unresolved spec, no frames).
+    Adaptive {
+        haar: bool,
+        indices: Option<std::sync::Arc<[u32]>>,
+    },
 }
 
 /// The family has grey levels; it cannot be packed as bits.
@@ -83,6 +90,10 @@ impl PatternGenerator {
             Family::Hadamard { ordering } => Kind::Hadamard {
                 plan: HadamardPlan::new(spec.width(), spec.height(), ordering),
             },
+            Family::AdaptiveHaar { .. } | Family::AdaptiveHadamard { .. } => Kind::Adaptive {
+                haar: matches!(spec.family(), Family::AdaptiveHaar { .. }),
+                indices: spec.adaptive_indices().map(Into::into),
+            },
             Family::Speckle { grain } => {
                 let cx = spec.width().div_ceil(grain) as u64;
                 let cy = spec.height().div_ceil(grain) as u64;
@@ -108,17 +119,31 @@ impl PatternGenerator {
         self.spec.pixels().div_ceil(64)
     }
 
-    /// For Hadamard specs: the row and polarity of `frame`.
+    /// For Hadamard and resolved adaptive Hadamard specs: the row and polarity of `frame`.
     pub fn split_frame(&self, frame: u64) -> Option<SplitFrame> {
+        let row = frame / 2;
+        let natural = match &self.kind {
+            Kind::Hadamard { plan } => plan.natural_index(row),
+            Kind::Adaptive {
+                haar: false,
+                indices: Some(indices),
+            } => *indices.get(row as usize)? as u64,
+            _ => return None,
+        };
+        Some(SplitFrame {
+            row,
+            natural,
+            positive: frame.is_multiple_of(2),
+        })
+    }
+
+    /// For a resolved adaptive spec: the basis index frame `frame` shows (half of a split pair).
+    pub fn adaptive_index(&self, frame: u64) -> Option<u32> {
         match &self.kind {
-            Kind::Hadamard { plan } => {
-                let row = frame / 2;
-                Some(SplitFrame {
-                    row,
-                    natural: plan.natural_index(row),
-                    positive: frame.is_multiple_of(2),
-                })
-            }
+            Kind::Adaptive {
+                indices: Some(indices),
+                ..
+            } => indices.get((frame / 2) as usize).copied(),
             _ => None,
         }
     }
@@ -198,6 +223,45 @@ impl PatternGenerator {
                     for x in bx * block..((bx + 1) * block).min(w) {
                         let p = (y * w + x) as usize;
                         out[p / 64] |= 1 << (p % 64);
+                    }
+                }
+            }
+            Kind::Adaptive { haar, indices } => {
+                let Some(indices) = indices else {
+                    panic!(
+                        "{} frame {i}: the spec is not resolved (no pattern indices yet; \
+                         see PatternSpec::with_indices)",
+                        self.spec.family().name()
+                    );
+                };
+                let Some(&n) = indices.get((i / 2) as usize) else {
+                    panic!(
+                        "{} frame {i} does not exist: the session showed {} split pairs",
+                        self.spec.family().name(),
+                        indices.len()
+                    );
+                };
+                let w = self.spec.width();
+                let want = if i.is_multiple_of(2) { 1 } else { -1 };
+                out.fill(0);
+                if *haar {
+                    let f = HaarFunction::new(w, n);
+                    for y in f.y0..f.y0 + f.side() {
+                        for x in f.x0..f.x0 + f.side() {
+                            if f.sign(x, y) == want {
+                                let p = (y * w + x) as usize;
+                                out[p / 64] |= 1 << (p % 64);
+                            }
+                        }
+                    }
+                } else {
+                    for y in 0..w {
+                        for x in 0..w {
+                            if adaptive::walsh_sign(w, n, x, y) == want {
+                                let p = (y * w + x) as usize;
+                                out[p / 64] |= 1 << (p % 64);
+                            }
+                        }
                     }
                 }
             }

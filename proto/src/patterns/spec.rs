@@ -1,5 +1,7 @@
 //! `PatternSpec`: a validated, canonical declaration of a session's patterns.
 
+use std::sync::Arc;
+
 use serde::{Deserialize, Serialize};
 
 use super::hadamard::HadamardOrdering;
@@ -39,6 +41,23 @@ pub enum Family {
         #[serde(default = "one")]
         grain: u32,
     },
+    /// Adaptive scan of the 2D orthonormal Haar basis (`proto/PATTERNS.md`, adaptive_haar): the
+    /// server chooses which Haar functions to show, batch by batch, from the values so far.
+    AdaptiveHaar {
+        /// Split pairs per batch; 0 = automatic sizing.
+        #[serde(default)]
+        batch: u32,
+        /// Stop once the planner's estimated relative error is below this; 0 = whole budget.
+        #[serde(default)]
+        target_error: f64,
+    },
+    /// Adaptive scan of the 2D Walsh-Hadamard basis (natural index, as the hadamard family).
+    AdaptiveHadamard {
+        #[serde(default)]
+        batch: u32,
+        #[serde(default)]
+        target_error: f64,
+    },
 }
 
 fn one() -> u32 {
@@ -55,6 +74,8 @@ impl Family {
             Family::Bernoulli { .. } => "bernoulli",
             Family::Hadamard { .. } => "hadamard",
             Family::Speckle { .. } => "speckle",
+            Family::AdaptiveHaar { .. } => "adaptive_haar",
+            Family::AdaptiveHadamard { .. } => "adaptive_hadamard",
         }
     }
 
@@ -70,6 +91,45 @@ impl Family {
     /// True when every pattern value is 0 or 1.
     pub fn is_binary(&self) -> bool {
         !matches!(self, Family::Speckle { .. })
+    }
+
+    /// `adaptive_haar` (`haar`) or `adaptive_hadamard` with these parameters.
+    pub fn adaptive(haar: bool, batch: u32, target_error: f64) -> Family {
+        if haar {
+            Family::AdaptiveHaar {
+                batch,
+                target_error,
+            }
+        } else {
+            Family::AdaptiveHadamard {
+                batch,
+                target_error,
+            }
+        }
+    }
+
+    /// True for the adaptive families, whose pattern indices the server chooses during the
+    /// session.
+    pub fn is_adaptive(&self) -> bool {
+        matches!(
+            self,
+            Family::AdaptiveHaar { .. } | Family::AdaptiveHadamard { .. }
+        )
+    }
+
+    /// `(batch, target_error)` of an adaptive family.
+    pub fn adaptive_params(&self) -> Option<(u32, f64)> {
+        match *self {
+            Family::AdaptiveHaar {
+                batch,
+                target_error,
+            }
+            | Family::AdaptiveHadamard {
+                batch,
+                target_error,
+            } => Some((batch, target_error)),
+            _ => None,
+        }
     }
 }
 
@@ -94,7 +154,12 @@ fn err(field: &'static str, message: impl Into<String>) -> SpecError {
 ///
 /// JSON form: `{"family": "bernoulli", "width": 64, "height": 64, "count": 4096, "seed": 7,
 /// "fill": 0.5}`; family parameters sit beside the common fields.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+///
+/// An adaptive spec (`adaptive_haar`, `adaptive_hadamard`) may also carry the basis indices the
+/// session showed, in order ([`PatternSpec::with_indices`]): a *resolved* spec, which the pattern
+/// generator and the operators need. The indices are not part of the declaration: they never go
+/// to JSON or protobuf, and `==` ignores them.
+#[derive(Clone, Debug, Serialize, Deserialize)]
 #[serde(try_from = "RawSpec", into = "RawSpec")]
 pub struct PatternSpec {
     family: Family,
@@ -102,6 +167,18 @@ pub struct PatternSpec {
     height: u32,
     count: u64,
     seed: u64,
+    indices: Option<Arc<[u32]>>,
+}
+
+/// Declarations compare; the resolved indices of an adaptive session do not.
+impl PartialEq for PatternSpec {
+    fn eq(&self, other: &Self) -> bool {
+        self.family == other.family
+            && self.width == other.width
+            && self.height == other.height
+            && self.count == other.count
+            && self.seed == other.seed
+    }
 }
 
 #[derive(Clone, Serialize, Deserialize)]
@@ -232,6 +309,54 @@ impl PatternSpec {
                 }
                 Family::Hadamard { ordering }
             }
+            Family::AdaptiveHaar {
+                batch,
+                target_error,
+            }
+            | Family::AdaptiveHadamard {
+                batch,
+                target_error,
+            } => {
+                let name = family.name();
+                if !width.is_power_of_two() {
+                    return Err(err(
+                        "width",
+                        format!("{name} needs a power of two, got {width}"),
+                    ));
+                }
+                if height != width {
+                    return Err(err(
+                        "height",
+                        format!(
+                            "{name} needs a square image (height = width = {width}), got {height}"
+                        ),
+                    ));
+                }
+                if !count.is_multiple_of(2) || count > 2 * pixels {
+                    return Err(err(
+                        "count",
+                        format!(
+                            "{name} frames come in P+/P- pairs: an even budget up to 2 * width * height = {}, got {count}",
+                            2 * pixels
+                        ),
+                    ));
+                }
+                if batch as u64 > pixels {
+                    return Err(err(
+                        "batch",
+                        format!("must be 0 (automatic) or 1..={pixels} split pairs, got {batch}"),
+                    ));
+                }
+                if !(target_error.is_finite() && target_error >= 0.0) {
+                    return Err(err(
+                        "target_error",
+                        format!(
+                            "must be a finite number >= 0 (0 = use the whole budget), got {target_error}"
+                        ),
+                    ));
+                }
+                family
+            }
             Family::Speckle { grain } => {
                 if grain == 0 || grain > width.max(height) {
                     return Err(err(
@@ -251,6 +376,7 @@ impl PatternSpec {
             height,
             count,
             seed,
+            indices: None,
         })
     }
 
@@ -275,15 +401,90 @@ impl PatternSpec {
         self.width as usize * self.height as usize
     }
 
-    /// The same patterns with another count (e.g. a prefix of the session's rows).
+    /// The same patterns with another count (e.g. a prefix of the session's rows). A resolved
+    /// adaptive spec keeps the indices of the pairs that fit in the new count.
     pub fn with_count(&self, count: u64) -> Result<Self, SpecError> {
-        PatternSpec::new(
+        let mut spec = PatternSpec::new(
             self.family.clone(),
             self.width,
             self.height,
             count,
             self.seed,
-        )
+        )?;
+        if let Some(indices) = &self.indices {
+            let keep = indices.len().min((count / 2) as usize);
+            spec.indices = Some(if keep == indices.len() {
+                indices.clone()
+            } else {
+                indices[..keep].into()
+            });
+        }
+        Ok(spec)
+    }
+
+    /// True for `adaptive_haar` and `adaptive_hadamard` specs (resolved or not).
+    pub fn is_adaptive(&self) -> bool {
+        self.family.is_adaptive()
+    }
+
+    /// The basis indices of a resolved adaptive spec: pair `r` (frames `2r`, `2r + 1`) shows
+    /// basis function `indices[r]`. `None` for an unresolved or non-adaptive spec.
+    pub fn adaptive_indices(&self) -> Option<&[u32]> {
+        self.indices.as_deref()
+    }
+
+    /// The adaptive spec resolved with the indices the session showed, in order. Errors on a
+    /// non-adaptive spec (field `family`), and on an index out of `0..width*height`, a repeated
+    /// index or more indices than `count / 2` pairs (field `indices`). Fewer indices than
+    /// `count / 2` is a session that stopped early (or is still running).
+    pub fn with_indices(&self, indices: Arc<[u32]>) -> Result<PatternSpec, SpecError> {
+        if !self.is_adaptive() {
+            return Err(err(
+                "family",
+                format!(
+                    "only adaptive families take pattern indices, not {}",
+                    self.family.name()
+                ),
+            ));
+        }
+        let pairs = self.count / 2;
+        if indices.len() as u64 > pairs {
+            return Err(err(
+                "indices",
+                format!(
+                    "{} indices, but a budget of {} frames holds {pairs} split pairs",
+                    indices.len(),
+                    self.count
+                ),
+            ));
+        }
+        let k = self.pixels();
+        let mut seen = vec![false; k];
+        for (r, &n) in indices.iter().enumerate() {
+            let Some(slot) = seen.get_mut(n as usize) else {
+                return Err(err(
+                    "indices",
+                    format!("index {n} of pair {r} is out of range 0..{k}"),
+                ));
+            };
+            if std::mem::replace(slot, true) {
+                return Err(err(
+                    "indices",
+                    format!("index {n} of pair {r} was already shown"),
+                ));
+            }
+        }
+        let mut spec = self.clone();
+        spec.indices = Some(indices);
+        Ok(spec)
+    }
+
+    /// The declaration alone (an adaptive spec without its indices).
+    pub fn unresolved(&self) -> PatternSpec {
+        PatternSpec {
+            indices: None,
+            ..self.clone()
+        }
     }
 
     /// Raster: blocks per row and per column.
@@ -386,12 +587,92 @@ mod tests {
                 r#"{"family":"raster","width":4096,"height":4096,"count":8}"#,
                 "width",
             ),
+            (
+                r#"{"family":"adaptive_haar","width":12,"height":12,"count":8}"#,
+                "width",
+            ),
+            (
+                r#"{"family":"adaptive_hadamard","width":16,"height":8,"count":8}"#,
+                "height",
+            ),
+            (
+                r#"{"family":"adaptive_hadamard","width":8,"height":8,"count":7}"#,
+                "count",
+            ),
+            (
+                r#"{"family":"adaptive_haar","width":8,"height":8,"count":130}"#,
+                "count",
+            ),
+            (
+                r#"{"family":"adaptive_haar","width":8,"height":8,"count":8,"batch":65}"#,
+                "batch",
+            ),
+            (
+                r#"{"family":"adaptive_haar","width":8,"height":8,"count":8,"target_error":-1}"#,
+                "target_error",
+            ),
         ];
         for (json, field) in cases {
             let raw: RawSpec = serde_json::from_str(json).unwrap();
             let e = PatternSpec::try_from(raw).unwrap_err();
             assert_eq!(e.field, field, "{json}: {e}");
         }
+    }
+
+    #[test]
+    fn adaptive_specs_validate_and_resolve() {
+        let s: PatternSpec = serde_json::from_str(
+            r#"{"family":"adaptive_haar","width":8,"height":8,"count":40,"target_error":0.05}"#,
+        )
+        .unwrap();
+        assert_eq!(
+            s.family(),
+            &Family::AdaptiveHaar {
+                batch: 0,
+                target_error: 0.05
+            }
+        );
+        assert!(s.is_adaptive() && s.adaptive_indices().is_none());
+        assert_eq!(
+            s.to_json(),
+            r#"{"family":"adaptive_haar","batch":0,"target_error":0.05,"width":8,"height":8,"count":40,"seed":0}"#
+        );
+        let r = s.with_indices(Arc::from(vec![0u32, 9, 63])).unwrap();
+        assert_eq!(r.adaptive_indices(), Some(&[0u32, 9, 63][..]));
+        // The indices are not part of the declaration.
+        assert_eq!(r, s);
+        assert_eq!(r.to_json(), s.to_json());
+        assert_eq!(r.unresolved().adaptive_indices(), None);
+        // A shorter count keeps the pairs that fit.
+        assert_eq!(
+            r.with_count(4).unwrap().adaptive_indices(),
+            Some(&[0u32, 9][..])
+        );
+        for (indices, what) in [
+            (vec![0u32, 64], "out of range"),
+            (vec![5, 1, 5], "already shown"),
+            ((0..21).collect(), "holds 20 split pairs"),
+        ] {
+            let e = s.with_indices(Arc::from(indices)).unwrap_err();
+            assert_eq!(e.field, "indices");
+            assert!(e.message.contains(what), "{e}");
+        }
+        let bernoulli = PatternSpec::new(Family::Bernoulli { fill: 0.5 }, 8, 8, 8, 0).unwrap();
+        assert_eq!(
+            bernoulli
+                .with_indices(Arc::from(vec![0u32]))
+                .unwrap_err()
+                .field,
+            "family"
+        );
+        assert!(!bernoulli.is_adaptive());
+        // Another family's parameter is refused.
+        assert!(
+            serde_json::from_str::<PatternSpec>(
+                r#"{"family":"adaptive_haar","width":8,"height":8,"count":8,"ordering":"natural"}"#
+            )
+            .is_err()
+        );
     }
 
     #[test]

@@ -521,3 +521,121 @@ fn cloned_generators_on_threads_agree() {
         });
     }
 }
+
+// --- adaptive -----------------------------------------------------------------------------------
+
+fn adaptive(family: &str, width: u32, indices: &[u32]) -> PatternSpec {
+    spec(&format!(
+        r#"{{"family":"{family}","width":{width},"height":{width},"count":{}}}"#,
+        2 * width * width
+    ))
+    .with_indices(std::sync::Arc::from(indices.to_vec()))
+    .unwrap()
+}
+
+/// P+ - P- is the basis function's sign pattern and P+ + P- its support; the Haar functions are
+/// orthogonal, the scaling function's pair is (all on, all off).
+#[test]
+fn adaptive_split_pairs_are_the_basis_functions() {
+    let w = 16u32;
+    let k = (w * w) as usize;
+    let all: Vec<u32> = (0..k as u32).rev().collect();
+    for family in ["adaptive_haar", "adaptive_hadamard"] {
+        let s = adaptive(family, w, &all);
+        let g = PatternGenerator::new(&s);
+        let mut signs: Vec<Vec<i32>> = Vec::new();
+        for (r, &n) in all.iter().enumerate() {
+            let (plus, minus) = (values(&g, 2 * r as u64), values(&g, 2 * r as u64 + 1));
+            assert_eq!(bits(&g, 2 * r as u64).len(), 4);
+            assert_eq!(g.adaptive_index(2 * r as u64 + 1), Some(n));
+            let f = HaarFunction::new(w, n);
+            let sign: Vec<i32> = (0..k).map(|p| (plus[p] - minus[p]) as i32).collect();
+            for p in 0..k {
+                let (x, y) = (p as u32 % w, p as u32 / w);
+                let want = if family == "adaptive_haar" {
+                    f.sign(x, y)
+                } else {
+                    adaptive::walsh_sign(w, n, x, y)
+                };
+                assert_eq!(sign[p], want as i32, "{family} index {n} pixel {p}");
+                assert!(plus[p] == 0.0 || minus[p] == 0.0);
+            }
+            if family == "adaptive_haar" {
+                let support = plus
+                    .iter()
+                    .zip(&minus)
+                    .filter(|(a, b)| **a + **b == 1.0)
+                    .count();
+                assert_eq!(support as u32, f.side() * f.side(), "index {n}");
+            } else {
+                assert!(plus.iter().zip(&minus).all(|(a, b)| a + b == 1.0));
+            }
+            signs.push(sign);
+        }
+        for a in (0..k).step_by(7) {
+            for b in 0..k {
+                let dot: i32 = signs[a].iter().zip(&signs[b]).map(|(x, y)| x * y).sum();
+                if a != b {
+                    assert_eq!(dot, 0, "{family}: indices {} {}", all[a], all[b]);
+                }
+            }
+        }
+    }
+    let haar = PatternGenerator::new(&adaptive("adaptive_haar", 4, &[0]));
+    assert_eq!(values(&haar, 0), vec![1.0; 16]);
+    assert_eq!(values(&haar, 1), vec![0.0; 16]);
+}
+
+/// The Mallat layout: the ring max(r, c) in [2^(m-s), 2^(m-s+1)) has support side 2^s, and the
+/// band fixes the split direction.
+#[test]
+fn haar_indices_follow_the_mallat_layout() {
+    let w = 8;
+    let f = |r: u32, c: u32| HaarFunction::new(w, r * w + c);
+    assert_eq!(f(0, 0).scale, 3);
+    assert_eq!(
+        (f(0, 1).scale, f(0, 1).split_x, f(0, 1).split_y),
+        (3, true, false)
+    );
+    assert_eq!((f(1, 0).split_x, f(1, 0).split_y), (false, true));
+    assert_eq!((f(1, 1).split_x, f(1, 1).split_y), (true, true));
+    // Scale 2 (2x2 bands at 2..4): (r, c) = (1, 3) is an x-detail at block (1, 1).
+    let g = f(1, 3);
+    assert_eq!(
+        (g.scale, g.x0, g.y0, g.split_x, g.split_y),
+        (2, 4, 4, true, false)
+    );
+    // Scale 1, diagonal band, last coefficient: the bottom-right 2x2 block.
+    let h = f(7, 7);
+    assert_eq!(
+        (h.scale, h.x0, h.y0, h.split_x, h.split_y),
+        (1, 6, 6, true, true)
+    );
+    assert_eq!(
+        [
+            h.sign(6, 6),
+            h.sign(7, 6),
+            h.sign(6, 7),
+            h.sign(7, 7),
+            h.sign(5, 6)
+        ],
+        [1, -1, -1, 1, 0]
+    );
+}
+
+#[test]
+#[should_panic(expected = "not resolved")]
+fn unresolved_adaptive_specs_have_no_patterns() {
+    let s = spec(r#"{"family":"adaptive_haar","width":4,"height":4,"count":8}"#);
+    let g = PatternGenerator::new(&s);
+    let mut w = vec![0u64; 1];
+    let _ = g.fill_bits(0, &mut w);
+}
+
+#[test]
+#[should_panic(expected = "showed 2 split pairs")]
+fn adaptive_frames_past_the_indices_do_not_exist() {
+    let g = PatternGenerator::new(&adaptive("adaptive_hadamard", 4, &[3, 0]));
+    let mut w = vec![0u64; 1];
+    let _ = g.fill_bits(4, &mut w);
+}

@@ -76,8 +76,13 @@ impl HadamardOperator {
         }
     }
 
-    /// From a Hadamard spec and a number of *frames* (`frames / 2` complete pairs are used).
+    /// From a Hadamard spec and a number of *frames* (`frames / 2` complete pairs are used), or
+    /// a resolved adaptive_hadamard spec (its natural indices, in the order shown).
     pub fn from_spec(spec: &PatternSpec, frames: u64) -> Result<Self, OpError> {
+        if let Family::AdaptiveHadamard { .. } = spec.family() {
+            let natural = super::adaptive_rows(spec, frames)?;
+            return Ok(Self::with_natural(spec.width(), spec.height(), natural));
+        }
         let Family::Hadamard { ordering } = *spec.family() else {
             return Err(OpError::WrongFamily {
                 want: "hadamard",
@@ -91,6 +96,28 @@ impl HadamardOperator {
             ordering,
             (frames / 2) as usize,
         ))
+    }
+
+    /// Rows with explicit natural indices `u W + v` (no repeats), e.g. an adaptive session's.
+    /// Its `ordering()` reports `natural`.
+    pub fn with_natural(width: u32, height: u32, natural: Vec<usize>) -> Self {
+        let k = width as usize * height as usize;
+        assert!(
+            width.is_power_of_two() && height.is_power_of_two(),
+            "hadamard needs 2^a x 2^b"
+        );
+        assert!(
+            natural.iter().all(|&n| n < k),
+            "natural index out of range 0..{k}"
+        );
+        HadamardOperator {
+            width,
+            height,
+            ordering: HadamardOrdering::Natural,
+            natural,
+            scale: 1.0 / (k as f64).sqrt(),
+            pool: Pool::new(),
+        }
     }
 
     /// The operator of a subset of the rows, in the given order (e.g. the fitting rows of a

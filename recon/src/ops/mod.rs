@@ -6,6 +6,8 @@
 //! | hadamard | [`HadamardOperator`] | frames / 2 (split pairs) | one FWHT, O(k log k) |
 //! | raster | [`RasterOperator`] | patterns | O(k + n) |
 //! | speckle | [`SpeckleOperator`] | patterns | dense f32, `n k / grain^2` multiply-adds |
+//! | adaptive_hadamard | [`HadamardOperator`] (the session's natural indices) | split pairs | one FWHT |
+//! | adaptive_haar | [`HaarSubsetOperator`] | split pairs | one Haar transform, O(k) |
 //!
 //! [`measurement_operator`] picks the right one for a spec. Hadamard operators act on the split-pair
 //! differences `(y+ - y-) / sqrt(k)` ([`HadamardOperator::split_pairs`] builds them from frames), so
@@ -21,6 +23,7 @@ pub mod binned;
 pub mod bits;
 pub mod centred;
 pub mod gather;
+pub mod haar;
 pub mod hadamard;
 pub mod raster;
 pub(crate) mod scratch;
@@ -37,6 +40,7 @@ pub use binned::Binned;
 pub use bits::BitMatrix;
 pub use centred::CentredOperator;
 pub use gather::{Gather, GatherStats};
+pub use haar::HaarSubsetOperator;
 pub use hadamard::{HadamardOperator, SplitPairs};
 pub use raster::RasterOperator;
 pub use speckle::SpeckleOperator;
@@ -67,6 +71,27 @@ pub enum OpError {
          use fewer rows or a smaller image"
     )]
     TooLarge { bytes: usize, limit: usize },
+    #[error(
+        "the {0} spec is not resolved: an adaptive session's operator needs the pattern \
+         indices the session showed"
+    )]
+    Unresolved(&'static str),
+}
+
+/// The basis indices of the first `frames / 2` pairs of a resolved adaptive spec.
+pub(crate) fn adaptive_rows(spec: &PatternSpec, frames: u64) -> Result<Vec<usize>, OpError> {
+    check_rows(spec, frames)?;
+    let indices = spec
+        .adaptive_indices()
+        .ok_or(OpError::Unresolved(spec.family().name()))?;
+    let pairs = (frames / 2) as usize;
+    if pairs > indices.len() {
+        return Err(OpError::TooManyRows {
+            rows: frames,
+            count: 2 * indices.len() as u64,
+        });
+    }
+    Ok(indices[..pairs].iter().map(|&n| n as usize).collect())
 }
 
 pub(crate) fn check_rows(spec: &PatternSpec, rows: u64) -> Result<(), OpError> {
@@ -92,14 +117,19 @@ pub(crate) fn check_memory(bytes: usize) -> Result<(), OpError> {
 /// The operator of the first `rows` frames of `spec` (rows in acquisition order):
 /// Bernoulli -> [`BernoulliOperator`] (`rows` rows), Hadamard -> [`HadamardOperator`] (`rows / 2`
 /// rows, on split-pair differences), raster -> [`RasterOperator`], speckle ->
-/// [`SpeckleOperator`]. Errors for `rows > spec.count()` or patterns over [`MEMORY_LIMIT`].
+/// [`SpeckleOperator`], adaptive_hadamard -> [`HadamardOperator`] and adaptive_haar ->
+/// [`HaarSubsetOperator`] on the resolved spec's indices (`rows / 2` pairs). Errors for
+/// `rows > spec.count()`, patterns over [`MEMORY_LIMIT`], or an unresolved adaptive spec.
 pub fn try_measurement_operator(
     spec: &PatternSpec,
     rows: u64,
 ) -> Result<Box<dyn LinearOperator>, OpError> {
     Ok(match spec.family() {
         Family::Bernoulli { .. } => Box::new(BernoulliOperator::from_spec(spec, rows)?),
-        Family::Hadamard { .. } => Box::new(HadamardOperator::from_spec(spec, rows)?),
+        Family::Hadamard { .. } | Family::AdaptiveHadamard { .. } => {
+            Box::new(HadamardOperator::from_spec(spec, rows)?)
+        }
+        Family::AdaptiveHaar { .. } => Box::new(HaarSubsetOperator::from_spec(spec, rows)?),
         Family::Raster { .. } => Box::new(RasterOperator::from_spec(spec, rows)?),
         Family::Speckle { .. } => Box::new(SpeckleOperator::from_spec(spec, rows)?),
     })

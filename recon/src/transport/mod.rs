@@ -222,7 +222,15 @@ impl<'a> Plan<'a> {
         let k = spec.pixels();
         let unsolvable = |e: super::ops::OpError| ReconError::Unsolvable(e.to_string());
         Ok(match spec.family() {
-            Family::Hadamard { .. } => {
+            Family::AdaptiveHaar { .. } => {
+                return Err(ReconError::Unsolvable(
+                    "transport (camera) reconstruction of adaptive_haar sessions is not supported: \
+                     a camera rig's adaptive session should use adaptive_hadamard"
+                        .into(),
+                ));
+            }
+            // adaptive_hadamard: the Hadamard operator on the session's natural indices.
+            Family::Hadamard { .. } | Family::AdaptiveHadamard { .. } => {
                 let frames = rows - rows % 2;
                 if frames == 0 {
                     return Err(ReconError::Unsolvable(

@@ -14,6 +14,8 @@ class PatternFamily(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     PATTERN_FAMILY_BERNOULLI: _ClassVar[PatternFamily]
     PATTERN_FAMILY_HADAMARD: _ClassVar[PatternFamily]
     PATTERN_FAMILY_SPECKLE: _ClassVar[PatternFamily]
+    PATTERN_FAMILY_ADAPTIVE_HAAR: _ClassVar[PatternFamily]
+    PATTERN_FAMILY_ADAPTIVE_HADAMARD: _ClassVar[PatternFamily]
 
 class HadamardOrdering(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     __slots__ = ()
@@ -41,6 +43,8 @@ PATTERN_FAMILY_RASTER: PatternFamily
 PATTERN_FAMILY_BERNOULLI: PatternFamily
 PATTERN_FAMILY_HADAMARD: PatternFamily
 PATTERN_FAMILY_SPECKLE: PatternFamily
+PATTERN_FAMILY_ADAPTIVE_HAAR: PatternFamily
+PATTERN_FAMILY_ADAPTIVE_HADAMARD: PatternFamily
 HADAMARD_ORDERING_UNSPECIFIED: HadamardOrdering
 HADAMARD_ORDERING_NATURAL: HadamardOrdering
 HADAMARD_ORDERING_SEQUENCY: HadamardOrdering
@@ -81,8 +85,16 @@ class SpeckleParams(_message.Message):
     grain: int
     def __init__(self, grain: _Optional[int] = ...) -> None: ...
 
+class AdaptiveParams(_message.Message):
+    __slots__ = ("batch", "target_error")
+    BATCH_FIELD_NUMBER: _ClassVar[int]
+    TARGET_ERROR_FIELD_NUMBER: _ClassVar[int]
+    batch: int
+    target_error: float
+    def __init__(self, batch: _Optional[int] = ..., target_error: _Optional[float] = ...) -> None: ...
+
 class PatternSpec(_message.Message):
-    __slots__ = ("family", "width", "height", "count", "seed", "raster", "bernoulli", "hadamard", "speckle")
+    __slots__ = ("family", "width", "height", "count", "seed", "raster", "bernoulli", "hadamard", "speckle", "adaptive")
     FAMILY_FIELD_NUMBER: _ClassVar[int]
     WIDTH_FIELD_NUMBER: _ClassVar[int]
     HEIGHT_FIELD_NUMBER: _ClassVar[int]
@@ -92,6 +104,7 @@ class PatternSpec(_message.Message):
     BERNOULLI_FIELD_NUMBER: _ClassVar[int]
     HADAMARD_FIELD_NUMBER: _ClassVar[int]
     SPECKLE_FIELD_NUMBER: _ClassVar[int]
+    ADAPTIVE_FIELD_NUMBER: _ClassVar[int]
     family: PatternFamily
     width: int
     height: int
@@ -101,7 +114,8 @@ class PatternSpec(_message.Message):
     bernoulli: BernoulliParams
     hadamard: HadamardParams
     speckle: SpeckleParams
-    def __init__(self, family: _Optional[_Union[PatternFamily, str]] = ..., width: _Optional[int] = ..., height: _Optional[int] = ..., count: _Optional[int] = ..., seed: _Optional[int] = ..., raster: _Optional[_Union[RasterParams, _Mapping]] = ..., bernoulli: _Optional[_Union[BernoulliParams, _Mapping]] = ..., hadamard: _Optional[_Union[HadamardParams, _Mapping]] = ..., speckle: _Optional[_Union[SpeckleParams, _Mapping]] = ...) -> None: ...
+    adaptive: AdaptiveParams
+    def __init__(self, family: _Optional[_Union[PatternFamily, str]] = ..., width: _Optional[int] = ..., height: _Optional[int] = ..., count: _Optional[int] = ..., seed: _Optional[int] = ..., raster: _Optional[_Union[RasterParams, _Mapping]] = ..., bernoulli: _Optional[_Union[BernoulliParams, _Mapping]] = ..., hadamard: _Optional[_Union[HadamardParams, _Mapping]] = ..., speckle: _Optional[_Union[SpeckleParams, _Mapping]] = ..., adaptive: _Optional[_Union[AdaptiveParams, _Mapping]] = ...) -> None: ...
 
 class CameraLayout(_message.Message):
     __slots__ = ("width", "height", "format")

@@ -1,0 +1,526 @@
+//! Adaptive acquisition: which basis functions an `adaptive_haar` / `adaptive_hadamard` session
+//! shows next, decided batch by batch from the values measured so far.
+//!
+//! # The scheme (ABS-WP, Rousset et al. 2017, with a tree and a global ranking)
+//!
+//! Both bases are orthonormal on a `W x W` grid (`W = 2^m`, `k = W^2`), and both are multiscale:
+//! every index `n` has a *level* `l(n)` ([`Basis::level`]): coefficient `c_n` is a function of
+//! the image's block averages on `2^l x 2^l` blocks. Level `m` is the mean alone (index 0); level
+//! `l < m` holds `3 * 4^(m-l-1)` coefficients (Haar: the details of support `2^(l+1)`;
+//! Walsh-Hadamard: the rows with `min(tz(u), tz(v)) = l`, the Russian-doll level). A split pair
+//! showing `P+ = [w > 0]`, `P- = [w < 0]` gives `y+ - y- = g_n c_n` (`g_n` = the Haar support side,
+//! or `W` for Walsh-Hadamard, [`Basis::gain`]): an exact orthonormal coefficient, dark level
+//! cancelled.
+//!
+//! After each observed batch the planner, per channel:
+//! 1. forms the zero-filled image `x = sum over observed n of c_n psi_n` and its block averages
+//!    `A_l` on `2^l` blocks, `l = 1..m` (exact if every coefficient of level `>= l` is observed);
+//! 2. *predicts* every level-`l` coefficient from the bicubic 2x upsampling of `A_{l+1}` (a
+//!    smooth guess of the image at level `l`'s resolution), transformed by the basis on that grid
+//!    and rescaled by `2^l` to the full grid. Where the coarse image has an edge, the upsampling
+//!    has one too, and the fine coefficients along it are predicted large;
+//! 3. scores index `n` by `sum over channels of |p_{c,n}| / ||c_c||` (each channel normalised
+//!    by the norm of its observed coefficients), so one index serves every detector or camera
+//!    pixel at once.
+//!
+//! The next batch is the `B` not yet issued indices ranked by (parent issued first, score
+//! descending, level descending, index ascending): a greedy choice of the largest predicted
+//! coefficients (for an orthonormal basis the squared error of the zero-filled image is exactly the
+//! energy of the unmeasured coefficients), kept tree-structured (a coefficient whose parent was
+//! never issued only comes after all those whose parent was), and coarse-to-fine where the
+//! prediction has nothing to say (before any value arrives, or on a flat scene).
+//!
+//! The estimated relative error is `sqrt(mean over channels of E_c / ||c_c||^2)`, `E_c` the
+//! predicted energy of the coefficients not yet issued: the stop rule `target_error` compares
+//! against it.
+//!
+//! # Batches and latency
+//!
+//! At most [`LOOKAHEAD`] = 2 batches are issued and not yet observed: while the rig shows batch
+//! `b + 1`, the planner decides batch `b + 2` from the values up to batch `b`. The decision (one
+//! prediction per channel, O(k) for Haar and O(k log k) for Walsh-Hadamard, plus an O(k)
+//! selection) must finish within one batch's display time. [`batch_pairs`] sizes automatic
+//! batches as `max(16, ceil(k C / 1024), ceil(P / 128))` pairs (`C` channels, `P` the pair
+//! budget). A batch of `k C / 1024` pairs lasts `k C / 1024 * 100 us` at 20 kHz binary frames,
+//! about 100 ns per coefficient and channel; the decision measured by `bench --preset adaptive`
+//! (`docs/benchmarks-adaptive.md`, one channel, a 2-core machine at load 6-7) costs a median
+//! 0.3 ms at 128x128 (12-18 ns per coefficient; a 16-pair batch shows for 1.6 ms) and 2 ms at
+//! 256x256 (a 64-pair batch: 6.4 ms). Under that load single decisions took up to 41 ms, longer
+//! than a batch: the DMD then idles. The `P / 128` term caps the number of batches of large
+//! budgets.
+//!
+//! # Determinism
+//!
+//! Everything is sequential IEEE binary64 arithmetic in a fixed order (`proto/PATTERNS.md`,
+//! "The planner", states it operation by operation), with no hashing and no dependence on the
+//! thread count, so [`replay`] of a stored session gives back its index sequence.
+
+mod basis;
+#[cfg(test)]
+mod tests;
+
+use std::time::{Duration, Instant};
+
+use helmholtz_proto::PatternSpec;
+
+pub use basis::{Basis, Predictor};
+
+/// Batches issued but not yet observed, at most.
+pub const LOOKAHEAD: usize = 2;
+
+/// Largest `k * channels` a planner holds values for (a camera session of 2^26 coefficient
+/// values, 512 MiB of f64).
+pub const MAX_VALUES: usize = 1 << 26;
+
+/// One batch of split pairs to show: pair `first_pair + j` (frames `2 (first_pair + j)` and
+/// `2 (first_pair + j) + 1`) shows basis function `indices[j]`.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Batch {
+    /// 0 for the first batch of the session.
+    pub number: u64,
+    pub first_pair: u64,
+    pub indices: Vec<u32>,
+}
+
+/// Why a planner issues nothing more.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum StopReason {
+    /// The frame budget (`count`) is used up, or every basis function was shown.
+    Budget,
+    /// The estimated relative error fell below `target_error`.
+    TargetError,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum AdaptiveError {
+    #[error(
+        "the {0} family is not adaptive: only adaptive_haar and adaptive_hadamard have a planner"
+    )]
+    NotAdaptive(&'static str),
+    #[error("an adaptive session needs at least one channel")]
+    NoChannels,
+    #[error(
+        "{pixels} pattern pixels x {channels} channels = {values} coefficient values, over the \
+         planner's limit of {limit}"
+    )]
+    TooLarge {
+        pixels: usize,
+        channels: usize,
+        values: usize,
+        limit: usize,
+    },
+    #[error("no batch is outstanding: values arrived before a batch was issued for them")]
+    NothingOutstanding,
+    #[error(
+        "batch {batch} has {pairs} split pairs: expected 2 x {pairs} frames x {channels} channels \
+         = {expected} values, got {got}"
+    )]
+    WrongLength {
+        batch: u64,
+        pairs: usize,
+        channels: usize,
+        expected: usize,
+        got: usize,
+    },
+    #[error("frame {frame} channel {channel} of batch {batch} is {value}: values must be finite")]
+    NonFinite {
+        batch: u64,
+        frame: u64,
+        channel: usize,
+        value: f64,
+    },
+}
+
+/// Automatic batch size in split pairs for `k` pattern pixels, `channels` channels and a budget
+/// of `pairs` pairs: `max(16, ceil(k channels / 1024), ceil(pairs / 128))` (see the module docs).
+pub fn auto_batch_pairs(k: u64, channels: u64, pairs: u64) -> u64 {
+    16u64
+        .max((k * channels).div_ceil(1024))
+        .max(pairs.div_ceil(128))
+}
+
+/// Pairs per batch of an adaptive spec with `channels` channels: the declared `batch`, or
+/// [`auto_batch_pairs`] when it is 0. `None` for other families.
+pub fn batch_pairs(spec: &PatternSpec, channels: usize) -> Option<u64> {
+    let (batch, _) = spec.family().adaptive_params()?;
+    Some(if batch > 0 {
+        batch as u64
+    } else {
+        auto_batch_pairs(spec.pixels() as u64, channels as u64, spec.count() / 2)
+    })
+}
+
+/// Time spent deciding (predictions in [`Planner::observe`], selection in [`Planner::poll`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct DecisionStats {
+    /// Batches decided.
+    pub batches: u64,
+    pub total: Duration,
+    /// The longest single decision (one observe's prediction plus the poll that follows it).
+    pub max: Duration,
+}
+
+/// The adaptive planner of one session (see the module docs).
+#[derive(Debug)]
+pub struct Planner {
+    basis: Basis,
+    width: u32,
+    channels: usize,
+    /// Budget in split pairs (`min(count / 2, k)`).
+    budget: u64,
+    batch: u64,
+    target_error: f64,
+    /// Per index: its level and its parent (`u32::MAX` for none).
+    level: Vec<u8>,
+    parent: Vec<u32>,
+    issued: Vec<bool>,
+    order: Vec<u32>,
+    /// Batches issued and not yet observed, oldest first: (number, first pair, pairs).
+    outstanding: std::collections::VecDeque<(u64, u64, usize)>,
+    batches: u64,
+    observed: u64,
+    /// Observed orthonormal coefficients, channel-major: `values[c k + n]` (0 where unobserved).
+    values: Vec<f64>,
+    /// Per channel: sum of squared observed coefficients, in observation order.
+    energy: Vec<f64>,
+    score: Vec<f64>,
+    pred: Vec<f64>,
+    predictor: Predictor,
+    estimate: Option<f64>,
+    stopped: Option<StopReason>,
+    stats: DecisionStats,
+    /// Prediction time of the last observe, added to the next poll's decision.
+    pending: Duration,
+}
+
+impl Planner {
+    /// `channels`: bucket channels, or camera pixels (width*height) for a camera session. The
+    /// spec's indices, if it is resolved, are ignored: the planner decides them.
+    pub fn new(spec: &PatternSpec, channels: usize) -> Result<Planner, AdaptiveError> {
+        let basis = Basis::of(spec).ok_or(AdaptiveError::NotAdaptive(spec.family().name()))?;
+        if channels == 0 {
+            return Err(AdaptiveError::NoChannels);
+        }
+        let k = spec.pixels();
+        let values = k.saturating_mul(channels);
+        if values > MAX_VALUES {
+            return Err(AdaptiveError::TooLarge {
+                pixels: k,
+                channels,
+                values,
+                limit: MAX_VALUES,
+            });
+        }
+        let (_, target_error) = spec.family().adaptive_params().expect("adaptive");
+        let width = spec.width();
+        let level = (0..k as u32).map(|n| basis.level(width, n) as u8).collect();
+        let parent = (0..k as u32)
+            .map(|n| basis.parent(width, n).unwrap_or(u32::MAX))
+            .collect();
+        Ok(Planner {
+            basis,
+            width,
+            channels,
+            budget: (spec.count() / 2).min(k as u64),
+            batch: batch_pairs(spec, channels).expect("adaptive"),
+            target_error,
+            level,
+            parent,
+            issued: vec![false; k],
+            order: Vec::new(),
+            outstanding: Default::default(),
+            batches: 0,
+            observed: 0,
+            values: vec![0.0; values],
+            energy: vec![0.0; channels],
+            score: vec![0.0; k],
+            pred: vec![0.0; k],
+            predictor: Predictor::new(basis, width),
+            estimate: None,
+            stopped: None,
+            stats: DecisionStats::default(),
+            pending: Duration::ZERO,
+        })
+    }
+
+    pub fn basis(&self) -> Basis {
+        self.basis
+    }
+
+    /// Pairs per full batch.
+    pub fn batch_pairs(&self) -> u64 {
+        self.batch
+    }
+
+    /// The next batch if one may be issued now (fewer than [`LOOKAHEAD`] outstanding, budget
+    /// left, stop rule not met), else `None`. A deterministic function of the spec and the values
+    /// observed so far.
+    pub fn poll(&mut self) -> Option<Batch> {
+        if self.outstanding.len() >= LOOKAHEAD || self.stopped.is_some() {
+            return None;
+        }
+        let issued = self.order.len() as u64;
+        if issued >= self.budget {
+            return None;
+        }
+        if self.target_error > 0.0 && self.estimate.is_some_and(|e| e < self.target_error) {
+            self.stopped = Some(StopReason::TargetError);
+            return None;
+        }
+        let start = Instant::now();
+        let size = self.batch.min(self.budget - issued) as usize;
+        let indices = self.select(size);
+        for &n in &indices {
+            self.issued[n as usize] = true;
+        }
+        self.order.extend_from_slice(&indices);
+        let batch = Batch {
+            number: self.batches,
+            first_pair: issued,
+            indices,
+        };
+        self.outstanding
+            .push_back((batch.number, issued, batch.indices.len()));
+        self.batches += 1;
+        let took = start.elapsed() + std::mem::take(&mut self.pending);
+        self.stats.batches += 1;
+        self.stats.total += took;
+        self.stats.max = self.stats.max.max(took);
+        Some(batch)
+    }
+
+    /// The `size` best indices not yet issued, in rank order.
+    fn select(&self, size: usize) -> Vec<u32> {
+        let key = |&a: &u32, &b: &u32| {
+            let eligible = |n: u32| {
+                let p = self.parent[n as usize];
+                p == u32::MAX || self.issued[p as usize]
+            };
+            eligible(b)
+                .cmp(&eligible(a))
+                .then_with(|| self.score[b as usize].total_cmp(&self.score[a as usize]))
+                .then_with(|| self.level[b as usize].cmp(&self.level[a as usize]))
+                .then_with(|| a.cmp(&b))
+        };
+        let mut candidates: Vec<u32> = (0..self.issued.len() as u32)
+            .filter(|&n| !self.issued[n as usize])
+            .collect();
+        if candidates.len() > size {
+            candidates.select_nth_unstable_by(size - 1, key);
+            candidates.truncate(size);
+        }
+        candidates.sort_unstable_by(key);
+        candidates
+    }
+
+    /// Values of the oldest outstanding batch, whole: `2 * indices.len()` frames x channels,
+    /// row-major (frame 0 channel 0, frame 0 channel 1, ...). Nothing is kept if they are refused.
+    pub fn observe(&mut self, frames: &[f64]) -> Result<(), AdaptiveError> {
+        let &(number, first_pair, pairs) = self
+            .outstanding
+            .front()
+            .ok_or(AdaptiveError::NothingOutstanding)?;
+        let c = self.channels;
+        let expected = 2 * pairs * c;
+        if frames.len() != expected {
+            return Err(AdaptiveError::WrongLength {
+                batch: number,
+                pairs,
+                channels: c,
+                expected,
+                got: frames.len(),
+            });
+        }
+        if let Some(p) = frames.iter().position(|v| !v.is_finite()) {
+            return Err(AdaptiveError::NonFinite {
+                batch: number,
+                frame: 2 * first_pair + (p / c) as u64,
+                channel: p % c,
+                value: frames[p],
+            });
+        }
+        let start = Instant::now();
+        self.outstanding.pop_front();
+        let k = self.issued.len();
+        for j in 0..pairs {
+            let n = self.order[first_pair as usize + j];
+            let gain = self.basis.gain(self.width, n);
+            for ch in 0..c {
+                let v = (frames[2 * j * c + ch] - frames[(2 * j + 1) * c + ch]) / gain;
+                self.values[ch * k + n as usize] = v;
+                self.energy[ch] += v * v;
+            }
+        }
+        self.observed += pairs as u64;
+        self.update_predictions();
+        self.pending = start.elapsed();
+        Ok(())
+    }
+
+    /// Scores and the estimated error from the values observed so far.
+    fn update_predictions(&mut self) {
+        let k = self.issued.len();
+        self.score.iter_mut().for_each(|s| *s = 0.0);
+        let (mut ratio_sum, mut lit) = (0.0, 0usize);
+        for ch in 0..self.channels {
+            let energy = self.energy[ch];
+            if energy == 0.0 {
+                continue;
+            }
+            let norm = energy.sqrt();
+            self.predictor
+                .predict(&self.values[ch * k..(ch + 1) * k], &mut self.pred);
+            let mut unissued = 0.0;
+            for n in 0..k {
+                let p = self.pred[n];
+                self.score[n] += p.abs() / norm;
+                if !self.issued[n] {
+                    unissued += p * p;
+                }
+            }
+            ratio_sum += unissued / energy;
+            lit += 1;
+        }
+        self.estimate = (lit > 0).then(|| (ratio_sum / lit as f64).sqrt());
+    }
+
+    /// Split pairs issued so far.
+    pub fn issued_pairs(&self) -> u64 {
+        self.order.len() as u64
+    }
+
+    /// Split pairs whose values were observed.
+    pub fn observed_pairs(&self) -> u64 {
+        self.observed
+    }
+
+    /// `Some` once no further batch will ever be issued and none is outstanding.
+    pub fn finished(&self) -> Option<StopReason> {
+        if !self.outstanding.is_empty() {
+            return None;
+        }
+        if self.stopped.is_some() {
+            return self.stopped;
+        }
+        if self.issued_pairs() >= self.budget {
+            return Some(StopReason::Budget);
+        }
+        if self.target_error > 0.0 && self.estimate.is_some_and(|e| e < self.target_error) {
+            return Some(StopReason::TargetError);
+        }
+        None
+    }
+
+    /// Every index issued so far, in order.
+    pub fn indices(&self) -> &[u32] {
+        &self.order
+    }
+
+    /// The planner's estimate of the relative L2 error of the image once every issued pair is
+    /// observed (see the module docs); `None` before any value arrived or while every channel is
+    /// dark.
+    pub fn estimated_error(&self) -> Option<f64> {
+        self.estimate
+    }
+
+    /// Observed orthonormal coefficients of channel `channel`, indexed by basis index (0 where
+    /// not observed).
+    pub fn coefficients(&self, channel: usize) -> &[f64] {
+        let k = self.issued.len();
+        &self.values[channel * k..(channel + 1) * k]
+    }
+
+    /// Channel `channel`'s image with every unobserved coefficient set to its prediction from
+    /// the observed ones (the bicubic guess of the module docs) instead of 0: the zero-filled
+    /// inverse made smooth where nothing was measured. Row-major `W x W`.
+    pub fn predicted_image(&mut self, channel: usize) -> Vec<f64> {
+        let k = self.issued.len();
+        let values = &self.values[channel * k..(channel + 1) * k];
+        let mut pred = vec![0.0; k];
+        self.predictor.predict(values, &mut pred);
+        let mut observed = vec![false; k];
+        let observed_pairs = self.observed as usize;
+        for &n in &self.order[..observed_pairs] {
+            observed[n as usize] = true;
+        }
+        let mut c: Vec<f64> = (0..k)
+            .map(|n| if observed[n] { values[n] } else { pred[n] })
+            .collect();
+        let w = self.width as usize;
+        match self.basis {
+            Basis::Haar => {
+                use crate::linop::LinearOperator;
+                let mut x = vec![0.0; k];
+                crate::transforms::wavelet::Wavelet2d::haar(w, w).adjoint(&c, &mut x);
+                x
+            }
+            Basis::Hadamard => {
+                crate::fwht::fwht(&mut c);
+                c.iter().map(|v| v / w as f64).collect()
+            }
+        }
+    }
+
+    pub fn decision_stats(&self) -> DecisionStats {
+        self.stats
+    }
+
+    /// Bytes the planner holds: O(k (channels + 6)), independent of the session's length.
+    pub fn memory_bytes(&self) -> usize {
+        let k = self.issued.len();
+        8 * (self.values.len() + self.energy.len() + self.score.len() + self.pred.len())
+            + k * (1 + 4 + 1)
+            + 4 * self.order.capacity()
+            + self.predictor.memory_bytes()
+    }
+}
+
+/// Replays a stored session: poll/observe alternately over `frames` (whole batches only; a
+/// trailing partial batch is ignored), returning the planner and the index sequence it issued
+/// (including the batches issued but not observed).
+pub fn replay(
+    spec: &PatternSpec,
+    channels: usize,
+    frames: &[f64],
+) -> Result<(Planner, Vec<u32>), AdaptiveError> {
+    let mut planner = Planner::new(spec, channels)?;
+    let mut queue = std::collections::VecDeque::new();
+    let mut at = 0usize;
+    loop {
+        while let Some(batch) = planner.poll() {
+            queue.push_back(batch);
+        }
+        let Some(batch) = queue.pop_front() else {
+            break;
+        };
+        let need = 2 * batch.indices.len() * channels;
+        if frames.len() - at < need {
+            break;
+        }
+        planner.observe(&frames[at..at + need])?;
+        at += need;
+    }
+    let indices = planner.indices().to_vec();
+    Ok((planner, indices))
+}
+
+/// The orthonormal coefficient data of a resolved adaptive spec's first `pairs` pairs:
+/// `(y+ - y-) / g_n` per pair and channel, pair-major (pair 0 channel 0, pair 0 channel 1, ...).
+/// `frames` holds at least `2 pairs` frames x `channels`.
+pub fn pair_coefficients(
+    spec: &PatternSpec,
+    indices: &[u32],
+    channels: usize,
+    frames: &[f64],
+) -> Vec<f64> {
+    let basis = Basis::of(spec).expect("adaptive spec");
+    let c = channels;
+    let mut out = Vec::with_capacity(indices.len() * c);
+    for (j, &n) in indices.iter().enumerate() {
+        let gain = basis.gain(spec.width(), n);
+        for ch in 0..c {
+            out.push((frames[2 * j * c + ch] - frames[(2 * j + 1) * c + ch]) / gain);
+        }
+    }
+    out
+}
