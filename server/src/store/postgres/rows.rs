@@ -5,7 +5,7 @@ use sqlx::Row;
 
 use super::{Postgres, begin};
 use crate::store::rows::raw_chunk;
-use crate::store::rows::{check_bounds, check_chunks, compare_overlap, row_of_chunk};
+use crate::store::rows::{check_bounds, check_chunks, check_issued, compare_overlap, row_of_chunk};
 use crate::store::{AppendOutcome, RawChunk, Rows, StoreError, WriterLease};
 
 #[async_trait]
@@ -64,7 +64,7 @@ impl Rows for Postgres {
         // The session's row lock serialises its appends across every node: read-check-write.
         let mut tx = begin(&self.pool).await?;
         let row = sqlx::query(
-            "SELECT committed_rows, expected_rows, state FROM sessions WHERE id = $1 FOR UPDATE",
+            "SELECT committed_rows, expected_rows, state, issued_rows FROM sessions WHERE id = $1 FOR UPDATE",
         )
         .bind(session_id)
         .fetch_optional(&mut *tx)
@@ -89,6 +89,8 @@ impl Rows for Postgres {
         let state: String = row.get("state");
         let end = start_row + rows;
         let overlap_end = check_bounds(committed, expected, start_row, end)?;
+        let issued = row.get::<Option<i64>, _>("issued_rows").map(|v| v as u64);
+        check_issued(session_id, issued, end)?;
         if overlap_end > start_row {
             let chunks: Vec<RawChunk> = sqlx::query(
                 "SELECT start_row, row_count, data FROM measurement_chunks \

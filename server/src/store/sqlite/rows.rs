@@ -5,7 +5,7 @@ use sqlx::Row;
 
 use super::Sqlite;
 use crate::store::rows::raw_chunk;
-use crate::store::rows::{check_bounds, check_chunks, compare_overlap, row_of_chunk};
+use crate::store::rows::{check_bounds, check_chunks, check_issued, compare_overlap, row_of_chunk};
 use crate::store::{AppendOutcome, RawChunk, Rows, StoreError, WriterLease, now_ms};
 
 #[async_trait]
@@ -64,12 +64,13 @@ impl Rows for Sqlite {
         let rows = (payload.len() / row_bytes) as u64;
         // BEGIN IMMEDIATE takes the write lock up front: read-then-write without upgrade failures.
         let mut tx = self.pool.begin_with("BEGIN IMMEDIATE").await?;
-        let row =
-            sqlx::query("SELECT committed_rows, expected_rows, state FROM sessions WHERE id = $1")
-                .bind(session_id)
-                .fetch_optional(&mut *tx)
-                .await?
-                .ok_or_else(|| StoreError::SessionNotFound(session_id.to_string()))?;
+        let row = sqlx::query(
+            "SELECT committed_rows, expected_rows, state, issued_rows FROM sessions WHERE id = $1",
+        )
+        .bind(session_id)
+        .fetch_optional(&mut *tx)
+        .await?
+        .ok_or_else(|| StoreError::SessionNotFound(session_id.to_string()))?;
         if let Some(lease) = lease {
             let held = sqlx::query(
                 "UPDATE upload_leases SET expires_ms = $3 WHERE session_id = $1 AND holder = $2",
@@ -89,6 +90,8 @@ impl Rows for Sqlite {
         let state: String = row.get("state");
         let end = start_row + rows;
         let overlap_end = check_bounds(committed, expected, start_row, end)?;
+        let issued = row.get::<Option<i64>, _>("issued_rows").map(|v| v as u64);
+        check_issued(session_id, issued, end)?;
         if overlap_end > start_row {
             let chunks: Vec<RawChunk> = sqlx::query(
                 "SELECT start_row, row_count, data FROM measurement_chunks \
