@@ -506,14 +506,16 @@ pub(super) async fn simulate_cmd(
         rest::write_atomically(path, &normalised_png(spec.width(), spec.height(), &first)?)?;
     }
 
+    // The bucket session as declared (the server scores reconstructions against the ground
+    // truth unless --no-ground-truth).
+    let mut session = NewSession::new(session_id.clone(), spec.clone(), names.clone())
+        .with_rig(a.rig.clone())
+        .with_directions(directions.clone());
+    session.metadata = session_metadata;
+    if !a.no_ground_truth {
+        session = session.with_ground_truth(spec.width(), spec.height(), ground_truth);
+    }
     if a.adaptive.is_some() {
-        let mut session = NewSession::new(session_id.clone(), spec.clone(), names.clone())
-            .with_rig(a.rig.clone())
-            .with_directions(directions);
-        session.metadata = session_metadata;
-        if !a.no_ground_truth {
-            session = session.with_ground_truth(spec.width(), spec.height(), ground_truth);
-        }
         out.insert("channels".into(), json!(names));
         let run = AdaptiveRun {
             session,
@@ -576,13 +578,6 @@ pub(super) async fn simulate_cmd(
         });
     }
 
-    let mut session = NewSession::new(session_id.clone(), spec.clone(), names.clone())
-        .with_rig(a.rig.clone())
-        .with_directions(directions);
-    session.metadata = session_metadata;
-    if !a.no_ground_truth {
-        session = session.with_ground_truth(spec.width(), spec.height(), ground_truth);
-    }
     let (report, spooled_before) = spool_and_upload(
         server,
         spools,

@@ -3,6 +3,7 @@
 use async_trait::async_trait;
 use sqlx::Row;
 
+use super::rows::hold_lease;
 use super::{Postgres, begin};
 use crate::store::batches::{batch_from_row, check_next, indices_blob};
 use crate::store::{Batches, IssuedBatch, StoreError, WriterLease};
@@ -24,18 +25,7 @@ impl Batches for Postgres {
             .ok_or_else(|| StoreError::SessionNotFound(session_id.to_string()))?;
         let issued = row.get::<Option<i64>, _>("issued_rows").map(|v| v as u64);
         if let Some(lease) = lease {
-            let held = sqlx::query(
-                "UPDATE upload_leases SET expires_ms = helmholtz_now_ms() + $3 WHERE session_id = $1 AND holder = $2",
-            )
-            .bind(session_id)
-            .bind(&lease.holder)
-            .bind(lease.ttl.as_millis() as i64)
-            .execute(&mut *tx)
-            .await?
-            .rows_affected();
-            if held != 1 {
-                return Err(StoreError::WriterLost(session_id.to_string()));
-            }
+            hold_lease(&mut tx, session_id, lease).await?;
         }
         let count: i64 =
             sqlx::query("SELECT COUNT(*)::BIGINT FROM adaptive_batches WHERE session_id = $1")

@@ -72,18 +72,7 @@ impl Rows for Sqlite {
         .await?
         .ok_or_else(|| StoreError::SessionNotFound(session_id.to_string()))?;
         if let Some(lease) = lease {
-            let held = sqlx::query(
-                "UPDATE upload_leases SET expires_ms = $3 WHERE session_id = $1 AND holder = $2",
-            )
-            .bind(session_id)
-            .bind(&lease.holder)
-            .bind(now_ms() + lease.ttl.as_millis() as i64)
-            .execute(&mut *tx)
-            .await?
-            .rows_affected();
-            if held != 1 {
-                return Err(StoreError::WriterLost(session_id.to_string()));
-            }
+            hold_lease(&mut tx, session_id, lease).await?;
         }
         let committed = row.get::<i64, _>("committed_rows") as u64;
         let expected = row.get::<i64, _>("expected_rows") as u64;
@@ -187,4 +176,26 @@ impl Rows for Sqlite {
         let Some(found) = found else { return Ok(None) };
         row_of_chunk(session_id, &raw_chunk(&found), row, row_bytes)
     }
+}
+
+/// Renews `lease` inside `tx` (an append's or a batch's own transaction): refused
+/// ([`StoreError::WriterLost`]) unless the lease is still this holder's.
+pub(super) async fn hold_lease(
+    tx: &mut sqlx::SqliteConnection,
+    session_id: &str,
+    lease: &WriterLease,
+) -> Result<(), StoreError> {
+    let held = sqlx::query(
+        "UPDATE upload_leases SET expires_ms = $3 WHERE session_id = $1 AND holder = $2",
+    )
+    .bind(session_id)
+    .bind(&lease.holder)
+    .bind(now_ms() + lease.ttl.as_millis() as i64)
+    .execute(&mut *tx)
+    .await?
+    .rows_affected();
+    if held != 1 {
+        return Err(StoreError::WriterLost(session_id.to_string()));
+    }
+    Ok(())
 }
