@@ -3,7 +3,8 @@
 //! sequence is what `replay` of the stored values issues, and what a second identical run issues;
 //! a rig whose stream is cut mid-session (and one that restarts from nothing) resumes and ends
 //! with the indices of an uninterrupted run; bad values, rows beyond the issued batches (on every
-//! upload path) and another lab's token are refused, naming the field, with nothing stored.
+//! upload path) and another lab's token are refused, naming the field, with nothing stored; the
+//! live preview follows the growing index sequence to the exact image.
 
 use std::time::Duration;
 
@@ -577,4 +578,51 @@ async fn an_adaptive_session_on_postgres_replays_and_refuses_rows_beyond_its_bat
     assert_eq!(replayed, indices);
     let image = reconstruct(&server, "pg", "direct").await;
     assert_eq!(image.len(), 256);
+}
+
+/// The live preview of an adaptive session follows the batches as they are issued (its spec
+/// resolved again as the index sequence grows) and ends with the exact image.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_preview_of_an_adaptive_session_converges_to_the_scene() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = ServerProcess::start(dir.path(), 0, &[]).unwrap();
+    let url = server.base_url.clone();
+    let truth = scene(16);
+    let spec = spec(
+        r#"{"family": "adaptive_haar", "width": 16, "height": 16, "count": 512, "batch": 16}"#,
+    );
+    let session = create(&url, "watched", &spec, &truth).await;
+    let watch = helmholtz_client::preview::PreviewOptions {
+        every_rows: 64,
+        ..Default::default()
+    };
+    let mut frames = helmholtz_client::preview::watch_preview(&url, "watched", &watch)
+        .await
+        .unwrap();
+    let watcher = tokio::spawn(async move {
+        let mut seen = Vec::new();
+        while let Some(f) = frames.message().await.unwrap() {
+            let last = f.r#final;
+            seen.push(f);
+            if last {
+                break;
+            }
+        }
+        seen
+    });
+    acquire_adaptive(&url, &session, &options(), |b| Ok(measure(b, &truth)))
+        .await
+        .unwrap();
+    let seen = tokio::time::timeout(Duration::from_secs(30), watcher)
+        .await
+        .unwrap()
+        .unwrap();
+    let last = seen.last().expect("frames");
+    assert!(last.r#final, "{:?}", last.rows);
+    assert_eq!(last.rows, 512);
+    assert_eq!(last.method, "zero_filled");
+    assert!(seen.windows(2).all(|w| w[0].rows <= w[1].rows));
+    let image: Vec<f64> = last.values.iter().map(|&v| v as f64).collect();
+    let error = relative_error(&image, &truth);
+    assert!(error < 1e-4, "final preview error {error}");
 }
