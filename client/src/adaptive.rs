@@ -104,7 +104,7 @@ where
     F: FnMut(&BatchToMeasure<'_>) -> anyhow::Result<SampleBuf>,
 {
     let started = Instant::now();
-    let declared = PatternSpec::try_from(&session.patterns.clone().unwrap_or_default())
+    let declared = PatternSpec::try_from(&session.patterns.unwrap_or_default())
         .map_err(|e| anyhow::anyhow!("session {}: its spec: {e}", session.session_id))?;
     anyhow::ensure!(
         declared.is_adaptive(),

@@ -155,13 +155,14 @@ pub(super) async fn next_message<T>(
     stream: &mut Streaming<T>,
     idle: std::time::Duration,
 ) -> Result<Option<T>, Status> {
-    let next = tokio::time::timeout(idle, stream.message()).await.map_err(|_| {
-        ApiError::Aborted(format!(
-            "no message for {} s: the stream is closed (the rows it committed stay; resume from the committed count)",
-            idle.as_secs()
-        ))
-    })?;
-    next
+    tokio::time::timeout(idle, stream.message())
+        .await
+        .map_err(|_| {
+            ApiError::Aborted(format!(
+                "no message for {} s: the stream is closed (the rows it committed stay; resume from the committed count)",
+                idle.as_secs()
+            ))
+        })?
 }
 
 /// The metadata naming an upload's writer: one id for every stream of one client upload.
