@@ -175,6 +175,8 @@ struct Session {
     spec: PatternSpec,
     frames: Vec<f64>,
     figures: PlannerFigures,
+    /// The planner's prediction-filled image ([`Planner::predicted_image`]).
+    predicted: Vec<f32>,
 }
 
 /// A simulated rig through the planner: the service's loop (poll until none, observe the oldest).
@@ -222,11 +224,17 @@ fn run_adaptive(
             StopReason::TargetError => "target_error".into(),
         }),
     };
+    let predicted = planner
+        .predicted_image(0)
+        .iter()
+        .map(|&v| v as f32)
+        .collect();
     let spec = spec.with_indices(Arc::from(planner.indices().to_vec()))?;
     Ok(Session {
         spec,
         frames: values,
         figures,
+        predicted,
     })
 }
 
@@ -285,52 +293,68 @@ pub fn run(opts: &Options) -> anyhow::Result<Vec<Row>> {
                 };
                 for &ratio in &opts.ratios {
                     let frames = ((ratio * k as f64).round() as u64).max(2) & !1;
-                    let mut push =
-                        |family: &str,
-                         method: &str,
-                         spec: &PatternSpec,
-                         values: &[f64],
-                         planner: Option<PlannerFigures>| {
-                            let (psnr_db, ssim, seconds, error) =
-                                reconstruct(spec, values, method, &truth32);
-                            eprintln!(
-                                "{name:>7} {size}x{size} {:>5} {:>5.1} % {frames:>6} frames  {family:<17} {method:<6} {psnr_db:>6.2} dB  {seconds:>7.3} s{}",
-                                if noisy { "noisy" } else { "clean" },
-                                100.0 * ratio,
-                                error
-                                    .as_deref()
-                                    .map(|e| format!("  ({e})"))
-                                    .unwrap_or_default()
-                            );
-                            rows.push(Row {
-                                scene: name.clone(),
-                                size,
-                                noisy,
-                                ratio,
-                                frames,
-                                family: family.into(),
-                                method: method.into(),
-                                psnr_db,
-                                ssim,
-                                seconds,
-                                error,
-                                planner,
-                            });
+                    let mut push = |family: &str,
+                                    method: &str,
+                                    spec: &PatternSpec,
+                                    values: &[f64],
+                                    planner: Option<PlannerFigures>,
+                                    image: Option<&[f32]>| {
+                        let (psnr_db, ssim, seconds, error) = match image {
+                            Some(image) => (
+                                metrics::psnr(image, &truth32),
+                                metrics::ssim(image, &truth32, size as usize, size as usize),
+                                0.0,
+                                None,
+                            ),
+                            None => reconstruct(spec, values, method, &truth32),
                         };
+                        eprintln!(
+                            "{name:>7} {size}x{size} {:>5} {:>5.1} % {frames:>6} frames  {family:<17} {method:<6} {psnr_db:>6.2} dB  {seconds:>7.3} s{}",
+                            if noisy { "noisy" } else { "clean" },
+                            100.0 * ratio,
+                            error
+                                .as_deref()
+                                .map(|e| format!("  ({e})"))
+                                .unwrap_or_default()
+                        );
+                        rows.push(Row {
+                            scene: name.clone(),
+                            size,
+                            noisy,
+                            ratio,
+                            frames,
+                            family: family.into(),
+                            method: method.into(),
+                            psnr_db,
+                            ssim,
+                            seconds,
+                            error,
+                            planner,
+                        });
+                    };
                     for family in [
-                        Family::AdaptiveHaar {
-                            batch: 0,
-                            target_error: 0.0,
-                        },
-                        Family::AdaptiveHadamard {
-                            batch: 0,
-                            target_error: 0.0,
-                        },
+                        Family::adaptive(true, 0, 0.0),
+                        Family::adaptive(false, 0, 0.0),
                     ] {
                         let label = family.name();
                         let s = run_adaptive(family, &truth, size, frames, sigma)?;
-                        push(label, "direct", &s.spec, &s.frames, Some(s.figures.clone()));
-                        push(label, "auto", &s.spec, &s.frames, None);
+                        push(
+                            label,
+                            "direct",
+                            &s.spec,
+                            &s.frames,
+                            Some(s.figures.clone()),
+                            None,
+                        );
+                        push(label, "auto", &s.spec, &s.frames, None, None);
+                        push(
+                            label,
+                            "predicted",
+                            &s.spec,
+                            &s.frames,
+                            None,
+                            Some(&s.predicted),
+                        );
                     }
                     let noise_free = NoiseModel::default();
                     for (label, family) in [
@@ -349,7 +373,7 @@ pub fn run(opts: &Options) -> anyhow::Result<Vec<Row>> {
                             .enumerate()
                             .map(|(i, v)| v + read_noise(sigma, 7, i as u64))
                             .collect();
-                        push(label, "auto", &spec, &values, None);
+                        push(label, "auto", &spec, &values, None, None);
                     }
                 }
             }
@@ -392,11 +416,13 @@ fn best_of(rows: &[Row], r: &Row, which: &[(&str, &str)]) -> f64 {
         .fold(f64::NEG_INFINITY, f64::max)
 }
 
-const ADAPTIVE: [(&str, &str); 4] = [
+const ADAPTIVE: [(&str, &str); 6] = [
     ("adaptive_haar", "direct"),
     ("adaptive_haar", "auto"),
+    ("adaptive_haar", "predicted"),
     ("adaptive_hadamard", "direct"),
     ("adaptive_hadamard", "auto"),
+    ("adaptive_hadamard", "predicted"),
 ];
 const FIXED: [(&str, &str); 2] = [("bernoulli", "auto"), ("hadamard_rd", "auto")];
 
@@ -409,7 +435,9 @@ fn markdown(rows: &[Row], opts: &Options, machine: &str) -> String {
          (module docs of `bench/src/adaptive.rs` for the set-up). Frames are counted the same way \
          for every family (a split pair is 2 frames). PSNR in dB against the scene (raw, no \
          fitting). `haar`/`wh` = adaptive_haar / adaptive_hadamard; `dir` = `direct` (the \
-         zero-filled inverse, the adaptive scheme's own image), `auto` = `auto` on the same data; \
+         zero-filled inverse, the adaptive scheme's own image), `auto` = `auto` on the same data, \
+         `pred` = the planner's prediction-filled image (`Planner::predicted_image`: unmeasured \
+         coefficients set to their bicubic prediction; not a service method yet); \
          `bern`, `rd` = `auto` on Bernoulli 1/2 and Russian-doll Hadamard at the same frame \
          count. Noise: none, or read noise at 30 dB of a half-lit pattern's bucket.\n"
     );
@@ -427,9 +455,9 @@ fn markdown(rows: &[Row], opts: &Options, machine: &str) -> String {
             );
             let _ = writeln!(
                 md,
-                "| scene | frames | % of k | haar dir | haar auto | wh dir | wh auto | bern auto | rd auto | best adaptive - best fixed |"
+                "| scene | frames | % of k | haar dir | haar auto | haar pred | wh dir | wh auto | wh pred | bern auto | rd auto | best adaptive - best fixed |"
             );
-            let _ = writeln!(md, "|---|---|---|---|---|---|---|---|---|---|");
+            let _ = writeln!(md, "|---|---|---|---|---|---|---|---|---|---|---|---|");
             for r in rows.iter().filter(|r| {
                 r.size == size
                     && r.noisy == noisy
@@ -443,14 +471,16 @@ fn markdown(rows: &[Row], opts: &Options, machine: &str) -> String {
                 };
                 let _ = writeln!(
                     md,
-                    "| {} | {} | {:.0} % | {} | {} | {} | {} | {} | {} | {:+.2} |",
+                    "| {} | {} | {:.0} % | {} | {} | {} | {} | {} | {} | {} | {} | {:+.2} |",
                     r.scene,
                     r.frames,
                     100.0 * r.ratio,
                     cell("adaptive_haar", "direct"),
                     cell("adaptive_haar", "auto"),
+                    cell("adaptive_haar", "predicted"),
                     cell("adaptive_hadamard", "direct"),
                     cell("adaptive_hadamard", "auto"),
+                    cell("adaptive_hadamard", "predicted"),
                     cell("bernoulli", "auto"),
                     cell("hadamard_rd", "auto"),
                     best_of(rows, r, &ADAPTIVE) - best_of(rows, r, &FIXED)

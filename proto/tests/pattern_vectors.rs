@@ -358,7 +358,7 @@ fn check_vector(vec: &Value) -> &str {
                             "{name}: frame {i} basis index"
                         );
                         assert_eq!(
-                            Some(i % 2 == 0),
+                            Some(i.is_multiple_of(2)),
                             pat["positive"].as_bool(),
                             "{name}: frame {i}"
                         );

@@ -360,7 +360,7 @@ fn adaptive_haar(
             if pair >= pairs {
                 break;
             }
-            if frame % 2 == 0 {
+            if frame.is_multiple_of(2) {
                 positive.copy_from_slice(row);
                 continue;
             }

@@ -149,7 +149,7 @@ impl Preview {
 
     /// An adaptive session: `spec` is the session's spec resolved with every index issued so
     /// far (the same declaration, and a sequence that extends the one this preview had). Rows
-    /// pushed must lie within the pairs of the resolved indices.
+    /// of pairs not resolved when they are pushed are counted but never shown: resolve first.
     pub fn resolve(&mut self, spec: &PatternSpec) {
         assert!(
             spec == &self.spec,
@@ -247,7 +247,11 @@ impl Preview {
                 if i >= 2 * k as u64 {
                     return;
                 }
-                let frame = self.generator.split_frame(i).expect("hadamard");
+                // An adaptive session's pair whose index is not resolved yet cannot be shown.
+                let Some(frame) = self.generator.split_frame(i) else {
+                    debug_assert!(self.spec.is_adaptive(), "hadamard frames are known");
+                    return;
+                };
                 if frame.positive {
                     s.positive.copy_from_slice(c);
                 } else {
@@ -258,10 +262,10 @@ impl Preview {
                 }
             }
             State::Haar(s) => {
-                let n = self.generator.adaptive_index(i).unwrap_or_else(|| {
-                    panic!("adaptive_haar frame {i} pushed before its batch was resolved")
-                });
-                if i % 2 == 0 {
+                let Some(n) = self.generator.adaptive_index(i) else {
+                    return; // not resolved yet: counted, not shown
+                };
+                if i.is_multiple_of(2) {
                     s.positive.copy_from_slice(c);
                 } else {
                     let gain = HaarFunction::new(self.spec.width(), n).side() as f64;

@@ -41,11 +41,13 @@
 //! prediction per channel, O(k) for Haar and O(k log k) for Walsh-Hadamard, plus an O(k)
 //! selection) must finish within one batch's display time. [`batch_pairs`] sizes automatic
 //! batches as `max(16, ceil(k C / 1024), ceil(P / 128))` pairs (`C` channels, `P` the pair
-//! budget): the decision measured in `bench --preset adaptive` costs about 10-30 ns per
-//! coefficient per channel, and a batch of `k C / 1024` pairs lasts `k C / 1024 * 100 us` at
-//! 20 kHz binary frames, i.e. ~100 ns per coefficient per channel: the DMD is never starved by the
-//! decision (the margin is stated per size in `docs/benchmarks-adaptive.md`). The `P / 128` term
-//! caps the number of batches of large budgets.
+//! budget). A batch of `k C / 1024` pairs lasts `k C / 1024 * 100 us` at 20 kHz binary frames,
+//! about 100 ns per coefficient and channel; the decision measured by `bench --preset adaptive`
+//! (`docs/benchmarks-adaptive.md`, one channel, a 2-core machine at load 6-7) costs a median
+//! 0.3 ms at 128x128 (12-18 ns per coefficient; a 16-pair batch shows for 1.6 ms) and 2 ms at
+//! 256x256 (a 64-pair batch: 6.4 ms). Under that load single decisions took up to 41 ms, longer
+//! than a batch: the DMD then idles. The `P / 128` term caps the number of batches of large
+//! budgets.
 //!
 //! # Determinism
 //!
@@ -426,6 +428,37 @@ impl Planner {
     pub fn coefficients(&self, channel: usize) -> &[f64] {
         let k = self.issued.len();
         &self.values[channel * k..(channel + 1) * k]
+    }
+
+    /// Channel `channel`'s image with every unobserved coefficient set to its prediction from
+    /// the observed ones (the bicubic guess of the module docs) instead of 0: the zero-filled
+    /// inverse made smooth where nothing was measured. Row-major `W x W`.
+    pub fn predicted_image(&mut self, channel: usize) -> Vec<f64> {
+        let k = self.issued.len();
+        let values = &self.values[channel * k..(channel + 1) * k];
+        let mut pred = vec![0.0; k];
+        self.predictor.predict(values, &mut pred);
+        let mut observed = vec![false; k];
+        let observed_pairs = self.observed as usize;
+        for &n in &self.order[..observed_pairs] {
+            observed[n as usize] = true;
+        }
+        let mut c: Vec<f64> = (0..k)
+            .map(|n| if observed[n] { values[n] } else { pred[n] })
+            .collect();
+        let w = self.width as usize;
+        match self.basis {
+            Basis::Haar => {
+                use crate::linop::LinearOperator;
+                let mut x = vec![0.0; k];
+                crate::transforms::wavelet::Wavelet2d::haar(w, w).adjoint(&c, &mut x);
+                x
+            }
+            Basis::Hadamard => {
+                crate::fwht::fwht(&mut c);
+                c.iter().map(|v| v / w as f64).collect()
+            }
+        }
     }
 
     pub fn decision_stats(&self) -> DecisionStats {
