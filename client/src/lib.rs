@@ -11,6 +11,8 @@
 //!   failure ([`upload`]),
 //! - requests reconstructions and downloads dual images over REST ([`rest`]),
 //! - watches a session's live preview while it uploads ([`preview`]),
+//! - runs an adaptive session, measuring the batches of patterns the server chooses as it goes
+//!   ([`adaptive`]),
 //! - writes pattern frames as PNGs for a projector or DMD ([`frames`]),
 //! - and is the `helmholtz` command line ([`cli`]).
 //!
@@ -43,6 +45,7 @@
 //! # Ok(()) }
 //! ```
 
+pub mod adaptive;
 pub mod auth;
 pub mod cli;
 pub mod frames;

@@ -511,10 +511,7 @@ impl Worker {
     fn solve_shard(&self, shard: &ClaimedShard, control: &Control) -> Result<Vec<u8>, JobError> {
         let model = TransportModel::from_json(&shard.model_json)
             .map_err(|e| JobError::Internal(format!("stored transport model: {e}")))?;
-        let session = self
-            .runtime
-            .block_on(self.store.session(&shard.session_id))
-            .map_err(|e| JobError::Source(SourceError(e.to_string())))?;
+        let session = self.session_for_recon(&shard.session_id)?;
         let camera = session.camera.ok_or_else(|| {
             JobError::Internal(format!(
                 "session {:?} of a transport shard has no camera",
@@ -576,6 +573,21 @@ impl Worker {
         })
     }
 
+    /// The session with the spec that generated its rows: an adaptive session's spec resolved
+    /// with its stored index sequence ([`crate::store::Batches::resolved_spec`]).
+    fn session_for_recon(&self, id: &str) -> Result<SessionRow, JobError> {
+        let source = |e: crate::store::StoreError| JobError::Source(SourceError(e.to_string()));
+        let mut session = self
+            .runtime
+            .block_on(self.store.session(id))
+            .map_err(source)?;
+        session.spec = self
+            .runtime
+            .block_on(self.store.resolved_spec(&session))
+            .map_err(source)?;
+        Ok(session)
+    }
+
     /// Decodes the stored request (validated when it was queued) and dispatches it once.
     fn compute(&self, job: &ClaimedJob, control: &Control) -> Result<Computed, JobError> {
         let r = &job.reconstruction;
@@ -583,10 +595,7 @@ impl Worker {
             serde_json::from_str(&r.params_json).map_err(|e| JobError::Internal(e.to_string()))?;
         let request = recon::Request::parse(&r.method, &params)
             .map_err(|e| JobError::Internal(format!("stored request: {e}")))?;
-        let session = self
-            .runtime
-            .block_on(self.store.session(&r.session_id))
-            .map_err(|e| JobError::Source(SourceError(e.to_string())))?;
+        let session = self.session_for_recon(&r.session_id)?;
         match (request, session.camera) {
             (recon::Request::Bucket(config), None) => {
                 self.compute_buckets(job, &session, &config, control)

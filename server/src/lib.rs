@@ -4,6 +4,7 @@
 //! the only module that speaks SQL.
 
 pub use helmholtz_alloc as alloc;
+pub mod adaptive;
 pub mod api;
 pub mod app;
 pub mod auth;

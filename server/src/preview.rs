@@ -248,6 +248,8 @@ struct Run {
     watch: Watch,
     tx: mpsc::Sender<Result<Frame, ApiError>>,
     preview: Preview,
+    /// Rows the preview's spec generates: an adaptive session's grow with each issued batch.
+    spec_rows: u64,
     /// The next row to read (a stored chunk boundary).
     cursor: u64,
     last_rows: u64,
@@ -266,6 +268,12 @@ impl Run {
         let preview = Preview::new(&session.spec, 1);
         Run {
             store,
+            // An adaptive session's spec is resolved at its first row.
+            spec_rows: if session.spec.is_adaptive() {
+                0
+            } else {
+                session.spec.count()
+            },
             session,
             watch,
             tx,
@@ -311,6 +319,11 @@ impl Run {
                 continue;
             }
             for (start, count, data) in chunks {
+                if start + count > self.spec_rows {
+                    // An adaptive session's rows of batches issued after the preview's spec was
+                    // resolved: resolve it again (the index sequence only grows).
+                    self.resolve(runtime)?;
+                }
                 if start != self.cursor {
                     return Err(Stop::Corrupt(format!(
                         "session {id}: stored chunk at row {start} does not continue row {}",
@@ -325,6 +338,20 @@ impl Run {
                 }
             }
         }
+    }
+
+    /// The preview's spec resolved with every index issued so far (an adaptive session).
+    fn resolve(&mut self, runtime: &tokio::runtime::Handle) -> Result<(), Stop> {
+        let (spec, rows) = runtime.block_on(self.store.resolved_spec_and_rows(&self.session))?;
+        if rows <= self.spec_rows {
+            return Err(Stop::Corrupt(format!(
+                "session {}: stored rows past the {rows} rows its spec generates",
+                self.session.id
+            )));
+        }
+        self.preview.resolve(&spec);
+        self.spec_rows = rows;
+        Ok(())
     }
 
     /// One stored chunk of `count` rows into the preview.

@@ -11,6 +11,10 @@
 //! - `helmholtz_job_duration_seconds{method, outcome}`: done, failed, cancelled, released
 //! - `helmholtz_http_request_duration_seconds{method, route, status}`: REST, by matched route
 //! - `helmholtz_grpc_request_duration_seconds{rpc, code}`: gRPC, by method and status code
+//! - `helmholtz_adaptive_streams_total`, `helmholtz_adaptive_batches_total`: adaptive acquisition
+//!   streams opened and batches issued; `helmholtz_adaptive_decision_seconds`: from a committed
+//!   chunk to the batches it lets the planner issue; `helmholtz_adaptive_replay_seconds`: rebuilding
+//!   a session's planner from its stored rows when a stream opens
 
 use std::net::SocketAddr;
 use std::sync::OnceLock;
@@ -45,6 +49,10 @@ pub fn recorder() -> anyhow::Result<PrometheusHandle> {
         .set_buckets_for_metric(
             metrics_exporter_prometheus::Matcher::Full("helmholtz_job_duration_seconds".into()),
             JOB_BUCKETS,
+        )?
+        .set_buckets_for_metric(
+            metrics_exporter_prometheus::Matcher::Prefix("helmholtz_adaptive_".into()),
+            LATENCY_BUCKETS,
         )?
         .install_recorder()?;
     describe();
@@ -87,6 +95,22 @@ fn describe() {
     metrics::describe_histogram!(
         "helmholtz_grpc_request_duration_seconds",
         "gRPC latency (to the response head) by method"
+    );
+    metrics::describe_counter!(
+        "helmholtz_adaptive_streams_total",
+        "Adaptive acquisition streams opened"
+    );
+    metrics::describe_counter!(
+        "helmholtz_adaptive_batches_total",
+        "Adaptive batches issued (stored before they are sent)"
+    );
+    metrics::describe_histogram!(
+        "helmholtz_adaptive_decision_seconds",
+        "Adaptive planner: from a committed chunk to the batches it issues"
+    );
+    metrics::describe_histogram!(
+        "helmholtz_adaptive_replay_seconds",
+        "Adaptive planner rebuilt from the stored rows when a stream opens"
     );
 }
 

@@ -96,7 +96,7 @@ async fn api_nodes_and_worker_processes_share_one_postgres_database() {
     let text = String::from_utf8_lossy(&checked.stdout);
     assert!(checked.status.success(), "{checked:?}");
     assert!(
-        text.contains("reachable, schema at migration 2, clock skew"),
+        text.contains("reachable, schema at migration 3, clock skew"),
         "{text}"
     );
     let refused = run(&["check", "--database-url", "mysql://root@127.0.0.1/x"]);

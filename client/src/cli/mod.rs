@@ -5,6 +5,7 @@
 //! exit with 2.
 
 mod acquire;
+mod adaptive;
 mod args;
 mod patterns;
 mod preview;

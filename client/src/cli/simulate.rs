@@ -17,6 +17,7 @@ use crate::spool::{DrainReport, SpoolDir};
 use crate::upload::{self, NewSession, SampleFormat};
 
 use super::Outcome;
+use super::adaptive::{AdaptiveArg, AdaptiveRun, adaptive_spec, simulate_adaptive};
 use super::args::{
     FrameFormatArg, PatternArgs, ResultArgs, TransferArgs, parse_metadata, parse_params, spec_json,
     spec_summary,
@@ -108,6 +109,21 @@ pub struct SimulateArgs {
     pub frame_format: FrameFormatArg,
     #[command(flatten)]
     pub patterns: PatternArgs,
+    /// Adaptive acquisition (haar or hadamard): the server chooses the patterns batch by batch
+    /// from the values measured so far (gRPC Acquire), and the simulated rig shows each batch's
+    /// split pairs as they come. Replaces --family; --width = --height, a power of two; --count
+    /// is the frame budget [default: 2 x width x height, the whole basis]. Bucket scenes only;
+    /// the noise model applies to each batch (its seed varies by batch; drift restarts).
+    #[arg(long, value_enum, value_name = "BASIS")]
+    pub adaptive: Option<AdaptiveArg>,
+    /// --adaptive: split pairs per batch (0: the server sizes batches so a DMD at kHz rates
+    /// never waits for the next decision).
+    #[arg(long, default_value_t = 0, value_name = "PAIRS")]
+    pub adaptive_batch: u32,
+    /// --adaptive: stop once the server's estimated relative error of the image falls below
+    /// this (0: spend the whole budget).
+    #[arg(long, default_value_t = 0.0, value_name = "ERROR")]
+    pub target_error: f64,
     /// Detector channel names, comma separated (each sees the same scene, see --channel-gains).
     /// Image scenes only (lambert names its channels by --detectors / --colour).
     #[arg(long, value_delimiter = ',', default_value = "bucket")]
@@ -183,7 +199,7 @@ fn write_values(path: &Path, names: &[String], rows: usize, values: &[f64]) -> a
     rest::write_atomically(path, &bytes)
 }
 
-fn sim_progress(len: u64, wanted: bool) -> ProgressBar {
+pub(super) fn sim_progress(len: u64, wanted: bool) -> ProgressBar {
     if !wanted {
         return ProgressBar::hidden();
     }
@@ -239,7 +255,28 @@ pub(super) async fn simulate_cmd(
     a: &SimulateArgs,
     progress: bool,
 ) -> anyhow::Result<Outcome> {
-    let spec = a.patterns.to_spec()?;
+    let spec = match a.adaptive {
+        Some(kind) => {
+            anyhow::ensure!(
+                a.camera.is_none()
+                    && !a.offline
+                    && a.frame_rate.is_none()
+                    && a.values_out.is_none(),
+                "--adaptive runs bucket detectors against a server as fast as it decides: drop --camera, --offline, --frame-rate and --values-out"
+            );
+            let p = &a.patterns;
+            adaptive_spec(
+                kind,
+                p.width,
+                p.height,
+                p.count,
+                p.seed,
+                a.adaptive_batch,
+                a.target_error,
+            )?
+        }
+        None => a.patterns.to_spec()?,
+    };
     let model = a.noise.model();
     model.validate()?;
     anyhow::ensure!(
@@ -469,6 +506,30 @@ pub(super) async fn simulate_cmd(
         rest::write_atomically(path, &normalised_png(spec.width(), spec.height(), &first)?)?;
     }
 
+    // The bucket session as declared (the server scores reconstructions against the ground
+    // truth unless --no-ground-truth).
+    let mut session = NewSession::new(session_id.clone(), spec.clone(), names.clone())
+        .with_rig(a.rig.clone())
+        .with_directions(directions.clone());
+    session.metadata = session_metadata;
+    if !a.no_ground_truth {
+        session = session.with_ground_truth(spec.width(), spec.height(), ground_truth);
+    }
+    if a.adaptive.is_some() {
+        out.insert("channels".into(), json!(names));
+        let run = AdaptiveRun {
+            session,
+            transports,
+            model,
+            opts,
+            reconstruct: a.reconstruct.as_deref(),
+            params: &params,
+            result: &a.result,
+            progress,
+        };
+        return simulate_adaptive(server, run, out, String::new()).await;
+    }
+
     let t0 = Instant::now();
     let bar = sim_progress(spec.count(), progress);
     let sim = {
@@ -517,13 +578,6 @@ pub(super) async fn simulate_cmd(
         });
     }
 
-    let mut session = NewSession::new(session_id.clone(), spec.clone(), names.clone())
-        .with_rig(a.rig.clone())
-        .with_directions(directions);
-    session.metadata = session_metadata;
-    if !a.no_ground_truth {
-        session = session.with_ground_truth(spec.width(), spec.height(), ground_truth);
-    }
     let (report, spooled_before) = spool_and_upload(
         server,
         spools,

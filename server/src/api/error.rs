@@ -146,9 +146,10 @@ impl From<StoreError> for ApiError {
             StoreError::Gap { .. } | StoreError::PastEnd { .. } => {
                 ApiError::OutOfRange(e.to_string())
             }
-            StoreError::Finished(_) | StoreError::Incomplete { .. } => {
-                ApiError::FailedPrecondition(e.to_string())
-            }
+            StoreError::Finished(_)
+            | StoreError::Incomplete { .. }
+            | StoreError::NotIssued { .. }
+            | StoreError::NotAdaptive(_) => ApiError::FailedPrecondition(e.to_string()),
             StoreError::Db(_) if e.is_unavailable() => ApiError::Unavailable(e.to_string()),
             StoreError::Corrupt(_)
             | StoreError::Db(_)

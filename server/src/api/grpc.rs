@@ -5,7 +5,10 @@ use tonic::{Request, Response, Status, Streaming};
 
 use super::{ApiError, AppState, validate};
 use crate::auth::{Principal, Role};
-use crate::store::{ReconstructionRow, SampleFormat, SessionRow, SessionState, StoreError};
+use crate::store::{
+    AppendOutcome, ReconstructionRow, SampleFormat, SessionRow, SessionState, StoreError,
+    WriterLease,
+};
 
 #[derive(Clone, Debug)]
 pub struct AcquisitionService {
@@ -28,7 +31,11 @@ impl AcquisitionService {
 
     /// The caller of a gRPC request, holding one of `roles` (or UNAUTHENTICATED /
     /// PERMISSION_DENIED / RESOURCE_EXHAUSTED).
-    async fn caller<T>(&self, request: &Request<T>, roles: &[Role]) -> Result<Principal, ApiError> {
+    pub(super) async fn caller<T>(
+        &self,
+        request: &Request<T>,
+        roles: &[Role],
+    ) -> Result<Principal, ApiError> {
         let authorization = request
             .metadata()
             .get("authorization")
@@ -49,18 +56,13 @@ impl AcquisitionService {
         session: &mut Option<(SessionRow, super::WriterGuard)>,
     ) -> Result<v1::UploadResponse, Status> {
         let (mut written, mut matched, mut committed) = (0u64, 0u64, 0u64);
-        let max_chunk = self.state.limits.max_chunk_bytes;
         let idle = self.state.limits.upload_idle;
         // Each chunk is validated and committed before the next is read: nothing is buffered,
         // and an error leaves every earlier chunk durable.
         loop {
-            let next = tokio::time::timeout(idle, stream.message()).await.map_err(|_| {
-                ApiError::Aborted(format!(
-                    "no chunk for {} s: the upload stream is closed (the rows it committed stay; resume from the committed count)",
-                    idle.as_secs()
-                ))
-            })?;
-            let Some(chunk) = next? else { break };
+            let Some(chunk) = next_message(stream, idle).await? else {
+                break;
+            };
             if session.is_none() {
                 validate::session_id(&chunk.session_id, "session_id")?;
                 let row = self.state.own_session(caller, &chunk.session_id).await?;
@@ -78,45 +80,9 @@ impl AcquisitionService {
                 )
                 .into());
             }
-            let channels = row.row_values();
-            if chunk.channels as usize != channels {
-                let what = if row.camera.is_some() {
-                    "pixels per frame"
-                } else {
-                    "channels"
-                };
-                return Err(ApiError::invalid(
-                    "channels",
-                    format!(
-                        "session {:?} has {channels} {what}, chunk says {}",
-                        row.id, chunk.channels
-                    ),
-                )
-                .into());
-            }
-            let payload = checked_payload(&chunk, row, max_chunk)?;
-            let outcome = self
-                .state
-                .store
-                .append_raw(
-                    &row.id,
-                    Some(&guard.lease),
-                    chunk.start_row,
-                    row.row_bytes(),
-                    payload,
-                )
-                .await
-                .map_err(|e| {
-                    if matches!(e, StoreError::RowMismatch { .. }) {
-                        metrics::counter!("helmholtz_upload_row_mismatches_total").increment(1);
-                    }
-                    ApiError::from(e)
-                })?;
+            let outcome = self.commit_chunk(row, &guard.lease, &chunk).await?;
             written += outcome.written;
             matched += outcome.matched;
-            metrics::counter!("helmholtz_upload_rows_total").increment(outcome.written);
-            metrics::counter!("helmholtz_upload_bytes_total")
-                .increment(outcome.written * row.row_bytes() as u64);
             committed = outcome.committed_rows;
         }
         if let Some((row, _)) = &session {
@@ -130,11 +96,80 @@ impl AcquisitionService {
     }
 }
 
+impl AcquisitionService {
+    /// One chunk of `session`'s rows checked (channels, payload, checksum, values) and
+    /// committed under `lease`: the rules every gRPC upload shares.
+    pub(super) async fn commit_chunk(
+        &self,
+        session: &SessionRow,
+        lease: &WriterLease,
+        chunk: &v1::MeasurementChunk,
+    ) -> Result<AppendOutcome, ApiError> {
+        let channels = session.row_values();
+        if chunk.channels as usize != channels {
+            let what = if session.camera.is_some() {
+                "pixels per frame"
+            } else {
+                "channels"
+            };
+            return Err(ApiError::invalid(
+                "channels",
+                format!(
+                    "session {:?} has {channels} {what}, chunk says {}",
+                    session.id, chunk.channels
+                ),
+            ));
+        }
+        let payload = checked_payload(chunk, session, self.state.limits.max_chunk_bytes)?;
+        let outcome = self
+            .state
+            .store
+            .append_raw(
+                &session.id,
+                Some(lease),
+                chunk.start_row,
+                session.row_bytes(),
+                payload,
+            )
+            .await
+            .map_err(|e| {
+                if matches!(e, StoreError::RowMismatch { .. }) {
+                    metrics::counter!("helmholtz_upload_row_mismatches_total").increment(1);
+                }
+                ApiError::from(e)
+            })?;
+        metrics::counter!("helmholtz_upload_rows_total").increment(outcome.written);
+        metrics::counter!("helmholtz_upload_bytes_total")
+            .increment(outcome.written * session.row_bytes() as u64);
+        Ok(outcome)
+    }
+
+    pub(super) fn state(&self) -> &AppState {
+        &self.state
+    }
+}
+
+/// The next message of a client stream, or ABORTED once it stays silent for `idle` (the rows
+/// committed so far stay).
+pub(super) async fn next_message<T>(
+    stream: &mut Streaming<T>,
+    idle: std::time::Duration,
+) -> Result<Option<T>, Status> {
+    tokio::time::timeout(idle, stream.message())
+        .await
+        .map_err(|_| {
+            ApiError::Aborted(format!(
+                "no message for {} s: the stream is closed (the rows it committed stay; resume from the committed count)",
+                idle.as_secs()
+            ))
+        })?
+}
+
 /// The metadata naming an upload's writer: one id for every stream of one client upload.
 pub const WRITER_HEADER: &str = "x-helmholtz-writer";
 
 /// The upload's writer id from [`WRITER_HEADER`] (empty when not sent).
-fn writer_id<T>(request: &Request<T>) -> Result<String, ApiError> {
+pub(super) fn writer_id<T>(request: &Request<T>) -> Result<String, ApiError> {
     validate::writer_id(request.metadata().get(WRITER_HEADER).map(|v| v.as_bytes()))
 }
 
@@ -272,6 +307,14 @@ pub type PreviewStream =
 #[tonic::async_trait]
 impl Acquisition for AcquisitionService {
     type WatchPreviewStream = PreviewStream;
+    type AcquireStream = super::acquire::AcquireStream;
+
+    async fn acquire(
+        &self,
+        request: Request<Streaming<v1::AcquireRequest>>,
+    ) -> Result<Response<Self::AcquireStream>, Status> {
+        super::acquire::acquire(self, request).await
+    }
 
     async fn watch_preview(
         &self,

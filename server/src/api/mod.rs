@@ -1,6 +1,7 @@
 //! The only place that speaks HTTP or gRPC. Handlers authenticate, validate, call the store or
 //! the job queue, and map errors once (see [`error`]).
 
+pub mod acquire;
 pub mod error;
 pub mod grpc;
 pub mod images;
@@ -269,8 +270,9 @@ impl AppState {
                         "session {session_id:?} is a camera session: reconstruct its transport matrix with method \"transport\""
                     )));
                 }
+                let spec = self.store.resolved_spec(&session).await?;
                 let problem = Problem {
-                    spec: &session.spec,
+                    spec: &spec,
                     channels: session.channels.len(),
                     rows: session.committed_rows,
                 };

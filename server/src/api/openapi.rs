@@ -374,11 +374,11 @@ pub struct SessionFile;
 
 impl PartialSchema for SessionFile {
     fn schema() -> RefOr<Schema> {
-        let mut names = vec!["measurements.npy"];
+        let mut names = vec!["measurements.npy", "adaptive.json"];
         names.extend(super::rest::DUAL_FILES);
         one_of(
             &names,
-            "measurements.npy: the committed rows (NPY); dual.png|dual.tiff|dual.npy: the dual image of the latest finished reconstruction",
+            "measurements.npy: the committed rows (NPY); adaptive.json: an adaptive session's issued batches of basis indices, in order; dual.png|dual.tiff|dual.npy: the dual image of the latest finished reconstruction",
         )
     }
 }
@@ -558,7 +558,13 @@ mod tests {
         assert_eq!(reconstruction.len(), 10);
         assert_eq!(
             names(SessionFile::schema()),
-            ["measurements.npy", "dual.png", "dual.tiff", "dual.npy"]
+            [
+                "measurements.npy",
+                "adaptive.json",
+                "dual.png",
+                "dual.tiff",
+                "dual.npy"
+            ]
         );
     }
 

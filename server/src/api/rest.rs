@@ -620,6 +620,34 @@ async fn post_reconstruction(
 /// The committed rows exactly as stored, streamed page by page (a camera session can be
 /// gigabytes): bucket sessions float64 of shape (rows, channels); camera sessions their frames,
 /// uint16 or float32 of shape (rows, height, width).
+/// An adaptive session's issued batches (a session of another family is 409).
+async fn adaptive_json(
+    state: &AppState,
+    caller: &Principal,
+    id: &str,
+) -> Result<Response, ApiError> {
+    let session = state.own_session(caller, id).await?;
+    if !session.spec.is_adaptive() {
+        return Err(crate::store::StoreError::NotAdaptive(session.id).into());
+    }
+    let batches = state.store.batches(id).await?;
+    let indices: Vec<u32> = batches.iter().flat_map(|b| b.indices.clone()).collect();
+    let body = serde_json::json!({
+        "session_id": session.id,
+        "issued_rows": 2 * indices.len() as u64,
+        "indices": indices,
+        "batches": batches
+            .iter()
+            .map(|b| serde_json::json!({
+                "number": b.number,
+                "first_row": b.first_row,
+                "indices": b.indices,
+            }))
+            .collect::<Vec<_>>(),
+    });
+    Ok(axum::Json(body).into_response())
+}
+
 async fn measurements_npy(
     state: &AppState,
     caller: &Principal,
@@ -1059,16 +1087,19 @@ async fn reconstruction_file(
 ///
 /// `measurements.npy`: the committed rows as stored, streamed (bucket sessions float64 of shape
 /// (rows, channels); camera sessions their frames, uint16 or float32 of shape (rows, height,
-/// width)). `dual.png|dual.tiff|dual.npy`: the dual image of the latest finished reconstruction.
-/// NPY files are sent as application/octet-stream (role reader).
+/// width)). `adaptive.json`: an adaptive session's issued batches in order, `{"session_id",
+/// "issued_rows", "indices": [..], "batches": [{"number", "first_row", "indices"}]}` (with the
+/// rows, what replays the session: PATTERNS.md). `dual.png|dual.tiff|dual.npy`: the dual image of
+/// the latest finished reconstruction. NPY files are sent as application/octet-stream (role
+/// reader).
 #[utoipa::path(
     get,
     path = "/v1/sessions/{id}/{file}",
     tag = "sessions",
     params(SessionFilePath, DualQuery, Conditional),
     responses(
-        (status = 200, description = "The file: image/png (.png), image/tiff (.tiff), application/octet-stream (.npy, NumPy format)",
-            content(("image/png"), ("image/tiff"), ("application/octet-stream")),
+        (status = 200, description = "The file: image/png (.png), image/tiff (.tiff), application/octet-stream (.npy, NumPy format), application/json (adaptive.json)",
+            content(("image/png"), ("image/tiff"), ("application/octet-stream"), ("application/json")),
             headers(
                 ("ETag" = String, description = "dual.*: the answer's ETag"),
                 ("Cache-Control" = String, description = "dual.*: private, max-age=31536000, immutable"),
@@ -1092,6 +1123,9 @@ async fn session_file(
     session_path(&id)?;
     if file == "measurements.npy" {
         return measurements_npy(&state, &caller, &id).await;
+    }
+    if file == "adaptive.json" {
+        return adaptive_json(&state, &caller, &id).await;
     }
     let format = dual_format(&file)?;
     state.own_session(&caller, &id).await?;

@@ -1,5 +1,5 @@
 //! What the service keeps: sessions, bucket rows, the job queue and results, tokens. The
-//! domain's types and the [`Database`] trait (in parts: [`Sessions`], [`Rows`], [`Jobs`],
+//! domain's types and the [`Database`] trait (in parts: [`Sessions`], [`Rows`], [`Batches`], [`Jobs`],
 //! [`Shards`], [`Tokens`]) live here with the rules every backend shares; the SQL lives in a backend
 //! ([`sqlite`], embedded; [`postgres`], shared by many nodes). Rows are acknowledged only after their commit returns.
 
@@ -10,6 +10,7 @@ use std::time::{SystemTime, UNIX_EPOCH};
 use async_trait::async_trait;
 use helmholtz_proto::PatternSpec;
 
+mod batches;
 mod jobs;
 pub mod postgres;
 mod record;
@@ -19,6 +20,7 @@ mod shards;
 pub mod sqlite;
 mod tokens;
 
+pub use batches::{Batches, IssuedBatch};
 pub use jobs::{ClaimedJob, Jobs, ReconstructionRow, StoredImage};
 pub use postgres::Postgres;
 pub(crate) use record::StoreRow;
@@ -45,6 +47,18 @@ pub enum StoreError {
     PastEnd { end: u64, expected: u64 },
     #[error("session {0:?} is finished; it takes no more rows")]
     Finished(String),
+    #[error(
+        "start_row: rows up to {end} of adaptive session {session:?} were not issued: the server \
+         has issued rows 0..{issued} so far (send rows of the issued batches only; the next \
+         batch follows their values)"
+    )]
+    NotIssued {
+        session: String,
+        end: u64,
+        issued: u64,
+    },
+    #[error("session {0:?} does not declare an adaptive pattern family")]
+    NotAdaptive(String),
     #[error(
         "row {row} of session {session:?} is already stored with different values (first \
          difference at byte {byte} of the row); nothing of this chunk (rows {start}..{end}) was \
@@ -119,10 +133,10 @@ impl StoreError {
 
 /// Everything the service keeps, as one backend stores it: sessions and their rows, the job
 /// queue and results, tokens. SQLite ([`Sqlite`]) is the embedded implementation; a backend
-/// implements the four parts and these.
+/// implements the parts and these.
 #[async_trait]
 pub trait Database:
-    Sessions + Rows + Jobs + Shards + Tokens + std::fmt::Debug + Send + Sync + 'static
+    Sessions + Rows + Batches + Jobs + Shards + Tokens + std::fmt::Debug + Send + Sync + 'static
 {
     /// True when the database answers (health checks).
     async fn ping(&self) -> bool;

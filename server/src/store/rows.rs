@@ -79,6 +79,23 @@ pub(crate) fn check_bounds(
     Ok(end.min(committed))
 }
 
+/// An adaptive session (`issued` set) takes rows of its issued batches only: rows up to `end`
+/// must have been issued.
+pub(crate) fn check_issued(
+    session_id: &str,
+    issued: Option<u64>,
+    end: u64,
+) -> Result<(), StoreError> {
+    match issued {
+        Some(issued) if end > issued => Err(StoreError::NotIssued {
+            session: session_id.to_string(),
+            end,
+            issued,
+        }),
+        _ => Ok(()),
+    }
+}
+
 /// Compares an append's rows `start_row..overlap_end` (of a chunk `start_row..end` whose bytes
 /// are `payload`) byte for byte with the stored `chunks` that hold them, in order.
 #[allow(clippy::too_many_arguments)]
@@ -197,6 +214,7 @@ pub trait Rows: Send + Sync {
     ///   of it is stored;
     /// - a start above the committed count is a gap and writes nothing;
     /// - new rows into a finished session are refused;
+    /// - an adaptive session takes rows of its issued batches only ([`check_issued`]);
     /// - with a `lease`, the append is refused unless the lease is still this writer's
     ///   (checked and renewed in the same transaction: a writer that lost its lease to another
     ///   cannot write after it).

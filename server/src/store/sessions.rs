@@ -116,9 +116,10 @@ pub(crate) fn same_declaration(existing: &SessionRow, new: &NewSession) -> Resul
     }
 }
 
-/// The error for a session that cannot be finished yet, if any.
+/// The error for a session that cannot be finished yet, if any. An adaptive session may finish
+/// at any time: it then holds the rows measured so far (its count is a budget, not a promise).
 pub(crate) fn finishable(session: &SessionRow) -> Result<(), StoreError> {
-    if session.committed_rows != session.expected_rows {
+    if !session.spec.is_adaptive() && session.committed_rows != session.expected_rows {
         return Err(StoreError::Incomplete {
             id: session.id.clone(),
             committed: session.committed_rows,
@@ -152,7 +153,8 @@ pub trait Sessions: Send + Sync {
     /// (sessions, rows) stored in all labs (for the operator's metrics).
     async fn count_all(&self) -> Result<(u64, u64), StoreError>;
 
-    /// Marks the session finished once every declared row is committed ([`finishable`]).
+    /// Marks the session finished once every declared row is committed (an adaptive session:
+    /// at any time; [`finishable`]).
     /// Idempotent.
     async fn finish_session(&self, id: &str) -> Result<SessionRow, StoreError>;
 

@@ -44,6 +44,7 @@ on_both_backends!(
     claims_skip_jobs_that_do_not_fit_the_memory_left,
     transport_shards_are_leased_fenced_and_listed_in_order,
     a_shard_out_of_attempts_fails_and_a_cancelled_job_s_shards_stop,
+    adaptive_batches_bound_the_rows_and_resolve_the_spec,
 );
 
 /// A request whose client cuts the connection drops the store call at any await. On PostgreSQL
@@ -1052,4 +1053,107 @@ async fn a_shard_out_of_attempts_fails_and_a_cancelled_job_s_shards_stop(s: Stor
             .unwrap()
             .is_none()
     );
+}
+
+/// An adaptive session takes rows of its issued batches only; batches are stored in order,
+/// idempotently, and resolve the spec; it may finish early.
+async fn adaptive_batches_bound_the_rows_and_resolve_the_spec(s: Store) {
+    let mut new = new_session("ad", 32);
+    new.spec = PatternSpec::new(
+        Family::AdaptiveHaar {
+            batch: 2,
+            target_error: 0.0,
+        },
+        4,
+        4,
+        32,
+        0,
+    )
+    .unwrap();
+    let (session, _) = s.create_session(&new).await.unwrap();
+    assert_eq!(s.resolved_spec_and_rows(&session).await.unwrap().1, 0);
+    // Nothing issued: no row is taken.
+    let e = s.append_rows("ad", 0, 2, &rows(0, 2)).await.unwrap_err();
+    assert!(
+        matches!(
+            e,
+            StoreError::NotIssued {
+                end: 2,
+                issued: 0,
+                ..
+            }
+        ),
+        "{e}"
+    );
+    assert!(e.to_string().starts_with("start_row"), "{e}");
+    let b0 = IssuedBatch {
+        number: 0,
+        first_row: 0,
+        indices: vec![0, 5],
+    };
+    assert_eq!(s.issue_batch("ad", None, &b0).await.unwrap(), 4);
+    // Issuing the same batch again changes nothing; another one at its number is refused.
+    assert_eq!(s.issue_batch("ad", None, &b0).await.unwrap(), 4);
+    let other = IssuedBatch {
+        indices: vec![0, 6],
+        ..b0.clone()
+    };
+    assert!(matches!(
+        s.issue_batch("ad", None, &other).await,
+        Err(StoreError::Corrupt(_))
+    ));
+    // A batch must continue the stored ones.
+    let skipping = IssuedBatch {
+        number: 2,
+        first_row: 4,
+        indices: vec![1],
+    };
+    assert!(s.issue_batch("ad", None, &skipping).await.is_err());
+    let b1 = IssuedBatch {
+        number: 1,
+        first_row: 4,
+        indices: vec![3],
+    };
+    assert_eq!(s.issue_batch("ad", None, &b1).await.unwrap(), 6);
+    assert_eq!(s.batches("ad").await.unwrap(), vec![b0, b1]);
+    let e = s.append_rows("ad", 0, 2, &rows(0, 7)).await.unwrap_err();
+    assert!(
+        matches!(
+            e,
+            StoreError::NotIssued {
+                end: 7,
+                issued: 6,
+                ..
+            }
+        ),
+        "{e}"
+    );
+    assert_eq!(
+        s.session("ad").await.unwrap().committed_rows,
+        0,
+        "nothing stored"
+    );
+    s.append_rows("ad", 0, 2, &rows(0, 6)).await.unwrap();
+    let (spec, issued) = s.resolved_spec_and_rows(&session).await.unwrap();
+    assert_eq!(issued, 6);
+    assert_eq!(spec.adaptive_indices(), Some(&[0u32, 5, 3][..]));
+    // A non-adaptive session has no batches to issue.
+    s.create_session(&new_session("plain", 8)).await.unwrap();
+    assert!(matches!(
+        s.issue_batch(
+            "plain",
+            None,
+            &IssuedBatch {
+                number: 0,
+                first_row: 0,
+                indices: vec![1]
+            }
+        )
+        .await,
+        Err(StoreError::NotAdaptive(_))
+    ));
+    // An adaptive session finishes with the rows measured so far.
+    let finished = s.finish_session("ad").await.unwrap();
+    assert_eq!(finished.state, SessionState::Finished);
+    assert_eq!(finished.committed_rows, 6);
 }

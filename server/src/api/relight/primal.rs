@@ -60,10 +60,9 @@ pub async fn primal(
     if let Some(hit) = state.responses.get(&etag) {
         return Ok(respond(&etag, hit, None));
     }
-    let (pw, ph) = (
-        session.spec.width() as usize,
-        session.spec.height() as usize,
-    );
+    // An adaptive session's patterns are those of its issued index sequence.
+    let spec = state.store.resolved_spec(&session).await?;
+    let (pw, ph) = (spec.width() as usize, spec.height() as usize);
     let k = pw * ph;
     let (pattern, measured_row) = match parse_input(headers, &body, "body")? {
         Input::Image {
@@ -84,18 +83,18 @@ pub async fn primal(
         Input::Json(body) => {
             let body: PrimalRequest = json::decode(&body, r#"{"pattern_index": 0}"#)?;
             let i = body.pattern_index;
-            if i >= session.spec.count() {
+            if i >= spec.count() {
                 return Err(ApiError::invalid(
                     "pattern_index",
                     format!(
                         "the session declares {} patterns (0..{}), got {i}",
-                        session.spec.count(),
-                        session.spec.count()
+                        spec.count(),
+                        spec.count()
                     ),
                 ));
             }
             let mut pattern = vec![0f32; k];
-            helmholtz_proto::PatternGenerator::new(&session.spec).fill_values(i, &mut pattern);
+            helmholtz_proto::PatternGenerator::new(&spec).fill_values(i, &mut pattern);
             (pattern, Some(i))
         }
     };

@@ -16,6 +16,7 @@ use sqlx::{Connection, PgPool, Postgres as Pg, Row, Transaction};
 
 use super::{Database, StoreError};
 
+mod batches;
 mod jobs;
 mod rows;
 mod sessions;

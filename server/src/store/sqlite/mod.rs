@@ -14,6 +14,7 @@ use sqlx::{Row, SqlitePool};
 
 use super::{Database, StoreError};
 
+mod batches;
 mod jobs;
 mod rows;
 mod sessions;

@@ -5,7 +5,7 @@ use sqlx::Row;
 
 use super::Sqlite;
 use crate::store::rows::raw_chunk;
-use crate::store::rows::{check_bounds, check_chunks, compare_overlap, row_of_chunk};
+use crate::store::rows::{check_bounds, check_chunks, check_issued, compare_overlap, row_of_chunk};
 use crate::store::{AppendOutcome, RawChunk, Rows, StoreError, WriterLease, now_ms};
 
 #[async_trait]
@@ -64,31 +64,23 @@ impl Rows for Sqlite {
         let rows = (payload.len() / row_bytes) as u64;
         // BEGIN IMMEDIATE takes the write lock up front: read-then-write without upgrade failures.
         let mut tx = self.pool.begin_with("BEGIN IMMEDIATE").await?;
-        let row =
-            sqlx::query("SELECT committed_rows, expected_rows, state FROM sessions WHERE id = $1")
-                .bind(session_id)
-                .fetch_optional(&mut *tx)
-                .await?
-                .ok_or_else(|| StoreError::SessionNotFound(session_id.to_string()))?;
+        let row = sqlx::query(
+            "SELECT committed_rows, expected_rows, state, issued_rows FROM sessions WHERE id = $1",
+        )
+        .bind(session_id)
+        .fetch_optional(&mut *tx)
+        .await?
+        .ok_or_else(|| StoreError::SessionNotFound(session_id.to_string()))?;
         if let Some(lease) = lease {
-            let held = sqlx::query(
-                "UPDATE upload_leases SET expires_ms = $3 WHERE session_id = $1 AND holder = $2",
-            )
-            .bind(session_id)
-            .bind(&lease.holder)
-            .bind(now_ms() + lease.ttl.as_millis() as i64)
-            .execute(&mut *tx)
-            .await?
-            .rows_affected();
-            if held != 1 {
-                return Err(StoreError::WriterLost(session_id.to_string()));
-            }
+            hold_lease(&mut tx, session_id, lease).await?;
         }
         let committed = row.get::<i64, _>("committed_rows") as u64;
         let expected = row.get::<i64, _>("expected_rows") as u64;
         let state: String = row.get("state");
         let end = start_row + rows;
         let overlap_end = check_bounds(committed, expected, start_row, end)?;
+        let issued = row.get::<Option<i64>, _>("issued_rows").map(|v| v as u64);
+        check_issued(session_id, issued, end)?;
         if overlap_end > start_row {
             let chunks: Vec<RawChunk> = sqlx::query(
                 "SELECT start_row, row_count, data FROM measurement_chunks \
@@ -184,4 +176,26 @@ impl Rows for Sqlite {
         let Some(found) = found else { return Ok(None) };
         row_of_chunk(session_id, &raw_chunk(&found), row, row_bytes)
     }
+}
+
+/// Renews `lease` inside `tx` (an append's or a batch's own transaction): refused
+/// ([`StoreError::WriterLost`]) unless the lease is still this holder's.
+pub(super) async fn hold_lease(
+    tx: &mut sqlx::SqliteConnection,
+    session_id: &str,
+    lease: &WriterLease,
+) -> Result<(), StoreError> {
+    let held = sqlx::query(
+        "UPDATE upload_leases SET expires_ms = $3 WHERE session_id = $1 AND holder = $2",
+    )
+    .bind(session_id)
+    .bind(&lease.holder)
+    .bind(now_ms() + lease.ttl.as_millis() as i64)
+    .execute(&mut *tx)
+    .await?
+    .rows_affected();
+    if held != 1 {
+        return Err(StoreError::WriterLost(session_id.to_string()));
+    }
+    Ok(())
 }

@@ -51,8 +51,8 @@ impl Sessions for Sqlite {
         }
         let inserted = sqlx::query(
             "INSERT INTO sessions (id, rig, spec_json, channels_json, metadata_json, expected_rows, \
-             gt_width, gt_height, gt_transport, created_ms, lab, camera_width, camera_height, sample_format, directions_json) \
-             VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $12, $13, $14, $15) \
+             gt_width, gt_height, gt_transport, created_ms, lab, camera_width, camera_height, sample_format, directions_json, issued_rows) \
+             VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $12, $13, $14, $15, $16) \
              ON CONFLICT (id) DO NOTHING",
         )
         .bind(&new.id)
@@ -70,6 +70,8 @@ impl Sessions for Sqlite {
         .bind(new.camera.map(|c| c.height as i64))
         .bind(new.camera.map(|c| c.format).unwrap_or(SampleFormat::F64).name())
         .bind(serde_json::to_string(&new.directions).expect("json"))
+        // An adaptive session takes rows of its issued batches only: none yet.
+        .bind(new.spec.is_adaptive().then_some(0i64))
         .execute(&mut *tx)
         .await?
         .rows_affected()

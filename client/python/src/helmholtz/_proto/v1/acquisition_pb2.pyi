@@ -38,6 +38,13 @@ class SessionState(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     SESSION_STATE_UNSPECIFIED: _ClassVar[SessionState]
     SESSION_STATE_OPEN: _ClassVar[SessionState]
     SESSION_STATE_FINISHED: _ClassVar[SessionState]
+
+class AdaptiveStop(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    ADAPTIVE_STOP_UNSPECIFIED: _ClassVar[AdaptiveStop]
+    ADAPTIVE_STOP_BUDGET: _ClassVar[AdaptiveStop]
+    ADAPTIVE_STOP_TARGET_ERROR: _ClassVar[AdaptiveStop]
+    ADAPTIVE_STOP_FINISHED: _ClassVar[AdaptiveStop]
 PATTERN_FAMILY_UNSPECIFIED: PatternFamily
 PATTERN_FAMILY_RASTER: PatternFamily
 PATTERN_FAMILY_BERNOULLI: PatternFamily
@@ -58,6 +65,10 @@ SAMPLE_FORMAT_U16: SampleFormat
 SESSION_STATE_UNSPECIFIED: SessionState
 SESSION_STATE_OPEN: SessionState
 SESSION_STATE_FINISHED: SessionState
+ADAPTIVE_STOP_UNSPECIFIED: AdaptiveStop
+ADAPTIVE_STOP_BUDGET: AdaptiveStop
+ADAPTIVE_STOP_TARGET_ERROR: AdaptiveStop
+ADAPTIVE_STOP_FINISHED: AdaptiveStop
 
 class RasterParams(_message.Message):
     __slots__ = ("block", "scans")
@@ -340,3 +351,73 @@ class PreviewFrame(_message.Message):
     values: _containers.RepeatedScalarFieldContainer[float]
     final: bool
     def __init__(self, session_id: _Optional[str] = ..., channel: _Optional[str] = ..., rows: _Optional[int] = ..., expected_rows: _Optional[int] = ..., width: _Optional[int] = ..., height: _Optional[int] = ..., method: _Optional[str] = ..., values: _Optional[_Iterable[float]] = ..., final: _Optional[bool] = ...) -> None: ...
+
+class AcquireOpen(_message.Message):
+    __slots__ = ("session_id", "measured_rows", "known_batches")
+    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    MEASURED_ROWS_FIELD_NUMBER: _ClassVar[int]
+    KNOWN_BATCHES_FIELD_NUMBER: _ClassVar[int]
+    session_id: str
+    measured_rows: int
+    known_batches: int
+    def __init__(self, session_id: _Optional[str] = ..., measured_rows: _Optional[int] = ..., known_batches: _Optional[int] = ...) -> None: ...
+
+class AcquireRequest(_message.Message):
+    __slots__ = ("open", "chunk")
+    OPEN_FIELD_NUMBER: _ClassVar[int]
+    CHUNK_FIELD_NUMBER: _ClassVar[int]
+    open: AcquireOpen
+    chunk: MeasurementChunk
+    def __init__(self, open: _Optional[_Union[AcquireOpen, _Mapping]] = ..., chunk: _Optional[_Union[MeasurementChunk, _Mapping]] = ...) -> None: ...
+
+class AcquireOpened(_message.Message):
+    __slots__ = ("session", "committed_rows", "issued_rows")
+    SESSION_FIELD_NUMBER: _ClassVar[int]
+    COMMITTED_ROWS_FIELD_NUMBER: _ClassVar[int]
+    ISSUED_ROWS_FIELD_NUMBER: _ClassVar[int]
+    session: Session
+    committed_rows: int
+    issued_rows: int
+    def __init__(self, session: _Optional[_Union[Session, _Mapping]] = ..., committed_rows: _Optional[int] = ..., issued_rows: _Optional[int] = ...) -> None: ...
+
+class AdaptiveBatch(_message.Message):
+    __slots__ = ("number", "first_row", "indices")
+    NUMBER_FIELD_NUMBER: _ClassVar[int]
+    FIRST_ROW_FIELD_NUMBER: _ClassVar[int]
+    INDICES_FIELD_NUMBER: _ClassVar[int]
+    number: int
+    first_row: int
+    indices: _containers.RepeatedScalarFieldContainer[int]
+    def __init__(self, number: _Optional[int] = ..., first_row: _Optional[int] = ..., indices: _Optional[_Iterable[int]] = ...) -> None: ...
+
+class AcquireAck(_message.Message):
+    __slots__ = ("committed_rows", "rows_written", "rows_skipped")
+    COMMITTED_ROWS_FIELD_NUMBER: _ClassVar[int]
+    ROWS_WRITTEN_FIELD_NUMBER: _ClassVar[int]
+    ROWS_SKIPPED_FIELD_NUMBER: _ClassVar[int]
+    committed_rows: int
+    rows_written: int
+    rows_skipped: int
+    def __init__(self, committed_rows: _Optional[int] = ..., rows_written: _Optional[int] = ..., rows_skipped: _Optional[int] = ...) -> None: ...
+
+class AcquireDone(_message.Message):
+    __slots__ = ("reason", "rows", "estimated_error")
+    REASON_FIELD_NUMBER: _ClassVar[int]
+    ROWS_FIELD_NUMBER: _ClassVar[int]
+    ESTIMATED_ERROR_FIELD_NUMBER: _ClassVar[int]
+    reason: AdaptiveStop
+    rows: int
+    estimated_error: float
+    def __init__(self, reason: _Optional[_Union[AdaptiveStop, str]] = ..., rows: _Optional[int] = ..., estimated_error: _Optional[float] = ...) -> None: ...
+
+class AcquireResponse(_message.Message):
+    __slots__ = ("opened", "batch", "ack", "done")
+    OPENED_FIELD_NUMBER: _ClassVar[int]
+    BATCH_FIELD_NUMBER: _ClassVar[int]
+    ACK_FIELD_NUMBER: _ClassVar[int]
+    DONE_FIELD_NUMBER: _ClassVar[int]
+    opened: AcquireOpened
+    batch: AdaptiveBatch
+    ack: AcquireAck
+    done: AcquireDone
+    def __init__(self, opened: _Optional[_Union[AcquireOpened, _Mapping]] = ..., batch: _Optional[_Union[AdaptiveBatch, _Mapping]] = ..., ack: _Optional[_Union[AcquireAck, _Mapping]] = ..., done: _Optional[_Union[AcquireDone, _Mapping]] = ...) -> None: ...

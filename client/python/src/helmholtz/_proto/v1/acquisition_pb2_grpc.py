@@ -74,6 +74,11 @@ class AcquisitionStub:
                 request_serializer=helmholtz_dot___proto_dot_v1_dot_acquisition__pb2.PreviewRequest.SerializeToString,
                 response_deserializer=helmholtz_dot___proto_dot_v1_dot_acquisition__pb2.PreviewFrame.FromString,
                 _registered_method=True)
+        self.Acquire = channel.stream_stream(
+                '/helmholtz.v1.Acquisition/Acquire',
+                request_serializer=helmholtz_dot___proto_dot_v1_dot_acquisition__pb2.AcquireRequest.SerializeToString,
+                response_deserializer=helmholtz_dot___proto_dot_v1_dot_acquisition__pb2.AcquireResponse.FromString,
+                _registered_method=True)
 
 
 class AcquisitionServicer:
@@ -150,6 +155,31 @@ class AcquisitionServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def Acquire(self, request_iterator, context):
+        """Bidirectional streaming: adaptive acquisition. The server chooses the patterns of an
+        adaptive session (family ADAPTIVE_HAAR or ADAPTIVE_HADAMARD, created by CreateSession) from
+        the values measured so far and sends them in batches of basis indices; the rig shows each
+        batch's split pairs and streams the measured rows back. The first request is `open`; every
+        later one is a `chunk`, checked and committed under UploadMeasurements' rules (CRC-32C,
+        channel count, the session's sample format, finite values, overlap compared byte for byte,
+        one writer per session, the `x-helmholtz-writer` metadata) plus one: rows beyond the batches
+        issued so far are FAILED_PRECONDITION naming `start_row`, and nothing of that chunk is
+        stored. The server answers `opened`, then every stored batch from the open's
+        `known_batches` on (so a rig that lost its stream, or restarted, resumes where it was), an
+        `ack` after each committed chunk and a new
+        `batch` whenever the values allow one; each batch is stored before it is sent, and the index
+        sequence is a deterministic function of the spec and the stored values (PATTERNS.md), so a
+        reopened stream (or another implementation) replays it exactly. When the stopping rule holds
+        (the frame budget is spent or the estimated error reaches the target) and every issued row
+        is committed, the server finishes the session, sends `done` and ends the stream. A stream
+        opened on a finished session gets `opened` and `done` at once. Role rig; another lab's
+        session is NOT_FOUND; a session of a non-adaptive family is FAILED_PRECONDITION naming
+        `session_id`.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
 
 def add_AcquisitionServicer_to_server(servicer, server):
     rpc_method_handlers = {
@@ -192,6 +222,11 @@ def add_AcquisitionServicer_to_server(servicer, server):
                     servicer.WatchPreview,
                     request_deserializer=helmholtz_dot___proto_dot_v1_dot_acquisition__pb2.PreviewRequest.FromString,
                     response_serializer=helmholtz_dot___proto_dot_v1_dot_acquisition__pb2.PreviewFrame.SerializeToString,
+            ),
+            'Acquire': grpc.stream_stream_rpc_method_handler(
+                    servicer.Acquire,
+                    request_deserializer=helmholtz_dot___proto_dot_v1_dot_acquisition__pb2.AcquireRequest.FromString,
+                    response_serializer=helmholtz_dot___proto_dot_v1_dot_acquisition__pb2.AcquireResponse.SerializeToString,
             ),
     }
     generic_handler = grpc.method_handlers_generic_handler(
@@ -410,6 +445,33 @@ class Acquisition:
             '/helmholtz.v1.Acquisition/WatchPreview',
             helmholtz_dot___proto_dot_v1_dot_acquisition__pb2.PreviewRequest.SerializeToString,
             helmholtz_dot___proto_dot_v1_dot_acquisition__pb2.PreviewFrame.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def Acquire(request_iterator,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.stream_stream(
+            request_iterator,
+            target,
+            '/helmholtz.v1.Acquisition/Acquire',
+            helmholtz_dot___proto_dot_v1_dot_acquisition__pb2.AcquireRequest.SerializeToString,
+            helmholtz_dot___proto_dot_v1_dot_acquisition__pb2.AcquireResponse.FromString,
             options,
             channel_credentials,
             insecure,
