@@ -97,7 +97,7 @@ impl Stream<'_> {
     ) -> Result<(), Status> {
         let state = self.service.state().clone();
         let idle = state.limits.upload_idle;
-        let Some(first) = next_message(&mut inbound, idle).await? else {
+        let Some(first) = next_message(&mut inbound, idle, "message").await? else {
             return Ok(());
         };
         let Some(acquire_request::Message::Open(open)) = first.message else {
@@ -161,7 +161,7 @@ impl Stream<'_> {
         if session.state == SessionState::Finished || acquisition.stopped().is_some() {
             return self.done(&session, &acquisition).await;
         }
-        while let Some(request) = next_message(&mut inbound, idle).await? {
+        while let Some(request) = next_message(&mut inbound, idle, "message").await? {
             let chunk = match request.message {
                 Some(acquire_request::Message::Chunk(chunk)) => chunk,
                 Some(acquire_request::Message::Open(_)) => {

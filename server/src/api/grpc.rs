@@ -60,7 +60,7 @@ impl AcquisitionService {
         // Each chunk is validated and committed before the next is read: nothing is buffered,
         // and an error leaves every earlier chunk durable.
         loop {
-            let Some(chunk) = next_message(stream, idle).await? else {
+            let Some(chunk) = next_message(stream, idle, "chunk").await? else {
                 break;
             };
             if session.is_none() {
@@ -150,16 +150,17 @@ impl AcquisitionService {
 }
 
 /// The next message of a client stream, or ABORTED once it stays silent for `idle` (the rows
-/// committed so far stay).
+/// committed so far stay); `what` names the message in that error ("chunk", "message").
 pub(super) async fn next_message<T>(
     stream: &mut Streaming<T>,
     idle: std::time::Duration,
+    what: &str,
 ) -> Result<Option<T>, Status> {
     tokio::time::timeout(idle, stream.message())
         .await
         .map_err(|_| {
             ApiError::Aborted(format!(
-                "no message for {} s: the stream is closed (the rows it committed stay; resume from the committed count)",
+                "no {what} for {} s: the stream is closed (the rows it committed stay; resume from the committed count)",
                 idle.as_secs()
             ))
         })?
