@@ -33,6 +33,8 @@ MAX_COUNT = 10_000_000
 FILL_BITS = 16
 
 FAMILIES = ("raster", "bernoulli", "hadamard", "speckle")
+#: PATTERNS.md's adaptive families, which this package does not implement yet.
+ADAPTIVE_FAMILIES = ("adaptive_haar", "adaptive_hadamard")
 ORDERINGS = ("natural", "sequency", "zigzag", "russian_doll", "cake_cutting")
 
 _FAMILY_TO_PB = {
@@ -174,6 +176,13 @@ class PatternSpec:
         """
         family = raw.get("family")
         if family not in _PARAMS:
+            if family in ADAPTIVE_FAMILIES:
+                raise SpecError(
+                    "family",
+                    f"{family} is not supported by this package yet: an adaptive session's patterns "
+                    "are chosen by the server as it measures (gRPC Acquire); use the Rust client "
+                    "(helmholtz simulate --adaptive, helmholtz_client::adaptive)",
+                )
             raise SpecError("family", f"unknown family {family!r}; one of {', '.join(FAMILIES)}")
         pname = _PARAMS[family]
         allowed = {"family", "width", "height", "count", "seed", pname}
