@@ -10,7 +10,14 @@ import numpy as np
 import pytest
 
 import helmholtz as hz
-from helmholtz.patterns import PatternGenerator, ordering_table, random_words
+from helmholtz.patterns import (
+    PatternGenerator,
+    adaptive_patterns,
+    basis_functions,
+    basis_gains,
+    ordering_table,
+    random_words,
+)
 from helmholtz.spec import ADAPTIVE_FAMILIES, SpecError, fill_quantum
 
 from conftest import REPO_ROOT
@@ -28,11 +35,88 @@ def test_the_vectors_file_is_the_one_expected() -> None:
 
 
 @pytest.mark.parametrize("vector", ADAPTIVE, ids=lambda v: v["name"])
-def test_adaptive_families_are_refused_naming_the_family(vector: dict) -> None:
-    # Not implemented here yet (their patterns follow the server's choices): a clear refusal.
-    with pytest.raises(SpecError) as e:
-        hz.PatternSpec.from_dict(vector["input"])
-    assert e.value.field == "family" and "not supported by this package yet" in e.value.message
+def test_adaptive_patterns_and_runs(vector: dict) -> None:
+    spec = hz.PatternSpec.from_dict(vector["input"])
+    assert spec.to_dict() == vector["spec"] and spec.adaptive
+    assert spec.pixels == vector["pixels"]
+    indices = vector["basis_indices"]
+    gen = PatternGenerator(spec, indices)
+    assert gen.words_per_pattern == vector["words_per_pattern"]
+    assert gen.frames == 2 * len(indices)
+    every = adaptive_patterns(spec, indices)
+    assert every.shape == (2 * len(indices), spec.height, spec.width)
+    for p in vector["patterns"]:
+        i = p["index"]
+        assert (p["pair"], p["basis_index"], p["positive"]) == (i // 2, indices[i // 2], i % 2 == 0)
+        assert gen.packed_bits(i, i + 1)[0].astype("<u8").tobytes().hex() == p["bits_hex"], i
+        bits = np.unpackbits(
+            np.frombuffer(bytes.fromhex(p["bits_hex"]), np.uint8), bitorder="little"
+        )[: spec.pixels]
+        assert np.array_equal(every[i].reshape(-1), bits.astype(np.float32)), i
+        assert np.array_equal(hz.pattern(spec, i, indices=indices), every[i])
+    for run in vector["runs"]:
+        assert gen.run_sha256(run["start"], run["count"]) == run["sha256"], run
+        words = gen.packed_bits(run["start"], run["start"] + run["count"])
+        bits = np.unpackbits(words.astype("<u8").view(np.uint8), axis=1, bitorder="little")
+        frames = every[run["start"] : run["start"] + run["count"]]
+        assert np.array_equal(frames.reshape(len(frames), -1), bits[:, : spec.pixels])
+
+
+@pytest.mark.parametrize("family", ADAPTIVE_FAMILIES)
+def test_adaptive_bases_are_orthogonal_split_pairs(family: str) -> None:
+    spec = hz.PatternSpec.from_dict({"family": family, "width": 8, "height": 8, "count": 128})
+    everything = list(range(64))
+    w = basis_functions(spec, everything).reshape(64, -1).astype(np.float64)
+    g = basis_gains(spec, everything)
+    # Orthonormal once divided by the gains: the coefficient of a pair is (y+ - y-) / g_n.
+    assert np.allclose((w / g[:, None]) @ (w / g[:, None]).T, np.eye(64), atol=1e-12)
+    frames = adaptive_patterns(spec, everything).reshape(128, -1)
+    assert np.array_equal(frames[0::2] - frames[1::2], w)
+    assert np.array_equal(frames[0::2] + frames[1::2], (w != 0).astype(np.float32))
+    # PATTERNS.md's worked Haar examples (W = 4).
+    if family == "adaptive_haar":
+        four = hz.PatternSpec.adaptive_haar(4)
+        w4 = basis_functions(four, [1, 6, 15])
+        assert w4[0].tolist() == [[1, 1, -1, -1]] * 4
+        assert w4[1].tolist() == [[0, 0, 0, 0], [0, 0, 0, 0], [1, -1, 0, 0], [1, -1, 0, 0]]
+        assert w4[2].tolist() == [[0, 0, 0, 0], [0, 0, 0, 0], [0, 0, 1, -1], [0, 0, -1, 1]]
+        assert basis_gains(four, [0, 1, 6, 15]).tolist() == [4.0, 4.0, 2.0, 2.0]
+
+
+@pytest.mark.parametrize("replay", VECTORS["adaptive_replays"], ids=lambda r: f"{r['spec']['family']}-{r['spec']['width']}-{r['channels']}ch-{r['spec']['count']}")
+def test_adaptive_replay_frames_are_the_patterns_on_the_vectors_scene(replay: dict) -> None:
+    # The simulated rig of the vectors (patterns_ref.build: an edge, a bright square and a ramp,
+    # a dark level d) measured these frames; ours give the same integers, frame for frame.
+    spec = hz.PatternSpec.from_dict(replay["spec"])
+    w, c = spec.width, replay["channels"]
+    y, x = np.mgrid[0:w, 0:w]
+    scenes = [
+        3 * x + np.where((x - (6 + 4 * i)) ** 2 + (y - 9) ** 2 < 20, 40, 0) + np.where(y > 12, 25, 0)
+        for i in range(c)
+    ]
+    frames = np.asarray(replay["frames"], dtype=np.int64).reshape(-1, c)
+    indices = replay["indices"][: len(frames) // 2]
+    pats = adaptive_patterns(spec, indices, dtype=np.int64).reshape(len(frames), -1)
+    sums = np.stack([pats @ t.reshape(-1) for t in scenes], axis=1)
+    dark = frames - sums
+    assert (dark == dark[0, 0]).all(), "one dark level for every frame and channel"
+
+
+def test_adaptive_specs_need_their_indices() -> None:
+    spec = hz.PatternSpec.adaptive_hadamard(4, 8)
+    with pytest.raises(ValueError, match="indices"):
+        hz.patterns(spec)
+    with pytest.raises(ValueError, match="already shown"):
+        hz.patterns(spec, indices=[1, 2, 1])
+    with pytest.raises(ValueError, match="out of range"):
+        adaptive_patterns(spec, [16])
+    with pytest.raises(ValueError, match="split pairs"):
+        hz.patterns(spec, indices=[0, 1, 2, 3, 4])  # a budget of 8 frames is 4 pairs
+    with pytest.raises(ValueError, match="only the adaptive families"):
+        hz.patterns(hz.PatternSpec.hadamard(4, 4), indices=[0])
+    assert hz.patterns(spec, indices=[5, 0]).shape == (4, 4, 4)
+    with pytest.raises(IndexError):
+        hz.patterns(spec, 0, 6, indices=[5, 0])
 
 
 def test_random_words() -> None:
@@ -108,6 +192,18 @@ def test_specs_are_validated_naming_the_field() -> None:
         (dict(family="speckle", width=0, height=8, count=10), "width"),
         (dict(family="laser", width=8, height=8, count=10), "family"),
         (dict(family="speckle", width=8, height=8), "count"),
+        # The adaptive families (the server's own refusals, proto/src/patterns/spec.rs).
+        (dict(family="adaptive_haar", width=12, height=12, count=8), "width"),
+        (dict(family="adaptive_hadamard", width=16, height=8, count=8), "height"),
+        (dict(family="adaptive_hadamard", width=8, height=8, count=7), "count"),
+        (dict(family="adaptive_haar", width=8, height=8, count=130), "count"),
+        (dict(family="adaptive_haar", width=8, height=8, count=8, batch=65), "batch"),
+        (dict(family="adaptive_haar", width=8, height=8, count=8, batch=-1), "batch"),
+        (dict(family="adaptive_haar", width=8, height=8, count=8, target_error=-1), "target_error"),
+        (dict(family="adaptive_haar", width=8, height=8, count=8, target_error=float("nan")), "target_error"),
+        (dict(family="adaptive_haar", width=8, height=8, count=8, target_error="0.1"), "target_error"),
+        (dict(family="adaptive_hadamard", width=8, height=8, count=8, ordering="natural"), "ordering"),
+        (dict(family="hadamard", width=8, height=8, count=8, batch=4), "batch"),
     ]
     for raw, field in cases:
         with pytest.raises(hz.SpecError) as e:
@@ -121,8 +217,23 @@ def test_protobuf_form_round_trips() -> None:
         hz.PatternSpec.bernoulli(13, 11, 100, fill=0.3, seed=2**64 - 1),
         hz.PatternSpec.hadamard(16, 4, ordering="cake_cutting"),
         hz.PatternSpec.speckle(33, 20, 50, grain=8, seed=99),
+        hz.PatternSpec.adaptive_haar(32, 400, batch=10, target_error=0.05),
+        hz.PatternSpec.adaptive_hadamard(16),
     ]:
         assert hz.PatternSpec.from_proto(spec.to_proto()) == spec
+    # proto3 zeros (and no params at all) are the adaptive defaults.
+    bare = hz.PatternSpec.from_proto(
+        hz.PatternSpec.adaptive_haar(8, 64).to_proto().__class__(family=5, width=8, height=8, count=64)
+    )
+    assert bare.to_dict() == {
+        "family": "adaptive_haar", "batch": 0, "target_error": 0.0,
+        "width": 8, "height": 8, "count": 64, "seed": 0,
+    }
+    wrong = hz.PatternSpec.adaptive_hadamard(8).to_proto()
+    wrong.hadamard.ordering = 1
+    with pytest.raises(SpecError) as e:
+        hz.PatternSpec.from_proto(wrong)
+    assert e.value.field == "params"
 
 
 def test_ranges_past_the_count_are_refused() -> None:
@@ -138,3 +249,16 @@ def test_the_server_canonicalises_specs_as_this_package_does(client, session_id)
     assert s.spec == spec.canonical()
     assert s.spec.fill == 0.3000030517578125
     assert client.session(session_id).spec == spec.canonical()
+
+
+@pytest.mark.parametrize("family", ADAPTIVE_FAMILIES)
+def test_the_server_canonicalises_adaptive_specs_as_this_package_does(client, session_id, family) -> None:  # type: ignore[no-untyped-def]
+    spec = hz.PatternSpec(family, 8, 8, 40, target_error=0.05)
+    s = client.create_session(f"{session_id}-{family}", spec, channels=["bucket"])
+    assert s.created is True and s.spec.adaptive
+    assert s.spec == spec.canonical()
+    assert s.spec.to_dict() == {
+        "family": family, "batch": 0, "target_error": 0.05,
+        "width": 8, "height": 8, "count": 40, "seed": 0,
+    }
+    assert client.session(s.id).spec == spec.canonical()

@@ -38,18 +38,29 @@ from .errors import (
     ServerUnreachable,
     UploadError,
 )
-from .patterns import PatternGenerator, packed_bits, pattern, patterns, speckle_levels
+from .patterns import (
+    PatternGenerator,
+    adaptive_patterns,
+    basis_functions,
+    basis_gains,
+    packed_bits,
+    pattern,
+    patterns,
+    speckle_levels,
+)
 from .retry import Backoff, RetryPolicy
-from .spec import ORDERINGS, PatternSpec, SpecError
+from .spec import ADAPTIVE_FAMILIES, FAMILIES, ORDERINGS, PatternSpec, SpecError
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "ADAPTIVE_FAMILIES",
     "ApiError",
     "Backoff",
     "Camera",
     "Client",
     "DEFAULT_CHUNK_BYTES",
+    "FAMILIES",
     "HelmholtzError",
     "MAX_CHUNK_BYTES",
     "ORDERINGS",
@@ -69,6 +80,9 @@ __all__ = [
     "UploadStatus",
     "WRITER_HEADER",
     "__version__",
+    "adaptive_patterns",
+    "basis_functions",
+    "basis_gains",
     "crc32c",
     "new_writer_id",
     "packed_bits",

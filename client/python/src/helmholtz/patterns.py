@@ -9,10 +9,24 @@ patterns from the session's spec. What a projector shows:
 >>> frames[0].all(), frames[1].any()   # frame 0 is all on, frame 1 all off
 (True, False)
 
-Binary families (raster, bernoulli, hadamard) give 0.0 / 1.0; speckle gives ``L / 2^24`` for
-24-bit integer levels ``L`` (exact in float32). :func:`packed_bits` gives the packed words of
-PATTERNS.md ("pixel p is bit p % 64 of word p / 64") and :func:`speckle_levels` the integer
-levels, which is what the test vectors (proto/tests/pattern_vectors.json) list.
+Binary families (raster, bernoulli, hadamard, the adaptive ones) give 0.0 / 1.0; speckle gives
+``L / 2^24`` for 24-bit integer levels ``L`` (exact in float32). :func:`packed_bits` gives the
+packed words of PATTERNS.md ("pixel p is bit p % 64 of word p / 64") and
+:func:`speckle_levels` the integer levels, which is what the test vectors
+(proto/tests/pattern_vectors.json) list.
+
+An adaptive session's patterns (``adaptive_haar``, ``adaptive_hadamard``) also depend on the
+basis indices the server chose (gRPC ``Acquire``): pair ``r`` (frames ``2r``, ``2r + 1``) shows
+the split pair (P+, P-) of basis function ``indices[r]``. Pass them as ``indices=`` to
+:func:`patterns` / :class:`PatternGenerator`, or render one batch's pairs with
+:func:`adaptive_patterns`:
+
+>>> spec = PatternSpec.adaptive_haar(4)
+>>> adaptive_patterns(spec, [1]).astype(int)[0]   # P+ of Haar index 1: the left half on
+array([[1, 1, 0, 0],
+       [1, 1, 0, 0],
+       [1, 1, 0, 0],
+       [1, 1, 0, 0]])
 
 This module was ported from the pure-Python reference ``proto/tools/patterns_ref.py`` and
 vectorised: Bernoulli uses the bit-sliced form (one OR/AND per fill digit over all words at
@@ -23,7 +37,7 @@ from __future__ import annotations
 
 import hashlib
 from functools import lru_cache
-from typing import Optional
+from typing import Optional, Sequence, Union
 
 import numpy as np
 
@@ -31,6 +45,9 @@ from .spec import FILL_BITS, PatternSpec
 
 __all__ = [
     "PatternGenerator",
+    "adaptive_patterns",
+    "basis_functions",
+    "basis_gains",
     "patterns",
     "pattern",
     "packed_bits",
@@ -116,25 +133,153 @@ def _fill_digits(q: int) -> tuple[int, int]:
     return FILL_BITS - tz, q >> tz
 
 
+IndexList = Union[Sequence[int], np.ndarray]
+
+
+def _check_indices(spec: PatternSpec, indices: IndexList, *, session: bool = True) -> np.ndarray:
+    """The basis indices of an adaptive spec as int64, each in ``0..k``; a ``session``'s
+    sequence is checked as the server resolves a spec (also none twice, at most
+    ``count / 2``)."""
+    if not spec.adaptive:
+        raise ValueError(f"only the adaptive families take basis indices, not {spec.family}")
+    arr = np.asarray(indices)
+    if arr.ndim != 1 or (arr.size and arr.dtype.kind not in "iu"):
+        raise ValueError(f"basis indices must be a 1-D sequence of integers, got {arr.dtype} {arr.shape}")
+    arr = arr.astype(np.int64)
+    k = spec.pixels
+    if session and arr.size > spec.count // 2:
+        raise ValueError(
+            f"{arr.size} indices, but a budget of {spec.count} frames holds {spec.count // 2} split pairs"
+        )
+    bad = (arr < 0) | (arr >= k)
+    if bad.any():
+        r = int(np.argmax(bad))
+        raise ValueError(f"index {int(arr[r])} of pair {r} is out of range 0..{k}")
+    if session and np.unique(arr).size != arr.size:
+        seen: set[int] = set()
+        for r, n in enumerate(arr.tolist()):
+            if n in seen:
+                raise ValueError(f"index {n} of pair {r} was already shown")
+            seen.add(n)
+    return arr
+
+
+def _haar_signs(side: int, n: np.ndarray) -> np.ndarray:
+    """+1 / -1 / 0 (int8, shape (len(n), side, side)) of the 2D Haar functions with Mallat
+    indices ``n`` (PATTERNS.md, adaptive_haar)."""
+    m = side.bit_length() - 1
+    r, c = n // side, n % side
+    # s = m - floor(log2(max(r, c))); the scaling function (n = 0) has s = m.
+    s = np.where(n == 0, m, m - (_bitlen(np.maximum(r, c)) - 1))
+    h = side >> s
+    x0, y0 = (c % h) << s, (r % h) << s
+    size = (1 << s)[:, None, None]
+    half = size // 2
+    xs = np.arange(side, dtype=np.int64)
+    dx = xs[None, None, :] - x0[:, None, None]
+    dy = xs[None, :, None] - y0[:, None, None]
+    inside = (dx >= 0) & (dx < size) & (dy >= 0) & (dy < size)
+    negative = ((c >= h)[:, None, None] & (dx >= half)) ^ ((r >= h)[:, None, None] & (dy >= half))
+    out = np.where(negative, -1, 1).astype(np.int8)
+    out[~inside] = 0
+    return out
+
+
+def _walsh_signs(side: int, n: np.ndarray) -> np.ndarray:
+    """+1 / -1 (int8) of the 2D Walsh-Hadamard functions with natural indices ``n = u W + v``:
+    ``(-1)^(popcount(u & y) + popcount(v & x))``."""
+    u, v = n // side, n % side
+    xs = np.arange(side, dtype=np.int64)
+    pu = np.bitwise_count(u[:, None] & xs[None, :]) & 1
+    pv = np.bitwise_count(v[:, None] & xs[None, :]) & 1
+    odd = pu[:, :, None] ^ pv[:, None, :]
+    return (1 - 2 * odd.astype(np.int8)).astype(np.int8)
+
+
+def basis_functions(spec: PatternSpec, indices: IndexList) -> np.ndarray:
+    """The basis functions ``w_n`` of an adaptive spec for basis indices ``indices``: int8
+    ``(len(indices), side, side)`` of +1 / -1 (and 0 outside a Haar function's support).
+    ``P+ - P- = w_n``; the orthonormal function is ``w_n / g_n`` (:func:`basis_gains`)."""
+    spec = spec.canonical()
+    n = _check_indices(spec, indices, session=False)
+    if spec.family == "adaptive_haar":
+        return _haar_signs(spec.width, n)
+    return _walsh_signs(spec.width, n)
+
+
+def basis_gains(spec: PatternSpec, indices: IndexList) -> np.ndarray:
+    """The gains ``g_n`` (float64) of basis indices: the orthonormal coefficient of a pair is
+    ``(y+ - y-) / g_n``. ``W`` for every Walsh-Hadamard function and Haar's scaling function,
+    ``2^s`` for a Haar function of support ``2^s x 2^s``."""
+    spec = spec.canonical()
+    n = _check_indices(spec, indices, session=False)
+    side = spec.width
+    if spec.family == "adaptive_hadamard":
+        return np.full(n.shape, float(side))
+    m = side.bit_length() - 1
+    s = np.where(n == 0, m, m - (_bitlen(np.maximum(n // side, n % side)) - 1))
+    return np.ldexp(1.0, s)
+
+
+def adaptive_patterns(
+    spec: PatternSpec, indices: IndexList, dtype: "np.typing.DTypeLike" = np.float32
+) -> np.ndarray:
+    """The split pairs of basis ``indices`` of an adaptive spec, what a projector shows for one
+    batch of an adaptive session: ``(2 * len(indices), side, side)`` of ``dtype`` (float32 by
+    default), frame ``2j`` the P+ of ``indices[j]`` (on where ``w = +1``), frame ``2j + 1`` its
+    P- (on where ``w = -1``). Bit-exact with the server (PATTERNS.md, adaptive families).
+
+    Raises:
+        ValueError: not an adaptive spec, or an index out of ``0..side*side``.
+    """
+    w = basis_functions(spec, indices)
+    out = np.empty((2 * w.shape[0],) + w.shape[1:], dtype=dtype)
+    out[0::2] = w == 1
+    out[1::2] = w == -1
+    return out
+
+
 class PatternGenerator:
     """Patterns of one spec. ``PatternGenerator(spec).values(start, stop)`` is
-    :func:`patterns`; the generator keeps the spec's tables for repeated calls."""
+    :func:`patterns`; the generator keeps the spec's tables for repeated calls.
 
-    def __init__(self, spec: PatternSpec):
+    An adaptive spec needs its session's basis ``indices`` (one per split pair, in order, as
+    ``GET /v1/sessions/{id}/adaptive.json`` or :attr:`helmholtz.AdaptiveReport.indices` give
+    them): it then has ``2 * len(indices)`` frames."""
+
+    def __init__(self, spec: PatternSpec, indices: Optional[IndexList] = None):
         self.spec = spec.canonical()
         s = self.spec
         self.k = s.pixels
         self.words_per_pattern = (self.k + 63) // 64
         self._table: Optional[np.ndarray] = None
+        self.indices: Optional[np.ndarray] = None
         if s.family == "hadamard":
             self._table = ordering_table(s.width, s.height, s.ordering or "natural")
+        if s.adaptive:
+            if indices is None:
+                raise ValueError(
+                    f"a {s.family} spec's patterns depend on the basis indices the server chose: "
+                    "give indices= (or use adaptive_patterns)"
+                )
+            self.indices = _check_indices(s, indices)
+        elif indices is not None:
+            raise ValueError(f"only the adaptive families take basis indices, not {s.family}")
+
+    @property
+    def frames(self) -> int:
+        """Frames this generator gives: the spec's count, or two per index of an adaptive spec."""
+        if self.indices is not None:
+            return 2 * int(self.indices.size)
+        return self.spec.count
 
     def _check_range(self, start: int, stop: Optional[int]) -> tuple[int, int]:
-        count = self.spec.count
+        count = self.frames
         if stop is None:
             stop = count
         if not (0 <= start <= stop <= count):
-            raise IndexError(f"patterns {start}..{stop} are outside the spec's 0..{count}")
+            what = "the spec's" if self.indices is None else "the indices'"
+            raise IndexError(f"patterns {start}..{stop} are outside {what} 0..{count}")
         return int(start), int(stop)
 
     def _block(self, per_frame: int) -> int:
@@ -167,6 +312,10 @@ class PatternGenerator:
             words = self._bernoulli_words(start, stop)
             bits = np.unpackbits(words.astype("<u8").view(np.uint8), axis=1, bitorder="little")
             return bits[:, : self.k].astype(bool).reshape(-1, h, w)
+        if self.indices is not None:
+            signs = basis_functions(s, self.indices[i // 2])
+            want = np.where(i % 2 == 0, 1, -1).astype(np.int8)
+            return signs == want[:, None, None]
         raise ValueError("speckle patterns have grey levels, not bits")
 
     def _bernoulli_words(self, start: int, stop: int) -> np.ndarray:
@@ -252,26 +401,42 @@ def patterns(
     start: int = 0,
     stop: Optional[int] = None,
     dtype: "np.typing.DTypeLike" = np.float32,
+    *,
+    indices: Optional[IndexList] = None,
 ) -> np.ndarray:
     """Frames ``start..stop`` (default: all ``spec.count``) of ``spec`` as an ndarray
-    ``(n, height, width)``, ready for a projector: 0.0 / 1.0 for raster, bernoulli and
-    hadamard, ``L / 2^24`` for speckle. Bit-exact with the server's generator (PATTERNS.md).
+    ``(n, height, width)``, ready for a projector: 0.0 / 1.0 for the binary families,
+    ``L / 2^24`` for speckle. Bit-exact with the server's generator (PATTERNS.md). An adaptive
+    spec needs its session's basis ``indices`` (then it has ``2 * len(indices)`` frames).
 
     Raises:
         SpecError: the spec is invalid.
+        ValueError: an adaptive spec without indices, or bad indices.
         IndexError: the range leaves ``0..spec.count``.
     """
-    return PatternGenerator(spec).values(start, stop, dtype)
+    return PatternGenerator(spec, indices).values(start, stop, dtype)
 
 
-def pattern(spec: PatternSpec, index: int, dtype: "np.typing.DTypeLike" = np.float32) -> np.ndarray:
+def pattern(
+    spec: PatternSpec,
+    index: int,
+    dtype: "np.typing.DTypeLike" = np.float32,
+    *,
+    indices: Optional[IndexList] = None,
+) -> np.ndarray:
     """Frame ``index`` of ``spec`` as an ndarray ``(height, width)``."""
-    return PatternGenerator(spec).values(index, index + 1, dtype)[0]
+    return PatternGenerator(spec, indices).values(index, index + 1, dtype)[0]
 
 
-def packed_bits(spec: PatternSpec, start: int = 0, stop: Optional[int] = None) -> np.ndarray:
+def packed_bits(
+    spec: PatternSpec,
+    start: int = 0,
+    stop: Optional[int] = None,
+    *,
+    indices: Optional[IndexList] = None,
+) -> np.ndarray:
     """:meth:`PatternGenerator.packed_bits` of ``spec``."""
-    return PatternGenerator(spec).packed_bits(start, stop)
+    return PatternGenerator(spec, indices).packed_bits(start, stop)
 
 
 def speckle_levels(spec: PatternSpec, start: int = 0, stop: Optional[int] = None) -> np.ndarray:
@@ -279,6 +444,8 @@ def speckle_levels(spec: PatternSpec, start: int = 0, stop: Optional[int] = None
     return PatternGenerator(spec).speckle_levels(start, stop)
 
 
-def run_sha256(spec: PatternSpec, start: int, count: int) -> str:
+def run_sha256(
+    spec: PatternSpec, start: int, count: int, *, indices: Optional[IndexList] = None
+) -> str:
     """:meth:`PatternGenerator.run_sha256` of ``spec``."""
-    return PatternGenerator(spec).run_sha256(start, count)
+    return PatternGenerator(spec, indices).run_sha256(start, count)

@@ -4,6 +4,12 @@ A :class:`PatternSpec` is the family, size, count, seed and the family's paramet
 to and from the JSON form (the REST API's ``patterns``) and the protobuf form (gRPC), and
 :meth:`PatternSpec.canonical` validates it as PATTERNS.md says (defaults filled in, the
 Bernoulli fill quantised to a multiple of 2^-16), naming the offending field on error.
+
+The adaptive families (``adaptive_haar``, ``adaptive_hadamard``) declare a basis, a square
+power-of-two grid, a frame budget (``count``) and a stopping rule (``batch``, ``target_error``);
+which basis function each split pair shows is chosen by the server during the session (gRPC
+``Acquire``, :meth:`helmholtz.Client.acquire`), so their patterns need those indices
+(:func:`helmholtz.adaptive_patterns`).
 """
 
 from __future__ import annotations
@@ -19,6 +25,7 @@ __all__ = [
     "PatternSpec",
     "SpecError",
     "FAMILIES",
+    "ADAPTIVE_FAMILIES",
     "ORDERINGS",
     "MAX_SIDE",
     "MAX_PIXELS",
@@ -32,9 +39,9 @@ MAX_PIXELS = 1 << 22
 MAX_COUNT = 10_000_000
 FILL_BITS = 16
 
-FAMILIES = ("raster", "bernoulli", "hadamard", "speckle")
-#: PATTERNS.md's adaptive families, which this package does not implement yet.
+#: PATTERNS.md's adaptive families: the server chooses the basis function of each split pair.
 ADAPTIVE_FAMILIES = ("adaptive_haar", "adaptive_hadamard")
+FAMILIES = ("raster", "bernoulli", "hadamard", "speckle", *ADAPTIVE_FAMILIES)
 ORDERINGS = ("natural", "sequency", "zigzag", "russian_doll", "cake_cutting")
 
 _FAMILY_TO_PB = {
@@ -42,6 +49,8 @@ _FAMILY_TO_PB = {
     "bernoulli": pb.PATTERN_FAMILY_BERNOULLI,
     "hadamard": pb.PATTERN_FAMILY_HADAMARD,
     "speckle": pb.PATTERN_FAMILY_SPECKLE,
+    "adaptive_haar": pb.PATTERN_FAMILY_ADAPTIVE_HAAR,
+    "adaptive_hadamard": pb.PATTERN_FAMILY_ADAPTIVE_HADAMARD,
 }
 _PB_TO_FAMILY = {v: k for k, v in _FAMILY_TO_PB.items()}
 _ORDERING_TO_PB = {
@@ -55,6 +64,8 @@ _PB_TO_ORDERING = {v: k for k, v in _ORDERING_TO_PB.items()}
 _PB_TO_ORDERING[pb.HADAMARD_ORDERING_UNSPECIFIED] = "natural"
 
 _PARAMS = {"raster": "block", "bernoulli": "fill", "hadamard": "ordering", "speckle": "grain"}
+#: The protobuf ``params`` oneof member of each family.
+_ONEOF = {**{f: f for f in _PARAMS}, "adaptive_haar": "adaptive", "adaptive_hadamard": "adaptive"}
 
 
 class SpecError(ValueError):
@@ -85,18 +96,23 @@ class PatternSpec:
     """A session's illumination patterns, declared by spec (PATTERNS.md).
 
     Build one with the family constructors (:meth:`raster`, :meth:`bernoulli`,
-    :meth:`hadamard`, :meth:`speckle`) or directly; ``None`` parameters take the family's
-    defaults. Only the parameter of the spec's own family may be set.
+    :meth:`hadamard`, :meth:`speckle`, :meth:`adaptive_haar`, :meth:`adaptive_hadamard`) or
+    directly; ``None`` parameters take the family's defaults. Only the parameter(s) of the
+    spec's own family may be set.
 
     Attributes:
-        family: ``"raster"``, ``"bernoulli"``, ``"hadamard"`` or ``"speckle"``.
+        family: one of :data:`FAMILIES`.
         width, height: the projector grid (pixels).
-        count: patterns (frames) in the session; for Hadamard even, at most ``2 * width * height``.
+        count: patterns (frames) in the session; for Hadamard even, at most ``2 * width * height``;
+            for the adaptive families the frame budget (even, at most ``2 * width * height``).
         seed: random stream of bernoulli and speckle (ignored by the others).
         block, scans: raster block side and declared repeats of the scan.
         fill: bernoulli on-probability in (0, 1), quantised to a multiple of 2^-16.
         ordering: hadamard row ordering (one of :data:`ORDERINGS`).
         grain: speckle cell side.
+        batch: adaptive families: split pairs per batch, 0 = sized by the server.
+        target_error: adaptive families: stop once the server's estimated relative error is
+            below this, 0.0 = spend the whole budget.
     """
 
     family: str
@@ -109,6 +125,8 @@ class PatternSpec:
     fill: Optional[float] = None
     ordering: Optional[str] = None
     grain: Optional[int] = None
+    batch: Optional[int] = None
+    target_error: Optional[float] = None
 
     # -- constructors ---------------------------------------------------------------------
     @classmethod
@@ -142,6 +160,31 @@ class PatternSpec:
         """Grey levels ``L / 2^24`` on cells of ``grain x grain`` pixels."""
         return cls("speckle", width, height, count, seed=seed, grain=grain).canonical()
 
+    @classmethod
+    def adaptive_haar(
+        cls, side: int, count: Optional[int] = None, *, batch: int = 0, target_error: float = 0.0
+    ) -> "PatternSpec":
+        """An adaptive session over the 2D Haar basis (Mallat layout) of a ``side x side`` grid
+        (a power of two). ``count`` is the frame budget, two frames per split pair (default:
+        the whole basis, ``2 * side * side``); ``batch`` split pairs per batch (0: the server
+        sizes them); ``target_error`` > 0 stops early once the estimated error is below it."""
+        if count is None:
+            count = 2 * side * side
+        return cls(
+            "adaptive_haar", side, side, count, batch=batch, target_error=target_error
+        ).canonical()
+
+    @classmethod
+    def adaptive_hadamard(
+        cls, side: int, count: Optional[int] = None, *, batch: int = 0, target_error: float = 0.0
+    ) -> "PatternSpec":
+        """As :meth:`adaptive_haar`, over the Walsh-Hadamard basis (natural index)."""
+        if count is None:
+            count = 2 * side * side
+        return cls(
+            "adaptive_hadamard", side, side, count, batch=batch, target_error=target_error
+        ).canonical()
+
     # -- properties -----------------------------------------------------------------------
     @property
     def pixels(self) -> int:
@@ -155,8 +198,14 @@ class PatternSpec:
 
     @property
     def binary(self) -> bool:
-        """True for the 0/1 families (raster, bernoulli, hadamard)."""
+        """True for the 0/1 families (all but speckle)."""
         return self.family != "speckle"
+
+    @property
+    def adaptive(self) -> bool:
+        """True for ``adaptive_haar`` and ``adaptive_hadamard``: the server chooses the basis
+        function of each split pair during the session (:meth:`helmholtz.Client.acquire`)."""
+        return self.family in ADAPTIVE_FAMILIES
 
     # -- validation -----------------------------------------------------------------------
     def canonical(self) -> "PatternSpec":
@@ -175,17 +224,14 @@ class PatternSpec:
             SpecError: naming the offending field.
         """
         family = raw.get("family")
-        if family not in _PARAMS:
-            if family in ADAPTIVE_FAMILIES:
-                raise SpecError(
-                    "family",
-                    f"{family} is not supported by this package yet: an adaptive session's patterns "
-                    "are chosen by the server as it measures (gRPC Acquire); use the Rust client "
-                    "(helmholtz simulate --adaptive, helmholtz_client::adaptive)",
-                )
+        if family not in FAMILIES:
             raise SpecError("family", f"unknown family {family!r}; one of {', '.join(FAMILIES)}")
-        pname = _PARAMS[family]
-        allowed = {"family", "width", "height", "count", "seed", pname}
+        adaptive = family in ADAPTIVE_FAMILIES
+        allowed = {"family", "width", "height", "count", "seed"}
+        if adaptive:
+            allowed |= {"batch", "target_error"}
+        else:
+            allowed.add(_PARAMS[family])
         if family == "raster":
             allowed.add("scans")
         for key in raw:
@@ -214,6 +260,11 @@ class PatternSpec:
         if not 1 <= count <= MAX_COUNT:
             raise SpecError("count", f"must be 1..={MAX_COUNT}, got {count}")
         out: dict[str, Any] = {"family": family}
+        if adaptive:
+            out.update(_adaptive_params(family, raw, width, height, count))
+            out.update({"width": width, "height": height, "count": count, "seed": seed})
+            return cls(**out)
+        pname = _PARAMS[family]
         if family in ("raster", "speckle"):
             p = raw.get(pname, 1)
             if not _is_uint(p) or not 1 <= p <= max(width, height):
@@ -258,7 +309,7 @@ class PatternSpec:
         """The JSON form, keys in the canonical order (canonicalised first unless told not)."""
         spec = self.canonical() if canonical else self
         out: dict[str, Any] = {"family": spec.family}
-        for name in ("block", "scans", "fill", "ordering", "grain"):
+        for name in ("block", "scans", "fill", "ordering", "grain", "batch", "target_error"):
             value = getattr(spec, name)
             if value is not None:
                 out[name] = value
@@ -285,6 +336,9 @@ class PatternSpec:
             msg.bernoulli.fill = float(s.fill if s.fill is not None else 0.5)
         elif s.family == "hadamard":
             msg.hadamard.ordering = _ORDERING_TO_PB[s.ordering or "natural"]
+        elif s.adaptive:
+            msg.adaptive.batch = s.batch or 0
+            msg.adaptive.target_error = float(s.target_error or 0.0)
         else:
             msg.speckle.grain = s.grain or 1
         return msg
@@ -303,7 +357,7 @@ class PatternSpec:
             "seed": msg.seed,
         }
         which = msg.WhichOneof("params")
-        if which is not None and which != family:
+        if which is not None and which != _ONEOF[family]:
             raise SpecError("params", f"{which} parameters in a {family} spec")
         if family == "raster" and which:
             raw["block"] = msg.raster.block or 1
@@ -314,8 +368,48 @@ class PatternSpec:
             raw["ordering"] = _PB_TO_ORDERING.get(msg.hadamard.ordering, "natural")
         elif family == "speckle" and which:
             raw["grain"] = msg.speckle.grain or 1
+        elif family in ADAPTIVE_FAMILIES and which:
+            raw["batch"] = msg.adaptive.batch
+            raw["target_error"] = msg.adaptive.target_error
         return cls.from_dict(raw)
 
     def with_count(self, count: int) -> "PatternSpec":
         """The same spec with another count (patterns do not depend on the count)."""
         return replace(self, count=count).canonical()
+
+
+def _adaptive_params(
+    family: str, raw: Mapping[str, Any], width: int, height: int, count: int
+) -> dict[str, Any]:
+    """``batch`` and ``target_error`` of an adaptive spec, checked with its grid and budget
+    (PATTERNS.md, adaptive families: the checks and their order are the server's)."""
+    if width & (width - 1):
+        raise SpecError("width", f"{family} needs a power of two, got {width}")
+    if height != width:
+        raise SpecError(
+            "height", f"{family} needs a square image (height = width = {width}), got {height}"
+        )
+    k = width * height
+    if count % 2 or count > 2 * k:
+        raise SpecError(
+            "count",
+            f"{family} frames come in P+/P- pairs: an even budget up to 2 * width * height = "
+            f"{2 * k}, got {count}",
+        )
+    batch = raw.get("batch", 0)
+    if not _is_uint(batch) or batch >= 2**32:
+        raise SpecError("batch", f"must be an unsigned integer below 2^32, got {batch!r}")
+    if batch > k:
+        raise SpecError("batch", f"must be 0 (automatic) or 1..={k} split pairs, got {batch}")
+    target = raw.get("target_error", 0.0)
+    if isinstance(target, bool) or not isinstance(target, (int, float)):
+        raise SpecError("target_error", f"must be a number, got {target!r}")
+    try:
+        target = float(target)
+    except OverflowError:
+        target = math.inf
+    if not (math.isfinite(target) and target >= 0.0):
+        raise SpecError(
+            "target_error", f"must be a finite number >= 0 (0 = use the whole budget), got {target}"
+        )
+    return {"batch": batch, "target_error": target}
