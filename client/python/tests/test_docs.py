@@ -33,6 +33,11 @@ def test_the_readme_walkthrough_runs_as_written(server, monkeypatch, capsys) -> 
     assert np.array_equal(ns["stripe"], ns["relit"])
     assert ns["predicted"].shape == (8, 8)
     assert "400 light.radius" in capsys.readouterr().out
+    run, scene = ns["run"], ns["scene"]
+    assert (run.reason, run.rows, run.batches) == ("target_error", 192, 6), run
+    assert run.indices == ns["client"].adaptive_sequence("walkthrough-adaptive-1")["indices"]
+    error = np.linalg.norm(ns["adaptive_image"] - scene) / np.linalg.norm(scene)
+    assert error < 0.03, error  # measured 0.024 (the planner's estimate: 0.016)
     ns["client"].close()
 
 

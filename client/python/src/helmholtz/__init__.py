@@ -17,6 +17,7 @@ the server's problem+json.
 
 from .client import (
     DEFAULT_CHUNK_BYTES,
+    AdaptiveReport,
     MAX_CHUNK_BYTES,
     STREAM_BYTES,
     WRITER_HEADER,
@@ -31,6 +32,7 @@ from .client import (
 )
 from .crc32c import crc32c
 from .errors import (
+    AcquireError,
     ApiError,
     HelmholtzError,
     ReconstructionFailed,
@@ -55,6 +57,8 @@ __version__ = "0.1.0"
 
 __all__ = [
     "ADAPTIVE_FAMILIES",
+    "AcquireError",
+    "AdaptiveReport",
     "ApiError",
     "Backoff",
     "Camera",

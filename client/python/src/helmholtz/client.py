@@ -10,6 +10,7 @@ from __future__ import annotations
 import base64
 import io
 import os
+import queue
 import secrets
 import ssl
 import threading
@@ -26,6 +27,7 @@ from ._proto.v1 import acquisition_pb2 as pb
 from ._proto.v1 import acquisition_pb2_grpc as pb_grpc
 from .crc32c import crc32c
 from .errors import (
+    AcquireError,
     ApiError,
     HelmholtzError,
     ReconstructionFailed,
@@ -33,6 +35,7 @@ from .errors import (
     ServerUnreachable,
     UploadError,
 )
+from .patterns import adaptive_patterns
 from .retry import Disposition, RetryPolicy, disposition
 from .spec import PatternSpec
 
@@ -42,6 +45,7 @@ __all__ = [
     "Session",
     "UploadStatus",
     "UploadReport",
+    "AdaptiveReport",
     "Reconstruction",
     "WRITER_HEADER",
     "DEFAULT_CHUNK_BYTES",
@@ -68,6 +72,10 @@ _PAYLOAD_FIELD = {"f64": "values_f64le", "f32": "values_f32le", "u16": "values_u
 
 ProgressCallback = Callable[["Reconstruction"], None]
 UploadProgress = Callable[[int, int], None]
+#: The rig's measurement of one adaptive batch: the frames to show, ``(frames, side, side)``,
+#: in; their rows, ``(frames, channels)`` (or ``(frames,)`` for one channel, or a camera's
+#: ``(frames, height, width)``), out.
+Measure = Callable[[np.ndarray], Any]
 
 
 def new_writer_id() -> str:
@@ -220,6 +228,54 @@ class UploadReport:
     expected_rows: int = 0
     chunks_sent: int = 0
     bytes_sent: int = 0
+    seconds: float = 0.0
+    last_error: Optional[str] = None
+
+
+@dataclass
+class AdaptiveReport:
+    """What :meth:`Client.acquire` did.
+
+    Attributes:
+        session_id: the session.
+        writer_id: the writer id every stream of the acquisition carried.
+        rows: rows (frames) the finished session holds: ``2 * len(indices)`` unless the
+            session was finished by hand mid-batch.
+        indices: every basis index the server issued, in order (pair ``r``, frames ``2r`` and
+            ``2r + 1``, shows basis function ``indices[r]``); the session's whole sequence,
+            also when this call resumed a session another run started.
+        batches: batches issued (the server's count, as above).
+        reason: why the server stopped: ``"budget"`` (the frame budget is spent),
+            ``"target_error"`` (the estimated error reached the spec's target) or
+            ``"finished"`` (the session was finished before the stopping rule held).
+        estimated_error: the server's estimate of the image's relative error (None before any
+            batch was measured).
+        frames_measured: frames this call had the rig measure (``measure`` calls x frames).
+        measure_calls: batches this call measured.
+        reconnects: streams opened again after a dropped one.
+        rows_sent: rows put on the wire, re-sends after a reconnect included.
+        rows_written, rows_matched: rows the server newly stored / already held and compared
+            equal (its acks).
+        idle_seconds: time spent with every issued batch measured, waiting for the next one
+            (a real rig's idle projector).
+        seconds: the whole call.
+        last_error: the last failure that was retried, if any.
+    """
+
+    session_id: str
+    writer_id: str
+    rows: int = 0
+    indices: list[int] = field(default_factory=list)
+    batches: int = 0
+    reason: str = ""
+    estimated_error: Optional[float] = None
+    frames_measured: int = 0
+    measure_calls: int = 0
+    reconnects: int = 0
+    rows_sent: int = 0
+    rows_written: int = 0
+    rows_matched: int = 0
+    idle_seconds: float = 0.0
     seconds: float = 0.0
     last_error: Optional[str] = None
 
@@ -602,6 +658,81 @@ class Client:
         writer = writer_id or new_writer_id()
         return _Upload(self, session, rows, writer, chunk_rows, confirmed_rows, retry_for, progress).run()
 
+    # -- adaptive acquisition (gRPC Acquire, role rig) ------------------------------------
+    def acquire(
+        self,
+        session: SessionRef,
+        measure: Measure,
+        *,
+        writer_id: Optional[str] = None,
+        chunk_rows: Optional[int] = None,
+        retry_for: Optional[float] = None,
+        dtype: "np.typing.DTypeLike" = np.float32,
+    ) -> AdaptiveReport:
+        """Runs an adaptive session (family ``adaptive_haar`` or ``adaptive_hadamard``) to its
+        end from the rig's side, over the bidirectional gRPC stream ``Acquire``.
+
+        The server chooses the patterns: it sends batches of basis indices, and for each batch
+        this calls ``measure(patterns)`` with the batch's split pairs as an ndarray
+        ``(2 * pairs, side, side)`` of ``dtype`` (0.0 / 1.0; frame ``2j`` is P+ of the batch's
+        ``j``-th index, ``2j + 1`` its P-; :func:`helmholtz.adaptive_patterns`). ``measure``
+        shows them in order and returns one row per frame: ``(frames, channels)`` bucket
+        values (``(frames,)`` for one channel), or a camera session's ``(frames, height,
+        width)``. The rows are checked (shape, finite values, as :meth:`upload`) and streamed
+        back (CRC-32C); the server commits them, plans the next batches from them, and ends
+        the session when its frame budget is spent or its estimated error reaches the spec's
+        ``target_error``. ``measure`` is called from this thread, once per batch, in order.
+
+        Resuming (as the Rust client's ``acquire_adaptive``): the rig keeps the rows it
+        measured until the server acknowledges them. A dropped stream (``UNAVAILABLE``, a
+        restarting server, ``ABORTED`` while our stale stream still holds the session, ...) is
+        reopened with jittered backoff for as long as ``retry_for`` seconds pass without the
+        committed count moving; the server then says where it stands and re-sends the batches
+        not yet measured, and the rig re-sends its rows from the committed count. Calling
+        ``acquire`` again after an exception (or from a restarted process) resumes the same
+        way: batches already committed are not measured again. The index sequence is a
+        deterministic function of the spec and the values, so a resumed session ends with the
+        indices an uninterrupted one would have.
+
+        Args:
+            session: the :class:`Session` (from :meth:`create_session`) or its id.
+            measure: the rig, see above.
+            writer_id: the acquisition's writer id (default: a fresh random one).
+            chunk_rows: rows per chunk (default: about 256 KiB of payload).
+            retry_for: seconds of failures without progress before giving up (default: the
+                client's :class:`RetryPolicy`).
+            dtype: the dtype of the patterns given to ``measure``.
+
+        Returns:
+            An :class:`AdaptiveReport`: the session's index sequence, rows, batches and why
+            the server stopped.
+
+        Raises:
+            ValueError: ``measure`` returned rows of the wrong shape or count, or a non-finite
+                value (nothing of that batch is sent; rows of earlier batches stay stored), or
+                the session is not adaptive.
+            AcquireError: the server refused (``FAILED_PRECONDITION`` for a session of another
+                family, ``NOT_FOUND`` for another lab's, ``PERMISSION_DENIED`` without the rig
+                role, ``INVALID_ARGUMENT`` naming a field, ...), or retryable failures lasted
+                longer than ``retry_for``; with the rows committed so far.
+            HelmholtzError: the server's batches contradict each other (a batch re-sent with
+                other indices, out of sequence).
+        """
+        if isinstance(session, Session) and not session.spec.adaptive:
+            raise ValueError(
+                f"session {session.id!r} declares {session.spec.family} patterns, not an adaptive "
+                "family (adaptive_haar, adaptive_hadamard): upload its rows with upload()"
+            )
+        return _Acquisition(
+            self,
+            _session_id(session),
+            measure,
+            writer_id or new_writer_id(),
+            chunk_rows,
+            self.retry.retry_for if retry_for is None else retry_for,
+            dtype,
+        ).run()
+
     # -- sessions (REST, role reader) -----------------------------------------------------
     def session(self, session_id: str) -> Session:
         """``GET /v1/sessions/{id}``: the session's declaration and counts."""
@@ -621,6 +752,19 @@ class Client:
         return _load_npy(
             self._http.request("GET", f"/v1/sessions/{_quote(sid)}/measurements.npy").body
         )
+
+    def adaptive_sequence(self, session: SessionRef) -> dict[str, Any]:
+        """``GET /v1/sessions/{id}/adaptive.json``: an adaptive session's issued batches in
+        order, ``{"session_id", "issued_rows", "indices", "batches": [{"number",
+        "first_row", "indices"}]}``. With the spec, ``indices`` gives every pattern of the
+        session (``hz.patterns(session.spec, indices=...)``); with :meth:`measurements`, what
+        replays it.
+
+        Raises:
+            ApiError: 409 for a session of another family, 404 for an unknown one.
+        """
+        sid = _session_id(session)
+        return self._http.request("GET", f"/v1/sessions/{_quote(sid)}/adaptive.json").json()
 
     # -- reconstructions (REST, role reader) ----------------------------------------------
     def reconstruct(
@@ -1130,3 +1274,300 @@ class _Upload:
                 failing_since, attempt, resync_used = None, 0, False
         self.report.seconds = time.monotonic() - self.started
         return self.report
+
+
+_STOP_REASONS = {
+    pb.ADAPTIVE_STOP_BUDGET: "budget",
+    pb.ADAPTIVE_STOP_TARGET_ERROR: "target_error",
+    pb.ADAPTIVE_STOP_FINISHED: "finished",
+}
+
+
+#: How long a rig's failure waits for the server to commit the rows already sent.
+_DRAIN_SECONDS = 5.0
+
+
+class _StreamEnded(Exception):
+    """One Acquire stream ended without ``done``: the status says why."""
+
+    def __init__(self, error: RpcError):
+        self.error = error
+
+
+class _Acquisition:
+    """One adaptive acquisition (client/src/adaptive.rs `acquire_adaptive`, in Python): the
+    rig's state across the streams it opens."""
+
+    def __init__(
+        self,
+        client: Client,
+        session_id: str,
+        measure: Measure,
+        writer: str,
+        chunk_rows: Optional[int],
+        retry_for: float,
+        dtype: "np.typing.DTypeLike",
+    ):
+        self.client = client
+        self.sid = session_id
+        self.measure = measure
+        self.writer = writer
+        self.chunk_rows = chunk_rows
+        self.retry_for = retry_for
+        self.dtype = dtype
+        self.policy = client.retry
+        self.operation = f"adaptive acquisition of session {session_id}"
+        #: The session as the server's `opened` gave it (spec, channels, camera).
+        self.session: Optional[Session] = None
+        #: Every batch issued, by number: (first_row, indices).
+        self.batches: list[tuple[int, list[int]]] = []
+        self.seen: set[int] = set()
+        #: Rows 0..measured are measured (or stored by the server already).
+        self.measured = 0
+        #: Measured rows the server has not acknowledged: (first row, rows array).
+        self.unacked: list[tuple[int, np.ndarray]] = []
+        self.committed = 0
+        self.report = AdaptiveReport(session_id=session_id, writer_id=writer)
+
+    # -- the batches ----------------------------------------------------------------------
+    def _batch(self, b: pb.AdaptiveBatch) -> None:
+        """A batch from the server: a new one extends the sequence; one sent again (after a
+        reopen) must equal the one held."""
+        indices = list(b.indices)
+        if b.number < len(self.batches):
+            if self.batches[b.number] != (b.first_row, indices):
+                raise HelmholtzError(
+                    f"{self.operation}: the server sent batch {b.number} again with other indices"
+                )
+            return
+        end = self.batches[-1][0] + 2 * len(self.batches[-1][1]) if self.batches else 0
+        if b.number != len(self.batches) or b.first_row != end or not indices:
+            raise HelmholtzError(
+                f"{self.operation}: the server sent batch {b.number} at row {b.first_row}; the "
+                f"rig expected batch {len(self.batches)} at row {end}"
+            )
+        assert self.session is not None
+        k = self.session.spec.pixels
+        for n in indices:
+            if not 0 <= n < k or n in self.seen:
+                raise HelmholtzError(
+                    f"{self.operation}: batch {b.number} holds basis index {n}, out of range "
+                    f"0..{k} or already shown"
+                )
+            self.seen.add(n)
+        self.batches.append((b.first_row, indices))
+
+    def _next_to_measure(self) -> Optional[int]:
+        """The first issued batch with rows not yet measured (nor stored by the server)."""
+        done = max(self.measured, self.committed)
+        for number, (first, indices) in enumerate(self.batches):
+            if first + 2 * len(indices) > done:
+                return number
+        return None
+
+    def _measure(self, number: int) -> None:
+        """Shows batch `number` through the rig and keeps its new rows (checked)."""
+        assert self.session is not None
+        first, indices = self.batches[number]
+        frames = 2 * len(indices)
+        patterns = adaptive_patterns(self.session.spec, indices, dtype=self.dtype)
+        values = self.measure(patterns)
+        self.report.measure_calls += 1
+        self.report.frames_measured += frames
+        where = f"the measurement of batch {number} (rows {first}..{first + frames})"
+        try:
+            rows = _rows_of(self.session, values)
+        except ValueError as e:
+            raise ValueError(f"{where}: {e}") from None
+        if rows.shape[0] != frames:
+            raise ValueError(
+                f"{where} holds {rows.shape[0]} rows; {frames} frames ({len(indices)} split "
+                "pairs) were shown: one row per frame"
+            )
+        keep = max(self.measured, self.committed, first) - first
+        if keep < frames:
+            self.unacked.append((first + keep, rows[keep:]))
+        self.measured = first + frames
+
+    # -- acknowledgements and sending -----------------------------------------------------
+    def _acknowledged(self, committed: int) -> None:
+        self.committed = max(self.committed, committed)
+        while self.unacked and self.unacked[0][0] + self.unacked[0][1].shape[0] <= self.committed:
+            self.unacked.pop(0)
+
+    def _send(self, outbox: "queue.Queue[Optional[pb.AcquireRequest]]", entries: list[tuple[int, np.ndarray]]) -> None:
+        """Queues the rows of `entries` at or past the committed count, in chunks."""
+        assert self.session is not None
+        field_name = _PAYLOAD_FIELD[self.session.sample_format]
+        for start, rows in entries:
+            per_row = rows.shape[1]
+            row_bytes = per_row * rows.dtype.itemsize
+            step = self.chunk_rows or DEFAULT_CHUNK_BYTES // max(1, row_bytes)
+            step = max(1, min(step, MAX_CHUNK_BYTES // max(1, row_bytes)))
+            for a in range(max(0, self.committed - start), rows.shape[0], step):
+                b = min(rows.shape[0], a + step)
+                payload = rows[a:b].tobytes()
+                chunk = pb.MeasurementChunk(
+                    session_id=self.sid, start_row=start + a, channels=per_row, crc32c=crc32c(payload)
+                )
+                setattr(chunk, field_name, payload)
+                outbox.put(pb.AcquireRequest(chunk=chunk))
+                self.report.rows_sent += b - a
+
+    # -- one stream -----------------------------------------------------------------------
+    def _stream(self) -> bool:
+        """One Acquire stream: True at the server's `done`; `_StreamEnded` when it ends
+        otherwise. A ValueError of the rig's measurement, or a contradiction of the server's,
+        ends it and propagates."""
+        outbox: "queue.Queue[Optional[pb.AcquireRequest]]" = queue.Queue()
+        outbox.put(
+            pb.AcquireRequest(
+                open=pb.AcquireOpen(
+                    session_id=self.sid,
+                    measured_rows=self.measured,
+                    known_batches=len(self.batches),
+                )
+            )
+        )
+
+        def requests() -> Iterator[pb.AcquireRequest]:
+            while True:
+                item = outbox.get()
+                if item is None:
+                    return
+                yield item
+
+        call = self.client._stub().Acquire(requests(), metadata=self.client._metadata(self.writer))
+        try:
+            return self._converse(call, outbox)
+        except (_StreamEnded, HelmholtzError):
+            raise
+        except Exception:
+            # The rig's own failure (its measurement raised, or returned rows we refuse): rows
+            # already sent are real; let the server commit them before the error propagates.
+            self._drain(call, outbox)
+            raise
+        finally:
+            outbox.put(None)
+            call.cancel()
+
+    def _drain(self, call: Any, outbox: "queue.Queue[Optional[pb.AcquireRequest]]") -> None:
+        """Half-closes the stream and reads the server's acks until it ends (at most
+        `_DRAIN_SECONDS`)."""
+        outbox.put(None)
+        timer = threading.Timer(_DRAIN_SECONDS, call.cancel)
+        timer.start()
+        try:
+            for response in call:
+                if response.WhichOneof("message") == "ack":
+                    self._acknowledged(response.ack.committed_rows)
+                    self.report.rows_written += response.ack.rows_written
+                    self.report.rows_matched += response.ack.rows_skipped
+        except grpc.RpcError:
+            pass
+        finally:
+            timer.cancel()
+
+    def _converse(self, call: Any, outbox: "queue.Queue[Optional[pb.AcquireRequest]]") -> bool:
+        opened = False
+        while True:
+            if opened:
+                number = self._next_to_measure()
+                if number is not None:
+                    before = len(self.unacked)
+                    self._measure(number)
+                    self._send(outbox, self.unacked[before:])
+                    continue
+            waited = time.monotonic()
+            try:
+                response = next(call)
+            except StopIteration:
+                raise _StreamEnded(
+                    RpcError(
+                        self.operation,
+                        grpc.StatusCode.UNAVAILABLE,
+                        "the server ended the stream before the acquisition was done",
+                    )
+                ) from None
+            except grpc.RpcError as e:
+                raise _StreamEnded(RpcError.from_grpc(self.operation, e)) from None
+            if opened:
+                self.report.idle_seconds += time.monotonic() - waited
+            which = response.WhichOneof("message")
+            if which == "opened":
+                o = response.opened
+                self.session = Session.from_proto(o.session)
+                if not self.session.spec.adaptive:
+                    raise ValueError(
+                        f"session {self.sid!r} declares {self.session.spec.family} patterns, "
+                        "not an adaptive family"
+                    )
+                if self.measured > o.issued_rows:
+                    raise HelmholtzError(
+                        f"{self.operation}: the server issued {o.issued_rows} rows, the rig "
+                        f"measured {self.measured}"
+                    )
+                opened = True
+                self._acknowledged(o.committed_rows)
+                # Measured rows the server does not hold yet: send them again.
+                self._send(outbox, self.unacked)
+            elif which == "batch":
+                self._batch(response.batch)
+            elif which == "ack":
+                a = response.ack
+                self._acknowledged(a.committed_rows)
+                self.report.rows_written += a.rows_written
+                self.report.rows_matched += a.rows_skipped
+            elif which == "done":
+                d = response.done
+                self.report.rows = d.rows
+                self.report.reason = _STOP_REASONS.get(d.reason, "unknown")
+                self.report.estimated_error = (
+                    d.estimated_error if d.HasField("estimated_error") else None
+                )
+                self._acknowledged(d.rows)
+                return True
+
+    def run(self) -> AdaptiveReport:
+        started = time.monotonic()
+        progress_at = started
+        attempt = 0
+        resync_used = False
+        while True:
+            before = self.committed
+            try:
+                if self._stream():
+                    break
+            except _StreamEnded as ended:
+                err = ended.error
+                if err.code == grpc.StatusCode.UNAVAILABLE:
+                    self.client._reset_channel()
+                if self.committed > before:
+                    progress_at, attempt, resync_used = time.monotonic(), 0, False
+                d = disposition(err.code)
+                fatal = d is Disposition.FATAL or (d is Disposition.RESYNC_ONCE and resync_used)
+                gave_up = time.monotonic() - progress_at >= self.retry_for
+                if fatal or gave_up:
+                    self._finish(started)
+                    raise AcquireError(
+                        err.operation,
+                        err.code,
+                        err.message,
+                        committed_rows=self.committed,
+                        report=self.report,
+                        gave_up=gave_up and not fatal,
+                    ) from None
+                if d is Disposition.RESYNC_ONCE:
+                    resync_used = True
+                self.report.last_error = str(err)
+                remaining = self.retry_for - (time.monotonic() - progress_at)
+                time.sleep(max(0.0, min(self.policy.backoff.delay(attempt), remaining)))
+                attempt += 1
+                self.report.reconnects += 1
+        self._finish(started)
+        return self.report
+
+    def _finish(self, started: float) -> None:
+        self.report.indices = [n for _, indices in self.batches for n in indices]
+        self.report.batches = len(self.batches)
+        self.report.seconds = time.monotonic() - started

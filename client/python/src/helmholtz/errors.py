@@ -4,6 +4,8 @@
   (e.g. ``"ALREADY_EXISTS"``) and the server's ``message``.
 - :class:`UploadError`: an upload stopped (an :class:`RpcError`), with the rows confirmed
   stored so far.
+- :class:`AcquireError`: an adaptive acquisition stopped (an :class:`RpcError`), with the
+  server's committed count and what was done so far.
 - :class:`ApiError`: a REST call failed; the server's problem+json (RFC 9457) as attributes:
   ``status``, ``type``, ``title``, ``detail``, ``field`` (the offending input of a 400),
   ``limit`` (the limit a 413 / 429 ran into), and the whole body as ``problem``.
@@ -27,6 +29,7 @@ __all__ = [
     "HelmholtzError",
     "RpcError",
     "UploadError",
+    "AcquireError",
     "ApiError",
     "ServerUnreachable",
     "ReconstructionFailed",
@@ -94,6 +97,40 @@ class UploadError(RpcError):
         self.args = (
             f"{operation}: {message or code.name} ({code.name}); upload {what}, "
             f"{confirmed_rows} of {total_rows} rows confirmed stored",
+        )
+
+
+class AcquireError(RpcError):
+    """An adaptive acquisition (:meth:`helmholtz.Client.acquire`) that stopped: a status the
+    server gives for the request itself (``INVALID_ARGUMENT``, ``NOT_FOUND``,
+    ``FAILED_PRECONDITION``, ``PERMISSION_DENIED``, ...), or retryable ones for longer than
+    allowed (``gave_up``).
+
+    Attributes (besides :class:`RpcError`'s):
+        committed_rows: rows ``0..committed_rows`` are durably stored (the server's count when
+            last heard); calling ``acquire`` again resumes from there.
+        report: the :class:`helmholtz.AdaptiveReport` so far (indices received, batches, ...).
+        gave_up: True when retrying did not help within the retry window.
+    """
+
+    def __init__(
+        self,
+        operation: str,
+        code: grpc.StatusCode,
+        message: str,
+        *,
+        committed_rows: int,
+        report: Any = None,
+        gave_up: bool = False,
+    ):
+        super().__init__(operation, code, message)
+        self.committed_rows = committed_rows
+        self.report = report
+        self.gave_up = gave_up
+        what = "gave up (retrying did not help)" if gave_up else "stopped"
+        self.args = (
+            f"{operation}: {message or code.name} ({code.name}); acquisition {what} with "
+            f"{committed_rows} rows committed",
         )
 
 
