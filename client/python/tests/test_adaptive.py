@@ -167,6 +167,27 @@ def test_two_channels(client, session_id) -> None:  # type: ignore[no-untyped-de
     check_stored(client, session_id, report, channels=2)
 
 
+def test_a_camera_session(client, session_id) -> None:  # type: ignore[no-untyped-def]
+    # A 2x2 camera in place of the bucket: each frame is T p for a transport T (4 x 64).
+    spec = hz.PatternSpec.adaptive_hadamard(8, 128, batch=16)
+    T = np.kron(np.random.default_rng(1).random((4, 4, 4)), np.ones((2, 2))).reshape(4, 64)
+    shown: list[np.ndarray] = []
+
+    def camera(patterns: np.ndarray) -> np.ndarray:
+        frames = (patterns.reshape(len(patterns), -1) @ T.T).astype(np.float32).reshape(-1, 2, 2)
+        shown.append(frames)
+        return frames
+
+    session = client.create_session(session_id, spec, camera=hz.Camera(2, 2, "f32"))
+    report = client.acquire(session, camera)
+    assert (report.reason, report.rows, report.batches) == ("budget", 128, 4), report
+    assert np.array_equal(client.measurements(session), np.concatenate(shown))
+    rec = client.wait(client.reconstruct(session, "transport"), timeout=120)
+    relit = client.relight(rec, np.ones((2, 2)))  # T^T 1: the whole camera as the light
+    want = T.sum(axis=0).reshape(8, 8)
+    assert np.abs(relit - want).max() < 1e-4 * want.max(), np.abs(relit - want).max()
+
+
 def test_a_cut_stream_and_a_restarted_rig_resume_with_the_indices_of_an_uninterrupted_run(client, server, session_id) -> None:  # type: ignore[no-untyped-def]
     truth = scene(32)
     spec = hz.PatternSpec.adaptive_hadamard(32, 384, batch=16)
