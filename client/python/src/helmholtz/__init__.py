@@ -9,6 +9,10 @@
 >>> rec = client.wait(client.reconstruct(session, "auto"), progress=print)
 >>> image = client.dual_image(rec)                  # float32 (16, 16)
 
+An adaptive session (``hz.PatternSpec.adaptive_haar(side, count)``) lets the server choose the
+patterns as the values arrive: ``client.acquire(session, measure)`` shows each batch through
+``measure(patterns) -> rows`` until the server ends it (an :class:`AdaptiveReport`).
+
 See the README for a walkthrough. Sessions and uploads go over gRPC (the rig's side);
 reconstructions and images over REST (the reader's side). Errors are :class:`HelmholtzError`
 subclasses: :class:`RpcError` carries the gRPC status code and message, :class:`ApiError`
