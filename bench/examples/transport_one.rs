@@ -187,6 +187,64 @@ fn main() -> anyhow::Result<()> {
         total(&est) / total(&truth),
         report.held_out.as_ref().and_then(|h| h.relative_residual),
     );
+    // A Hadamard subset: the share of the full-light relit image's energy in the coefficients
+    // no pair measured, of the truth and of the estimate (what a relight error estimate must
+    // extrapolate).
+    if hadamard {
+        use helmholtz_recon::linop::LinearOperator;
+        let op = helmholtz_recon::ops::HadamardOperator::from_spec(&spec, count)?;
+        let full =
+            helmholtz_recon::ops::HadamardOperator::with_natural(p, p, (0..k as usize).collect());
+        let mut measured = vec![false; k as usize];
+        op.natural_indices()
+            .iter()
+            .for_each(|&n| measured[n] = true);
+        let unmeasured_share = |r: &[f64]| {
+            let mut co = vec![0.0; k as usize];
+            full.apply(r, &mut co);
+            let all: f64 = co.iter().map(|v| v * v).sum();
+            let un: f64 = co
+                .iter()
+                .zip(&measured)
+                .filter(|(_, m)| !**m)
+                .map(|(v, _)| v * v)
+                .sum();
+            un / all
+        };
+        let truth_relit = view.relight(&vec![1.0; m]);
+        let est_relit: Vec<f64> = t
+            .relight(&vec![1.0f32; m])
+            .into_iter()
+            .map(f64::from)
+            .collect();
+        let diff: Vec<f64> = truth_relit
+            .iter()
+            .zip(&est_relit)
+            .map(|(a, b)| a - b)
+            .collect();
+        let n2: f64 = truth_relit.iter().map(|v| v * v).sum();
+        let mut co = vec![0.0; k as usize];
+        full.apply(&diff, &mut co);
+        let err_un: f64 = co
+            .iter()
+            .zip(&measured)
+            .filter(|(_, m)| !**m)
+            .map(|(v, _)| v * v)
+            .sum();
+        let err_me: f64 = co
+            .iter()
+            .zip(&measured)
+            .filter(|(_, m)| **m)
+            .map(|(v, _)| v * v)
+            .sum();
+        println!(
+            "full relit: share of energy in unmeasured coefficients: truth {:.4e}, estimate {:.4e}; error^2 / norm^2 in unmeasured {:.3e}, in measured {:.3e}",
+            unmeasured_share(&truth_relit),
+            unmeasured_share(&est_relit),
+            err_un / n2,
+            err_me / n2,
+        );
+    }
     if std::env::var_os("TRANSPORT_REPORT").is_some() {
         println!("{}", serde_json::to_string_pretty(&report.details)?);
     }

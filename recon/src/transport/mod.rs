@@ -52,6 +52,12 @@
 //!   they keep ([`subset_light_error`]: the sample rows' fitted sums against the measured
 //!   all-on pair's; a lasso that drops a dense, dim interreflection loses it in every row, which
 //!   a relight adds up) before the one-standard-error rule picks among them.
+//!   A Hadamard subset's paths also run with every row's weight at least its noise floor
+//!   ([`noise_floor`]: the universal threshold `sqrt(2 ln k) sigma`, `sigma` from the spread of
+//!   the row's split-pair sums): a weight relative to the row's own `lambda_max` alone sits
+//!   below the noise in a dim row (1 % frame noise: 420-490 nonzeros per row on sparse scenes
+//!   where the complete set keeps 4). The floor is a candidate, not a rule: on a scene with a
+//!   dense, dim interreflection it drops light from every row, and the light test rejects it.
 //!   Every lasso point is scored twice: as solved, and refitted by
 //!   least squares on its own support ([`batch::refit_rows`], the relaxed lasso): the soft
 //!   threshold shrinks every kept coefficient by the weight, so a larger weight (fewer
@@ -643,13 +649,7 @@ fn read_columns(
             let col = picked[at] - start;
             out.push(plan.raw_column(&f, r.len(), col));
             if matches!(plan.raw, Raw::Hadamard(_)) {
-                sums.push(
-                    (0..plan.raw_rows())
-                        .map(|p| {
-                            f[2 * p * r.len() + col] as f64 + f[(2 * p + 1) * r.len() + col] as f64
-                        })
-                        .collect(),
-                );
+                sums.push(pair_sums(&f, r.len(), col, plan.raw_rows()));
             }
             at += 1;
         }
@@ -766,12 +766,14 @@ struct LevelTest {
     data: Vec<f64>,
     /// The sample pixels' held-out data.
     observed: Vec<Vec<f64>>,
+    /// The sample pixels' noise floors ([`noise_floor`]).
+    floors: Vec<f64>,
     size: (usize, usize),
 }
 
 impl LevelTest {
     /// `None` when the pairs are too few to halve.
-    fn new(plan: &Plan, raws: &[Vec<f64>]) -> Result<Option<Self>, ReconError> {
+    fn new(plan: &Plan, raws: &[Vec<f64>], floors: &[f64]) -> Result<Option<Self>, ReconError> {
         let Raw::Hadamard(op) = &plan.raw else {
             return Ok(None);
         };
@@ -815,6 +817,7 @@ impl LevelTest {
                 .iter()
                 .map(|raw| split.test.iter().map(|&i| raw[i]).collect())
                 .collect(),
+            floors: floors.to_vec(),
             size,
         }))
     }
@@ -824,7 +827,7 @@ impl LevelTest {
     fn score(
         &self,
         kind: TransformKind,
-        (lambda, refit): (f64, bool),
+        (lambda, refit, floored): (f64, bool, bool),
         config: &TransportConfig,
         chunk: usize,
         control: &Control,
@@ -842,10 +845,11 @@ impl LevelTest {
             max_iter: config.max_iter,
             tol: config.tol,
         };
-        let lams: Vec<f64> = batch::lambda_max(&sh, &self.data, chunk)
-            .iter()
-            .map(|l| l * lambda)
-            .collect();
+        let lams = weights(
+            &batch::lambda_max(&sh, &self.data, chunk),
+            lambda,
+            if floored { &self.floors } else { &[] },
+        );
         let mut s = vec![0.0; rows * k];
         batch::solve_rows(&sh, &self.data, &lams, &mut s, chunk, control)?;
         if refit {
@@ -869,7 +873,7 @@ impl LevelTest {
 
 fn hadamard_subset_error(
     plan: &Plan,
-    model: (TransformKind, f64, bool),
+    model: (TransformKind, f64, bool, bool),
     (raws, sums, chance): (&[Vec<f64>], &[Vec<f64>], &[f64]),
     config: &TransportConfig,
     chunk: usize,
@@ -882,7 +886,7 @@ fn hadamard_subset_error(
         return Ok(None);
     }
     let (pw, ph) = (plan.spec.width() as usize, plan.spec.height() as usize);
-    let (kind, lambda, refit) = model;
+    let (kind, lambda, refit, floored) = model;
     let psi = kind.build(pw, ph);
     let sh = Shared {
         op,
@@ -894,8 +898,24 @@ fn hadamard_subset_error(
         tol: config.tol,
     };
     let bs: Vec<f64> = raws.iter().flatten().copied().collect();
+    let floors: Vec<f64> = if floored {
+        raws.iter()
+            .zip(sums)
+            .map(|(raw, sum)| noise_floor(sum, raw, op.cols()))
+            .collect()
+    } else {
+        Vec::new()
+    };
     let mut tally = Tally::default();
-    let mut s = solve_block(&sh, &bs, lambda, None, chunk, &mut tally, control)?;
+    let mut s = solve_block(
+        &sh,
+        (&bs, &floors),
+        lambda,
+        None,
+        chunk,
+        &mut tally,
+        control,
+    )?;
     if refit {
         batch::refit_rows(&sh, &bs, &mut s, chunk, control)?;
     }
@@ -1165,6 +1185,8 @@ struct Point {
     score: Score,
     /// A Hadamard subset's total-light error and its standard error ([`subset_light_error`]).
     light: Option<(f64, f64)>,
+    /// Every row's weight at least its noise floor ([`noise_floor`]).
+    floored: bool,
 }
 
 /// One candidate of the model choice, as reported.
@@ -1185,6 +1207,9 @@ struct Candidate {
     nonzeros_mean: f64,
     /// Least-squares refit on the lasso's support ([`batch::refit_rows`]).
     refit: bool,
+    /// Every row's weight at least its noise floor ([`noise_floor`]).
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    noise_floor: bool,
 }
 
 /// Counters of the iterative solve, as reported.
@@ -1289,7 +1314,7 @@ fn plan_with(
     let mut held_out = None;
     let mut held_out_unavailable = None;
 
-    let (transform, lambda, refit) = if plan.exact {
+    let (transform, lambda, refit, noise_floor) = if plan.exact {
         let transform = match config.transform {
             Some(t) => t,
             None => {
@@ -1365,10 +1390,10 @@ fn plan_with(
              other row predicts a held-out one"
                 .to_string(),
         );
-        (transform, None, false)
+        (transform, None, false, false)
     } else {
         control.set_progress(0.0);
-        let (transform, lambda, refit) = choose_model(
+        let (transform, lambda, refit, floored) = choose_model(
             plan,
             config,
             source,
@@ -1381,7 +1406,7 @@ fn plan_with(
             &mut held_out_unavailable,
             control,
         )?;
-        (transform, Some(lambda), refit)
+        (transform, Some(lambda), refit, floored)
     };
     if control.is_cancelled() {
         return Err(ReconError::Cancelled);
@@ -1427,6 +1452,7 @@ fn plan_with(
         held_out_unavailable,
         largest_read_bytes: largest as u64,
         seconds: start.elapsed().as_secs_f64(),
+        noise_floor,
     })
 }
 
@@ -1530,13 +1556,18 @@ fn solve_with(
         } else {
             let n = plan.op().rows();
             let mut bs = Vec::with_capacity(len * n);
+            let mut floors = Vec::new();
             for c in 0..len {
-                bs.extend(plan.fit_data(&plan.raw_column(&frames, len, c)));
+                let raw = plan.raw_column(&frames, len, c);
+                if model.noise_floor {
+                    floors.push(noise_floor(&pair_sums(&frames, len, c, n), &raw, k));
+                }
+                bs.extend(plan.fit_data(&raw));
             }
             drop(frames);
             let mut s = solve_block(
                 &shared,
-                &bs,
+                (&bs, &floors),
                 model.lambda.ok_or_else(|| {
                     ReconError::Unsolvable("the stored transport model has no weight".into())
                 })?,
@@ -1714,6 +1745,36 @@ pub fn assemble_transport(
 
 /// The continuation path down to `lambda`: the larger fractions of [`LAMBDA_PATH`], then
 /// `lambda` itself (each solve warm-starts the next; a cold solve at a small weight is slow).
+/// Every row's l1 weight: `frac` of its own `lambda_max`, never below its noise floor (when
+/// `floors` has one per row).
+fn weights(lam_max: &[f64], frac: f64, floors: &[f64]) -> Vec<f64> {
+    lam_max
+        .iter()
+        .enumerate()
+        .map(|(j, l)| (l * frac).max(floors.get(j).copied().unwrap_or(0.0)))
+        .collect()
+}
+
+/// A Hadamard row's noise floor on its l1 weight: `sqrt(2 ln k) sigma`, with `sigma` the noise
+/// of its data (`(y+ - y-) / sqrt(k)`) from the spread of its split-pair sums `y+ + y-`
+/// ([`super::noise::from_pair_sums`]), the universal threshold (Donoho-Johnstone): pure noise
+/// stays below it in every coefficient of an orthonormal transform with high probability (the
+/// rows are orthonormal, so each coefficient's noise is at most `sigma`). A weight relative to
+/// the row's own `lambda_max` alone is below the noise in a dim row, where it fitted hundreds
+/// of noise coefficients (1 % frame noise: 420-810 per row where the complete set keeps 4-128).
+/// 0 without a noise estimate.
+fn noise_floor(sums: &[f64], raw: &[f64], k: usize) -> f64 {
+    super::noise::from_pair_sums(sums, 1.0 / (k as f64).sqrt(), raw)
+        .map_or(0.0, |n| n.sigma * (2.0 * (k as f64).ln()).sqrt())
+}
+
+/// The split-pair sums `y+ + y-` of camera pixel `col` of a frame block (`rows x width`).
+fn pair_sums(frames: &[f32], width: usize, col: usize, pairs: usize) -> Vec<f64> {
+    (0..pairs)
+        .map(|p| frames[2 * p * width + col] as f64 + frames[(2 * p + 1) * width + col] as f64)
+        .collect()
+}
+
 fn continuation(lambda: f64) -> Vec<f64> {
     let mut path: Vec<f64> = LAMBDA_PATH
         .iter()
@@ -1735,7 +1796,7 @@ const WARM_STAGE_TOL_FACTOR: f64 = 10.0;
 /// Returns the iterations of every row summed over the path.
 fn solve_path(
     sh: &Shared,
-    bs: &[f64],
+    (bs, floors): (&[f64], &[f64]),
     path: &[f64],
     s: &mut [f64],
     chunk: usize,
@@ -1749,7 +1810,7 @@ fn solve_path(
         ..*sh
     };
     for (stage, &frac) in path.iter().enumerate() {
-        let lams: Vec<f64> = lam_max.iter().map(|l| l * frac).collect();
+        let lams = weights(&lam_max, frac, floors);
         let at = if stage + 1 < path.len() { &loose } else { sh };
         let it = batch::solve_rows(at, bs, &lams, s, chunk, control)?;
         total.iter_mut().zip(&it).for_each(|(t, i)| *t += i);
@@ -1762,7 +1823,7 @@ fn solve_path(
 /// parent's solution at the final weight. Returns the coefficients (pixels x k).
 fn solve_block(
     sh: &Shared,
-    bs: &[f64],
+    (bs, floors): (&[f64], &[f64]),
     lambda: f64,
     coarse: Option<usize>,
     chunk: usize,
@@ -1787,8 +1848,28 @@ fn solve_block(
                 let inv = 1.0 / children.len() as f64;
                 row.iter_mut().for_each(|v| *v *= inv);
             }
+            // A parent's datum is its children's mean: its noise, their mean noise over the
+            // square root of their number.
+            let parent_floors: Vec<f64> = if floors.is_empty() {
+                Vec::new()
+            } else {
+                groups
+                    .iter()
+                    .map(|ch| {
+                        let n = ch.len() as f64;
+                        ch.iter().map(|&c| floors[c]).sum::<f64>() / n / n.sqrt()
+                    })
+                    .collect()
+            };
             let mut ps = vec![0.0; groups.len() * k];
-            let it = solve_path(sh, &pb, &continuation(lambda), &mut ps, chunk, control)?;
+            let it = solve_path(
+                sh,
+                (&pb, &parent_floors),
+                &continuation(lambda),
+                &mut ps,
+                chunk,
+                control,
+            )?;
             tally.parent_iterations += it.iter().sum::<usize>() as u64;
             tally.parent_rows += groups.len() as u64;
             for (g, children) in groups.iter().enumerate() {
@@ -1799,7 +1880,7 @@ fn solve_block(
             vec![lambda]
         }
     };
-    let it = solve_path(sh, bs, &path, &mut s, chunk, control)?;
+    let it = solve_path(sh, (bs, floors), &path, &mut s, chunk, control)?;
     tally.iterations += it.iter().sum::<usize>() as u64;
     tally.iterations_max = tally
         .iterations_max
@@ -1822,7 +1903,7 @@ fn choose_model(
     held_out: &mut Option<holdout::HeldOut>,
     held_out_unavailable: &mut Option<String>,
     control: &Control,
-) -> Result<(TransformKind, f64, bool), ReconError> {
+) -> Result<(TransformKind, f64, bool, bool), ReconError> {
     let (pw, ph) = (plan.spec.width() as usize, plan.spec.height() as usize);
     let k = plan.k();
     let fraction = config
@@ -1844,7 +1925,7 @@ fn choose_model(
                 "selection".into(),
                 json!({"rule": format!("defaults (no held-out rows: {why})")}),
             );
-            return Ok((transform, lambda, false));
+            return Ok((transform, lambda, false, false));
         }
     };
     let drawn = energy_sample(plan, source, m, mem.block_pixels, sample, largest, control)?;
@@ -1880,14 +1961,32 @@ fn choose_model(
         Raw::Hadamard(op) if sums.len() == raws.len() => Some(op),
         _ => None,
     };
+    // A Hadamard subset's rows: every weight at least the row's noise floor.
+    let floors: Vec<f64> = match subset_op {
+        Some(_) => raws
+            .iter()
+            .zip(&sums)
+            .map(|(raw, sum)| noise_floor(sum, raw, k))
+            .collect(),
+        None => Vec::new(),
+    };
     let level = match subset_op {
-        Some(_) => LevelTest::new(plan, &raws)?,
+        Some(_) => LevelTest::new(plan, &raws, &floors)?,
         None => None,
     };
     // (transform, level-test residual, nonzeros of the point it was tested at).
     let mut level_scores: Vec<(TransformKind, f64, f64)> = Vec::new();
     let mut scored: Vec<Point> = Vec::new();
-    let steps = (transforms.len() * lambdas.len()) as f64;
+    // A Hadamard subset's paths run twice: with every row's weight at least its noise floor
+    // ([`noise_floor`]: a dim row otherwise keeps hundreds of noise coefficients) and without
+    // (the floor drops light that lies below the noise in every row but adds up in a relight,
+    // a dense interreflection; the light test below sees it).
+    let floor_options: &[bool] = if subset_op.is_some() {
+        &[false, true]
+    } else {
+        &[false]
+    };
+    let steps = (transforms.len() * lambdas.len() * floor_options.len()) as f64;
     let mut step = 0usize;
     for &kind in &transforms {
         let psi = kind.build(pw, ph);
@@ -1901,97 +2000,103 @@ fn choose_model(
             tol: config.tol,
         };
         let lam_max = batch::lambda_max(&sh, &bs, chunk);
-        let mut s = vec![0.0; rows * k];
         let mut t = vec![0.0; rows * k];
         let h = test.rows();
         let mut pred = vec![0.0; rows * h];
-        let mut worse = 0;
-        let mut best_here = f64::INFINITY;
-        for &frac in &lambdas {
-            let lams: Vec<f64> = lam_max.iter().map(|l| l * frac).collect();
-            let it = batch::solve_rows(&sh, &bs, &lams, &mut s, chunk, control)?;
-            // The lasso point, then its least-squares refit on the same support (which
-            // continues nothing: the path goes on from the lasso point).
-            let mut refitted = s.clone();
-            let refit_it = batch::refit_rows(&sh, &bs, &mut refitted, chunk, control)?;
-            let nnz = s.iter().filter(|v| **v != 0.0).count() as f64 / rows as f64;
-            let mut value = f64::INFINITY;
-            for (refit, coefficients, iterations) in
-                [(false, &s, &it), (true, &refitted, &refit_it)]
-            {
-                sh.inverse(coefficients, &mut t);
-                test.apply_batch(&t, &mut pred, rows);
-                let mut score = Score::new(rows);
-                // Squared residual of every held-out row, summed over the sample pixels: their
-                // spread gives the standard error of the score.
-                let mut per_row = vec![0.0; h];
-                for (j, obs) in observed.iter().enumerate() {
-                    let p = &pred[j * h..(j + 1) * h];
-                    score.add_channel(j, obs, p);
-                    per_row
-                        .iter_mut()
-                        .zip(obs.iter().zip(p))
-                        .for_each(|(e, (o, p))| *e += (o - p) * (o - p));
+        for &floored in floor_options {
+            let row_floors: &[f64] = if floored { &floors } else { &[] };
+            let mut s = vec![0.0; rows * k];
+            let mut worse = 0;
+            let mut best_here = f64::INFINITY;
+            for &frac in &lambdas {
+                let lams = weights(&lam_max, frac, row_floors);
+                let it = batch::solve_rows(&sh, &bs, &lams, &mut s, chunk, control)?;
+                // The lasso point, then its least-squares refit on the same support (which
+                // continues nothing: the path goes on from the lasso point).
+                let mut refitted = s.clone();
+                let refit_it = batch::refit_rows(&sh, &bs, &mut refitted, chunk, control)?;
+                let nnz = s.iter().filter(|v| **v != 0.0).count() as f64 / rows as f64;
+                let mut value = f64::INFINITY;
+                for (refit, coefficients, iterations) in
+                    [(false, &s, &it), (true, &refitted, &refit_it)]
+                {
+                    sh.inverse(coefficients, &mut t);
+                    test.apply_batch(&t, &mut pred, rows);
+                    let mut score = Score::new(rows);
+                    // Squared residual of every held-out row, summed over the sample pixels: their
+                    // spread gives the standard error of the score.
+                    let mut per_row = vec![0.0; h];
+                    for (j, obs) in observed.iter().enumerate() {
+                        let p = &pred[j * h..(j + 1) * h];
+                        score.add_channel(j, obs, p);
+                        per_row
+                            .iter_mut()
+                            .zip(obs.iter().zip(p))
+                            .for_each(|(e, (o, p))| *e += (o - p) * (o - p));
+                    }
+                    let rho = score.finish(split.fraction).relative_residual;
+                    let se = rho.map(|r| r * relative_standard_error(&per_row));
+                    let estimate = subset_op
+                        .and_then(|op| subset_error(op, (&raws, &sums, &chance), &t))
+                        .map(|e| e.relative);
+                    let light = subset_op
+                        .and_then(|op| subset_light_error(op, (&raws, &sums, &chance), &t));
+                    candidates.push(Candidate {
+                        transform: kind.name(),
+                        lambda: frac,
+                        held_out: rho,
+                        held_out_se: se,
+                        error_estimate: estimate,
+                        light_error: light.map(|l| l.0),
+                        iterations_mean: iterations.iter().sum::<usize>() as f64 / rows as f64,
+                        nonzeros_mean: nnz,
+                        refit,
+                        noise_floor: floored,
+                    });
+                    let v = rho.unwrap_or(f64::INFINITY);
+                    value = value.min(v);
+                    scored.push(Point {
+                        kind,
+                        lambda: frac,
+                        refit,
+                        held_out: v,
+                        se: se.unwrap_or(0.0),
+                        nonzeros: nnz,
+                        score,
+                        light,
+                        floored,
+                    });
                 }
-                let rho = score.finish(split.fraction).relative_residual;
-                let se = rho.map(|r| r * relative_standard_error(&per_row));
-                let estimate = subset_op
-                    .and_then(|op| subset_error(op, (&raws, &sums, &chance), &t))
-                    .map(|e| e.relative);
-                let light =
-                    subset_op.and_then(|op| subset_light_error(op, (&raws, &sums, &chance), &t));
-                candidates.push(Candidate {
-                    transform: kind.name(),
-                    lambda: frac,
-                    held_out: rho,
-                    held_out_se: se,
-                    error_estimate: estimate,
-                    light_error: light.map(|l| l.0),
-                    iterations_mean: iterations.iter().sum::<usize>() as f64 / rows as f64,
-                    nonzeros_mean: nnz,
-                    refit,
-                });
-                let v = rho.unwrap_or(f64::INFINITY);
-                value = value.min(v);
-                scored.push(Point {
-                    kind,
-                    lambda: frac,
-                    refit,
-                    held_out: v,
-                    se: se.unwrap_or(0.0),
-                    nonzeros: nnz,
-                    score,
-                    light,
-                });
-            }
-            step += 1;
-            control.set_progress(0.2 * step as f64 / steps);
-            // Down the path: stop once the held-out error has risen twice in a row, or once
-            // it is more than 3x the best of the transforms before and its last step bought
-            // less than a quarter (it is not catching up).
-            let others = scored
-                .iter()
-                .filter(|c| c.kind != kind)
-                .map(|c| c.held_out)
-                .fold(f64::INFINITY, f64::min);
-            if value > 3.0 * others && value > 0.75 * best_here {
-                pruned.push(kind.name());
-                break;
-            }
-            if value < best_here {
-                best_here = value;
-                worse = 0;
-            } else {
-                worse += 1;
-                if worse >= 2 {
+                step += 1;
+                control.set_progress(0.2 * step as f64 / steps);
+                // Down the path: stop once the held-out error has risen twice in a row, or once
+                // it is more than 3x the best of the transforms before and its last step bought
+                // less than a quarter (it is not catching up).
+                let others = scored
+                    .iter()
+                    .filter(|c| c.kind != kind)
+                    .map(|c| c.held_out)
+                    .fold(f64::INFINITY, f64::min);
+                if value > 3.0 * others && value > 0.75 * best_here {
+                    pruned.push(kind.name());
                     break;
+                }
+                if value < best_here {
+                    best_here = value;
+                    worse = 0;
+                } else {
+                    worse += 1;
+                    if worse >= 2 {
+                        break;
+                    }
                 }
             }
         }
     }
     if let Some(level) = &level {
         for &kind in &transforms {
-            // At the weight (and refit) the held-out pairs like best for this transform.
+            // At the weight (and refit, and floor) the held-out pairs like best for this
+            // transform.
             let Some(at) = scored
                 .iter()
                 .filter(|c| c.kind == kind)
@@ -1999,7 +2104,13 @@ fn choose_model(
             else {
                 continue;
             };
-            if let Some(v) = level.score(kind, (at.lambda, at.refit), config, chunk, control)? {
+            if let Some(v) = level.score(
+                kind,
+                (at.lambda, at.refit, at.floored),
+                config,
+                chunk,
+                control,
+            )? {
                 level_scores.push((kind, v, at.nonzeros));
             }
         }
@@ -2060,11 +2171,12 @@ fn choose_model(
                 .then(a.held_out.total_cmp(&b.held_out))
         })
         .expect("the best is within");
-    let (transform, lambda, refit) = (chosen.kind, chosen.lambda, chosen.refit);
+    let (transform, lambda, refit, floored) =
+        (chosen.kind, chosen.lambda, chosen.refit, chosen.floored);
     *held_out = Some(chosen.score.finish(split.fraction));
     if let Some(estimate) = hadamard_subset_error(
         plan,
-        (transform, lambda, refit),
+        (transform, lambda, refit, floored),
         (&raws, &sums, &chance),
         config,
         chunk,
@@ -2105,10 +2217,10 @@ fn choose_model(
             "pruned": pruned,
             "sample": "camera pixels drawn with probability in proportion to the energy of their data (systematic, deterministic)",
             "best": {"transform": best.kind.name(), "lambda": best.lambda, "refit": best.refit, "held_out": best.held_out, "standard_error": best.se, "nonzeros_mean": best.nonzeros},
-            "chosen": {"transform": transform.name(), "lambda": lambda, "refit": refit, "held_out": chosen.held_out, "light_error": chosen.light.map(|l| l.0), "nonzeros_mean": chosen.nonzeros},
+            "chosen": {"transform": transform.name(), "lambda": lambda, "refit": refit, "noise_floor": floored, "held_out": chosen.held_out, "light_error": chosen.light.map(|l| l.0), "nonzeros_mean": chosen.nonzeros},
             "level_test": level_scores.iter().map(|(kind, v, nnz)| json!({"transform": kind.name(), "relative_residual": v, "nonzeros_mean": nnz})).collect::<Vec<_>>(),
             "candidates": candidates,
         }),
     );
-    Ok((transform, lambda, refit))
+    Ok((transform, lambda, refit, floored))
 }

@@ -75,6 +75,10 @@ pub struct TransportModel {
     pub largest_read_bytes: u64,
     /// Seconds the planning took.
     pub seconds: f64,
+    /// Every row's l1 weight is at least its noise floor (Hadamard subsets: the universal
+    /// threshold of the noise its split-pair sums show).
+    #[serde(default)]
+    pub noise_floor: bool,
 }
 
 impl TransportModel {

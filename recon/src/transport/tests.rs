@@ -1487,3 +1487,97 @@ fn a_hadamard_subset_relights_within_1_5x_of_the_best_candidate_model() {
         assert!((light - 1.0).abs() < 0.01, "{name}: total light {light}");
     }
 }
+
+#[test]
+fn a_noisy_hadamard_subset_of_sparse_rows_stores_no_more_than_the_complete_set() {
+    // Rendered scenes whose rows are sparse (glints and a caustic; a slide at a grazing angle),
+    // frames with Gaussian noise of 1 % of their RMS. A weight relative to each row's own
+    // lambda_max alone sits below the noise in dim rows: half a Russian-doll set stored
+    // 420-490 nonzeros per row where the complete set keeps 4. With every row's weight at
+    // least its noise floor (a candidate the model choice weighs), the subset must store no
+    // more than the complete set of the same scene, keep the total light, and relight within
+    // 1.5x of the model chosen without the floor would (which these scenes' sparse rows do
+    // not need).
+    let camera = CameraGrid {
+        width: 24,
+        height: 24,
+    };
+    let (pw, ph) = (32usize, 32usize);
+    let k = pw * ph;
+    let m = camera.pixels();
+    let spec_of = |pairs: usize| {
+        PatternSpec::new(
+            Family::Hadamard {
+                ordering: HadamardOrdering::RussianDoll,
+            },
+            pw as u32,
+            ph as u32,
+            2 * pairs as u64,
+            0,
+        )
+        .unwrap()
+    };
+    let (complete, half) = (spec_of(k), spec_of(k / 2));
+    let scenes = [
+        (
+            "glossy",
+            helmholtz_sim::RenderedTransport::glossy((pw, ph), (24, 24), 1),
+        ),
+        (
+            "slide",
+            helmholtz_sim::RenderedTransport::slide((pw, ph), (24, 24), 1),
+        ),
+    ];
+    for (name, scene) in scenes {
+        let truth = scene.dense();
+        let clean = frames(&complete, &truth, m, 0.0);
+        let frame_rms =
+            (clean.iter().map(|v| (*v as f64).powi(2)).sum::<f64>() / clean.len() as f64).sqrt();
+        let noisy = frames(&complete, &truth, m, 0.01 * frame_rms);
+        let (t_complete, _, _) = run(&complete, camera, &noisy, &TransportConfig::default());
+        // The subset's frames are the complete set's first ones (the same noise).
+        let f = &noisy[..half.count() as usize * m];
+        let (t, report, _) = run(&half, camera, f, &TransportConfig::default());
+        let chosen = &report.details["selection"]["chosen"];
+        let errors = relight_errors(&dense(&t), &truth, camera, k);
+        let light = t
+            .relight(&vec![1.0; m])
+            .iter()
+            .map(|v| *v as f64)
+            .sum::<f64>()
+            / truth.iter().map(|v| *v as f64).sum::<f64>();
+        // The best point without the floor, refitted at the chosen transform and weight.
+        let unfloored = report.details["selection"]["candidates"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .filter(|c| c["transform"] == chosen["transform"] && c.get("noise_floor").is_none())
+            .map(|c| c["nonzeros_mean"].as_f64().unwrap())
+            .fold(f64::INFINITY, f64::min);
+        println!(
+            "{name}: subset {} nonzeros ({chosen}), complete {}, sparsest unfloored point {unfloored:.1} per row; relit {errors:.4?}, total light {light:.4}",
+            t.nonzeros(),
+            t_complete.nonzeros()
+        );
+        assert_eq!(chosen["noise_floor"], true, "{name}: {chosen}");
+        assert!(
+            t.nonzeros() <= t_complete.nonzeros(),
+            "{name}: the subset stores {} nonzeros, the complete set {}",
+            t.nonzeros(),
+            t_complete.nonzeros()
+        );
+        assert!((light - 1.0).abs() < 0.01, "{name}: total light {light}");
+        // Relit as well as the noise-free subset's (the same pairs, the same model choice).
+        let (t_clean, _, _) = run(
+            &half,
+            camera,
+            &clean[..f.len()],
+            &TransportConfig::default(),
+        );
+        let clean_errors = relight_errors(&dense(&t_clean), &truth, camera, k);
+        assert!(
+            rms(&errors) <= 1.5 * rms(&clean_errors) + 0.005,
+            "{name}: relit {errors:?} against the noise-free subset's {clean_errors:?}"
+        );
+    }
+}
