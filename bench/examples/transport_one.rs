@@ -72,8 +72,28 @@ fn main() -> anyhow::Result<()> {
         relief: &relief,
         rendered: rendered.as_ref(),
     };
-    let truth = view.dense();
+    let config = TransportConfig::parse(&params)?;
+    // `projector_binning` b: the truth is the b x b blocks' summed light.
+    let b = config.projector_binning as usize;
+    let bin = |v: &[f64]| -> Vec<f64> {
+        let (pu, cw) = (p as usize, p as usize / b);
+        let mut out = vec![0.0; cw * cw];
+        for (i, x) in v.iter().enumerate() {
+            out[(i / pu / b) * cw + (i % pu) / b] += x;
+        }
+        out
+    };
+    let fine_truth = view.dense();
     let m = view.pixels();
+    let truth: Vec<f32> = if b > 1 {
+        fine_truth
+            .chunks_exact(k as usize)
+            .flat_map(|row| bin(&row.iter().map(|&v| v as f64).collect::<Vec<_>>()))
+            .map(|v| v as f32)
+            .collect()
+    } else {
+        fine_truth
+    };
     let g = PatternGenerator::new(&spec);
     let mut pat = vec![0f32; k as usize];
     let mut frames = Vec::with_capacity(count as usize * m);
@@ -98,7 +118,6 @@ fn main() -> anyhow::Result<()> {
         .iter()
         .map(|v| (v + noise * rms * normal()) as f32)
         .collect();
-    let config = TransportConfig::parse(&params)?;
     let mut source = SliceFrames::new(&frames, m);
     let start = Instant::now();
     let grid = CameraGrid {
@@ -134,7 +153,7 @@ fn main() -> anyhow::Result<()> {
     ];
     // The plain least-squares baseline of Hadamard sets: the adjoint of the split pairs (the
     // exact inverse of a complete set, the zero-filled one of a subset).
-    let plain: Option<Vec<f32>> = hadamard.then(|| {
+    let plain: Option<Vec<f32>> = (hadamard && b == 1).then(|| {
         use helmholtz_recon::linop::LinearOperator;
         let op = helmholtz_recon::ops::HadamardOperator::from_spec(&spec, count).unwrap();
         let scale = 1.0 / (k as f64).sqrt();
@@ -163,7 +182,11 @@ fn main() -> anyhow::Result<()> {
     let mut relit = String::new();
     for (name, l) in &lights {
         let l32: Vec<f32> = l.iter().map(|&v| v as f32).collect();
-        let want: Vec<f32> = view.relight(l).into_iter().map(|v| v as f32).collect();
+        let fine = view.relight(l);
+        let want: Vec<f32> = if b > 1 { bin(&fine) } else { fine }
+            .into_iter()
+            .map(|v| v as f32)
+            .collect();
         relit += &format!(" {name} {:.4}", relative_error(&t.relight(&l32), &want));
         if let Some(p) = &plain {
             relit += &format!(" (plain {:.4})", relative_error(&relit_of(p, l), &want));
@@ -190,7 +213,7 @@ fn main() -> anyhow::Result<()> {
     // A Hadamard subset: the share of the full-light relit image's energy in the coefficients
     // no pair measured, of the truth and of the estimate (what a relight error estimate must
     // extrapolate).
-    if hadamard {
+    if hadamard && b == 1 {
         use helmholtz_recon::linop::LinearOperator;
         let op = helmholtz_recon::ops::HadamardOperator::from_spec(&spec, count)?;
         let full =

@@ -240,7 +240,8 @@ pub fn dual_quality(
 }
 
 /// `t` against `truth` (`w x h` projector pixels, `truth.len() / (w h)` camera pixels);
-/// `summed` is `T^T 1`.
+/// `summed` is `T^T 1`. A `t` on a coarser projector grid (`projector_binning`) is judged
+/// against the truth's `b x b` blocks summed.
 pub fn transport_quality(
     t: &super::transport::TransportMatrix,
     summed: &[f32],
@@ -248,6 +249,33 @@ pub fn transport_quality(
     h: u32,
     truth: &[f32],
 ) -> TransportQuality {
+    let (tw, th) = t.projector();
+    if (tw, th) != (w, h) {
+        let fine = w as usize * h as usize;
+        if tw == 0 || th == 0 || w % tw != 0 || h % th != 0 || w / tw != h / th || fine == 0 {
+            return TransportQuality::Unavailable {
+                unavailable: "the ground truth does not match the projector grid".into(),
+            };
+        }
+        let b = (w / tw) as usize;
+        let (wu, cw) = (w as usize, tw as usize);
+        let binned: Vec<f32> = truth
+            .chunks_exact(fine)
+            .flat_map(|row| {
+                let mut out = vec![0f64; cw * th as usize];
+                for (i, v) in row.iter().enumerate() {
+                    out[(i / wu / b) * cw + (i % wu) / b] += *v as f64;
+                }
+                out.into_iter().map(|v| v as f32)
+            })
+            .collect();
+        if binned.len() * b * b != truth.len() {
+            return TransportQuality::Unavailable {
+                unavailable: "the ground truth does not match the camera and pattern sizes".into(),
+            };
+        }
+        return transport_quality(t, summed, tw, th, &binned);
+    }
     let k = w as usize * h as usize;
     let m = truth.len() / k.max(1);
     if k == 0 || truth.len() != m * k || t.camera().0 as usize * t.camera().1 as usize != m {

@@ -1003,7 +1003,21 @@ impl<'a> StoreFrames<'a> {
                 .for_each(|(a, p)| *a += *p as f64);
         }
         let n = self.rows as f64;
-        let mean_pattern: Vec<f32> = mean_pattern.iter().map(|v| (v / n) as f32).collect();
+        // A T on a coarser projector grid (`projector_binning`): each column is a block's
+        // summed light, so the pattern's block means light it.
+        let (tw, th) = t.projector();
+        let b = (spec.width() / tw.max(1)) as usize;
+        let mean_pattern: Vec<f32> = if b > 1 {
+            let (w, cw) = (spec.width() as usize, tw as usize);
+            let mut coarse = vec![0f64; cw * th as usize];
+            for (i, v) in mean_pattern.iter().enumerate() {
+                coarse[(i / w / b) * cw + (i % w) / b] += v;
+            }
+            let per = n * (b * b) as f64;
+            coarse.iter().map(|v| (v / per) as f32).collect()
+        } else {
+            mean_pattern.iter().map(|v| (v / n) as f32).collect()
+        };
         let explained = t.primal(&mean_pattern);
         Ok(sum
             .iter()

@@ -586,4 +586,93 @@ async fn half_a_hadamard_set_gives_t_and_relit_images_within_stated_tolerances()
     eprintln!("half Hadamard: relit full-camera dual image relative error {e}");
     // Measured 0.082: summing rows averages part of their errors out.
     assert!(e < 0.12, "relit dual image relative error {e}");
+
+    // The report offers the grid the pairs measure completely (a quarter of a Russian-doll set
+    // on 16x16 is the complete set on 8x8 blocks of 2x2), and params {"projector_binning": 2}
+    // reconstructs T there: each column the light of a 2x2 block, exact but for what the
+    // inverse drops as noise.
+    assert_eq!(
+        rec["report"]["details"]["coarser"]["projector_binning"], 2,
+        "{}",
+        rec["report"]["details"]
+    );
+    let coarse = reconstruct(
+        &server,
+        "half",
+        "transport",
+        serde_json::json!({"projector_binning": 2}),
+    )
+    .await;
+    assert_eq!(
+        coarse["report"]["details"]["projector"],
+        serde_json::json!([8, 8])
+    );
+    let err = coarse["report"]["quality"]["transport_relative_error"]
+        .as_f64()
+        .unwrap();
+    eprintln!("half Hadamard, projector_binning 2: relative error of the 8x8 T {err}");
+    // Measured 1.6e-3: the exact inverse drops what it takes for noise, and on an 8x8 grid the
+    // finest diagonal details its noise estimate reads are part of the scene.
+    assert!(err < 5e-3, "relative error of the binned T {err}");
+    let (shape, summed, _) = post_npy(
+        &server,
+        &format!(
+            "/v1/reconstructions/{}/relight?format=npy",
+            coarse["id"].as_i64().unwrap()
+        ),
+        r#"{"light": {"preset": "full"}}"#,
+    )
+    .await;
+    assert_eq!(shape, vec![8, 8]);
+    let fine = truth_relight(&truth, m, k, &vec![1.0; m]);
+    let want: Vec<f64> = (0..64)
+        .map(|c| {
+            let (y, x) = (c / 8, c % 8);
+            [(0, 0), (0, 1), (1, 0), (1, 1)]
+                .iter()
+                .map(|(dy, dx)| fine[(2 * y + dy) * 16 + 2 * x + dx])
+                .sum()
+        })
+        .collect();
+    let e = relative_error(&summed, &want);
+    eprintln!("binned relit full-camera image relative error {e}");
+    assert!(e < 5e-3, "binned relit dual image relative error {e}");
+    // Its primal image of a session pattern (pattern 0, the all-on half of the first pair:
+    // constant on the blocks) predicts the measured frame.
+    let (shape, predicted, _) = post_npy(
+        &server,
+        &format!(
+            "/v1/reconstructions/{}/primal?format=npy",
+            coarse["id"].as_i64().unwrap()
+        ),
+        r#"{"pattern_index": 0}"#,
+    )
+    .await;
+    assert_eq!(shape, vec![8, 8]);
+    let frame0: Vec<f64> = (0..m)
+        .map(|j| truth[j * k..(j + 1) * k].iter().map(|v| *v as f64).sum())
+        .collect();
+    let e = relative_error(&predicted, &frame0);
+    eprintln!("binned primal image of pattern 0 relative error {e}");
+    assert!(e < 5e-3, "binned primal image relative error {e}");
+    // A factor that is no power of two is refused at the edge; one that does not tile the grid,
+    // against the session; both name the field, and nothing is queued.
+    for (params, status) in [
+        (r#"{"projector_binning": 3}"#, 400),
+        (r#"{"projector_binning": 32}"#, 409),
+    ] {
+        let r = post(
+            &server,
+            "/v1/sessions/half/reconstructions",
+            &format!(r#"{{"method": "transport", "params": {params}}}"#),
+        )
+        .await;
+        let code = r.status().as_u16();
+        let body = r.text().await.unwrap();
+        assert_eq!(code, status, "{params}: {body}");
+        assert!(
+            body.contains("params.projector_binning"),
+            "{params}: {body}"
+        );
+    }
 }

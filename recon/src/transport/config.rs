@@ -1,5 +1,6 @@
 //! `POST .../reconstructions {"method": "transport", "params": {...}}`: parsed and validated once.
 
+use helmholtz_proto::{Family, PatternSpec};
 use serde_json::{Value, json};
 
 use crate::ParamError;
@@ -38,6 +39,12 @@ pub struct TransportConfig {
     pub sample_pixels: usize,
     /// Solve the 2x2-binned camera first and warm-start each pixel from its parent.
     pub coarse_to_fine: bool,
+    /// Reconstruct `T` on a projector grid coarser by this factor (a power of two dividing
+    /// both sides; 1: the session's grid): each coarse projector pixel is a `b x b` block, its
+    /// column of `T` the block's summed light. Hadamard sessions only: the pairs whose Walsh
+    /// function is constant on the blocks measure the coarse `T` exactly (half of a
+    /// Russian-doll set holds the complete set at half the resolution), the others are unused.
+    pub projector_binning: u32,
     /// The whole working set of one reconstruction (frame block, solutions, scratch, operator);
     /// set by the server ([`TransportConfig::with_memory_budget`]), not a request parameter.
     pub memory_budget_bytes: usize,
@@ -53,6 +60,7 @@ impl Default for TransportConfig {
             holdout: None,
             sample_pixels: 64,
             coarse_to_fine: false,
+            projector_binning: 1,
             memory_budget_bytes: DEFAULT_MEMORY_BUDGET,
         }
     }
@@ -162,11 +170,18 @@ impl TransportConfig {
                 ));
             }
         };
+        let projector_binning = number(
+            &mut map,
+            "projector_binning",
+            |v| v.fract() == 0.0 && (1.0..=1024.0).contains(&v) && (v as u32).is_power_of_two(),
+            "a power of two in 1..=1024",
+        )?
+        .map_or(d.projector_binning, |v| v as u32);
         if let Some(key) = map.keys().next() {
             return Err(bad(
                 key,
                 format!(
-                    "method transport takes no parameter {key:?}; known: transform, lambda, max_iter, tol, holdout, sample_pixels, coarse_to_fine"
+                    "method transport takes no parameter {key:?}; known: transform, lambda, max_iter, tol, holdout, sample_pixels, coarse_to_fine, projector_binning"
                 ),
             ));
         }
@@ -178,6 +193,7 @@ impl TransportConfig {
             holdout,
             sample_pixels,
             coarse_to_fine,
+            projector_binning,
             memory_budget_bytes: d.memory_budget_bytes,
         })
     }
@@ -193,7 +209,14 @@ impl TransportConfig {
             "holdout": self.holdout,
             "sample_pixels": self.sample_pixels,
             "coarse_to_fine": self.coarse_to_fine,
+            "projector_binning": self.projector_binning,
         })
+    }
+
+    /// Checks the request against the session's patterns (`projector_binning`: Hadamard
+    /// sessions, a factor dividing both sides), naming the field.
+    pub fn check(&self, spec: &PatternSpec) -> Result<(), ParamError> {
+        check_binning(spec, self.projector_binning)
     }
 
     /// The server's per-worker budget for the working set.
@@ -201,4 +224,35 @@ impl TransportConfig {
         self.memory_budget_bytes = bytes;
         self
     }
+}
+
+/// `projector_binning` `b` on `spec`'s patterns: 1 anywhere; otherwise Hadamard patterns (their
+/// pairs constant on `b x b` blocks measure the coarse `T`) and `b` dividing both sides.
+pub(super) fn check_binning(spec: &PatternSpec, b: u32) -> Result<(), ParamError> {
+    if b <= 1 {
+        return Ok(());
+    }
+    if !matches!(
+        spec.family(),
+        Family::Hadamard { .. } | Family::AdaptiveHadamard { .. }
+    ) {
+        return Err(bad(
+            "projector_binning",
+            format!(
+                "projector binning is for Hadamard sessions (their block-constant pairs measure the coarse T); this session's patterns are {}",
+                spec.family().name()
+            ),
+        ));
+    }
+    if !b.is_power_of_two() || spec.width() % b != 0 || spec.height() % b != 0 {
+        return Err(bad(
+            "projector_binning",
+            format!(
+                "{b} does not divide the {}x{} projector grid into whole blocks",
+                spec.width(),
+                spec.height()
+            ),
+        ));
+    }
+    Ok(())
 }

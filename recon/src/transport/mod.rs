@@ -71,6 +71,12 @@
 //!   solved to a tenth of the precision: they are warm starts; the larger fractions of
 //!   [`LAMBDA_PATH`], each warm-starting the next), which converges in far fewer iterations than
 //!   a cold start at a small weight.
+//! - **A coarser projector grid** (`projector_binning` b, Hadamard sessions): Walsh function
+//!   `(u, v)` is constant on `b x b` blocks when `b` divides `u` and `v`, and is then the coarse
+//!   grid's `(u / b, v / b)`; those pairs, with data `(y+ - y-) / sqrt(k / b^2)`, measure the
+//!   coarse `T` (each column the summed light of a block), the others are unused. A Russian-doll
+//!   subset holds every block-constant pair of the grids it has finished, so half of one
+//!   inverts exactly on the 2x2 blocks; the report names that grid ([`complete_binning`]).
 //! - **Coarse-to-fine** (Peers et al. 2009, optional): each block (whole pairs of camera lines)
 //!   first solves its 2x2-binned camera pixels (data averaged) down the continuation path, then
 //!   every pixel starts from its parent's solution at the final weight only.
@@ -213,6 +219,11 @@ impl Fitting {
 
 struct Plan<'a> {
     spec: &'a PatternSpec,
+    /// The projector grid `T` is reconstructed on: the session's, or coarser by `binning`.
+    grid: (u32, u32),
+    binning: u32,
+    /// Binned Hadamard: the session's pair each row of the operator reads.
+    pairs: Option<Vec<usize>>,
     /// Frames used (Hadamard: whole pairs).
     frames: usize,
     /// Frames every read returns per camera pixel (the session's rows).
@@ -224,9 +235,13 @@ struct Plan<'a> {
 }
 
 impl<'a> Plan<'a> {
-    fn new(spec: &'a PatternSpec, rows: usize) -> Result<Self, ReconError> {
+    fn new(spec: &'a PatternSpec, rows: usize, binning: u32) -> Result<Self, ReconError> {
         let k = spec.pixels();
         let unsolvable = |e: super::ops::OpError| ReconError::Unsolvable(e.to_string());
+        let b = binning.max(1);
+        if let Err(e) = config::check_binning(spec, b) {
+            return Err(ReconError::Unsolvable(e.to_string()));
+        }
         Ok(match spec.family() {
             Family::AdaptiveHaar { .. } => {
                 return Err(ReconError::Unsolvable(
@@ -245,9 +260,42 @@ impl<'a> Plan<'a> {
                     ));
                 }
                 let op = HadamardOperator::from_spec(spec, frames as u64).map_err(unsolvable)?;
-                let exact = op.rows() >= k;
+                let (op, pairs) = if b > 1 {
+                    let (w, h, bu) = (spec.width() as usize, spec.height() as usize, b as usize);
+                    // Walsh function (u, v) is constant on b x b blocks when b divides u and v,
+                    // and then it is the coarse grid's (u / b, v / b).
+                    let (mut natural, mut pairs) = (Vec::new(), Vec::new());
+                    for (r, &n) in op.natural_indices().iter().enumerate() {
+                        let (u, v) = (n / w, n % w);
+                        if u % bu == 0 && v % bu == 0 {
+                            natural.push((u / bu) * (w / bu) + v / bu);
+                            pairs.push(r);
+                        }
+                    }
+                    if natural.is_empty() {
+                        return Err(ReconError::Unsolvable(format!(
+                            "no measured pair is constant on {b}x{b} projector blocks: none measures the {}x{} grid",
+                            w / bu,
+                            h / bu
+                        )));
+                    }
+                    (
+                        HadamardOperator::with_natural(
+                            spec.width() / b,
+                            spec.height() / b,
+                            natural,
+                        ),
+                        Some(pairs),
+                    )
+                } else {
+                    (op, None)
+                };
+                let exact = op.rows() >= k / (b as usize * b as usize);
                 Plan {
                     spec,
+                    grid: (spec.width() / b, spec.height() / b),
+                    binning: b,
+                    pairs,
                     rows_read: rows,
                     frames,
                     raw: Raw::Hadamard(op),
@@ -265,6 +313,9 @@ impl<'a> Plan<'a> {
                 });
                 Plan {
                     spec,
+                    grid: (spec.width(), spec.height()),
+                    binning: 1,
+                    pairs: None,
                     rows_read: rows,
                     frames: rows,
                     raw: Raw::Raster(op),
@@ -276,6 +327,9 @@ impl<'a> Plan<'a> {
                 let op = BernoulliOperator::from_spec(spec, rows as u64).map_err(unsolvable)?;
                 Plan {
                     spec,
+                    grid: (spec.width(), spec.height()),
+                    binning: 1,
+                    pairs: None,
                     rows_read: rows,
                     frames: rows,
                     raw: Raw::Bernoulli(CentredOperator::augmented(Box::new(op))),
@@ -287,6 +341,9 @@ impl<'a> Plan<'a> {
                 let op = SpeckleOperator::from_spec(spec, rows as u64).map_err(unsolvable)?;
                 Plan {
                     spec,
+                    grid: (spec.width(), spec.height()),
+                    binning: 1,
+                    pairs: None,
                     rows_read: rows,
                     frames: rows,
                     raw: Raw::Speckle(CentredOperator::augmented(Box::new(op))),
@@ -298,7 +355,28 @@ impl<'a> Plan<'a> {
     }
 
     fn k(&self) -> usize {
-        self.spec.pixels()
+        self.grid.0 as usize * self.grid.1 as usize
+    }
+
+    /// The reconstruction's projector grid, as `usize`.
+    fn size(&self) -> (usize, usize) {
+        (self.grid.0 as usize, self.grid.1 as usize)
+    }
+
+    /// The session's pair operator row `r` reads.
+    fn pair(&self, r: usize) -> usize {
+        self.pairs.as_ref().map_or(r, |p| p[r])
+    }
+
+    /// Split-pair sums `y+ + y-` of camera pixel `col` of a frame block (`rows x width`), one
+    /// per operator row.
+    fn pair_sums(&self, frames: &[f32], width: usize, col: usize) -> Vec<f64> {
+        (0..self.raw_rows())
+            .map(|r| {
+                let p = self.pair(r);
+                frames[2 * p * width + col] as f64 + frames[(2 * p + 1) * width + col] as f64
+            })
+            .collect()
     }
 
     /// The operator the fits on all rows run on.
@@ -324,9 +402,14 @@ impl<'a> Plan<'a> {
         let at = |f: usize| frames[f * width + col] as f64;
         match &self.raw {
             Raw::Hadamard(op) => {
+                // Binned: a block-constant pair's datum on the coarse grid, `sqrt(k / k_coarse)`
+                // times its fine one: `(y+ - y-) / sqrt(k_coarse)`.
                 let scale = 1.0 / (self.k() as f64).sqrt();
                 (0..op.rows())
-                    .map(|r| (at(2 * r) - at(2 * r + 1)) * scale)
+                    .map(|r| {
+                        let p = self.pair(r);
+                        (at(2 * p) - at(2 * p + 1)) * scale
+                    })
                     .collect()
             }
             _ => (0..self.frames).map(at).collect(),
@@ -649,7 +732,7 @@ fn read_columns(
             let col = picked[at] - start;
             out.push(plan.raw_column(&f, r.len(), col));
             if matches!(plan.raw, Raw::Hadamard(_)) {
-                sums.push(pair_sums(&f, r.len(), col, plan.raw_rows()));
+                sums.push(plan.pair_sums(&f, r.len(), col));
             }
             at += 1;
         }
@@ -777,7 +860,7 @@ impl LevelTest {
         let Raw::Hadamard(op) = &plan.raw else {
             return Ok(None);
         };
-        let size = (plan.spec.width() as usize, plan.spec.height() as usize);
+        let size = plan.size();
         let k = plan.k();
         let order = |n: usize| super::auto::hadamard_level(n, size) as usize;
         let top = order(k - 1);
@@ -885,7 +968,7 @@ fn hadamard_subset_error(
     if raws.is_empty() || sums.len() != raws.len() {
         return Ok(None);
     }
-    let (pw, ph) = (plan.spec.width() as usize, plan.spec.height() as usize);
+    let (pw, ph) = plan.size();
     let (kind, lambda, refit, floored) = model;
     let psi = kind.build(pw, ph);
     let sh = Shared {
@@ -1235,14 +1318,19 @@ pub fn reconstruct_transport(
     source: &mut dyn FrameSource,
     control: &Control,
 ) -> Result<(TransportMatrix, Report), ReconError> {
-    let plan = validate(spec, camera, rows)?;
+    let plan = validate(spec, camera, rows, config.projector_binning)?;
     let model = plan_with(&plan, camera, config, source, control)?;
     let part = solve_with(&plan, &model, 0..model.blocks.len(), source, control)?;
     assemble_transport(&model, std::slice::from_ref(&part))
 }
 
 /// Checks the request and plans the family's operator.
-fn validate(spec: &PatternSpec, camera: CameraGrid, rows: u64) -> Result<Plan<'_>, ReconError> {
+fn validate(
+    spec: &PatternSpec,
+    camera: CameraGrid,
+    rows: u64,
+    binning: u32,
+) -> Result<Plan<'_>, ReconError> {
     let m = camera.pixels();
     if m == 0 {
         return Err(ReconError::Unsolvable(format!(
@@ -1259,7 +1347,7 @@ fn validate(spec: &PatternSpec, camera: CameraGrid, rows: u64) -> Result<Plan<'_
             spec.count()
         )));
     }
-    Plan::new(spec, rows as usize)
+    Plan::new(spec, rows as usize, binning)
 }
 
 /// The first step of a reconstruction of `T` (module docs): validation, the memory plan (the
@@ -1274,7 +1362,7 @@ pub fn plan_transport(
     source: &mut dyn FrameSource,
     control: &Control,
 ) -> Result<TransportModel, ReconError> {
-    let plan = validate(spec, camera, rows)?;
+    let plan = validate(spec, camera, rows, config.projector_binning)?;
     plan_with(&plan, camera, config, source, control)
 }
 
@@ -1286,10 +1374,9 @@ fn plan_with(
     control: &Control,
 ) -> Result<TransportModel, ReconError> {
     let start = Instant::now();
-    let spec = plan.spec;
     let m = camera.pixels();
-    let k = spec.pixels();
-    let (pw, ph) = (spec.width() as usize, spec.height() as usize);
+    let k = plan.k();
+    let (pw, ph) = plan.size();
     let n_read = plan.rows_read;
     let selecting = !plan.exact;
     let mut coarse = config.coarse_to_fine && !plan.exact && m > 1;
@@ -1423,7 +1510,7 @@ fn plan_with(
         .collect();
     Ok(TransportModel {
         version: TransportModel::VERSION,
-        projector: (spec.width(), spec.height()),
+        projector: plan.grid,
         camera: (camera.width, camera.height),
         rows: plan.rows_read as u64,
         exact: plan.exact,
@@ -1453,6 +1540,7 @@ fn plan_with(
         largest_read_bytes: largest as u64,
         seconds: start.elapsed().as_secs_f64(),
         noise_floor,
+        binning: plan.binning,
     })
 }
 
@@ -1471,7 +1559,7 @@ pub fn solve_transport_blocks(
     control: &Control,
 ) -> Result<TransportPart, ReconError> {
     model.check_spec(spec)?;
-    let plan = validate(spec, model.camera_grid(), model.rows)?;
+    let plan = validate(spec, model.camera_grid(), model.rows, model.binning)?;
     if plan.exact != model.exact {
         return Err(ReconError::Unsolvable(
             "the stored transport model does not fit this session's frames (exact inverse or not)"
@@ -1505,9 +1593,8 @@ fn solve_with(
             model.blocks.len()
         )));
     }
-    let spec = plan.spec;
-    let k = spec.pixels();
-    let (pw, ph) = (spec.width() as usize, spec.height() as usize);
+    let k = plan.k();
+    let (pw, ph) = plan.size();
     let n_read = plan.rows_read;
     let camera = model.camera_grid();
     let transform = model.transform;
@@ -1521,11 +1608,7 @@ fn solve_with(
         max_iter: model.max_iter,
         tol: model.tol,
     };
-    let mut builder = Builder::new(
-        (spec.width(), spec.height()),
-        (camera.width, camera.height),
-        transform,
-    );
+    let mut builder = Builder::new(plan.grid, (camera.width, camera.height), transform);
     let progress0 = if model.exact { 0.0 } else { 0.2 };
     let mut tally = Tally::default();
     let mut largest = 0usize;
@@ -1560,7 +1643,7 @@ fn solve_with(
             for c in 0..len {
                 let raw = plan.raw_column(&frames, len, c);
                 if model.noise_floor {
-                    floors.push(noise_floor(&pair_sums(&frames, len, c, n), &raw, k));
+                    floors.push(noise_floor(&plan.pair_sums(&frames, len, c), &raw, k));
                 }
                 bs.extend(plan.fit_data(&raw));
             }
@@ -1768,13 +1851,6 @@ fn noise_floor(sums: &[f64], raw: &[f64], k: usize) -> f64 {
         .map_or(0.0, |n| n.sigma * (2.0 * (k as f64).ln()).sqrt())
 }
 
-/// The split-pair sums `y+ + y-` of camera pixel `col` of a frame block (`rows x width`).
-fn pair_sums(frames: &[f32], width: usize, col: usize, pairs: usize) -> Vec<f64> {
-    (0..pairs)
-        .map(|p| frames[2 * p * width + col] as f64 + frames[(2 * p + 1) * width + col] as f64)
-        .collect()
-}
-
 fn continuation(lambda: f64) -> Vec<f64> {
     let mut path: Vec<f64> = LAMBDA_PATH
         .iter()
@@ -1783,6 +1859,28 @@ fn continuation(lambda: f64) -> Vec<f64> {
         .collect();
     path.push(lambda);
     path
+}
+
+/// The smallest binning `b` (a power of two, at least 2) at which a Hadamard subset's pairs
+/// hold every Walsh function constant on `b x b` blocks of the `grid`: a complete set on the
+/// coarse grid, which `projector_binning = b` inverts exactly. `None` when no grid coarser than
+/// one pixel is complete.
+fn complete_binning(op: &HadamardOperator, (w, h): (u32, u32)) -> Option<u32> {
+    let (wu, hu) = (w as usize, h as usize);
+    let mut b = 2usize;
+    while b < wu.max(hu) && wu % b == 0 && hu % b == 0 {
+        let blocks = (wu / b) * (hu / b);
+        let measured = op
+            .natural_indices()
+            .iter()
+            .filter(|&&n| (n / wu) % b == 0 && (n % wu) % b == 0)
+            .count();
+        if measured == blocks && blocks > 1 {
+            return Some(b as u32);
+        }
+        b *= 2;
+    }
+    None
 }
 
 /// Estimated relative error of `T` from a Hadamard subset above which the report warns.
@@ -1904,7 +2002,7 @@ fn choose_model(
     held_out_unavailable: &mut Option<String>,
     control: &Control,
 ) -> Result<(TransformKind, f64, bool, bool), ReconError> {
-    let (pw, ph) = (plan.spec.width() as usize, plan.spec.height() as usize);
+    let (pw, ph) = plan.size();
     let k = plan.k();
     let fraction = config
         .holdout
@@ -2003,7 +2101,12 @@ fn choose_model(
         let mut t = vec![0.0; rows * k];
         let h = test.rows();
         let mut pred = vec![0.0; rows * h];
+        let smallest = lambdas.iter().copied().fold(f64::INFINITY, f64::min);
         for &floored in floor_options {
+            // A floor below every weight of the path changes nothing (noise-free data).
+            if floored && floors.iter().zip(&lam_max).all(|(f, l)| *f <= l * smallest) {
+                continue;
+            }
             let row_floors: &[f64] = if floored { &floors } else { &[] };
             let mut s = vec![0.0; rows * k];
             let mut worse = 0;
@@ -2078,7 +2181,9 @@ fn choose_model(
                     .map(|c| c.held_out)
                     .fold(f64::INFINITY, f64::min);
                 if value > 3.0 * others && value > 0.75 * best_here {
-                    pruned.push(kind.name());
+                    if !pruned.contains(&kind.name()) {
+                        pruned.push(kind.name());
+                    }
                     break;
                 }
                 if value < best_here {
@@ -2174,6 +2279,10 @@ fn choose_model(
     let (transform, lambda, refit, floored) =
         (chosen.kind, chosen.lambda, chosen.refit, chosen.floored);
     *held_out = Some(chosen.score.finish(split.fraction));
+    let coarser = match &plan.raw {
+        Raw::Hadamard(op) => complete_binning(op, plan.grid),
+        _ => None,
+    };
     if let Some(estimate) = hadamard_subset_error(
         plan,
         (transform, lambda, refit, floored),
@@ -2185,18 +2294,38 @@ fn choose_model(
         if let Some(rel) = estimate["relative"].as_f64()
             && rel > SUBSET_ERROR_WARNING
         {
+            let offer = coarser.map_or_else(
+                || "reconstruct on a coarser projector grid".to_string(),
+                |b| {
+                    format!(
+                        "reconstruct with params {{\"projector_binning\": {b}}}: the measured pairs are a complete set on the \
+                         {}x{} grid of {b}x{b} projector blocks, which they invert exactly",
+                        plan.grid.0 / b,
+                        plan.grid.1 / b
+                    )
+                },
+            );
             details.insert(
                 "warnings".into(),
                 json!([format!(
                     "the measured pairs cannot support T at {}x{}: its estimated relative error is {rel:.2} (most of it in \
-                     the finer Hadamard coefficients no pair measured); measure more pairs, or reconstruct on a coarser \
-                     projector grid",
-                    plan.spec.width(),
-                    plan.spec.height()
+                     the finer Hadamard coefficients no pair measured); measure more pairs, or {offer}",
+                    plan.grid.0,
+                    plan.grid.1
                 )]),
             );
         }
         details.insert("error_estimate".into(), estimate);
+    }
+    if let Some(b) = coarser {
+        details.insert(
+            "coarser".into(),
+            json!({
+                "projector_binning": b,
+                "projector": [plan.grid.0 / b, plan.grid.1 / b],
+                "basis": "the finest grid of b x b projector blocks on which the measured pairs are a complete set: params {\"projector_binning\": b} reconstructs T there by the exact inverse",
+            }),
+        );
     }
 
     details.insert(

@@ -79,6 +79,14 @@ pub struct TransportModel {
     /// threshold of the noise its split-pair sums show).
     #[serde(default)]
     pub noise_floor: bool,
+    /// The projector grid is the session's over this factor ([`super::TransportConfig`]'s
+    /// `projector_binning`); `projector` is the coarse grid.
+    #[serde(default = "one")]
+    pub binning: u32,
+}
+
+fn one() -> u32 {
+    1
 }
 
 impl TransportModel {
@@ -144,11 +152,12 @@ impl TransportModel {
                 Self::VERSION
             )));
         }
-        if (spec.width(), spec.height()) != self.projector || self.rows > spec.count() {
+        let b = self.binning.max(1);
+        if (spec.width() / b, spec.height() / b) != self.projector || self.rows > spec.count() {
             return Err(ReconError::Unsolvable(format!(
-                "the transport model (projector {}x{}, {} frames) does not fit the session's spec ({}x{}, {} patterns)",
-                self.projector.0,
-                self.projector.1,
+                "the transport model (projector {}x{} binned {b}x{b}, {} frames) does not fit the session's spec ({}x{}, {} patterns)",
+                self.projector.0 * b,
+                self.projector.1 * b,
                 self.rows,
                 spec.width(),
                 spec.height(),

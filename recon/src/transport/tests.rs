@@ -729,7 +729,7 @@ fn study_model_choice() {
             let p64: Vec<f64> = p.iter().map(|&v| v as f64).collect();
             f.extend(view.render(&p64).into_iter().map(|v| v as f32));
         }
-        let plan = Plan::new(&spec, count as usize).unwrap();
+        let plan = Plan::new(&spec, count as usize, 1).unwrap();
         let pixels: Vec<usize> = sample_ranges(m, 64).into_iter().flatten().collect();
         let raws: Vec<Vec<f64>> = pixels.iter().map(|&j| plan.raw_column(&f, m, j)).collect();
         let truth: Vec<f64> = pixels.iter().flat_map(|&j| view.row(j)).collect();
@@ -1261,7 +1261,7 @@ fn the_model_is_chosen_on_the_pixels_that_carry_light() {
     // A camera where only every fifth pixel sees anything (a sparse slide): the sample the
     // model is chosen on is drawn from those pixels, in proportion to their light.
     let spec = PatternSpec::new(Family::Bernoulli { fill: 0.5 }, 16, 16, 64, 5).unwrap();
-    let plan = Plan::new(&spec, 64).unwrap();
+    let plan = Plan::new(&spec, 64, 1).unwrap();
     let m = 100;
     let g = PatternGenerator::new(&spec);
     let mut p = vec![0f32; 256];
@@ -1580,4 +1580,86 @@ fn a_noisy_hadamard_subset_of_sparse_rows_stores_no_more_than_the_complete_set()
             "{name}: relit {errors:?} against the noise-free subset's {clean_errors:?}"
         );
     }
+}
+
+#[test]
+fn projector_binning_inverts_the_block_constant_pairs_of_a_subset_exactly() {
+    // A quarter (or more) of a Russian-doll set on a 32x32 projector holds every Walsh function
+    // constant on 2x2 blocks: the complete set of the 16x16 grid. With projector_binning 2 the
+    // coarse T (each column the light of a 2x2 block) comes out exact (the full-resolution fit
+    // of a quarter is 77 % off); the report offers the finest complete grid.
+    let camera = CameraGrid {
+        width: 12,
+        height: 12,
+    };
+    let (pw, ph, b) = (32usize, 32usize, 2usize);
+    let (k, kc) = (pw * ph, (pw / b) * (ph / b));
+    let m = camera.pixels();
+    let spec_of = |pairs: usize| {
+        PatternSpec::new(
+            Family::Hadamard {
+                ordering: HadamardOrdering::RussianDoll,
+            },
+            pw as u32,
+            ph as u32,
+            2 * pairs as u64,
+            0,
+        )
+        .unwrap()
+    };
+    let scene = helmholtz_sim::RenderedTransport::cornell((pw, ph), (12, 12), 1);
+    let truth = scene.dense();
+    let binned: Vec<f32> = truth
+        .chunks_exact(k)
+        .flat_map(|row| {
+            let mut out = vec![0f64; kc];
+            for (i, v) in row.iter().enumerate() {
+                out[(i / pw / b) * (pw / b) + (i % pw) / b] += *v as f64;
+            }
+            out.into_iter().map(|v| v as f32)
+        })
+        .collect();
+    let config = TransportConfig {
+        projector_binning: b as u32,
+        ..TransportConfig::default()
+    };
+    // (pairs, complete on the 16x16 grid, the grid the full-resolution report offers).
+    for (pairs, complete, offer) in [(k / 2, true, 2), (k / 4, true, 2), (k / 8, false, 4)] {
+        let spec = spec_of(pairs);
+        let f = frames(&spec, &truth, m, 0.0);
+        let (t, report, _) = run(&spec, camera, &f, &config);
+        assert_eq!(t.projector(), ((pw / b) as u32, (ph / b) as u32));
+        let err = relative_error(&dense(&t), &binned);
+        let (_, full, _) = run(&spec, camera, &f, &TransportConfig::default());
+        println!(
+            "{pairs} pairs: binned T error {err:.2e} ({}); the full-resolution report offers {}",
+            report.details["path"], full.details["coarser"]["projector_binning"]
+        );
+        assert_eq!(full.details["coarser"]["projector_binning"], offer);
+        if complete {
+            // The exact inverse, less the coefficients it finds below the noise (noise-free,
+            // the f32 rounding; measured 8.5e-4 on this scene's dense, dim interreflection).
+            assert_eq!(
+                report.details["path"],
+                "exact inverse of a complete set, coefficients below the noise dropped"
+            );
+            assert!(err < 1e-3, "binned T error {err}");
+        } else {
+            // An eighth: complete on 8x8 only; at 16x16 a compressive fit, not exact.
+            assert!(err > 1e-3 && err < 0.5, "binned T error {err}");
+        }
+    }
+    // Other families, and factors that do not tile the grid, are refused naming the field.
+    let bernoulli = PatternSpec::new(Family::Bernoulli { fill: 0.5 }, 32, 32, 64, 0).unwrap();
+    let e = config.check(&bernoulli).unwrap_err();
+    assert_eq!(e.field, "params.projector_binning", "{e}");
+    let e = TransportConfig {
+        projector_binning: 64,
+        ..TransportConfig::default()
+    }
+    .check(&spec_of(k / 2))
+    .unwrap_err();
+    assert_eq!(e.field, "params.projector_binning", "{e}");
+    let e = TransportConfig::parse(&json!({"projector_binning": 3})).unwrap_err();
+    assert_eq!(e.field, "params.projector_binning", "{e}");
 }

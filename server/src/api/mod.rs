@@ -250,7 +250,7 @@ impl AppState {
     ) -> Result<ReconstructionRow, ApiError> {
         let session = self.own_session(caller, session_id).await?;
         let memory = match request {
-            recon::Request::Transport(_) => {
+            recon::Request::Transport(config) => {
                 if session.camera.is_none() {
                     return Err(ApiError::FailedPrecondition(format!(
                         "session {session_id:?} has bucket detectors, not a camera; transport reconstructs camera sessions (use gi, dgi, ngi, direct, zero_filled, levels, lsq, cs, tv or auto)"
@@ -261,6 +261,10 @@ impl AppState {
                         "session {session_id:?} has no frames yet"
                     )));
                 }
+                let spec = self.store.resolved_spec(&session).await?;
+                config
+                    .check(&spec)
+                    .map_err(|e| ApiError::FailedPrecondition(e.to_string()))?;
                 // The solver sizes its blocks of camera pixels to stay within this.
                 self.transport_memory
             }

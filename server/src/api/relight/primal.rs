@@ -64,7 +64,20 @@ pub async fn primal(
     let spec = state.store.resolved_spec(&session).await?;
     let (pw, ph) = (spec.width() as usize, spec.height() as usize);
     let k = pw * ph;
+    let t = state.transports.get(state, id).await?;
+    // A T on a coarser grid (`projector_binning`) takes patterns at either grid.
+    let (tw, th) = (t.projector().0 as usize, t.projector().1 as usize);
     let (pattern, measured_row) = match parse_input(headers, &body, "body")? {
+        Input::Image {
+            width,
+            height,
+            values,
+        } if (tw, th) != (pw, ph)
+            && values.len() == tw * th
+            && (height == 1 || (width, height) == (tw, th)) =>
+        {
+            (values, None)
+        }
         Input::Image {
             width,
             height,
@@ -98,8 +111,19 @@ pub async fn primal(
             (pattern, Some(i))
         }
     };
+    // A session-grid pattern lights a coarse T's blocks with its block means (each column of
+    // the coarse T is its block's summed light).
+    let pattern = if pattern.len() == k && (tw, th) != (pw, ph) && tw > 0 {
+        let b = pw / tw;
+        let mut coarse = vec![0f32; tw * th];
+        for (i, v) in pattern.iter().enumerate() {
+            coarse[(i / pw / b) * tw + (i % pw) / b] += v / (b * b) as f32;
+        }
+        coarse
+    } else {
+        pattern
+    };
     let started = Instant::now();
-    let t = state.transports.get(state, id).await?;
     let mut predicted = tokio::task::spawn_blocking(move || t.primal(&pattern))
         .await
         .map_err(|e| ApiError::Internal(e.to_string()))?;
