@@ -17,6 +17,20 @@
 //! pattern (the bench's usual 30 dB convention, made absolute so that a pattern lighting a small
 //! support is not given less noise than a half-lit one).
 //!
+//! Oracle (noise-free, per scene, size and frame count, `k' = frames / 2` coefficients: the
+//! split pairs an adaptive session of that many frames measures), in the orthonormal Haar basis
+//! of `adaptive_haar` (the recon crate's `Wavelet2d::haar`, Mallat layout = the family's indices)
+//! and the Walsh-Hadamard basis of `adaptive_hadamard` (`fwht / W`, natural order):
+//! - **best k'**: the `k'` largest true coefficients (mean included), zero elsewhere, inverted:
+//!   the best image any scheme measuring `k'` basis functions and reconstructing linearly can
+//!   make (for an orthonormal basis the squared error is the energy left out);
+//! - **tree**: the planner's rule fed the true coefficients: one at a time, the largest `|c_n|`
+//!   among the indices whose parent ([`Basis::parent`]) is taken, root first (a feasible tree,
+//!   so between the planner's ideal and the best tree-constrained `k'`);
+//! - **capture**: the share of the scene's energy without the mean (`sum over n != 0 of c_n^2`)
+//!   in the best-`k'` set, the tree set, and the indices the planner actually measured (its
+//!   noise-free and its 30 dB session).
+//!
 //! Also reported: the planner's decision time per batch (mean and longest, prediction plus
 //! selection) against the batch's display time at 20 kHz binary frames, and the planner's memory.
 //!
@@ -30,7 +44,7 @@ use std::time::Instant;
 
 use anyhow::Context as _;
 use helmholtz_proto::{Family, HaarFunction, HadamardOrdering, PatternSpec};
-use helmholtz_recon::adaptive::{Planner, StopReason};
+use helmholtz_recon::adaptive::{Basis, Planner, StopReason};
 use helmholtz_recon::fwht::fwht;
 use helmholtz_recon::linop::LinearOperator;
 use helmholtz_recon::transforms::wavelet::Wavelet2d;
@@ -91,6 +105,111 @@ pub struct PlannerFigures {
     pub memory_bytes: usize,
     pub estimated_error: Option<f64>,
     pub stop: Option<String>,
+}
+
+/// The oracle of one basis for one scene, size and frame count (noise-free; module docs).
+#[derive(Clone, Debug, Serialize)]
+pub struct OracleRow {
+    pub scene: String,
+    pub size: u32,
+    pub ratio: f64,
+    pub frames: u64,
+    /// `k' = frames / 2`: the split pairs of an adaptive session of `frames` frames.
+    pub coefficients: u64,
+    /// `haar` or `hadamard`.
+    pub basis: String,
+    /// The `k'` largest true coefficients, zero elsewhere.
+    pub best_psnr_db: f64,
+    /// `auto` on the split pairs of those `k'` coefficients (noise-free).
+    pub best_auto_psnr_db: f64,
+    /// The planner's tree rule with the true coefficients as its prediction.
+    pub tree_psnr_db: f64,
+    /// Shares of the energy without the mean (0..1).
+    pub best_capture: f64,
+    pub tree_capture: f64,
+    /// The indices the planner measured in the noise-free session.
+    pub planner_capture: f64,
+    /// ... and in the session with read noise (30 dB).
+    pub planner_capture_noisy: Option<f64>,
+}
+
+/// Indices of the `kp` largest `|c_n|` (ties: lower index first).
+fn best_k(c: &[f64], kp: usize) -> Vec<u32> {
+    let mut order: Vec<u32> = (0..c.len() as u32).collect();
+    order.sort_by(|&a, &b| {
+        c[b as usize]
+            .abs()
+            .total_cmp(&c[a as usize].abs())
+            .then(a.cmp(&b))
+    });
+    order.truncate(kp);
+    order
+}
+
+/// The planner's rule with perfect prediction: from the root, repeatedly take the largest `|c_n|`
+/// (ties: coarser level, then lower index) among the indices whose parent is taken.
+fn tree_greedy(c: &[f64], width: u32, basis: Basis, kp: usize) -> Vec<u32> {
+    #[derive(PartialEq)]
+    struct Key(f64, u32, u32);
+    impl Eq for Key {}
+    impl PartialOrd for Key {
+        fn partial_cmp(&self, other: &Self) -> Option<std::cmp::Ordering> {
+            Some(self.cmp(other))
+        }
+    }
+    impl Ord for Key {
+        fn cmp(&self, o: &Self) -> std::cmp::Ordering {
+            self.0
+                .total_cmp(&o.0)
+                .then(self.1.cmp(&o.1))
+                .then(o.2.cmp(&self.2))
+        }
+    }
+    let k = c.len();
+    let mut children = vec![Vec::new(); k];
+    for n in 1..k as u32 {
+        let p = basis.parent(width, n).expect("not the root");
+        children[p as usize].push(n);
+    }
+    let key = |n: u32| Key(c[n as usize].abs(), basis.level(width, n), n);
+    let mut heap = std::collections::BinaryHeap::from([key(0)]);
+    let mut taken = Vec::with_capacity(kp);
+    while taken.len() < kp {
+        let Some(Key(_, _, n)) = heap.pop() else {
+            break;
+        };
+        taken.push(n);
+        heap.extend(children[n as usize].iter().map(|&m| key(m)));
+    }
+    taken
+}
+
+/// Share of the energy without the mean in `selected`.
+fn capture(c: &[f64], selected: &[u32]) -> f64 {
+    let total: f64 = c[1..].iter().map(|v| v * v).sum();
+    let got: f64 = selected
+        .iter()
+        .filter(|&&n| n != 0)
+        .map(|&n| c[n as usize] * c[n as usize])
+        .sum();
+    if total > 0.0 { got / total } else { 1.0 }
+}
+
+/// The image of the coefficients `selected` (zero elsewhere): the zero-filled inverse.
+fn zero_filled(c: &[f64], selected: &[u32], width: usize, haar: bool) -> Vec<f32> {
+    let mut kept = vec![0.0; c.len()];
+    for &n in selected {
+        kept[n as usize] = c[n as usize];
+    }
+    let mut image = vec![0.0; c.len()];
+    if haar {
+        Wavelet2d::haar(width, width).adjoint(&kept, &mut image);
+    } else {
+        image.copy_from_slice(&kept);
+        fwht(&mut image);
+        image.iter_mut().for_each(|v| *v /= width as f64);
+    }
+    image.iter().map(|&v| v as f32).collect()
 }
 
 /// The scene's transport, row-major, values in [0, 1].
@@ -177,6 +296,8 @@ struct Session {
     figures: PlannerFigures,
     /// The planner's prediction-filled image ([`Planner::predicted_image`]).
     predicted: Vec<f32>,
+    /// The basis indices measured, in order.
+    indices: Vec<u32>,
 }
 
 /// A simulated rig through the planner: the service's loop (poll until none, observe the oldest).
@@ -229,12 +350,14 @@ fn run_adaptive(
         .iter()
         .map(|&v| v as f32)
         .collect();
-    let spec = spec.with_indices(Arc::from(planner.indices().to_vec()))?;
+    let indices = planner.indices().to_vec();
+    let spec = spec.with_indices(Arc::from(indices.clone()))?;
     Ok(Session {
         spec,
         frames: values,
         figures,
         predicted,
+        indices,
     })
 }
 
@@ -276,6 +399,7 @@ fn reconstruct(
 pub fn run(opts: &Options) -> anyhow::Result<Vec<Row>> {
     let contention = machine::Contention::start();
     let mut rows = Vec::new();
+    let mut oracles: Vec<OracleRow> = Vec::new();
     for &size in &opts.sizes {
         anyhow::ensure!(
             size.is_power_of_two(),
@@ -285,6 +409,8 @@ pub fn run(opts: &Options) -> anyhow::Result<Vec<Row>> {
         for name in &opts.scenes {
             let truth32 = scene(name, size).with_context(|| format!("scene {name}"))?;
             let truth: Vec<f64> = truth32.iter().map(|&v| v as f64).collect();
+            let exact_haar = Exact::new(&truth, size as usize, true);
+            let exact_wh = Exact::new(&truth, size as usize, false);
             for noisy in [false, true] {
                 let sigma = if noisy {
                     10f64.powf(-30.0 / 20.0) * truth.iter().sum::<f64>() / 2.0
@@ -337,7 +463,74 @@ pub fn run(opts: &Options) -> anyhow::Result<Vec<Row>> {
                         Family::adaptive(false, 0, 0.0),
                     ] {
                         let label = family.name();
+                        let haar = matches!(family, Family::AdaptiveHaar { .. });
                         let s = run_adaptive(family, &truth, size, frames, sigma)?;
+                        let basis_name = if haar { "haar" } else { "hadamard" };
+                        let exact = if haar { &exact_haar } else { &exact_wh };
+                        let c = &exact.coefficients;
+                        let planner_capture = capture(c, &s.indices);
+                        if noisy {
+                            if let Some(o) = oracles.iter_mut().find(|o| {
+                                o.scene == *name
+                                    && o.size == size
+                                    && o.ratio == ratio
+                                    && o.basis == basis_name
+                            }) {
+                                o.planner_capture_noisy = Some(planner_capture);
+                            }
+                        } else {
+                            let kp = (frames / 2).min(k) as usize;
+                            let basis = if haar { Basis::Haar } else { Basis::Hadamard };
+                            let best = best_k(c, kp);
+                            let tree = tree_greedy(c, size, basis, kp);
+                            let psnr = |sel: &[u32]| {
+                                metrics::psnr(&zero_filled(c, sel, size as usize, haar), &truth32)
+                            };
+                            // `auto` on the oracle's coefficients, measured as split pairs.
+                            let oracle_spec = PatternSpec::new(
+                                Family::adaptive(haar, 0, 0.0),
+                                size,
+                                size,
+                                2 * kp as u64,
+                                0,
+                            )?
+                            .with_indices(Arc::from(best.clone()))?;
+                            let oracle_values: Vec<f64> = best
+                                .iter()
+                                .flat_map(|&n| {
+                                    let (plus, minus) = exact.pair(n);
+                                    [plus, minus]
+                                })
+                                .collect();
+                            let (best_auto_psnr_db, _, best_auto_seconds, _) =
+                                reconstruct(&oracle_spec, &oracle_values, "auto", &truth32);
+                            let o = OracleRow {
+                                scene: name.clone(),
+                                size,
+                                ratio,
+                                frames,
+                                coefficients: kp as u64,
+                                basis: basis_name.into(),
+                                best_psnr_db: psnr(&best),
+                                best_auto_psnr_db,
+                                tree_psnr_db: psnr(&tree),
+                                best_capture: capture(c, &best),
+                                tree_capture: capture(c, &tree),
+                                planner_capture,
+                                planner_capture_noisy: None,
+                            };
+                            eprintln!(
+                                "{name:>7} {size}x{size} clean {:>5.1} % {frames:>6} frames  oracle {basis_name:<8} best {:>6.2} dB (auto {:>6.2} dB, {best_auto_seconds:.3} s) tree {:>6.2} dB  capture best {:.4} tree {:.4} planner {:.4}",
+                                100.0 * ratio,
+                                o.best_psnr_db,
+                                o.best_auto_psnr_db,
+                                o.tree_psnr_db,
+                                o.best_capture,
+                                o.tree_capture,
+                                o.planner_capture
+                            );
+                            oracles.push(o);
+                        }
                         push(
                             label,
                             "direct",
@@ -387,11 +580,12 @@ pub fn run(opts: &Options) -> anyhow::Result<Vec<Row>> {
             "command": "cargo run --release -p helmholtz-bench -- --preset adaptive",
             "machine": machine,
             "rows": rows,
+            "oracle": oracles,
         }))?,
     )?;
     std::fs::write(
         opts.out.join("benchmarks-adaptive.md"),
-        markdown(&rows, opts, &machine::sentence(&machine)),
+        markdown(&rows, &oracles, opts, &machine::sentence(&machine)),
     )?;
     Ok(rows)
 }
@@ -426,7 +620,7 @@ const ADAPTIVE: [(&str, &str); 6] = [
 ];
 const FIXED: [(&str, &str); 2] = [("bernoulli", "auto"), ("hadamard_rd", "auto")];
 
-fn markdown(rows: &[Row], opts: &Options, machine: &str) -> String {
+fn markdown(rows: &[Row], oracles: &[OracleRow], opts: &Options, machine: &str) -> String {
     let mut md = String::new();
     let _ = writeln!(md, "# Adaptive acquisition: PSNR against frames\n");
     let _ = writeln!(
@@ -490,6 +684,8 @@ fn markdown(rows: &[Row], opts: &Options, machine: &str) -> String {
         }
     }
 
+    oracle_tables(&mut md, rows, oracles, opts);
+
     let _ = writeln!(md, "## The issue's targets\n");
     let _ = writeln!(
         md,
@@ -538,6 +734,8 @@ fn markdown(rows: &[Row], opts: &Options, machine: &str) -> String {
         );
     }
 
+    oracle_targets(&mut md, rows, oracles);
+
     let _ = writeln!(md, "\n## The planner: decision time and memory\n");
     let _ = writeln!(
         md,
@@ -573,4 +771,203 @@ fn markdown(rows: &[Row], opts: &Options, machine: &str) -> String {
         );
     }
     md
+}
+
+fn oracle_find<'a>(oracles: &'a [OracleRow], r: &Row, basis: &str) -> Option<&'a OracleRow> {
+    oracles
+        .iter()
+        .find(|o| o.scene == r.scene && o.size == r.size && o.ratio == r.ratio && o.basis == basis)
+}
+
+/// The oracle's PSNR and energy tables, one pair per size (noise-free).
+fn oracle_tables(md: &mut String, rows: &[Row], oracles: &[OracleRow], opts: &Options) {
+    if oracles.is_empty() {
+        return;
+    }
+    let _ = writeln!(
+        md,
+        "## Oracle: the best k' = frames / 2 true coefficients\n"
+    );
+    let _ = writeln!(
+        md,
+        "Noise-free. `k'` = the split pairs an adaptive session of that many frames measures. \
+         `best` = the k' largest coefficients of the true scene (mean included), zero elsewhere, \
+         inverted: the best image any scheme measuring k' functions of that basis and \
+         reconstructing linearly can make. `best auto` = `auto` on the split pairs of those k' \
+         coefficients (a non-linear reconstruction of the oracle's data). `tree` = the planner's tree rule fed the true \
+         coefficients (from the root, always the largest |c| among the indices whose parent is \
+         taken; `Basis::parent`). `planner` = `direct` of the adaptive session above (the \
+         zero-filled image of what the planner measured). `fixed` = the best non-adaptive `auto` \
+         (Bernoulli or Russian-doll Hadamard) at the same frame count. Haar = the basis of \
+         `adaptive_haar` (`Wavelet2d::haar`), WH = that of `adaptive_hadamard` (`fwht / W`). \
+         Energy: the share of the scene's energy without the mean (sum of c_n^2 over n != 0, the \
+         same in both bases) in the coefficients of each set; the planner's sets are the indices \
+         of its noise-free and its 30 dB session.\n"
+    );
+    for &size in &opts.sizes {
+        let base: Vec<&Row> = rows
+            .iter()
+            .filter(|r| {
+                r.size == size && !r.noisy && r.family == "adaptive_haar" && r.method == "direct"
+            })
+            .collect();
+        if base.is_empty() {
+            continue;
+        }
+        let _ = writeln!(md, "### {size}x{size}: PSNR (dB)\n");
+        let _ = writeln!(
+            md,
+            "| scene | frames | % of k | k' | haar best | haar best auto | haar tree | haar planner | wh best | wh best auto | wh tree | wh planner | fixed auto | best oracle - fixed |"
+        );
+        let _ = writeln!(
+            md,
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
+        );
+        for r in &base {
+            let (Some(h), Some(w)) = (
+                oracle_find(oracles, r, "haar"),
+                oracle_find(oracles, r, "hadamard"),
+            ) else {
+                continue;
+            };
+            let cell = |f: &str, m: &str| {
+                find(rows, r, f, m)
+                    .map(|x| format!("{:.2}", x.psnr_db))
+                    .unwrap_or_else(|| "-".into())
+            };
+            let fixed = best_of(rows, r, &FIXED);
+            let _ = writeln!(
+                md,
+                "| {} | {} | {:.0} % | {} | {:.2} | {:.2} | {:.2} | {} | {:.2} | {:.2} | {:.2} | {} | {:.2} | {:+.2} |",
+                r.scene,
+                r.frames,
+                100.0 * r.ratio,
+                h.coefficients,
+                h.best_psnr_db,
+                h.best_auto_psnr_db,
+                h.tree_psnr_db,
+                cell("adaptive_haar", "direct"),
+                w.best_psnr_db,
+                w.best_auto_psnr_db,
+                w.tree_psnr_db,
+                cell("adaptive_hadamard", "direct"),
+                fixed,
+                h.best_psnr_db.max(w.best_psnr_db) - fixed
+            );
+        }
+        let _ = writeln!(md);
+        let _ = writeln!(
+            md,
+            "### {size}x{size}: share of the energy without the mean (%)\n"
+        );
+        let _ = writeln!(
+            md,
+            "| scene | frames | % of k | haar best | haar tree | haar planner | haar planner 30 dB | wh best | wh tree | wh planner | wh planner 30 dB |"
+        );
+        let _ = writeln!(md, "|---|---|---|---|---|---|---|---|---|---|---|");
+        let pct = |v: Option<f64>| {
+            v.map(|v| format!("{:.2}", 100.0 * v))
+                .unwrap_or_else(|| "-".into())
+        };
+        for r in &base {
+            let (Some(h), Some(w)) = (
+                oracle_find(oracles, r, "haar"),
+                oracle_find(oracles, r, "hadamard"),
+            ) else {
+                continue;
+            };
+            let _ = writeln!(
+                md,
+                "| {} | {} | {:.0} % | {} | {} | {} | {} | {} | {} | {} | {} |",
+                r.scene,
+                r.frames,
+                100.0 * r.ratio,
+                pct(Some(h.best_capture)),
+                pct(Some(h.tree_capture)),
+                pct(Some(h.planner_capture)),
+                pct(h.planner_capture_noisy),
+                pct(Some(w.best_capture)),
+                pct(Some(w.tree_capture)),
+                pct(Some(w.planner_capture)),
+                pct(w.planner_capture_noisy),
+            );
+        }
+        let _ = writeln!(md);
+    }
+}
+
+/// Targets A and B with the oracle (best of the two bases' best k') in place of the adaptive
+/// schemes: reachable at all with these bases and a linear reconstruction (noise-free)?
+fn oracle_targets(md: &mut String, rows: &[Row], oracles: &[OracleRow]) {
+    if oracles.is_empty() {
+        return;
+    }
+    let _ = writeln!(
+        md,
+        "\nWith the oracle in place of the adaptive schemes (noise-free; `oracle` = the better of \
+         Haar and WH best k' (zero-filled); `oracle auto` = the better `auto` on them; `tree` = the \
+         better tree rule; `planner` = the better `direct`; \"reachable (linear)\" compares the \
+         zero-filled oracle):\n"
+    );
+    let _ = writeln!(
+        md,
+        "| size | scene | A: oracle 5 % | oracle auto 5 % | tree 5 % | planner 5 % | fixed 10 % | A reachable (linear) | B: oracle 2 % - fixed 2 % | oracle auto 2 % - fixed 2 % | tree 2 % - fixed 2 % | B reachable (linear) |"
+    );
+    let _ = writeln!(md, "|---|---|---|---|---|---|---|---|---|---|---|---|");
+    let at = |r: &Row, ratio: f64| {
+        rows.iter().find(|x| {
+            x.scene == r.scene
+                && x.size == r.size
+                && !x.noisy
+                && x.ratio == ratio
+                && x.family == "adaptive_haar"
+                && x.method == "direct"
+        })
+    };
+    // 0: best k', 1: tree, 2: auto on the best k'.
+    let best = |r: &Row, which: u8| {
+        ["haar", "hadamard"]
+            .iter()
+            .filter_map(|b| oracle_find(oracles, r, b))
+            .map(|o| match which {
+                0 => o.best_psnr_db,
+                1 => o.tree_psnr_db,
+                _ => o.best_auto_psnr_db,
+            })
+            .filter(|p| p.is_finite())
+            .fold(f64::NEG_INFINITY, f64::max)
+    };
+    const DIRECT: [(&str, &str); 2] =
+        [("adaptive_haar", "direct"), ("adaptive_hadamard", "direct")];
+    for r in rows.iter().filter(|r| {
+        !r.noisy && r.family == "adaptive_haar" && r.method == "direct" && r.ratio == 0.10
+    }) {
+        let (Some(r5), Some(r2)) = (at(r, 0.05), at(r, 0.02)) else {
+            continue;
+        };
+        let o5 = best(r5, 0);
+        let f10 = best_of(rows, r, &FIXED);
+        let f2 = best_of(rows, r2, &FIXED);
+        let natural = NATURAL.contains(&r.scene.as_str());
+        let _ = writeln!(
+            md,
+            "| {} | {} | {o5:.2} | {:.2} | {:.2} | {:.2} | {f10:.2} | {} | {:+.2} | {:+.2} | {:+.2} | {} |",
+            r.size,
+            r.scene,
+            best(r5, 2),
+            best(r5, 1),
+            best_of(rows, r5, &DIRECT),
+            if o5 >= f10 { "yes" } else { "no" },
+            best(r2, 0) - f2,
+            best(r2, 2) - f2,
+            best(r2, 1) - f2,
+            if !natural {
+                "(not natural)"
+            } else if best(r2, 0) - f2 >= 3.0 {
+                "yes"
+            } else {
+                "no"
+            }
+        );
+    }
 }
