@@ -97,8 +97,6 @@ pub fn measure_batch(
 /// What `simulate --adaptive` needs beyond the common flags.
 pub(super) struct AdaptiveRun<'a> {
     pub session: NewSession,
-    pub transports: Vec<Vec<f32>>,
-    pub model: NoiseModel,
     pub opts: UploadOptions,
     pub reconstruct: Option<&'a str>,
     pub params: &'a Value,
@@ -106,21 +104,22 @@ pub(super) struct AdaptiveRun<'a> {
     pub progress: bool,
 }
 
-/// Creates the session and runs it through the stream; reconstructs if asked.
+/// Creates the session and runs it through the stream, `measure` measuring each batch (bucket
+/// values, or camera frames); reconstructs if asked.
 pub(super) async fn simulate_adaptive(
     server: &str,
     run: AdaptiveRun<'_>,
+    mut measure: impl FnMut(&BatchToMeasure<'_>) -> anyhow::Result<SampleBuf>,
     mut out: serde_json::Map<String, Value>,
     mut text: String,
 ) -> anyhow::Result<Outcome> {
     let spec = run.session.spec.clone();
     let created = upload::create_session(server, &run.session).await?;
     let bar = super::simulate::sim_progress(spec.count(), run.progress);
-    let (transports, model) = (&run.transports, &run.model);
     let report = acquire_adaptive(server, &created.session, &run.opts, |batch| {
-        let values = measure_batch(batch, transports, model);
+        let values = measure(batch)?;
         bar.inc(batch.rows.end - batch.rows.start);
-        Ok(SampleBuf::F64(values))
+        Ok(values)
     })
     .await?;
     bar.finish_and_clear();

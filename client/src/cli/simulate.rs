@@ -17,13 +17,15 @@ use crate::spool::{DrainReport, SpoolDir};
 use crate::upload::{self, NewSession, SampleFormat};
 
 use super::Outcome;
-use super::adaptive::{AdaptiveArg, AdaptiveRun, adaptive_spec, simulate_adaptive};
+use super::adaptive::{AdaptiveArg, AdaptiveRun, adaptive_spec, measure_batch, simulate_adaptive};
 use super::args::{
     FrameFormatArg, PatternArgs, ResultArgs, TransferArgs, parse_metadata, parse_params, spec_json,
     spec_summary,
 };
 use super::reconstruct::finish_reconstruction;
 use super::spool::{MAX_BATCH_BYTES, spool_and_upload, spool_and_upload_rows, upload_text};
+use crate::adaptive::BatchToMeasure;
+use helmholtz_proto::wire::SampleBuf;
 
 /// Noise flags of the simulator.
 #[derive(Debug, Clone, Args)]
@@ -112,8 +114,11 @@ pub struct SimulateArgs {
     /// Adaptive acquisition (haar or hadamard): the server chooses the patterns batch by batch
     /// from the values measured so far (gRPC Acquire), and the simulated rig shows each batch's
     /// split pairs as they come. Replaces --family; --width = --height, a power of two; --count
-    /// is the frame budget [default: 2 x width x height, the whole basis]. Bucket scenes only;
-    /// the noise model applies to each batch (its seed varies by batch; drift restarts).
+    /// is the frame budget [default: 2 x width x height, the whole basis]. Bucket detectors, or
+    /// with --scene lambert --camera a camera rig (hadamard only: the server chooses the pairs
+    /// from every camera pixel's values; reconstruct T with --reconstruct transport). Buckets:
+    /// the noise model applies to each batch (its seed varies by batch; drift restarts);
+    /// camera frames get it frame by frame, as without --adaptive.
     #[arg(long, value_enum, value_name = "BASIS")]
     pub adaptive: Option<AdaptiveArg>,
     /// --adaptive: split pairs per batch (0: the server sizes batches so a DMD at kHz rates
@@ -258,11 +263,12 @@ pub(super) async fn simulate_cmd(
     let spec = match a.adaptive {
         Some(kind) => {
             anyhow::ensure!(
-                a.camera.is_none()
-                    && !a.offline
-                    && a.frame_rate.is_none()
-                    && a.values_out.is_none(),
-                "--adaptive runs bucket detectors against a server as fast as it decides: drop --camera, --offline, --frame-rate and --values-out"
+                !a.offline && a.frame_rate.is_none() && a.values_out.is_none(),
+                "--adaptive runs a rig against a server as fast as it decides: drop --offline, --frame-rate and --values-out"
+            );
+            anyhow::ensure!(
+                a.camera.is_none() || kind == AdaptiveArg::Hadamard,
+                "--adaptive haar with --camera: a camera session's transport matrix is reconstructed from Walsh-Hadamard pairs; use --adaptive hadamard"
             );
             let p = &a.patterns;
             adaptive_spec(
@@ -426,6 +432,24 @@ pub(super) async fn simulate_cmd(
                 )),
             }
         }
+        if a.adaptive.is_some() {
+            let run = AdaptiveRun {
+                session,
+                opts,
+                reconstruct: a.reconstruct.as_deref(),
+                params: &params,
+                result: &a.result,
+                progress,
+            };
+            let measure = |batch: &BatchToMeasure<'_>| {
+                Ok(sim.frames_for(batch.spec, batch.rows.start, batch.rows.end))
+            };
+            let mut outcome = simulate_adaptive(server, run, measure, out, text).await?;
+            if let Value::Object(o) = &mut outcome.json {
+                o.insert("noise".into(), serde_json::to_value(sim.noise_report())?);
+            }
+            return Ok(outcome);
+        }
         let (report, spooled_before) = spool_and_upload_rows(
             server,
             spools,
@@ -519,15 +543,16 @@ pub(super) async fn simulate_cmd(
         out.insert("channels".into(), json!(names));
         let run = AdaptiveRun {
             session,
-            transports,
-            model,
             opts,
             reconstruct: a.reconstruct.as_deref(),
             params: &params,
             result: &a.result,
             progress,
         };
-        return simulate_adaptive(server, run, out, String::new()).await;
+        let measure = |batch: &BatchToMeasure<'_>| {
+            Ok(SampleBuf::F64(measure_batch(batch, &transports, &model)))
+        };
+        return simulate_adaptive(server, run, measure, out, String::new()).await;
     }
 
     let t0 = Instant::now();

@@ -215,9 +215,26 @@ impl<'a> FrameSimulator<'a> {
                 "--adc-bits does not apply to u16 frames (they are 16-bit counts already)"
             );
         }
+        // An adaptive session's patterns are known batch by batch ([`Self::frames_for`]); its
+        // noise figures come from the Walsh-Hadamard split pairs of the same grid, the patterns
+        // it chooses among (every pair but the first lights half the projector).
+        let stand_in = if spec.is_adaptive() {
+            PatternSpec::new(
+                helmholtz_proto::Family::Hadamard {
+                    ordering: helmholtz_proto::HadamardOrdering::Natural,
+                },
+                spec.width(),
+                spec.height(),
+                spec.count().min(2 * spec.pixels() as u64),
+                spec.seed(),
+            )
+            .map_err(|e| anyhow::anyhow!("{}: {}", e.field, e.message))?
+        } else {
+            spec.clone()
+        };
         let mut sim = FrameSimulator {
             view: scene.view(&camera),
-            generator: PatternGenerator::new(spec),
+            generator: PatternGenerator::new(&stand_in),
             spec: spec.clone(),
             gain,
             format,
@@ -276,6 +293,10 @@ impl<'a> FrameSimulator<'a> {
     /// The noiseless frames `gain * T p_i` of patterns `start..end`, row-major, in signal
     /// units (parallel over patterns).
     pub fn clean_frames(&self, start: u64, end: u64) -> Vec<f64> {
+        self.clean_frames_with(&self.generator, start, end)
+    }
+
+    fn clean_frames_with(&self, generator: &PatternGenerator, start: u64, end: u64) -> Vec<f64> {
         let m = self.pixels();
         let k = self.spec.pixels();
         let mut out = vec![0.0f64; (end - start) as usize * m];
@@ -283,8 +304,7 @@ impl<'a> FrameSimulator<'a> {
             let mut grey = vec![0.0f32; k];
             let mut pattern = vec![0.0f64; k];
             for (r, frame) in chunk.chunks_exact_mut(m).enumerate() {
-                self.generator
-                    .fill_values(start + (first + r) as u64, &mut grey);
+                generator.fill_values(start + (first + r) as u64, &mut grey);
                 for (p, g) in pattern.iter_mut().zip(&grey) {
                     *p = *g as f64;
                 }
@@ -321,7 +341,17 @@ impl<'a> FrameSimulator<'a> {
 
     /// The measured frames of patterns `start..end`: rendered, with noise, encoded.
     pub fn frames(&self, start: u64, end: u64) -> SampleBuf {
-        let clean = self.clean_frames(start, end);
+        self.frames_with(&self.generator, start, end)
+    }
+
+    /// [`Self::frames`] of an adaptive session: the patterns of `resolved`, the session's spec
+    /// with the indices issued so far (the rows `start..end` must be among them).
+    pub fn frames_for(&self, resolved: &PatternSpec, start: u64, end: u64) -> SampleBuf {
+        self.frames_with(&PatternGenerator::new(resolved), start, end)
+    }
+
+    fn frames_with(&self, generator: &PatternGenerator, start: u64, end: u64) -> SampleBuf {
+        let clean = self.clean_frames_with(generator, start, end);
         let m = self.pixels();
         let mut noisy = clean.clone();
         let mut tally = NoiseTally::default();
