@@ -288,6 +288,70 @@ async fn a_rig_that_loses_its_stream_resumes_with_the_indices_of_an_uninterrupte
     assert_eq!(indices, straight.indices);
 }
 
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stream_that_ends_inside_a_pair_resumes_from_the_committed_half() {
+    // The rig sends the P+ frame of the first pair alone (an odd committed row count: half a
+    // pair, no whole batch) and its stream ends. The row is acknowledged, so it is kept; the
+    // resumed rig continues from row 1 and the session ends as an uninterrupted one, the same
+    // indices and the same stored values.
+    let dir = tempfile::tempdir().unwrap();
+    let server = ServerProcess::start(dir.path(), 0, &[]).unwrap();
+    let url = server.base_url.clone();
+    let truth = scene(16);
+    let spec =
+        spec(r#"{"family": "adaptive_haar", "width": 16, "height": 16, "count": 128, "batch": 8}"#);
+    let straight = run(&url, "whole", &spec, &truth).await;
+
+    let session = create(&url, "half", &spec, &truth).await;
+    let mut raw = Raw::open(&url, "half").await.unwrap();
+    let acquire_response::Message::Opened(_) = raw.next().await.unwrap() else {
+        panic!("opened first")
+    };
+    let acquire_response::Message::Batch(first) = raw.next().await.unwrap() else {
+        panic!("a batch")
+    };
+    let resolved = spec
+        .with_indices(std::sync::Arc::from(first.indices.clone()))
+        .unwrap();
+    let mut pattern = vec![0f32; truth.len()];
+    PatternGenerator::new(&resolved).fill_values(0, &mut pattern);
+    let plus: f64 = truth
+        .iter()
+        .zip(&pattern)
+        .map(|(&t, &p)| t as f64 * p as f64)
+        .sum();
+    raw.send(f64_chunk("half", 0, 1, &[plus])).await;
+    loop {
+        match raw.next().await.unwrap() {
+            acquire_response::Message::Ack(ack) => {
+                assert_eq!(ack.committed_rows, 1, "{ack:?}");
+                break;
+            }
+            acquire_response::Message::Batch(_) => {}
+            other => panic!("{other:?}"),
+        }
+    }
+    drop(raw);
+    assert_eq!(
+        committed(&server, "half").await,
+        1,
+        "the acknowledged half pair is kept"
+    );
+
+    let report = acquire_adaptive(&url, &session, &options(), |b| Ok(measure(b, &truth)))
+        .await
+        .unwrap();
+    assert_eq!(report.indices, straight.indices);
+    assert_eq!(report.rows, straight.rows);
+    let (indices, values) = stored(&server, "half").await;
+    let (want_indices, want_values) = stored(&server, "whole").await;
+    assert_eq!(indices, want_indices);
+    assert_eq!(
+        values, want_values,
+        "row 0 as sent, the rest as re-measured"
+    );
+}
+
 /// A raw `Acquire` stream: the open sent; the server's messages up to the first batches.
 struct Raw {
     tx: tokio::sync::mpsc::Sender<v1::AcquireRequest>,
