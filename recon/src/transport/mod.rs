@@ -58,6 +58,9 @@
 //!   below the noise in a dim row (1 % frame noise: 420-490 nonzeros per row on sparse scenes
 //!   where the complete set keeps 4). The floor is a candidate, not a rule: on a scene with a
 //!   dense, dim interreflection it drops light from every row, and the light test rejects it.
+//!   Bernoulli sessions get the same candidate, `sqrt(2 ln k) sigma sqrt(n p (1 - p))`, with one
+//!   `sigma` for every row: the median over the sample pixels of their random-pattern moment
+//!   estimates ([`random_noise_floor`]; a row's own estimate scatters 30x on bright sparse rows).
 //!   Every lasso point is scored twice: as solved, and refitted by
 //!   least squares on its own support ([`batch::refit_rows`], the relaxed lasso): the soft
 //!   threshold shrinks every kept coefficient by the weight, so a larger weight (fewer
@@ -1400,6 +1403,7 @@ fn plan_with(
     let mut details = serde_json::Map::new();
     let mut held_out = None;
     let mut held_out_unavailable = None;
+    let mut floor_sigma = None;
 
     let (transform, lambda, refit, noise_floor) = if plan.exact {
         let transform = match config.transform {
@@ -1491,6 +1495,7 @@ fn plan_with(
             &mut details,
             &mut held_out,
             &mut held_out_unavailable,
+            &mut floor_sigma,
             control,
         )?;
         (transform, Some(lambda), refit, floored)
@@ -1540,6 +1545,7 @@ fn plan_with(
         largest_read_bytes: largest as u64,
         seconds: start.elapsed().as_secs_f64(),
         noise_floor,
+        floor_sigma: if noise_floor { floor_sigma } else { None },
         binning: plan.binning,
     })
 }
@@ -1643,7 +1649,10 @@ fn solve_with(
             for c in 0..len {
                 let raw = plan.raw_column(&frames, len, c);
                 if model.noise_floor {
-                    floors.push(noise_floor(&plan.pair_sums(&frames, len, c), &raw, k));
+                    floors.push(match (&plan.raw, model.floor_sigma) {
+                        (Raw::Bernoulli(op), Some(sigma)) => random_noise_floor(op, sigma),
+                        _ => noise_floor(&plan.pair_sums(&frames, len, c), &raw, k),
+                    });
                 }
                 bs.extend(plan.fit_data(&raw));
             }
@@ -1851,6 +1860,33 @@ fn noise_floor(sums: &[f64], raw: &[f64], k: usize) -> f64 {
         .map_or(0.0, |n| n.sigma * (2.0 * (k as f64).ln()).sqrt())
 }
 
+/// A Bernoulli session's noise floor on every row's weight: `sqrt(2 ln k) sigma sqrt(n p (1 - p))`,
+/// `sqrt(n p (1 - p))` the norm of a centred pattern column (the noise's spread in every
+/// coefficient of an orthonormal transform) and `sigma` the frames' noise: the median over the
+/// sample pixels of their random-pattern moment estimates ([`super::noise::from_random_rows`]),
+/// which are near the truth on dim rows and scatter by 30x on bright sparse ones (glossy scene:
+/// 0 to 11.7 where the frame noise was 0.4).
+fn random_noise_floor(op: &CentredOperator<BernoulliOperator>, sigma: f64) -> f64 {
+    let inner = op.inner();
+    let (n, k) = (inner.rows() as f64, inner.cols() as f64);
+    let p = inner.row_sums().iter().sum::<f64>() / (n * k).max(1.0);
+    sigma * (n * p * (1.0 - p)).sqrt() * (2.0 * k.ln()).sqrt()
+}
+
+/// The median of the sample rows' frame-noise estimates (random patterns), if any row has one.
+fn random_noise_sigma(op: &CentredOperator<BernoulliOperator>, raws: &[Vec<f64>]) -> Option<f64> {
+    let mut sigmas: Vec<f64> = raws
+        .iter()
+        .filter_map(|raw| super::noise::from_random_rows(op.inner(), raw).map(|e| e.sigma))
+        .collect();
+    if sigmas.is_empty() {
+        return None;
+    }
+    let mid = sigmas.len() / 2;
+    let (_, median, _) = sigmas.select_nth_unstable_by(mid, f64::total_cmp);
+    Some(*median)
+}
+
 fn continuation(lambda: f64) -> Vec<f64> {
     let mut path: Vec<f64> = LAMBDA_PATH
         .iter()
@@ -2000,6 +2036,7 @@ fn choose_model(
     details: &mut serde_json::Map<String, Value>,
     held_out: &mut Option<holdout::HeldOut>,
     held_out_unavailable: &mut Option<String>,
+    floor_sigma: &mut Option<f64>,
     control: &Control,
 ) -> Result<(TransformKind, f64, bool, bool), ReconError> {
     let (pw, ph) = plan.size();
@@ -2059,14 +2096,21 @@ fn choose_model(
         Raw::Hadamard(op) if sums.len() == raws.len() => Some(op),
         _ => None,
     };
-    // A Hadamard subset's rows: every weight at least the row's noise floor.
-    let floors: Vec<f64> = match subset_op {
-        Some(_) => raws
+    // A Hadamard subset's or a Bernoulli session's rows: every weight at least the row's
+    // noise floor.
+    let floors: Vec<f64> = match (subset_op, &plan.raw) {
+        (Some(_), _) => raws
             .iter()
             .zip(&sums)
             .map(|(raw, sum)| noise_floor(sum, raw, k))
             .collect(),
-        None => Vec::new(),
+        (None, Raw::Bernoulli(op)) => {
+            random_noise_sigma(op, &raws).map_or_else(Vec::new, |sigma| {
+                *floor_sigma = Some(sigma);
+                vec![random_noise_floor(op, sigma); raws.len()]
+            })
+        }
+        _ => Vec::new(),
     };
     let level = match subset_op {
         Some(_) => LevelTest::new(plan, &raws, &floors)?,
@@ -2079,7 +2123,7 @@ fn choose_model(
     // ([`noise_floor`]: a dim row otherwise keeps hundreds of noise coefficients) and without
     // (the floor drops light that lies below the noise in every row but adds up in a relight,
     // a dense interreflection; the light test below sees it).
-    let floor_options: &[bool] = if subset_op.is_some() {
+    let floor_options: &[bool] = if !floors.is_empty() {
         &[false, true]
     } else {
         &[false]

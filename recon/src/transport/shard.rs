@@ -79,6 +79,9 @@ pub struct TransportModel {
     /// threshold of the noise its split-pair sums show).
     #[serde(default)]
     pub noise_floor: bool,
+    /// A Bernoulli session's frame noise behind the floor (the sample pixels' median estimate).
+    #[serde(default)]
+    pub floor_sigma: Option<f64>,
     /// The projector grid is the session's over this factor ([`super::TransportConfig`]'s
     /// `projector_binning`); `projector` is the coarse grid.
     #[serde(default = "one")]
