@@ -304,12 +304,7 @@ async fn a_stream_that_ends_inside_a_pair_resumes_from_the_committed_half() {
 
     let session = create(&url, "half", &spec, &truth).await;
     let mut raw = Raw::open(&url, "half").await.unwrap();
-    let acquire_response::Message::Opened(_) = raw.next().await.unwrap() else {
-        panic!("opened first")
-    };
-    let acquire_response::Message::Batch(first) = raw.next().await.unwrap() else {
-        panic!("a batch")
-    };
+    let (_, first) = raw.opened().await;
     let resolved = spec
         .with_indices(std::sync::Arc::from(first.indices.clone()))
         .unwrap();
@@ -375,6 +370,17 @@ impl Raw {
         Ok(Raw { tx, inbound })
     }
 
+    /// The `Opened` message and the first batch, which a new stream starts with.
+    async fn opened(&mut self) -> (v1::AcquireOpened, v1::AdaptiveBatch) {
+        let acquire_response::Message::Opened(opened) = self.next().await.unwrap() else {
+            panic!("opened first")
+        };
+        let acquire_response::Message::Batch(first) = self.next().await.unwrap() else {
+            panic!("a batch")
+        };
+        (opened, first)
+    }
+
     async fn next(&mut self) -> Result<acquire_response::Message, tonic::Status> {
         let m = self.inbound.message().await?.expect("a message");
         Ok(m.message.expect("set"))
@@ -422,15 +428,10 @@ async fn bad_values_and_rows_beyond_the_issued_batches_are_refused_with_nothing_
     create(&url, "bad", &spec, &truth).await;
 
     let mut raw = Raw::open(&url, "bad").await.unwrap();
-    let acquire_response::Message::Opened(opened) = raw.next().await.unwrap() else {
-        panic!("opened first")
-    };
+    let (opened, first) = raw.opened().await;
     assert_eq!(opened.committed_rows, 0);
     let issued = opened.issued_rows;
     assert!(issued >= 16 && issued.is_multiple_of(16), "{issued}");
-    let acquire_response::Message::Batch(first) = raw.next().await.unwrap() else {
-        panic!("a batch")
-    };
     assert_eq!(
         (first.number, first.first_row, first.indices.len()),
         (0, 0, 8)

@@ -1401,6 +1401,32 @@ fn relight_errors(t: &[f32], truth: &[f32], camera: CameraGrid, k: usize) -> [f6
     })
 }
 
+/// The best of `start` and every candidate transform at weights 1e-2, 1e-3 and 1e-4 by the RMS
+/// of the relit errors against `truth` (an oracle's choice): (name, RMS error).
+fn best_candidate(
+    start: (String, f64),
+    (spec, camera, f): (&PatternSpec, CameraGrid, &[f32]),
+    truth: &[f32],
+    k: usize,
+) -> (String, f64) {
+    let mut best = start;
+    for kind in CANDIDATE_TRANSFORMS {
+        for lambda in [1e-2, 1e-3, 1e-4] {
+            let config = TransportConfig {
+                transform: Some(kind),
+                lambda: Some(lambda),
+                ..TransportConfig::default()
+            };
+            let (t, _, _) = run(spec, camera, f, &config);
+            let e = rms(&relight_errors(&dense(&t), truth, camera, k));
+            if e < best.1 {
+                best = (format!("{} {lambda}", kind.name()), e);
+            }
+        }
+    }
+    best
+}
+
 fn rms(e: &[f64]) -> f64 {
     (e.iter().map(|v| v * v).sum::<f64>() / e.len() as f64).sqrt()
 }
@@ -1453,7 +1479,7 @@ fn a_hadamard_subset_relights_within_1_5x_of_the_best_candidate_model() {
             .map(|v| *v as f64)
             .sum::<f64>()
             / truth.iter().map(|v| *v as f64).sum::<f64>();
-        let mut oracle = (
+        let oracle = (
             "zero-filled".to_string(),
             rms(&relight_errors(
                 &zero_filled(&spec, &f, m),
@@ -1462,20 +1488,7 @@ fn a_hadamard_subset_relights_within_1_5x_of_the_best_candidate_model() {
                 k,
             )),
         );
-        for kind in CANDIDATE_TRANSFORMS {
-            for lambda in [1e-2, 1e-3, 1e-4] {
-                let config = TransportConfig {
-                    transform: Some(kind),
-                    lambda: Some(lambda),
-                    ..TransportConfig::default()
-                };
-                let (t, _, _) = run(&spec, camera, &f, &config);
-                let e = rms(&relight_errors(&dense(&t), &truth, camera, k));
-                if e < oracle.1 {
-                    oracle = (format!("{} {lambda}", kind.name()), e);
-                }
-            }
-        }
+        let oracle = best_candidate(oracle, (&spec, camera, &f), &truth, k);
         println!(
             "{name}: chosen {} {} (relit {chosen:.4?}, total light {light:.4}), oracle {} {:.4}",
             report.details["transform"], report.details["lambda"], oracle.0, oracle.1
@@ -1768,21 +1781,12 @@ fn a_bernoulli_session_relights_within_1_5x_of_the_best_candidate_model() {
         let f = frames(&spec, &truth, m, 0.0);
         let (t, report, _) = run(&spec, camera, &f, &TransportConfig::default());
         let chosen = relight_errors(&dense(&t), &truth, camera, k);
-        let mut oracle = (String::new(), f64::INFINITY);
-        for kind in CANDIDATE_TRANSFORMS {
-            for lambda in [1e-2, 1e-3, 1e-4] {
-                let config = TransportConfig {
-                    transform: Some(kind),
-                    lambda: Some(lambda),
-                    ..TransportConfig::default()
-                };
-                let (t, _, _) = run(&spec, camera, &f, &config);
-                let e = rms(&relight_errors(&dense(&t), &truth, camera, k));
-                if e < oracle.1 {
-                    oracle = (format!("{} {lambda}", kind.name()), e);
-                }
-            }
-        }
+        let oracle = best_candidate(
+            (String::new(), f64::INFINITY),
+            (&spec, camera, &f),
+            &truth,
+            k,
+        );
         println!(
             "{name}: chosen {} {} (relit {chosen:.4?}), oracle {} {:.4}",
             report.details["transform"], report.details["lambda"], oracle.0, oracle.1
