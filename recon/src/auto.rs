@@ -225,6 +225,9 @@ pub struct Candidate {
     pub seconds: f64,
     #[serde(skip)]
     best_t: Vec<f64>,
+    /// The prox's dual state that ended `best_t`'s solve, to start the refit from.
+    #[serde(skip)]
+    best_dual: Option<Vec<f64>>,
     /// `lambda_max` of its (fitting) problem: `best_fraction` times it is the absolute weight.
     #[serde(skip)]
     lambda_max: f64,
@@ -261,6 +264,8 @@ struct Running<'a> {
     /// point's.
     best: (f64, usize),
     best_t: Vec<f64>,
+    /// The prox's dual state that ended `best_t`'s solve ([`PathRunner::start_from`]).
+    best_dual: Option<Vec<f64>>,
     stale: usize,
     /// The selected point, when its image must be re-solved ([`Running::settle`]).
     pending: Option<usize>,
@@ -320,6 +325,7 @@ impl<'a> Running<'a> {
             sigma,
             best: (f64::INFINITY, 0),
             best_t: Vec::new(),
+            best_dual: None,
             stale: 0,
             pending: None,
             active: true,
@@ -337,7 +343,7 @@ impl<'a> Running<'a> {
         b_test: &[f64],
         progress: (f64, f64),
         control: &Control,
-    ) -> Result<(f64, Vec<f64>), ReconError> {
+    ) -> Result<(f64, Vec<f64>, Option<Vec<f64>>), ReconError> {
         let p = self.runner.solve(fraction, progress, control)?;
         let prediction = scorer.predict(&p.t);
         let s = score(b_test, &prediction);
@@ -349,7 +355,7 @@ impl<'a> Running<'a> {
         });
         self.residuals
             .push(b_test.iter().zip(&prediction).map(|(b, q)| b - q).collect());
-        Ok((s, p.t))
+        Ok((s, p.t, p.dual))
     }
 
     /// Solves the next point and scores it on the held-out rows; ends the path once the score
@@ -363,10 +369,11 @@ impl<'a> Running<'a> {
         control: &Control,
     ) -> Result<(), ReconError> {
         let start = Instant::now();
-        let (s, t) = self.solve_point(fraction, scorer, b_test, progress, control)?;
+        let (s, t, dual) = self.solve_point(fraction, scorer, b_test, progress, control)?;
         if s < self.best.0 * (1.0 - IMPROVE) || (self.best.0.is_infinite() && s.is_finite()) {
             self.best = (s, self.points.len() - 1);
             self.best_t = t;
+            self.best_dual = dual;
             self.stale = 0;
         } else {
             self.stale += 1;
@@ -391,12 +398,14 @@ impl<'a> Running<'a> {
     ) -> Result<(), ReconError> {
         let start = Instant::now();
         if !self.best_t.is_empty() {
-            self.runner.start_from(self.best_t.clone());
+            self.runner
+                .start_from(self.best_t.clone(), self.best_dual.clone());
         }
-        let (s, t) = self.solve_point(fraction, scorer, b_test, progress, control)?;
+        let (s, t, dual) = self.solve_point(fraction, scorer, b_test, progress, control)?;
         if s < self.best.0 {
             self.best = (s, self.points.len() - 1);
             self.best_t = t;
+            self.best_dual = dual;
         }
         self.seconds += start.elapsed().as_secs_f64();
         Ok(())
@@ -511,7 +520,8 @@ impl<'a> Running<'a> {
             return Ok(());
         };
         let start = Instant::now();
-        self.runner.start_from(self.best_t.clone());
+        self.runner
+            .start_from(self.best_t.clone(), self.best_dual.clone());
         let fraction = self.points[j].fraction;
         let p = self.runner.solve(fraction, progress, control)?;
         let prediction = scorer.predict(&p.t);
@@ -522,6 +532,7 @@ impl<'a> Running<'a> {
         self.residuals[j] = b_test.iter().zip(&prediction).map(|(b, q)| b - q).collect();
         self.best = (s, j);
         self.best_t = p.t;
+        self.best_dual = p.dual;
         self.seconds += start.elapsed().as_secs_f64();
         Ok(())
     }
@@ -546,6 +557,7 @@ impl<'a> Running<'a> {
             eliminated: self.eliminated,
             seconds: self.seconds,
             best_t: self.best_t,
+            best_dual: self.best_dual,
             model_kind: Some(self.model),
         }
     }
@@ -727,6 +739,8 @@ pub fn run(
         candidates[winner].best_t.clone(),
         fraction * candidates[winner].lambda_max,
     );
+    // The dual state that goes with the chosen image: the refit starts its prox there.
+    let mut warm_dual = candidates[winner].best_dual.clone();
     let mut resolution = Vec::new();
     if job.full.rows() < k && job.measured_resolution.is_none() {
         let mut factor = 2;
@@ -775,6 +789,7 @@ pub fn run(
             if !better {
                 break;
             }
+            warm_dual = c.best_dual;
             chosen = (
                 factor,
                 c.best_held_out,
@@ -857,6 +872,7 @@ pub fn run(
         max_iter,
         lambda: Lambda::Relative(fraction),
         warm_start: Some(warm),
+        warm_dual,
         progress: (lo + (hi - lo) * 2.0 / stages, hi),
         ..SolveOptions::default()
     };

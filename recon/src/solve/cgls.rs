@@ -178,6 +178,7 @@ pub fn cgls(
             polish_iterations: 0,
         },
         t: x,
+        dual: None,
     })
 }
 

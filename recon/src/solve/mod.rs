@@ -111,6 +111,18 @@ pub struct SolveOptions {
     /// (the image mean) unshrunk: it dwarfs every detail coefficient of a natural scene, so
     /// penalising it sets `lambda_max` by the mean, not by the detail. Default 0.
     pub free_coefficients: usize,
+    /// FISTA / TV-FISTA: the proximal map's dual state where an earlier solve of the same
+    /// operator and regulariser ended ([`Solution::dual`]), passed with that solve's image as
+    /// `warm_start`. The iterative prox (TV, or non-negative l1 in a transform) starts from a
+    /// zero dual; when no step from the warm start lowers the objective even with the tightest
+    /// prox, it tries once more from this dual (which reproduces the warm start) before calling
+    /// the point stalled. From a zero dual the capped calls return little of a structured image,
+    /// and a path point next to its neighbour stopped there with the neighbour's image unchanged
+    /// (measured: 10 % of the 128x128 photo's Hadamard pairs at 30 dB, the TV points at
+    /// `f = 0.3` from the flat image and at `f = 0.17` from the `f = 0.1` one, 4 iterations
+    /// each; `auto` chose by their stale scores and lost 1.1 dB). Ignored when its length does
+    /// not match the regulariser's dual.
+    pub warm_dual: Option<Vec<f64>>,
 }
 
 impl Default for SolveOptions {
@@ -128,6 +140,7 @@ impl Default for SolveOptions {
             deflate_mean: true,
             deflation: None,
             free_coefficients: 0,
+            warm_dual: None,
         }
     }
 }
@@ -196,6 +209,10 @@ pub struct SolveReport {
 pub struct Solution {
     pub t: Vec<f64>,
     pub report: SolveReport,
+    /// FISTA / TV-FISTA with an iterative prox: its dual state at the end, in gradient units
+    /// (the dual divided by the step: independent of the step size), for
+    /// [`SolveOptions::warm_dual`] of a solve started from `t`. `None` otherwise.
+    pub dual: Option<Vec<f64>>,
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -504,6 +521,7 @@ pub(crate) fn zero_solution(
             deflated: false,
             polish_iterations: 0,
         },
+        dual: None,
     }
 }
 

@@ -33,6 +33,9 @@ pub struct PathPoint {
     pub lambda: f64,
     pub t: Vec<f64>,
     pub report: SolveReport,
+    /// The prox's dual state at the end ([`super::Solution::dual`]): pass it with `t` to
+    /// [`PathRunner::start_from`] to start a later point here.
+    pub dual: Option<Vec<f64>>,
 }
 
 /// A solved path.
@@ -145,6 +148,8 @@ pub struct PathRunner<'a> {
     zero: bool,
     k: usize,
     last: Option<Vec<f64>>,
+    /// The dual state that goes with `last` ([`SolveOptions::warm_dual`]).
+    last_dual: Option<Vec<f64>>,
 }
 
 impl<'a> PathRunner<'a> {
@@ -167,6 +172,7 @@ impl<'a> PathRunner<'a> {
                 zero: true,
                 k,
                 last: None,
+                last_dual: None,
             });
         }
         let prep = Prepared::with_decision(
@@ -182,6 +188,7 @@ impl<'a> PathRunner<'a> {
         // Every point solves the same operator with the same weights: detect once.
         o.deflation = Some(prep.decision());
         let last = opts.warm_start.clone();
+        let last_dual = opts.warm_dual.clone();
         Ok(PathRunner {
             a,
             penalty,
@@ -192,6 +199,7 @@ impl<'a> PathRunner<'a> {
             zero: false,
             k,
             last,
+            last_dual,
         })
     }
 
@@ -200,9 +208,11 @@ impl<'a> PathRunner<'a> {
         self.lmax
     }
 
-    /// The next point starts from `t` instead of the previous point's solution.
-    pub fn start_from(&mut self, t: Vec<f64>) {
+    /// The next point starts from `t` instead of the previous point's solution, with the prox's
+    /// dual state `dual` that ended the solve of `t` ([`PathPoint::dual`]; `None`: from zero).
+    pub fn start_from(&mut self, t: Vec<f64>, dual: Option<Vec<f64>>) {
         self.last = Some(t);
+        self.last_dual = dual;
     }
 
     /// Whether the solvers iterate on the deflated problem.
@@ -223,13 +233,14 @@ impl<'a> PathRunner<'a> {
             )));
         }
         if self.zero {
-            let Solution { t, report } =
+            let Solution { t, report, .. } =
                 zero_solution("path", self.k, 0.0, Some(0.0), 0.0, Instant::now());
             return Ok(PathPoint {
                 fraction,
                 lambda: 0.0,
                 t,
                 report,
+                dual: None,
             });
         }
         let lambda = fraction * self.lmax;
@@ -237,19 +248,26 @@ impl<'a> PathRunner<'a> {
         o.lambda = Lambda::Absolute(lambda);
         o.progress = progress;
         o.warm_start = self.last.take();
+        o.warm_dual = self.last_dual.take();
         let (a, b) = (self.a, self.b);
-        let Solution { t, mut report } = match self.penalty {
+        let Solution {
+            t,
+            mut report,
+            dual,
+        } = match self.penalty {
             Penalty::L1 { psi } => fista(a, psi, b, &o, control)?,
             Penalty::Tv { grid } => tv_fista(a, grid, b, &o, control)?,
             Penalty::TvPrimalDual { grid } => tv(a, grid, b, &o, control)?,
         };
         report.lambda_max = Some(self.lmax);
         self.last = Some(t.clone());
+        self.last_dual = dual.clone();
         Ok(PathPoint {
             fraction,
             lambda,
             t,
             report,
+            dual,
         })
     }
 }

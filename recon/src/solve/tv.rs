@@ -314,6 +314,7 @@ pub fn tv(
             polish_iterations: 0,
         },
         t,
+        dual: None,
     };
     polish_exact(
         first,

@@ -120,6 +120,26 @@ impl<'a> Prox<'a> {
         self.cap = Self::base_cap(self.reg);
     }
 
+    /// Starts the dual iteration from `dual` (in gradient units, [`Prox::dual`]) for steps of
+    /// size `step`; ignored unless the prox is iterative and the lengths match. The first call
+    /// projects it onto the dual set of its own weight.
+    pub(crate) fn start_dual(&mut self, dual: &[f64], step: f64) {
+        if self.inexact() && dual.len() == self.u.len() && step.is_finite() && step > 0.0 {
+            self.u
+                .iter_mut()
+                .zip(dual)
+                .for_each(|(u, &d)| *u = if d.is_finite() { d * step } else { 0.0 });
+        }
+    }
+
+    /// The dual state in gradient units (divided by the step `1 / lip`): at a fixed point
+    /// `x = prox(x - g / lip)` it satisfies `G^T u = -g / lip` (TV without the constraint), so
+    /// `u * lip` does not depend on the step. `None` when the prox is closed-form.
+    pub(crate) fn dual(&self, lip: f64) -> Option<Vec<f64>> {
+        self.inexact()
+            .then(|| self.u.iter().map(|&u| u * lip).collect())
+    }
+
     /// Whether the prox is computed iteratively (inexactly).
     pub(crate) fn inexact(&self) -> bool {
         match self.reg {
