@@ -2022,6 +2022,72 @@ mod tests {
         assert!(estimated < 1.5 * actual && estimated > 0.2 * actual);
     }
 
+    /// Issue 20's target on one of its hard cases: 10 % of the 128x128 photo's Hadamard pairs
+    /// at 30 dB of the total bucket power, `auto` within 0.5 dB of TV at the weight the ground
+    /// truth likes best (a sweep no user can run). Before the solvers fell back to the warm
+    /// dual, `auto`'s TV points at `f = 0.3` (from the flat image) and its upward probe
+    /// stopped unchanged after 4 iterations, it chose by their stale scores, and lost 0.8 dB
+    /// (17.2 dB against the sweep's 18.1 on the bench's draw; 18.3 dB now).
+    #[test]
+    fn noisy_hadamard_auto_is_within_half_a_db_of_the_best_tv_weight() {
+        use helmholtz_sim::simulate::{NoiseModel, apply_noise};
+        let n = 128u32;
+        let truth = scene("camera", n);
+        let spec = PatternSpec::new(
+            Family::Hadamard {
+                ordering: HadamardOrdering::RussianDoll,
+            },
+            n,
+            n,
+            2 * (n * n / 10) as u64,
+            0,
+        )
+        .unwrap();
+        let clean = buckets(&spec, &truth);
+        let problem = Problem {
+            spec: &spec,
+            channels: 1,
+            rows: clean.len() as u64,
+        };
+        // Two noise draws: the bench's (seed 17), where the stale points cost 0.8 dB, and
+        // another, where they happened not to.
+        for seed in [17, 11] {
+            let noise = NoiseModel {
+                snr_db: Some(30.0),
+                seed,
+                ..NoiseModel::default()
+            };
+            let (noisy, _) = apply_noise(&clean, 1, &noise);
+            let chosen = auto(&spec, &noisy, json!({}));
+            let pa = metrics::psnr(&chosen.images[0].data, &truth);
+            let sweep: Vec<(f64, f64)> = [0.5, 0.35, 0.25, 0.18, 0.12, 0.08, 0.05]
+                .iter()
+                .map(|&f| {
+                    let config =
+                        MethodConfig::parse("tv", &json!({"lambda": f, "max_iter": 500})).unwrap();
+                    let r = reconstruct(
+                        &problem,
+                        &config,
+                        &mut SliceSource::new(&noisy, 1, 500),
+                        &Control::new(),
+                    )
+                    .unwrap();
+                    (f, metrics::psnr(&r.images[0].data, &truth))
+                })
+                .collect();
+            let best = sweep.iter().map(|p| p.1).fold(f64::NEG_INFINITY, f64::max);
+            let a = &chosen.report.details["auto"][0];
+            println!(
+                "seed {seed}: auto {pa:.2} dB ({} at f = {}); tv sweep {sweep:?}",
+                a["model"], a["lambda_fraction"]
+            );
+            assert!(
+                pa > best - 0.5,
+                "seed {seed}: auto {pa:.2} dB, best tv weight {best:.2} dB"
+            );
+        }
+    }
+
     #[test]
     fn bernoulli_buckets_drowned_in_noise_give_the_flat_image_not_noise() {
         use helmholtz_sim::simulate::{NoiseModel, apply_noise};
