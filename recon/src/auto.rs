@@ -68,7 +68,7 @@ use super::linop::LinearOperator;
 use super::method::{Fit, Model, Noise};
 use super::noise::NoiseEstimate;
 use super::ops::{Binned, Gather};
-use super::solve::{self, Grid, Lambda, PathRunner, Penalty, SolveOptions};
+use super::solve::{self, Grid, Lambda, PathPoint, PathRunner, Penalty, SolveOptions};
 use super::transforms::sparsifying_transform;
 use super::{Control, ReconError};
 
@@ -343,7 +343,7 @@ impl<'a> Running<'a> {
         b_test: &[f64],
         progress: (f64, f64),
         control: &Control,
-    ) -> Result<(f64, Vec<f64>, Option<Vec<f64>>), ReconError> {
+    ) -> Result<(f64, PathPoint), ReconError> {
         let p = self.runner.solve(fraction, progress, control)?;
         let prediction = scorer.predict(&p.t);
         let s = score(b_test, &prediction);
@@ -355,7 +355,7 @@ impl<'a> Running<'a> {
         });
         self.residuals
             .push(b_test.iter().zip(&prediction).map(|(b, q)| b - q).collect());
-        Ok((s, p.t, p.dual))
+        Ok((s, p))
     }
 
     /// Solves the next point and scores it on the held-out rows; ends the path once the score
@@ -369,11 +369,11 @@ impl<'a> Running<'a> {
         control: &Control,
     ) -> Result<(), ReconError> {
         let start = Instant::now();
-        let (s, t, dual) = self.solve_point(fraction, scorer, b_test, progress, control)?;
+        let (s, p) = self.solve_point(fraction, scorer, b_test, progress, control)?;
         if s < self.best.0 * (1.0 - IMPROVE) || (self.best.0.is_infinite() && s.is_finite()) {
             self.best = (s, self.points.len() - 1);
-            self.best_t = t;
-            self.best_dual = dual;
+            self.best_t = p.t;
+            self.best_dual = p.dual;
             self.stale = 0;
         } else {
             self.stale += 1;
@@ -401,11 +401,11 @@ impl<'a> Running<'a> {
             self.runner
                 .start_from(self.best_t.clone(), self.best_dual.clone());
         }
-        let (s, t, dual) = self.solve_point(fraction, scorer, b_test, progress, control)?;
+        let (s, p) = self.solve_point(fraction, scorer, b_test, progress, control)?;
         if s < self.best.0 {
             self.best = (s, self.points.len() - 1);
-            self.best_t = t;
-            self.best_dual = dual;
+            self.best_t = p.t;
+            self.best_dual = p.dual;
         }
         self.seconds += start.elapsed().as_secs_f64();
         Ok(())
@@ -1086,7 +1086,7 @@ impl ShrunkInverse {
         op.apply(&ones, &mut dc);
         let measures_mean = dc.iter().any(|v| v.abs() > 0.5);
         let m = op.rows() - usize::from(measures_mean);
-        if m < 3 || !(energy > 0.0) {
+        if m < 3 || energy.is_nan() || energy <= 0.0 {
             return None;
         }
         let gain = (1.0 - (m as f64 - 2.0) * sigma * sigma / energy).max(0.0);
@@ -1750,6 +1750,20 @@ mod tests {
         Target::builtin(name, n, n).unwrap().transport(1.0)
     }
 
+    /// The first `rows` frames (split pairs) of the Russian-doll Hadamard set of an `n x n` grid.
+    fn russian_doll(n: u32, rows: u64) -> PatternSpec {
+        PatternSpec::new(
+            Family::Hadamard {
+                ordering: HadamardOrdering::RussianDoll,
+            },
+            n,
+            n,
+            rows,
+            0,
+        )
+        .unwrap()
+    }
+
     fn buckets(spec: &PatternSpec, t: &[f32]) -> Vec<f64> {
         let g = PatternGenerator::new(spec);
         let mut p = vec![0f32; spec.pixels()];
@@ -2050,16 +2064,7 @@ mod tests {
         // the total frame power (the common mode of 0/1 frames carries most of it).
         let n = 64u32;
         let truth = scene("camera", n);
-        let spec = PatternSpec::new(
-            Family::Hadamard {
-                ordering: HadamardOrdering::RussianDoll,
-            },
-            n,
-            n,
-            2 * 1024,
-            0,
-        )
-        .unwrap();
+        let spec = russian_doll(n, 2 * 1024);
         let clean = buckets(&spec, &truth);
         let rms = (clean.iter().map(|v| v * v).sum::<f64>() / clean.len() as f64).sqrt();
         let noise = NoiseModel {
@@ -2121,16 +2126,7 @@ mod tests {
         use helmholtz_sim::simulate::{NoiseModel, apply_noise};
         let n = 128u32;
         let truth = scene("camera", n);
-        let spec = PatternSpec::new(
-            Family::Hadamard {
-                ordering: HadamardOrdering::RussianDoll,
-            },
-            n,
-            n,
-            2 * (n * n / 10) as u64,
-            0,
-        )
-        .unwrap();
+        let spec = russian_doll(n, 2 * (n * n / 10) as u64);
         let clean = buckets(&spec, &truth);
         let problem = Problem {
             spec: &spec,
@@ -2185,16 +2181,7 @@ mod tests {
         use helmholtz_sim::simulate::{NoiseModel, apply_noise};
         let n = 128u32;
         let truth = scene("text", n);
-        let spec = PatternSpec::new(
-            Family::Hadamard {
-                ordering: HadamardOrdering::RussianDoll,
-            },
-            n,
-            n,
-            2 * (n * n / 10) as u64,
-            0,
-        )
-        .unwrap();
+        let spec = russian_doll(n, 2 * (n * n / 10) as u64);
         let clean = buckets(&spec, &truth);
         let noise = NoiseModel {
             photons: Some(1e4),

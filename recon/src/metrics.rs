@@ -252,7 +252,13 @@ pub fn transport_quality(
     let (tw, th) = t.projector();
     if (tw, th) != (w, h) {
         let fine = w as usize * h as usize;
-        if tw == 0 || th == 0 || w % tw != 0 || h % th != 0 || w / tw != h / th || fine == 0 {
+        if tw == 0
+            || th == 0
+            || !w.is_multiple_of(tw)
+            || !h.is_multiple_of(th)
+            || w / tw != h / th
+            || fine == 0
+        {
             return TransportQuality::Unavailable {
                 unavailable: "the ground truth does not match the projector grid".into(),
             };

@@ -1046,22 +1046,32 @@ fn explore_power_iteration() {
     println!("gaussian 307x1024: {}", line.join(", "));
 }
 
-/// A TV path point whose first steps fail with the capped inexact prox must still reach its
-/// minimum. Before the inner cap was raised for a failed step's retry (and the retry state reset
-/// after an accepted step), the 32x32 photo from 51 Hadamard pairs stopped the f = 0.1 point
-/// after four rejected steps with the f = 0.3 image unchanged (`Stalled`, counted as converged).
-#[test]
-fn tv_path_points_reach_their_minimum_after_failed_inexact_steps() {
-    use crate::ops::HadamardOperator;
-    use helmholtz_proto::HadamardOrdering;
-    let side = 32u32;
+/// The built-in photo on a `side x side` grid and the first `1 / share` of its Russian-doll
+/// Hadamard rows (orthonormal split-pair differences).
+fn photo_pairs(side: u32, share: usize) -> (Vec<f64>, crate::ops::HadamardOperator) {
     let truth: Vec<f64> = helmholtz_sim::Target::builtin("camera", side, side)
         .unwrap()
         .transport(1.0)
         .iter()
         .map(|&v| v as f64)
         .collect();
-    let op = HadamardOperator::new(side, side, HadamardOrdering::RussianDoll, truth.len() / 20);
+    let op = crate::ops::HadamardOperator::new(
+        side,
+        side,
+        helmholtz_proto::HadamardOrdering::RussianDoll,
+        truth.len() / share,
+    );
+    (truth, op)
+}
+
+/// A TV path point whose first steps fail with the capped inexact prox must still reach its
+/// minimum. Before the inner cap was raised for a failed step's retry (and the retry state reset
+/// after an accepted step), the 32x32 photo from 51 Hadamard pairs stopped the f = 0.1 point
+/// after four rejected steps with the f = 0.3 image unchanged (`Stalled`, counted as converged).
+#[test]
+fn tv_path_points_reach_their_minimum_after_failed_inexact_steps() {
+    let side = 32u32;
+    let (truth, op) = photo_pairs(side, 20);
     let b = measure(&op, &truth);
     let grid = Grid {
         width: side as usize,
@@ -1119,16 +1129,8 @@ fn tv_path_points_reach_their_minimum_after_failed_inexact_steps() {
 /// and stops near its minimum.
 #[test]
 fn warm_started_tv_points_reach_their_minimum_on_noisy_data_in_both_directions() {
-    use crate::ops::HadamardOperator;
-    use helmholtz_proto::HadamardOrdering;
     let side = 128u32;
-    let truth: Vec<f64> = helmholtz_sim::Target::builtin("camera", side, side)
-        .unwrap()
-        .transport(1.0)
-        .iter()
-        .map(|&v| v as f64)
-        .collect();
-    let op = HadamardOperator::new(side, side, HadamardOrdering::RussianDoll, truth.len() / 10);
+    let (truth, op) = photo_pairs(side, 10);
     let mut b = measure(&op, &truth);
     // Gaussian noise at 30 dB of the raw buckets' power (the bench's noisy preset): each bucket
     // of a split pair holds about half the scene's light, `y = sum(t) / 2`, with noise
@@ -1148,7 +1150,7 @@ fn warm_started_tv_points_reach_their_minimum_on_noisy_data_in_both_directions()
         ..SolveOptions::default()
     };
     let mut runner = PathRunner::new(&op, Penalty::Tv { grid }, &b, &o).unwrap();
-    let mut check = |p: &PathPoint, start: &[f64]| {
+    let check = |p: &PathPoint, start: &[f64]| {
         // The minimum, as far as a long solve continued from the point gets (a cold solve
         // starts from the flat image, where the f = 0.3 point stalled).
         let tight = SolveOptions {

@@ -244,7 +244,7 @@ pub(super) fn check_binning(spec: &PatternSpec, b: u32) -> Result<(), ParamError
             ),
         ));
     }
-    if !b.is_power_of_two() || spec.width() % b != 0 || spec.height() % b != 0 {
+    if !b.is_power_of_two() || !spec.width().is_multiple_of(b) || !spec.height().is_multiple_of(b) {
         return Err(bad(
             "projector_binning",
             format!(
