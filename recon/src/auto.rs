@@ -1037,6 +1037,13 @@ pub fn run(
     })
 }
 
+/// [`ShrunkInverse`] takes the noise this many standard errors above its estimate. The factor
+/// is only better than the flat image when the noise is not underestimated: where the scene's
+/// energy in the measured coefficients is far below the noise's, a noise estimate 2.4 % low
+/// (one standard error) gave `g = 0.058` for a best `g` of 0.011, and the image was 0.35 dB
+/// worse than flat (the smooth scene at 30 dB). Erring high only shrinks towards the flat image.
+const SHRINK_NOISE_MARGIN: f64 = 2.0;
+
 /// The image `auto` serves when no model beats the flat image on orthonormal rows (Hadamard
 /// split pairs) but the session has a noise estimate: the flat image plus the rows' own
 /// zero-filled inverse of everything but the mean, shrunk by the positive-part James-Stein
@@ -1050,13 +1057,6 @@ pub fn run(
 /// `examples/one`): the text page at 1e4 photons per pattern 8.22 -> 8.49 dB (DGI after its
 /// oracle gain and offset 8.61); at 30 dB the text page and the smooth scene stay flat
 /// (`g = 0`), 8.22 and 13.31 dB (DGI fitted 8.27 and 13.40).
-/// [`ShrunkInverse`] takes the noise this many standard errors above its estimate. The factor
-/// is only better than the flat image when the noise is not underestimated: where the scene's
-/// energy in the measured coefficients is far below the noise's, a noise estimate 2.4 % low
-/// (one standard error) gave `g = 0.058` for a best `g` of 0.011, and the image was 0.35 dB
-/// worse than flat (the smooth scene at 30 dB). Erring high only shrinks towards the flat image.
-const SHRINK_NOISE_MARGIN: f64 = 2.0;
-
 pub struct ShrunkInverse {
     pub t: Vec<f64>,
     pub gain: f64,
