@@ -35,7 +35,8 @@
 //! selection) against the batch's display time at 20 kHz binary frames, and the planner's memory.
 //!
 //! `cargo run --release -p helmholtz-bench -- --preset adaptive --out docs` writes
-//! docs/benchmarks-adaptive.md and .json; `--sizes 128` and `--scenes camera,relief` narrow it.
+//! docs/benchmarks-adaptive.md and .json; `--sizes 128` and `--scenes camera,relief` narrow it,
+//! `--persistence B` runs both planners with that `persistence` instead of their defaults.
 
 use std::fmt::Write as _;
 use std::path::PathBuf;
@@ -61,6 +62,8 @@ pub struct Options {
     pub sizes: Vec<u32>,
     pub scenes: Vec<String>,
     pub ratios: Vec<f64>,
+    /// The planners' `persistence`; `None`: each family's default.
+    pub persistence: Option<f64>,
 }
 
 impl Options {
@@ -300,6 +303,29 @@ struct Session {
     indices: Vec<u32>,
 }
 
+/// One simulated adaptive session of `scene` (as the bench runs it: read noise at 30 dB of a
+/// half-lit bucket when `noisy`), for probes (`examples/adaptive_one.rs`): the resolved spec, the
+/// frames and the truth.
+pub fn probe_session(
+    scene_name: &str,
+    size: u32,
+    ratio: f64,
+    noisy: bool,
+    family: Family,
+) -> anyhow::Result<(PatternSpec, Vec<f64>, Vec<f32>)> {
+    let truth32 = scene(scene_name, size)?;
+    let truth: Vec<f64> = truth32.iter().map(|&v| v as f64).collect();
+    let k = (size * size) as u64;
+    let frames = ((ratio * k as f64).round() as u64).max(2) & !1;
+    let sigma = if noisy {
+        10f64.powf(-30.0 / 20.0) * truth.iter().sum::<f64>() / 2.0
+    } else {
+        0.0
+    };
+    let s = run_adaptive(family, &truth, size, frames, sigma)?;
+    Ok((s.spec, s.frames, truth32))
+}
+
 /// A simulated rig through the planner: the service's loop (poll until none, observe the oldest).
 fn run_adaptive(
     family: Family,
@@ -459,8 +485,8 @@ pub fn run(opts: &Options) -> anyhow::Result<Vec<Row>> {
                         });
                     };
                     for family in [
-                        Family::adaptive(true, 0, 0.0),
-                        Family::adaptive(false, 0, 0.0),
+                        Family::adaptive(true, 0, 0.0, opts.persistence),
+                        Family::adaptive(false, 0, 0.0, opts.persistence),
                     ] {
                         let label = family.name();
                         let haar = matches!(family, Family::AdaptiveHaar { .. });
@@ -488,7 +514,7 @@ pub fn run(opts: &Options) -> anyhow::Result<Vec<Row>> {
                             };
                             // `auto` on the oracle's coefficients, measured as split pairs.
                             let oracle_spec = PatternSpec::new(
-                                Family::adaptive(haar, 0, 0.0),
+                                Family::adaptive(haar, 0, 0.0, None),
                                 size,
                                 size,
                                 2 * kp as u64,

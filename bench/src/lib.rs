@@ -78,6 +78,10 @@ struct Args {
     /// adaptive: image sides (powers of two).
     #[arg(long, value_delimiter = ',', default_value = "128,256")]
     sizes: Vec<u32>,
+    /// adaptive: the planners' `persistence` (PATTERNS.md) for both families; default: each
+    /// family's own (adaptive_haar 0.5, adaptive_hadamard 0).
+    #[arg(long)]
+    persistence: Option<f64>,
     /// noisy, adaptive: scenes (comma-separated; built-in names or PNG paths; adaptive also
     /// takes "relief").
     #[arg(long, value_delimiter = ',')]
@@ -200,6 +204,7 @@ pub fn main() {
                 .clone()
                 .unwrap_or_else(adaptive::Options::default_scenes),
             ratios: adaptive::Options::RATIOS.to_vec(),
+            persistence: args.persistence,
         };
         if let Err(e) = adaptive::run(&opts) {
             eprintln!("helmholtz-bench: {e:#}");

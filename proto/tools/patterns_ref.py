@@ -87,7 +87,8 @@ ADAPTIVE = ("adaptive_haar", "adaptive_hadamard")
 
 def canonical_adaptive(raw: dict) -> dict:
     """An adaptive spec (PATTERNS.md, "Adaptive families"), canonicalised."""
-    allowed = {"family", "width", "height", "count", "seed", "batch", "target_error"}
+    allowed = {"family", "width", "height", "count", "seed", "batch", "target_error",
+               "persistence"}
     for key in raw:
         if key not in allowed:
             raise SpecError(key, "unknown field")
@@ -97,6 +98,7 @@ def canonical_adaptive(raw: dict) -> dict:
     width, height, count = raw["width"], raw["height"], raw["count"]
     seed, batch = raw.get("seed", 0), raw.get("batch", 0)
     target = raw.get("target_error", 0.0)
+    beta = raw.get("persistence", 0.5 if raw["family"] == "adaptive_haar" else 0.0)
     for key, v, top in (("width", width, 2**32), ("height", height, 2**32),
                         ("count", count, 2**64), ("seed", seed, 2**64), ("batch", batch, 2**32)):
         if not _is_uint(v) or v >= top:
@@ -115,8 +117,12 @@ def canonical_adaptive(raw: dict) -> dict:
     if isinstance(target, bool) or not isinstance(target, (int, float)) \
             or not math.isfinite(target) or target < 0:
         raise SpecError("target_error", "a finite number >= 0")
+    if isinstance(beta, bool) or not isinstance(beta, (int, float)) \
+            or not math.isfinite(beta) or beta < 0:
+        raise SpecError("persistence", "a finite number >= 0")
     return {"family": raw["family"], "batch": batch, "target_error": float(target),
-            "width": width, "height": height, "count": count, "seed": seed}
+            "persistence": float(beta), "width": width, "height": height, "count": count,
+            "seed": seed}
 
 
 def canonical_spec(raw: dict) -> dict:
@@ -524,6 +530,10 @@ class AdaptivePlanner:
         self.batch = batch if batch else max(16, -(-self.k * channels // 1024),
                                              -(-self.budget // 128))
         self.target = self.spec["target_error"]
+        self.beta = self.spec["persistence"]
+        # The parent whose measured detail a child inherits (PATTERNS.md: not the mean).
+        self.detail_parent = [parent(self.spec, n) for n in range(self.k)]
+        self.detail_parent = [None if q in (None, 0) else q for q in self.detail_parent]
         self.issued, self.order, self.outstanding = [False] * self.k, [], []
         self.v = [[0.0] * self.k for _ in range(channels)]
         self.energy = [0.0] * channels
@@ -567,8 +577,15 @@ class AdaptivePlanner:
                 continue
             norm, e = math.sqrt(self.energy[ch]), 0.0
             p = predict(self.spec, self.v[ch])
+            v = self.v[ch]
             for n in range(self.k):
-                self.score[n] += abs(p[n]) / norm
+                size = abs(p[n])
+                q = self.detail_parent[n]
+                if self.beta > 0 and q is not None:
+                    inherited = self.beta * abs(v[q])
+                    if inherited > size:
+                        size = inherited
+                self.score[n] += size / norm
                 if not self.issued[n]:
                     e += p[n] * p[n]
             ratio += e / self.energy[ch]
@@ -860,14 +877,20 @@ def build() -> dict:
 
     adaptive_replays = []
     for fam in ADAPTIVE:
-        for w, c, count, batch, target, dark in ((16, 1, 160, 0, 0.0, 7), (16, 2, 200, 12, 0.0, 0),
-                                                 (8, 1, 128, 0, 0.0, 3), (16, 1, 512, 16, 0.02, 1)):
+        # persistence None: the family's default (what a declaration without it gets).
+        for w, c, count, batch, target, dark, beta in (
+                (16, 1, 160, 0, 0.0, 7, 0.0), (16, 2, 200, 12, 0.0, 0, 0.0),
+                (8, 1, 128, 0, 0.0, 3, 0.0), (16, 1, 512, 16, 0.02, 1, 0.0),
+                (16, 1, 160, 0, 0.0, 7, None), (16, 2, 200, 12, 0.0, 0, 1.0),
+                (32, 1, 256, 16, 0.0, 5, None)):
             def scene(shift: int) -> list[int]:
                 # An edge, a bright square and a ramp, in integers (exact JSON).
                 return [(3 * x + (40 if (x - shift) ** 2 + (y - 9) ** 2 < 20 else 0)
                          + (25 if y > 12 else 0)) for y in range(w) for x in range(w)]
             raw = {"family": fam, "width": w, "height": w, "count": count, "batch": batch,
                    "target_error": target}
+            if beta is not None:
+                raw["persistence"] = beta
             scenes = [scene(6 + 4 * i) for i in range(c)]
             frames = simulate_adaptive(raw, scenes, dark)
             order = replay(raw, c, frames)

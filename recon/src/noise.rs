@@ -93,6 +93,54 @@ pub fn from_pair_sums(sums: &[f64], scale: f64, data: &[f64]) -> Option<NoiseEst
     })
 }
 
+/// The noise of split pairs whose patterns light supports of different sizes (the adaptive
+/// families: a Haar function lights its `2^s x 2^s` block, a Walsh-Hadamard function the whole
+/// grid). Pairs with the same support see the same light, `y+ + y- = <support, t> + 2 dark`, so
+/// within a group of one support the sums differ by noise alone; their pooled variance is that of
+/// one pair sum, which (independent frames, read noise) is also that of `y+ - y-`. The datum
+/// `(y+ - y-) / g` of a pair with gain `g` then has the variance `pair_variance / g^2`.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct SupportNoise {
+    /// Variance of one pair's `y+ + y-` (and `y+ - y-`): twice a frame's.
+    pub pair_variance: f64,
+    /// Degrees of freedom of the estimate: pairs less groups, over the groups of two or more.
+    pub dof: usize,
+    /// Supports shown by two or more pairs.
+    pub groups: usize,
+    pub source: &'static str,
+}
+
+impl SupportNoise {
+    /// Relative standard error of [`pair_variance`](Self::pair_variance) (Gaussian noise:
+    /// `sqrt(2 / dof)`).
+    pub fn relative_standard_error(&self) -> f64 {
+        (2.0 / self.dof.max(1) as f64).sqrt()
+    }
+}
+
+/// [`SupportNoise`] from the pairs' sums `y+ + y-` and a key per pair that is equal exactly for
+/// pairs of the same support. `None` when no support was shown twice.
+pub fn from_support_groups(sums: &[f64], support: &[u64]) -> Option<SupportNoise> {
+    let mut order: Vec<usize> = (0..sums.len().min(support.len())).collect();
+    order.sort_by_key(|&r| support[r]);
+    let (mut squares, mut dof, mut groups) = (0.0, 0usize, 0usize);
+    for group in order.chunk_by(|&a, &b| support[a] == support[b]) {
+        if group.len() < 2 {
+            continue;
+        }
+        let mean = group.iter().map(|&r| sums[r]).sum::<f64>() / group.len() as f64;
+        squares += group.iter().map(|&r| (sums[r] - mean).powi(2)).sum::<f64>();
+        dof += group.len() - 1;
+        groups += 1;
+    }
+    (dof > 0).then(|| SupportNoise {
+        pair_variance: squares / dof as f64,
+        dof,
+        groups,
+        source: "pair sums y+ + y- of pairs lighting the same support (the same light but for noise)",
+    })
+}
+
 /// Fewest pixels for [`from_random_rows`]: the moments are exact only as `k` grows (the
 /// sample fill and the centring add terms of order `1 / k`); on a 2x2 grid (16 distinct
 /// patterns) noise-free buckets gave sigma 0.29 +- 0.06 against a data spread of 0.61.
@@ -189,6 +237,32 @@ mod tests {
                 (-2.0 * u.ln()).sqrt() * (2.0 * std::f64::consts::PI * v).cos()
             })
             .collect()
+    }
+
+    /// Pairs of one support share their light: the pooled spread of their sums is the noise,
+    /// whatever the supports' light; a support shown once tells nothing.
+    #[test]
+    fn support_groups_pool_the_spread_of_equal_light() {
+        let noise = normals(4000, 5);
+        let sigma = 3.0;
+        // 1000 supports of very different light, four pairs each; and one shown once.
+        let mut sums: Vec<f64> = (0..4000)
+            .map(|r| 1e4 * ((r / 4) as f64).sqrt() + sigma * noise[r])
+            .collect();
+        let mut support: Vec<u64> = (0..4000).map(|r| (r / 4) as u64).collect();
+        sums.push(-5e6);
+        support.push(7777);
+        let e = from_support_groups(&sums, &support).unwrap();
+        assert_eq!((e.groups, e.dof), (1000, 3000));
+        let rel = (e.pair_variance.sqrt() / sigma - 1.0).abs();
+        assert!(rel < 3.0 * e.relative_standard_error() / 2.0, "{e:?}");
+        // Exact light: no noise.
+        let exact: Vec<f64> = support.iter().map(|&s| s as f64 * 2.5).collect();
+        assert_eq!(
+            from_support_groups(&exact, &support).unwrap().pair_variance,
+            0.0
+        );
+        assert!(from_support_groups(&[1.0, 2.0], &[0, 1]).is_none());
     }
 
     #[test]

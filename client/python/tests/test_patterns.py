@@ -18,7 +18,7 @@ from helmholtz.patterns import (
     ordering_table,
     random_words,
 )
-from helmholtz.spec import ADAPTIVE_FAMILIES, SpecError, fill_quantum
+from helmholtz.spec import ADAPTIVE_FAMILIES, HAAR_PERSISTENCE, SpecError, fill_quantum
 
 from conftest import REPO_ROOT
 
@@ -202,6 +202,9 @@ def test_specs_are_validated_naming_the_field() -> None:
         (dict(family="adaptive_haar", width=8, height=8, count=8, target_error=-1), "target_error"),
         (dict(family="adaptive_haar", width=8, height=8, count=8, target_error=float("nan")), "target_error"),
         (dict(family="adaptive_haar", width=8, height=8, count=8, target_error="0.1"), "target_error"),
+        (dict(family="adaptive_haar", width=8, height=8, count=8, persistence=-0.5), "persistence"),
+        (dict(family="adaptive_hadamard", width=8, height=8, count=8, persistence=float("inf")), "persistence"),
+        (dict(family="adaptive_haar", width=8, height=8, count=8, persistence="0.5"), "persistence"),
         (dict(family="adaptive_hadamard", width=8, height=8, count=8, ordering="natural"), "ordering"),
         (dict(family="hadamard", width=8, height=8, count=8, batch=4), "batch"),
     ]
@@ -218,15 +221,19 @@ def test_protobuf_form_round_trips() -> None:
         hz.PatternSpec.hadamard(16, 4, ordering="cake_cutting"),
         hz.PatternSpec.speckle(33, 20, 50, grain=8, seed=99),
         hz.PatternSpec.adaptive_haar(32, 400, batch=10, target_error=0.05),
+        hz.PatternSpec.adaptive_haar(32, 400, persistence=0.0),
         hz.PatternSpec.adaptive_hadamard(16),
+        hz.PatternSpec.adaptive_hadamard(16, persistence=1.5),
     ]:
         assert hz.PatternSpec.from_proto(spec.to_proto()) == spec
-    # proto3 zeros (and no params at all) are the adaptive defaults.
+    # proto3 zeros (and no params at all) are the adaptive defaults; an explicit persistence
+    # of 0 is kept.
+    assert hz.PatternSpec.adaptive_haar(8, 64, persistence=0.0).to_proto().adaptive.HasField("persistence")
     bare = hz.PatternSpec.from_proto(
         hz.PatternSpec.adaptive_haar(8, 64).to_proto().__class__(family=5, width=8, height=8, count=64)
     )
     assert bare.to_dict() == {
-        "family": "adaptive_haar", "batch": 0, "target_error": 0.0,
+        "family": "adaptive_haar", "batch": 0, "target_error": 0.0, "persistence": 0.5,
         "width": 8, "height": 8, "count": 64, "seed": 0,
     }
     wrong = hz.PatternSpec.adaptive_hadamard(8).to_proto()
@@ -259,6 +266,7 @@ def test_the_server_canonicalises_adaptive_specs_as_this_package_does(client, se
     assert s.spec == spec.canonical()
     assert s.spec.to_dict() == {
         "family": family, "batch": 0, "target_error": 0.05,
+        "persistence": HAAR_PERSISTENCE if family == "adaptive_haar" else 0.0,
         "width": 8, "height": 8, "count": 40, "seed": 0,
     }
     assert client.session(s.id).spec == spec.canonical()

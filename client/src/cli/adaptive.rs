@@ -26,27 +26,16 @@ pub enum AdaptiveArg {
     Hadamard,
 }
 
-/// The adaptive spec of `--adaptive`: the grid and seed of the pattern flags, `count` the frame
-/// budget (default: the whole basis, 2 x width x height frames).
+/// The adaptive spec of `--adaptive`: `family` (from `Family::adaptive`) on the grid and seed of
+/// the pattern flags, `count` the frame budget (default: the whole basis, 2 x width x height
+/// frames).
 pub fn adaptive_spec(
-    kind: AdaptiveArg,
+    family: Family,
     width: u32,
     height: u32,
     count: Option<u64>,
     seed: u64,
-    batch: u32,
-    target_error: f64,
 ) -> anyhow::Result<PatternSpec> {
-    let family = match kind {
-        AdaptiveArg::Haar => Family::AdaptiveHaar {
-            batch,
-            target_error,
-        },
-        AdaptiveArg::Hadamard => Family::AdaptiveHadamard {
-            batch,
-            target_error,
-        },
-    };
     let count = count.unwrap_or(2 * width as u64 * height as u64);
     PatternSpec::new(family, width, height, count, seed).map_err(|e| {
         let flag = match e.field {

@@ -48,18 +48,18 @@ pub fn report_lines(report: &Report) -> Vec<String> {
         }
         lines.push(s);
         let details = &report.recon.details;
-        if let Some(e) = details.get("error_estimate") {
-            if let Some(rel) = e.get("relative").and_then(Value::as_f64) {
-                let mut s = format!("estimated error of T {rel:.3}");
-                if let Some([lo, hi]) = e
-                    .get("range")
-                    .and_then(Value::as_array)
-                    .map(|r| [0, 1].map(|i| r.get(i).and_then(Value::as_f64).unwrap_or(f64::NAN)))
-                {
-                    s.push_str(&format!(" ({lo:.3} to {hi:.3})"));
-                }
-                lines.push(s);
+        if let Some(e) = details.get("error_estimate")
+            && let Some(rel) = e.get("relative").and_then(Value::as_f64)
+        {
+            let mut s = format!("estimated error of T {rel:.3}");
+            if let Some([lo, hi]) = e
+                .get("range")
+                .and_then(Value::as_array)
+                .map(|r| [0, 1].map(|i| r.get(i).and_then(Value::as_f64).unwrap_or(f64::NAN)))
+            {
+                s.push_str(&format!(" ({lo:.3} to {hi:.3})"));
             }
+            lines.push(s);
         }
         if let Some(rel) = details
             .get("relight_error_estimate")

@@ -25,6 +25,7 @@ use super::args::{
 use super::reconstruct::finish_reconstruction;
 use super::spool::{MAX_BATCH_BYTES, spool_and_upload, spool_and_upload_rows, upload_text};
 use crate::adaptive::BatchToMeasure;
+use helmholtz_proto::Family;
 use helmholtz_proto::wire::SampleBuf;
 
 /// Noise flags of the simulator.
@@ -129,6 +130,10 @@ pub struct SimulateArgs {
     /// this (0: spend the whole budget).
     #[arg(long, default_value_t = 0.0, value_name = "ERROR")]
     pub target_error: f64,
+    /// --adaptive: how strongly a measured detail pulls its finer children forward (the spec's
+    /// `persistence`, proto/PATTERNS.md) [default: the family's, haar 0.5, hadamard 0].
+    #[arg(long, value_name = "BETA")]
+    pub persistence: Option<f64>,
     /// Detector channel names, comma separated (each sees the same scene, see --channel-gains).
     /// Image scenes only (lambert names its channels by --detectors / --colour).
     #[arg(long, value_delimiter = ',', default_value = "bucket")]
@@ -271,15 +276,13 @@ pub(super) async fn simulate_cmd(
                 "--adaptive haar with --camera: a camera session's transport matrix is reconstructed from Walsh-Hadamard pairs; use --adaptive hadamard"
             );
             let p = &a.patterns;
-            adaptive_spec(
-                kind,
-                p.width,
-                p.height,
-                p.count,
-                p.seed,
+            let family = Family::adaptive(
+                kind == AdaptiveArg::Haar,
                 a.adaptive_batch,
                 a.target_error,
-            )?
+                a.persistence,
+            );
+            adaptive_spec(family, p.width, p.height, p.count, p.seed)?
         }
         None => a.patterns.to_spec()?,
     };

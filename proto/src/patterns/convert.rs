@@ -45,12 +45,17 @@ impl TryFrom<&v1::PatternSpec> for PatternSpec {
                 Family::Speckle { grain }
             }
             Ok(f @ (v1::PatternFamily::AdaptiveHaar | v1::PatternFamily::AdaptiveHadamard)) => {
-                let (batch, target_error) = match &m.params {
-                    Some(Params::Adaptive(p)) => (p.batch, p.target_error),
-                    None => (0, 0.0),
+                let (batch, target_error, persistence) = match &m.params {
+                    Some(Params::Adaptive(p)) => (p.batch, p.target_error, p.persistence),
+                    None => (0, 0.0, None),
                     Some(_) => return Err(params_mismatch("an adaptive family")),
                 };
-                Family::adaptive(f == v1::PatternFamily::AdaptiveHaar, batch, target_error)
+                Family::adaptive(
+                    f == v1::PatternFamily::AdaptiveHaar,
+                    batch,
+                    target_error,
+                    persistence,
+                )
             }
             Ok(v1::PatternFamily::Unspecified) | Err(_) => {
                 return Err(SpecError {
@@ -123,21 +128,25 @@ impl From<&PatternSpec> for v1::PatternSpec {
             Family::AdaptiveHaar {
                 batch,
                 target_error,
+                persistence,
             } => (
                 v1::PatternFamily::AdaptiveHaar,
                 Params::Adaptive(v1::AdaptiveParams {
                     batch,
                     target_error,
+                    persistence: Some(persistence),
                 }),
             ),
             Family::AdaptiveHadamard {
                 batch,
                 target_error,
+                persistence,
             } => (
                 v1::PatternFamily::AdaptiveHadamard,
                 Params::Adaptive(v1::AdaptiveParams {
                     batch,
                     target_error,
+                    persistence: Some(persistence),
                 }),
             ),
         };
@@ -162,17 +171,20 @@ mod tests {
             Family::AdaptiveHaar {
                 batch: 32,
                 target_error: 0.02,
+                persistence: 0.25,
             },
             Family::AdaptiveHadamard {
                 batch: 0,
                 target_error: 0.0,
+                persistence: 0.0,
             },
         ] {
             let spec = PatternSpec::new(family, 16, 16, 100, 3).unwrap();
             let m = v1::PatternSpec::from(&spec);
             assert_eq!(PatternSpec::try_from(&m).unwrap(), spec);
         }
-        // No params: the defaults (automatic batches, the whole budget).
+        // No params: the defaults (automatic batches, the whole budget, the family's
+        // persistence); an unset persistence is the default too, an explicit 0 is kept.
         let m = v1::PatternSpec {
             family: v1::PatternFamily::AdaptiveHadamard as i32,
             width: 8,
@@ -185,8 +197,32 @@ mod tests {
             PatternSpec::try_from(&m).unwrap().family(),
             &Family::AdaptiveHadamard {
                 batch: 0,
-                target_error: 0.0
+                target_error: 0.0,
+                persistence: crate::patterns::HADAMARD_PERSISTENCE,
             }
+        );
+        let haar = |persistence| v1::PatternSpec {
+            family: v1::PatternFamily::AdaptiveHaar as i32,
+            params: Some(v1::pattern_spec::Params::Adaptive(v1::AdaptiveParams {
+                batch: 0,
+                target_error: 0.0,
+                persistence,
+            })),
+            ..m
+        };
+        for (set, expect) in [
+            (None, crate::patterns::HAAR_PERSISTENCE),
+            (Some(0.0), 0.0),
+            (Some(2.0), 2.0),
+        ] {
+            let spec = PatternSpec::try_from(&haar(set)).unwrap();
+            assert_eq!(spec.family().adaptive_persistence(), Some(expect));
+        }
+        assert_eq!(
+            PatternSpec::try_from(&haar(Some(f64::NAN)))
+                .unwrap_err()
+                .field,
+            "persistence"
         );
         let wrong = v1::PatternSpec {
             params: Some(v1::pattern_spec::Params::Speckle(v1::SpeckleParams {

@@ -50,6 +50,12 @@ pub enum Family {
         /// Stop once the planner's estimated relative error is below this; 0 = whole budget.
         #[serde(default)]
         target_error: f64,
+        /// Weight of a measured parent detail in its children's scores (PATTERNS.md, "The
+        /// planner"): a child ranks as if its coefficient were at least `persistence` times its
+        /// parent's. Absent in a new declaration: [`HAAR_PERSISTENCE`]; absent in a session stored
+        /// before the parameter existed: 0 (the rule it was planned with).
+        #[serde(default = "haar_persistence")]
+        persistence: f64,
     },
     /// Adaptive scan of the 2D Walsh-Hadamard basis (natural index, as the hadamard family).
     AdaptiveHadamard {
@@ -57,6 +63,9 @@ pub enum Family {
         batch: u32,
         #[serde(default)]
         target_error: f64,
+        /// As for `adaptive_haar`; absent: [`HADAMARD_PERSISTENCE`].
+        #[serde(default = "hadamard_persistence")]
+        persistence: f64,
     },
 }
 
@@ -65,6 +74,20 @@ fn one() -> u32 {
 }
 fn half() -> f64 {
     0.5
+}
+
+/// `adaptive_haar`'s `persistence` when a new declaration leaves it out: along a step edge the
+/// orthonormal Haar detail of a child is half its parent's (`docs/benchmark-notes.md` has the
+/// measurements that chose it).
+pub const HAAR_PERSISTENCE: f64 = 0.5;
+/// `adaptive_hadamard`'s `persistence` when a new declaration leaves it out.
+pub const HADAMARD_PERSISTENCE: f64 = 0.0;
+
+fn haar_persistence() -> f64 {
+    HAAR_PERSISTENCE
+}
+fn hadamard_persistence() -> f64 {
+    HADAMARD_PERSISTENCE
 }
 
 impl Family {
@@ -93,17 +116,20 @@ impl Family {
         !matches!(self, Family::Speckle { .. })
     }
 
-    /// `adaptive_haar` (`haar`) or `adaptive_hadamard` with these parameters.
-    pub fn adaptive(haar: bool, batch: u32, target_error: f64) -> Family {
+    /// `adaptive_haar` (`haar`) or `adaptive_hadamard` with these parameters; `persistence`
+    /// `None` takes the family's default ([`HAAR_PERSISTENCE`], [`HADAMARD_PERSISTENCE`]).
+    pub fn adaptive(haar: bool, batch: u32, target_error: f64, persistence: Option<f64>) -> Family {
         if haar {
             Family::AdaptiveHaar {
                 batch,
                 target_error,
+                persistence: persistence.unwrap_or(HAAR_PERSISTENCE),
             }
         } else {
             Family::AdaptiveHadamard {
                 batch,
                 target_error,
+                persistence: persistence.unwrap_or(HADAMARD_PERSISTENCE),
             }
         }
     }
@@ -123,11 +149,22 @@ impl Family {
             Family::AdaptiveHaar {
                 batch,
                 target_error,
+                ..
             }
             | Family::AdaptiveHadamard {
                 batch,
                 target_error,
+                ..
             } => Some((batch, target_error)),
+            _ => None,
+        }
+    }
+
+    /// The planner's `persistence` of an adaptive family.
+    pub fn adaptive_persistence(&self) -> Option<f64> {
+        match *self {
+            Family::AdaptiveHaar { persistence, .. }
+            | Family::AdaptiveHadamard { persistence, .. } => Some(persistence),
             _ => None,
         }
     }
@@ -312,10 +349,12 @@ impl PatternSpec {
             Family::AdaptiveHaar {
                 batch,
                 target_error,
+                persistence,
             }
             | Family::AdaptiveHadamard {
                 batch,
                 target_error,
+                persistence,
             } => {
                 let name = family.name();
                 if !width.is_power_of_two() {
@@ -352,6 +391,14 @@ impl PatternSpec {
                         "target_error",
                         format!(
                             "must be a finite number >= 0 (0 = use the whole budget), got {target_error}"
+                        ),
+                    ));
+                }
+                if !(persistence.is_finite() && persistence >= 0.0) {
+                    return Err(err(
+                        "persistence",
+                        format!(
+                            "must be a finite number >= 0 (0 = rank by the prediction alone), got {persistence}"
                         ),
                     ));
                 }
@@ -611,6 +658,10 @@ mod tests {
                 r#"{"family":"adaptive_haar","width":8,"height":8,"count":8,"target_error":-1}"#,
                 "target_error",
             ),
+            (
+                r#"{"family":"adaptive_hadamard","width":8,"height":8,"count":8,"persistence":-0.5}"#,
+                "persistence",
+            ),
         ];
         for (json, field) in cases {
             let raw: RawSpec = serde_json::from_str(json).unwrap();
@@ -625,18 +676,34 @@ mod tests {
             r#"{"family":"adaptive_haar","width":8,"height":8,"count":40,"target_error":0.05}"#,
         )
         .unwrap();
+        // An absent persistence is the family's default, and the canonical form states it.
         assert_eq!(
             s.family(),
             &Family::AdaptiveHaar {
                 batch: 0,
-                target_error: 0.05
+                target_error: 0.05,
+                persistence: HAAR_PERSISTENCE,
             }
         );
         assert!(s.is_adaptive() && s.adaptive_indices().is_none());
         assert_eq!(
             s.to_json(),
-            r#"{"family":"adaptive_haar","batch":0,"target_error":0.05,"width":8,"height":8,"count":40,"seed":0}"#
+            r#"{"family":"adaptive_haar","batch":0,"target_error":0.05,"persistence":0.5,"width":8,"height":8,"count":40,"seed":0}"#
         );
+        let h: PatternSpec = serde_json::from_str(
+            r#"{"family":"adaptive_hadamard","width":8,"height":8,"count":40}"#,
+        )
+        .unwrap();
+        assert_eq!(
+            h.family().adaptive_persistence(),
+            Some(HADAMARD_PERSISTENCE)
+        );
+        let zero: PatternSpec = serde_json::from_str(
+            r#"{"family":"adaptive_haar","width":8,"height":8,"count":40,"target_error":0.05,"persistence":0}"#,
+        )
+        .unwrap();
+        assert_eq!(zero.family().adaptive_persistence(), Some(0.0));
+        assert_ne!(zero, s);
         let r = s.with_indices(Arc::from(vec![0u32, 9, 63])).unwrap();
         assert_eq!(r.adaptive_indices(), Some(&[0u32, 9, 63][..]));
         // The indices are not part of the declaration.

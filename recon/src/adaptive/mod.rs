@@ -19,9 +19,13 @@
 //!    smooth guess of the image at level `l`'s resolution), transformed by the basis on that grid
 //!    and rescaled by `2^l` to the full grid. Where the coarse image has an edge, the upsampling
 //!    has one too, and the fine coefficients along it are predicted large;
-//! 3. scores index `n` by `sum over channels of |p_{c,n}| / ||c_c||` (each channel normalised
-//!    by the norm of its observed coefficients), so one index serves every detector or camera
-//!    pixel at once.
+//! 3. scores index `n` by `sum over channels of max(|p_{c,n}|, beta |c_{c,parent(n)}|) / ||c_c||`
+//!    (each channel normalised by the norm of its observed coefficients), so one index serves
+//!    every detector or camera pixel at once. `beta` is the spec's `persistence`: a detail that
+//!    was measured large makes its children rank as if they were at least `beta` times its size
+//!    (details persist across scales along an edge or a texture, which the bicubic guess from
+//!    coarser block averages alone misses: along a step edge a Haar child is half its parent).
+//!    The mean (index 0) passes nothing on.
 //!
 //! The next batch is the `B` not yet issued indices ranked by (parent issued first, score
 //! descending, level descending, index ascending): a greedy choice of the largest predicted
@@ -170,6 +174,8 @@ pub struct Planner {
     budget: u64,
     batch: u64,
     target_error: f64,
+    /// The spec's `persistence`: weight of a measured parent detail in its children's scores.
+    persistence: f64,
     /// Per index: its level and its parent (`u32::MAX` for none).
     level: Vec<u8>,
     parent: Vec<u32>,
@@ -224,6 +230,7 @@ impl Planner {
             budget: (spec.count() / 2).min(k as u64),
             batch: batch_pairs(spec, channels).expect("adaptive"),
             target_error,
+            persistence: spec.family().adaptive_persistence().expect("adaptive"),
             level,
             parent,
             issued: vec![false; k],
@@ -370,10 +377,19 @@ impl Planner {
             let norm = energy.sqrt();
             self.predictor
                 .predict(&self.values[ch * k..(ch + 1) * k], &mut self.pred);
+            let values = &self.values[ch * k..(ch + 1) * k];
             let mut unissued = 0.0;
             for n in 0..k {
                 let p = self.pred[n];
-                self.score[n] += p.abs() / norm;
+                let mut size = p.abs();
+                let parent = self.parent[n];
+                if self.persistence > 0.0 && parent != u32::MAX && parent != 0 {
+                    let inherited = self.persistence * values[parent as usize].abs();
+                    if inherited > size {
+                        size = inherited;
+                    }
+                }
+                self.score[n] += size / norm;
                 if !self.issued[n] {
                     unissued += p * p;
                 }

@@ -6,7 +6,7 @@ use helmholtz_proto::{Family, HaarFunction, PatternGenerator, PatternSpec};
 use super::*;
 
 fn spec(haar: bool, width: u32, pairs: u64, batch: u32, target_error: f64) -> PatternSpec {
-    let family = Family::adaptive(haar, batch, target_error);
+    let family = Family::adaptive(haar, batch, target_error, None);
     PatternSpec::new(family, width, width, 2 * pairs, 0).unwrap()
 }
 
@@ -293,8 +293,8 @@ fn the_contract_vectors_replay_to_their_indices() {
     let text = include_str!("../../../proto/tests/pattern_vectors.json");
     let v: serde_json::Value = serde_json::from_str(text).unwrap();
     let replays = v["adaptive_replays"].as_array().unwrap();
-    assert_eq!(replays.len(), 8);
-    let mut stopped_early = 0;
+    assert_eq!(replays.len(), 14);
+    let (mut stopped_early, mut persistent) = (0, 0);
     for r in replays {
         let spec: PatternSpec = serde_json::from_value(r["spec"].clone()).unwrap();
         let channels = r["channels"].as_u64().unwrap() as usize;
@@ -312,11 +312,18 @@ fn the_contract_vectors_replay_to_their_indices() {
             .collect();
         let (planner, indices) = replay(&spec, channels, &frames).unwrap();
         assert_eq!(indices, want, "{}", spec.to_json());
+        if spec.family().adaptive_persistence() > Some(0.0) {
+            persistent += 1;
+        }
         if planner.finished() == Some(StopReason::TargetError) {
             stopped_early += 1;
         }
     }
     assert_eq!(stopped_early, 2, "the target-error sessions stop early");
+    assert_eq!(
+        persistent, 4,
+        "sessions planned with a parent's persistence"
+    );
 }
 
 mod reconstruction {
@@ -382,6 +389,61 @@ mod reconstruction {
             let e = solve(&part, &frames, "auto").unwrap_err();
             assert!(e.to_string().contains("not resolved"), "{e}");
         }
+    }
+
+    /// `auto` on adaptive Haar pairs keeps what was measured and not its noise: noise-free the
+    /// image reproduces every measured coefficient (the model fills in only the rest); under read
+    /// noise, where a fine Haar pair's coefficient is mostly noise (its support collects little
+    /// light), the image is no worse than the flat one while the zero-filled inverse is swamped.
+    #[test]
+    fn auto_keeps_the_measured_haar_coefficients_and_not_their_noise() {
+        use crate::linop::LinearOperator;
+        use crate::testutil::Rng;
+        let w = 64usize;
+        let image = scene(w, 0.05);
+        let truth: Vec<f32> = image.iter().map(|&v| v as f32).collect();
+        let s = spec(true, w as u32, 1024, 0, 0.0);
+        let (planner, clean) = run(&s, std::slice::from_ref(&image), 3.0);
+        let resolved = s.with_indices(planner.indices().into()).unwrap();
+        let psnr = |t: &[f32]| crate::metrics::psnr(t, &truth);
+
+        let auto = solve(&resolved, &clean, "auto").unwrap();
+        let direct = solve(&resolved, &clean, "direct").unwrap();
+        let mut c = vec![0.0; w * w];
+        let t: Vec<f64> = auto.iter().map(|&v| v as f64).collect();
+        crate::transforms::wavelet::Wavelet2d::haar(w, w).apply(&t, &mut c);
+        let measured = planner.coefficients(0);
+        let (mut miss, mut norm) = (0.0, 0.0);
+        for &n in planner.indices() {
+            miss += (c[n as usize] - measured[n as usize]).powi(2);
+            norm += measured[n as usize].powi(2);
+        }
+        let miss = (miss / norm).sqrt();
+        assert!(miss < 1e-6, "measured coefficients off by {miss}");
+        // The TV model fills in this piecewise-smooth scene far beyond the zero-filled inverse
+        // (measured 62.6 dB against 40.6).
+        assert!(
+            psnr(&auto) >= psnr(&direct) + 10.0,
+            "auto {} against the zero-filled {}",
+            psnr(&auto),
+            psnr(&direct)
+        );
+
+        // 30 dB below a half-lit bucket, the same on every frame.
+        let sigma = 10f64.powf(-1.5) * image.iter().sum::<f64>() / 2.0;
+        let mut rng = Rng::new(11);
+        let noisy: Vec<f64> = clean.iter().map(|v| v + sigma * rng.normal()).collect();
+        let auto = solve(&resolved, &noisy, "auto").unwrap();
+        let direct = solve(&resolved, &noisy, "direct").unwrap();
+        let mean = (image.iter().sum::<f64>() / image.len() as f64) as f32;
+        let flat = vec![mean; w * w];
+        assert!(
+            psnr(&auto) >= psnr(&flat) - 0.1 && psnr(&auto) > psnr(&direct) + 10.0,
+            "auto {} against the flat {} and the zero-filled {}",
+            psnr(&auto),
+            psnr(&flat),
+            psnr(&direct)
+        );
     }
 
     /// Rows of pairs not resolved yet (an upload that overtook its batch) are counted, not shown.

@@ -137,19 +137,10 @@ mod tests {
     fn rows_are_the_pattern_functions() {
         let w = 8u32;
         let indices: Vec<u32> = (0..64).collect();
-        let spec = PatternSpec::new(
-            Family::AdaptiveHaar {
-                batch: 0,
-                target_error: 0.0,
-            },
-            w,
-            w,
-            128,
-            0,
-        )
-        .unwrap()
-        .with_indices(Arc::from(indices))
-        .unwrap();
+        let spec = PatternSpec::new(Family::adaptive(true, 0, 0.0, None), w, w, 128, 0)
+            .unwrap()
+            .with_indices(Arc::from(indices))
+            .unwrap();
         let op = HaarSubsetOperator::from_spec(&spec, 128).unwrap();
         let dense = DenseOperator::from_operator(&op);
         let generator = PatternGenerator::new(&spec);

@@ -216,9 +216,26 @@ pub(crate) fn now_ms() -> i64 {
 }
 
 pub(crate) fn parse_spec(json: &str) -> Result<PatternSpec, StoreError> {
-    serde_json::from_str(json)
+    let legacy = legacy_adaptive(json);
+    serde_json::from_str(legacy.as_deref().unwrap_or(json))
         .or_else(|e| legacy_repeated_raster(json).ok_or(e))
         .map_err(|e| StoreError::Corrupt(format!("stored spec: {e}")))
+}
+
+/// An adaptive session stored before `persistence` was part of the spec (PATTERNS.md) was
+/// planned without it, so it reads as `persistence: 0`: a replay of its values must give back
+/// the indices it showed. (A new declaration that leaves `persistence` out gets the family's
+/// default instead; the canonical form stored since states it.)
+fn legacy_adaptive(json: &str) -> Option<String> {
+    if !json.contains("\"adaptive_") || json.contains("\"persistence\"") {
+        return None;
+    }
+    let mut v: serde_json::Map<String, serde_json::Value> = serde_json::from_str(json).ok()?;
+    if !v.get("family")?.as_str()?.starts_with("adaptive_") {
+        return None;
+    }
+    v.insert("persistence".into(), 0.0.into());
+    Some(serde_json::Value::Object(v).to_string())
 }
 
 /// A raster stored before `scans` was part of the spec (PATTERNS.md) could run past one scan

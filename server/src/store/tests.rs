@@ -529,6 +529,15 @@ async fn upgrading_a_database_keeps_its_sessions_and_jobs_in_the_default_lab() {
     .execute(&pool)
     .await
     .unwrap();
+    // An adaptive session stored before `persistence` existed.
+    sqlx::query(
+        "INSERT INTO sessions (id, rig, spec_json, channels_json, metadata_json, expected_rows, committed_rows, created_ms) \
+         VALUES ('old-adaptive', 'r', $1, '[\"a\"]', '{}', 32, 0, 1)",
+    )
+    .bind(r#"{"family":"adaptive_haar","batch":0,"target_error":0.0,"width":4,"height":4,"count":32,"seed":0}"#)
+    .execute(&pool)
+    .await
+    .unwrap();
     sqlx::query("INSERT INTO jobs (id, kind, state, run_at_ms, created_ms) VALUES (1, 'reconstruction', 'queued', 1, 1)")
         .execute(&pool)
         .await
@@ -544,11 +553,23 @@ async fn upgrading_a_database_keeps_its_sessions_and_jobs_in_the_default_lab() {
     assert_eq!(s.session("demo-usaf-hadamard").await.unwrap().lab, "demo");
     let r = s.reconstruction(1).await.unwrap();
     assert_eq!((r.lab.as_str(), r.state.as_str()), ("default", "queued"));
-    assert_eq!(s.list_sessions("default", 10).await.unwrap().len(), 2);
+    assert_eq!(s.list_sessions("default", 10).await.unwrap().len(), 3);
     // The old repeated raster still opens, now declaring the two scans its count holds.
     let old = s.session("old-repeat").await.unwrap();
     assert_eq!(old.spec.family(), &Family::Raster { block: 1, scans: 2 });
     assert_eq!(old.spec.count(), 32);
+    // The old adaptive session keeps the planner rule it was run with (no persistence), while
+    // a new declaration without the field gets the family's default.
+    let old = s.session("old-adaptive").await.unwrap();
+    assert_eq!(old.spec.family().adaptive_persistence(), Some(0.0));
+    let new: PatternSpec = serde_json::from_str(
+        r#"{"family":"adaptive_haar","batch":0,"target_error":0.0,"width":4,"height":4,"count":32,"seed":0}"#,
+    )
+    .unwrap();
+    assert_eq!(
+        new.family().adaptive_persistence(),
+        Some(helmholtz_proto::patterns::HAAR_PERSISTENCE)
+    );
     assert!(
         s.claim_job("w", 60_000, 0).await.unwrap().is_some(),
         "the queued job still runs"
@@ -1063,6 +1084,7 @@ async fn adaptive_batches_bound_the_rows_and_resolve_the_spec(s: Store) {
         Family::AdaptiveHaar {
             batch: 2,
             target_error: 0.0,
+            persistence: 0.5,
         },
         4,
         4,

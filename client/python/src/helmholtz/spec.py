@@ -26,6 +26,8 @@ __all__ = [
     "SpecError",
     "FAMILIES",
     "ADAPTIVE_FAMILIES",
+    "HAAR_PERSISTENCE",
+    "HADAMARD_PERSISTENCE",
     "ORDERINGS",
     "MAX_SIDE",
     "MAX_PIXELS",
@@ -42,6 +44,9 @@ FILL_BITS = 16
 #: PATTERNS.md's adaptive families: the server chooses the basis function of each split pair.
 ADAPTIVE_FAMILIES = ("adaptive_haar", "adaptive_hadamard")
 FAMILIES = ("raster", "bernoulli", "hadamard", "speckle", *ADAPTIVE_FAMILIES)
+#: The adaptive families' ``persistence`` when a declaration leaves it out (PATTERNS.md).
+HAAR_PERSISTENCE = 0.5
+HADAMARD_PERSISTENCE = 0.0
 ORDERINGS = ("natural", "sequency", "zigzag", "russian_doll", "cake_cutting")
 
 _FAMILY_TO_PB = {
@@ -113,6 +118,9 @@ class PatternSpec:
         batch: adaptive families: split pairs per batch, 0 = sized by the server.
         target_error: adaptive families: stop once the server's estimated relative error is
             below this, 0.0 = spend the whole budget.
+        persistence: adaptive families: how much a measured detail pulls its finer children
+            forward in the planner's ranking (PATTERNS.md); ``None`` = the family's default
+            (:data:`HAAR_PERSISTENCE`, :data:`HADAMARD_PERSISTENCE`).
     """
 
     family: str
@@ -127,6 +135,7 @@ class PatternSpec:
     grain: Optional[int] = None
     batch: Optional[int] = None
     target_error: Optional[float] = None
+    persistence: Optional[float] = None
 
     # -- constructors ---------------------------------------------------------------------
     @classmethod
@@ -162,27 +171,53 @@ class PatternSpec:
 
     @classmethod
     def adaptive_haar(
-        cls, side: int, count: Optional[int] = None, *, batch: int = 0, target_error: float = 0.0
+        cls,
+        side: int,
+        count: Optional[int] = None,
+        *,
+        batch: int = 0,
+        target_error: float = 0.0,
+        persistence: Optional[float] = None,
     ) -> "PatternSpec":
         """An adaptive session over the 2D Haar basis (Mallat layout) of a ``side x side`` grid
         (a power of two). ``count`` is the frame budget, two frames per split pair (default:
         the whole basis, ``2 * side * side``); ``batch`` split pairs per batch (0: the server
-        sizes them); ``target_error`` > 0 stops early once the estimated error is below it."""
+        sizes them); ``target_error`` > 0 stops early once the estimated error is below it;
+        ``persistence`` weighs a measured detail in its children's ranking (default 0.5)."""
         if count is None:
             count = 2 * side * side
         return cls(
-            "adaptive_haar", side, side, count, batch=batch, target_error=target_error
+            "adaptive_haar",
+            side,
+            side,
+            count,
+            batch=batch,
+            target_error=target_error,
+            persistence=persistence,
         ).canonical()
 
     @classmethod
     def adaptive_hadamard(
-        cls, side: int, count: Optional[int] = None, *, batch: int = 0, target_error: float = 0.0
+        cls,
+        side: int,
+        count: Optional[int] = None,
+        *,
+        batch: int = 0,
+        target_error: float = 0.0,
+        persistence: Optional[float] = None,
     ) -> "PatternSpec":
-        """As :meth:`adaptive_haar`, over the Walsh-Hadamard basis (natural index)."""
+        """As :meth:`adaptive_haar`, over the Walsh-Hadamard basis (natural index);
+        ``persistence`` defaults to 0."""
         if count is None:
             count = 2 * side * side
         return cls(
-            "adaptive_hadamard", side, side, count, batch=batch, target_error=target_error
+            "adaptive_hadamard",
+            side,
+            side,
+            count,
+            batch=batch,
+            target_error=target_error,
+            persistence=persistence,
         ).canonical()
 
     # -- properties -----------------------------------------------------------------------
@@ -229,7 +264,7 @@ class PatternSpec:
         adaptive = family in ADAPTIVE_FAMILIES
         allowed = {"family", "width", "height", "count", "seed"}
         if adaptive:
-            allowed |= {"batch", "target_error"}
+            allowed |= {"batch", "target_error", "persistence"}
         else:
             allowed.add(_PARAMS[family])
         if family == "raster":
@@ -309,7 +344,16 @@ class PatternSpec:
         """The JSON form, keys in the canonical order (canonicalised first unless told not)."""
         spec = self.canonical() if canonical else self
         out: dict[str, Any] = {"family": spec.family}
-        for name in ("block", "scans", "fill", "ordering", "grain", "batch", "target_error"):
+        for name in (
+            "block",
+            "scans",
+            "fill",
+            "ordering",
+            "grain",
+            "batch",
+            "target_error",
+            "persistence",
+        ):
             value = getattr(spec, name)
             if value is not None:
                 out[name] = value
@@ -339,6 +383,7 @@ class PatternSpec:
         elif s.adaptive:
             msg.adaptive.batch = s.batch or 0
             msg.adaptive.target_error = float(s.target_error or 0.0)
+            msg.adaptive.persistence = float(s.persistence)
         else:
             msg.speckle.grain = s.grain or 1
         return msg
@@ -371,6 +416,8 @@ class PatternSpec:
         elif family in ADAPTIVE_FAMILIES and which:
             raw["batch"] = msg.adaptive.batch
             raw["target_error"] = msg.adaptive.target_error
+            if msg.adaptive.HasField("persistence"):
+                raw["persistence"] = msg.adaptive.persistence
         return cls.from_dict(raw)
 
     def with_count(self, count: int) -> "PatternSpec":
@@ -381,7 +428,7 @@ class PatternSpec:
 def _adaptive_params(
     family: str, raw: Mapping[str, Any], width: int, height: int, count: int
 ) -> dict[str, Any]:
-    """``batch`` and ``target_error`` of an adaptive spec, checked with its grid and budget
+    """``batch``, ``target_error`` and ``persistence`` of an adaptive spec, checked with its grid and budget
     (PATTERNS.md, adaptive families: the checks and their order are the server's)."""
     if width & (width - 1):
         raise SpecError("width", f"{family} needs a power of two, got {width}")
@@ -412,4 +459,19 @@ def _adaptive_params(
         raise SpecError(
             "target_error", f"must be a finite number >= 0 (0 = use the whole budget), got {target}"
         )
-    return {"batch": batch, "target_error": target}
+    default = HAAR_PERSISTENCE if family == "adaptive_haar" else HADAMARD_PERSISTENCE
+    beta = raw.get("persistence")
+    if beta is None:
+        beta = default
+    if isinstance(beta, bool) or not isinstance(beta, (int, float)):
+        raise SpecError("persistence", f"must be a number, got {beta!r}")
+    try:
+        beta = float(beta)
+    except OverflowError:
+        beta = math.inf
+    if not (math.isfinite(beta) and beta >= 0.0):
+        raise SpecError(
+            "persistence",
+            f"must be a finite number >= 0 (0 = rank by the prediction alone), got {beta}",
+        )
+    return {"batch": batch, "target_error": target, "persistence": beta}

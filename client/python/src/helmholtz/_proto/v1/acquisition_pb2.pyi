@@ -97,12 +97,14 @@ class SpeckleParams(_message.Message):
     def __init__(self, grain: _Optional[int] = ...) -> None: ...
 
 class AdaptiveParams(_message.Message):
-    __slots__ = ("batch", "target_error")
+    __slots__ = ("batch", "target_error", "persistence")
     BATCH_FIELD_NUMBER: _ClassVar[int]
     TARGET_ERROR_FIELD_NUMBER: _ClassVar[int]
+    PERSISTENCE_FIELD_NUMBER: _ClassVar[int]
     batch: int
     target_error: float
-    def __init__(self, batch: _Optional[int] = ..., target_error: _Optional[float] = ...) -> None: ...
+    persistence: float
+    def __init__(self, batch: _Optional[int] = ..., target_error: _Optional[float] = ..., persistence: _Optional[float] = ...) -> None: ...
 
 class PatternSpec(_message.Message):
     __slots__ = ("family", "width", "height", "count", "seed", "raster", "bernoulli", "hadamard", "speckle", "adaptive")

@@ -1,0 +1,69 @@
+//! One simulated adaptive session, reconstructed by the given methods: PSNR, time and (with
+//! `ONE_REPORT=1`) each report. A probe for the numerics on adaptive data (the bench runs grids).
+//!
+//! `cargo run --release -p helmholtz-bench --example adaptive_one -- haar|hadamard 128 0.05 relief none|noisy [PERSISTENCE] [direct,auto,...]`
+
+use std::time::Instant;
+
+use helmholtz_proto::Family;
+use helmholtz_recon::{self as recon, Control, MethodConfig, Problem, SliceSource, metrics};
+
+fn main() {
+    let a: Vec<String> = std::env::args().collect();
+    let arg = |i: usize, d: &str| a.get(i).cloned().unwrap_or_else(|| d.to_string());
+    let haar = match arg(1, "haar").as_str() {
+        "haar" => true,
+        "hadamard" => false,
+        other => panic!("basis {other:?}: haar or hadamard"),
+    };
+    let size: u32 = arg(2, "128").parse().expect("size");
+    let ratio: f64 = arg(3, "0.05").parse().expect("ratio");
+    let scene = arg(4, "relief");
+    let noisy = match arg(5, "none").as_str() {
+        "none" => false,
+        "noisy" => true,
+        other => panic!("noise {other:?}: none or noisy"),
+    };
+    let persistence = a
+        .get(6)
+        .filter(|p| !p.is_empty() && *p != "default")
+        .map(|p| p.parse::<f64>().expect("persistence"));
+    let methods = arg(7, "direct,auto");
+    let family = Family::adaptive(haar, 0, 0.0, persistence);
+    let (spec, frames, truth) =
+        helmholtz_bench::adaptive::probe_session(&scene, size, ratio, noisy, family)
+            .expect("session");
+    let problem = Problem {
+        spec: &spec,
+        channels: 1,
+        rows: frames.len() as u64,
+    };
+    for method in methods.split(',') {
+        let config = MethodConfig::parse(method, &serde_json::Value::Null).expect("method");
+        let started = Instant::now();
+        let r = recon::reconstruct(
+            &problem,
+            &config,
+            &mut SliceSource::new(&frames, 1, 4096),
+            &Control::new(),
+        )
+        .expect("reconstruct");
+        let s = started.elapsed().as_secs_f64();
+        let img = &r.images[0].data;
+        let mean = |v: &[f32]| v.iter().map(|&x| x as f64).sum::<f64>() / v.len() as f64;
+        println!(
+            "{method:<8} {:>7.2} dB  {s:>7.3} s  ({} frames; mean {:.4} against {:.4}, max {:.3})",
+            metrics::psnr(img, &truth),
+            frames.len(),
+            mean(img),
+            mean(&truth),
+            img.iter().copied().fold(f32::NEG_INFINITY, f32::max)
+        );
+        if std::env::var_os("ONE_REPORT").is_some() {
+            println!(
+                "{}",
+                serde_json::to_string_pretty(&r.report.details).unwrap()
+            );
+        }
+    }
+}
