@@ -181,12 +181,12 @@ pub struct Channel<'a> {
     pub noise: Option<NoiseEstimate>,
     /// What the rows are, for turning held-out residuals into an image error estimate.
     pub design: Design,
-    /// Adaptive sessions: every row's noise ([`RowNoise`]), for putting the measured
+    /// `adaptive_haar` sessions: every row's noise ([`RowNoise`]), for putting the measured
     /// coefficients back into the image ([`Consistency`]).
     pub row_noise: Option<RowNoise>,
 }
 
-/// The noise of each row of an adaptive session's orthonormal split-pair data: row `r`'s datum
+/// The noise of each row of an `adaptive_haar` session's orthonormal split-pair data: row `r`'s datum
 /// `(y+ - y-) / gains[r]` has the variance `noise.pair_variance / gains[r]^2`. Rows are
 /// weighed in groups of one `levels[r]` (the basis function's level, [`crate::adaptive::Basis::level`]):
 /// one noise level and, in a multiscale basis, coefficients of one typical size.
@@ -227,11 +227,9 @@ impl RowNoise {
     /// factor `max(0, 1 - n v / ||b_g||^2)`: the data a model is fitted to, so that the rows whose
     /// noise is most of what they carry (fine Haar scales under read noise: the datum of a
     /// `2 x 2` support has the noise of a whole frame pair over 2) do not steer the fit, and the
-    /// held-out comparisons see the same. Noise-free the data are unchanged. Returns the
-    /// data and the factor of each group ([`RowNoise::groups`] order).
-    pub fn denoised(&self, b: &[f64]) -> (Vec<f64>, Vec<f64>) {
+    /// held-out comparisons see the same. Noise-free the data are unchanged.
+    pub fn denoised(&self, b: &[f64]) -> Vec<f64> {
         let mut out = b.to_vec();
-        let mut factors = Vec::new();
         for group in self.groups() {
             let energy: f64 = group.iter().map(|&r| b[r] * b[r]).sum();
             let v = self.group_variance(&group);
@@ -243,9 +241,8 @@ impl RowNoise {
             for &r in &group {
                 out[r] *= factor;
             }
-            factors.push(factor);
         }
-        (out, factors)
+        out
     }
 }
 
@@ -273,11 +270,11 @@ fn group_factor(n: usize, v: f64, energy: f64) -> f64 {
 
 /// The measured coefficients put back into `auto`'s image, by as much as their noise allows.
 ///
-/// An adaptive session measures a set of orthonormal coefficients `d = A t + noise` (`A A^T = I`)
+/// An `adaptive_haar` session measures orthonormal coefficients `d = A t + noise` (`A A^T = I`)
 /// chosen for being large. `auto`'s model fills in the coefficients nobody measured, but its fit
 /// also shrinks the measured ones: noise-free, the refit of the relief at 25 % missed its own
-/// data by 16 % and lost 10 dB against the zero-filled inverse. Per group of rows with one gain
-/// (one noise level: a Haar scale), the measured coefficients move from the model's `m = A t`
+/// data by 16 % and lost 10 dB against the zero-filled inverse. Per level (one Haar scale: one
+/// gain, one noise level), the measured coefficients move from the model's `m = A t`
 /// towards the data by the positive-part James-Stein factor
 /// `G = max(0, 1 - n v / ||d - m||^2)` (`n` rows of variance `v`, taken
 /// [`CONSISTENCY_NOISE_MARGIN`] standard errors high): `t <- t + A^T (G (d - m))`, then clipped
