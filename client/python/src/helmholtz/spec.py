@@ -448,30 +448,22 @@ def _adaptive_params(
         raise SpecError("batch", f"must be an unsigned integer below 2^32, got {batch!r}")
     if batch > k:
         raise SpecError("batch", f"must be 0 (automatic) or 1..={k} split pairs, got {batch}")
-    target = raw.get("target_error", 0.0)
-    if isinstance(target, bool) or not isinstance(target, (int, float)):
-        raise SpecError("target_error", f"must be a number, got {target!r}")
-    try:
-        target = float(target)
-    except OverflowError:
-        target = math.inf
-    if not (math.isfinite(target) and target >= 0.0):
-        raise SpecError(
-            "target_error", f"must be a finite number >= 0 (0 = use the whole budget), got {target}"
-        )
+    target = _non_negative(raw, "target_error", 0.0, "0 = use the whole budget")
     default = HAAR_PERSISTENCE if family == "adaptive_haar" else HADAMARD_PERSISTENCE
-    beta = raw.get("persistence")
-    if beta is None:
-        beta = default
-    if isinstance(beta, bool) or not isinstance(beta, (int, float)):
-        raise SpecError("persistence", f"must be a number, got {beta!r}")
-    try:
-        beta = float(beta)
-    except OverflowError:
-        beta = math.inf
-    if not (math.isfinite(beta) and beta >= 0.0):
-        raise SpecError(
-            "persistence",
-            f"must be a finite number >= 0 (0 = rank by the prediction alone), got {beta}",
-        )
+    beta = _non_negative(raw, "persistence", default, "0 = rank by the prediction alone")
     return {"batch": batch, "target_error": target, "persistence": beta}
+
+
+def _non_negative(raw: Mapping[str, Any], key: str, default: float, zero: str) -> float:
+    """``raw[key]`` (``default`` when absent) as a finite float >= 0, else the refusal naming
+    ``key`` (as the server's, which refuses a null too); ``zero`` says what 0 means."""
+    value = raw.get(key, default)
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise SpecError(key, f"must be a number, got {value!r}")
+    try:
+        value = float(value)
+    except OverflowError:
+        value = math.inf
+    if not (math.isfinite(value) and value >= 0.0):
+        raise SpecError(key, f"must be a finite number >= 0 ({zero}), got {value}")
+    return value
