@@ -2,6 +2,9 @@
 //! `ONE_REPORT=1`) each report. A probe for the numerics on adaptive data (the bench runs grids).
 //!
 //! `cargo run --release -p helmholtz-bench --example adaptive_one -- haar|hadamard 128 0.05 relief none|noisy [PERSISTENCE] [direct,auto,...]`
+//!
+//! `ONE_ALPHA=1` (with `direct,auto`, noise-free) also prints the PSNR of `direct + alpha u` for
+//! `u = auto - direct`, the fill-in of the coefficients no pair measured, and the oracle `alpha`.
 
 use std::time::Instant;
 
@@ -38,6 +41,7 @@ fn main() {
         channels: 1,
         rows: frames.len() as u64,
     };
+    let mut images: Vec<(String, Vec<f32>)> = Vec::new();
     for method in methods.split(',') {
         let config = MethodConfig::parse(method, &serde_json::Value::Null).expect("method");
         let started = Instant::now();
@@ -59,11 +63,34 @@ fn main() {
             mean(&truth),
             img.iter().copied().fold(f32::NEG_INFINITY, f32::max)
         );
+        images.push((method.to_string(), img.clone()));
         if std::env::var_os("ONE_REPORT").is_some() {
             println!(
                 "{}",
                 serde_json::to_string_pretty(&r.report.details).unwrap()
             );
+        }
+    }
+    // Probe: the fill-in `u = auto - direct` scaled by alpha (noise-free, `direct` holds the
+    // measured coefficients exactly and `auto` the same plus its model's fill-in).
+    if std::env::var_os("ONE_ALPHA").is_some() {
+        let get = |name: &str| images.iter().find(|(m, _)| m == name).map(|(_, v)| v);
+        if let (Some(d), Some(au)) = (get("direct"), get("auto")) {
+            let u: Vec<f64> = au.iter().zip(d).map(|(a, b)| (*a - *b) as f64).collect();
+            let miss: Vec<f64> = truth.iter().zip(d).map(|(t, b)| (*t - *b) as f64).collect();
+            let uu: f64 = u.iter().map(|x| x * x).sum();
+            let um: f64 = u.iter().zip(&miss).map(|(x, y)| x * y).sum();
+            let best = um / uu;
+            let mut line = format!("oracle alpha {best:.3}:");
+            for alpha in [0.0, 0.25, 0.5, 0.75, 1.0, best] {
+                let img: Vec<f32> = d
+                    .iter()
+                    .zip(&u)
+                    .map(|(b, x)| ((*b as f64 + alpha * x).max(0.0)) as f32)
+                    .collect();
+                line += &format!(" {alpha:.2} -> {:.2} dB", metrics::psnr(&img, &truth));
+            }
+            println!("{line}");
         }
     }
 }

@@ -210,6 +210,11 @@ fn main() -> anyhow::Result<()> {
         total(&est) / total(&truth),
         report.held_out.as_ref().and_then(|h| h.relative_residual),
     );
+    for key in ["relight_error_estimate", "error_estimate"] {
+        if let Some(e) = report.details.get(key) {
+            println!("{key}: relative {} range {}", e["relative"], e["range"]);
+        }
+    }
     // A Hadamard subset: the share of the full-light relit image's energy in the coefficients
     // no pair measured, of the truth and of the estimate (what a relight error estimate must
     // extrapolate).

@@ -184,6 +184,119 @@ pub struct Channel<'a> {
     /// `adaptive_haar` sessions: every row's noise ([`RowNoise`]), for putting the measured
     /// coefficients back into the image ([`Consistency`]).
     pub row_noise: Option<RowNoise>,
+    /// `adaptive_haar` sessions: the rows measured first and those measured after them, for
+    /// judging the model's fill-in of coefficients no row measured ([`FillIn`]).
+    pub prequential: Option<Prequential<'a>>,
+}
+
+/// An ordered session split where it was measured: the first rows, and the rest.
+pub struct Prequential<'a> {
+    pub prefix: &'a dyn LinearOperator,
+    pub suffix: &'a dyn LinearOperator,
+    /// The prefix's data as the model is fitted to them.
+    pub b_prefix: Vec<f64>,
+    /// The suffix's data as measured.
+    pub d_suffix: Vec<f64>,
+}
+
+/// The share of `auto`'s fill-in that is kept: on orthonormal rows that the session chose
+/// itself (`adaptive_haar`), the image is the measured coefficients ([`Consistency`]) plus the
+/// model's values for the coefficients no row measured, `t = A^T A t + u`. Held-out rows drawn
+/// from the measured ones cannot judge `u` (they are orthogonal to it). The rows measured last
+/// can: the model fitted at the same weight on the rows measured before them predicts them, `f`,
+/// where the zero-filled inverse predicts 0. The least-squares scale of that prediction on what
+/// they measured, `alpha = <f, d> / ||f||^2` in `[0, 1]`, is the share of `u` kept:
+/// `t <- t - (1 - alpha) u`, clipped at 0 (noise in `d` is independent of `f`: the estimate is
+/// unbiased in the numerator). The last rows are chosen by the planner as the most promising of
+/// their time, so `alpha` judges the model where its fill-in matters most.
+/// [`FillIn`] keeps the fill-in's scale this many standard errors above its estimate: it takes
+/// away only the part of the model that the rows measured last reject beyond their spread.
+const FILL_IN_MARGIN: f64 = 1.0;
+
+#[derive(Clone, Debug, Serialize)]
+pub struct FillIn {
+    /// `alpha`, the share of the fill-in kept.
+    pub scale: f64,
+    /// `<f, d> / ||f||^2` before clamping to `[0, 1]`.
+    pub regression: Option<f64>,
+    /// Its jackknife standard error over the suffix rows.
+    pub standard_error: Option<f64>,
+    pub prefix_rows: usize,
+    pub suffix_rows: usize,
+    /// `||u|| / ||t||` before scaling.
+    pub relative_fill_in: f64,
+}
+
+impl FillIn {
+    pub const BASIS: &'static str = "the model fitted at the chosen weight on the rows measured first predicts the rows measured last (the zero-filled inverse predicts 0 there); the least-squares scale of that prediction on their measured values, clamped to [0, 1], is the share of the model's values for the unmeasured coefficients that is kept";
+
+    #[allow(clippy::too_many_arguments)]
+    fn apply(
+        split: &Prequential,
+        full: &dyn LinearOperator,
+        model: Model,
+        grid: (usize, usize),
+        noise: Noise,
+        (fraction, max_iter, gain): (f64, usize, f64),
+        t: &mut [f64],
+        control: &Control,
+    ) -> Result<Self, ReconError> {
+        let (op_fit, b_fit) = fitting(split.prefix, &split.b_prefix, false);
+        let opts = SolveOptions {
+            max_iter,
+            lambda: Lambda::Relative(fraction),
+            ..SolveOptions::default()
+        };
+        let solved = fit_model(model, grid, op_fit.as_ref(), &b_fit, noise, &opts, control)?;
+        let mut tp = solved.t;
+        if gain != 1.0 {
+            let m = mean(&tp);
+            tp.iter_mut()
+                .for_each(|v| *v = (m + gain * (*v - m)).max(0.0));
+        }
+        let f = super::fit::predict(split.suffix, &tp);
+        let ff: f64 = f.iter().map(|v| v * v).sum();
+        let fd: f64 = f.iter().zip(&split.d_suffix).map(|(a, b)| a * b).sum();
+        let regression = (ff > 0.0).then(|| fd / ff);
+        // Jackknife standard error of the ratio over the suffix rows.
+        let standard_error = regression.map(|_| {
+            let n = f.len() as f64;
+            let leave: Vec<f64> = f
+                .iter()
+                .zip(&split.d_suffix)
+                .filter_map(|(a, b)| {
+                    let den = ff - a * a;
+                    (den > 0.0).then(|| (fd - a * b) / den)
+                })
+                .collect();
+            let m = leave.iter().sum::<f64>() / leave.len().max(1) as f64;
+            ((n - 1.0) / n * leave.iter().map(|v| (v - m).powi(2)).sum::<f64>()).sqrt()
+        });
+        let scale = match (regression, standard_error) {
+            (Some(r), Some(se)) => (r + FILL_IN_MARGIN * se).clamp(0.0, 1.0),
+            _ => 1.0,
+        };
+        // u = t - A^T A t (A A^T = I).
+        let mut coefficients = vec![0.0; full.rows()];
+        full.apply(t, &mut coefficients);
+        let mut measured = vec![0.0; t.len()];
+        full.adjoint(&coefficients, &mut measured);
+        let norm = t.iter().map(|v| v * v).sum::<f64>().sqrt();
+        let mut fill2 = 0.0;
+        for (v, m) in t.iter_mut().zip(&measured) {
+            let u = *v - m;
+            fill2 += u * u;
+            *v = (*v - (1.0 - scale) * u).max(0.0);
+        }
+        Ok(FillIn {
+            scale,
+            regression,
+            standard_error,
+            prefix_rows: split.prefix.rows(),
+            suffix_rows: split.suffix.rows(),
+            relative_fill_in: if norm > 0.0 { fill2.sqrt() / norm } else { 0.0 },
+        })
+    }
 }
 
 /// The noise of each row of an `adaptive_haar` session's orthonormal split-pair data: row `r`'s datum
@@ -1107,6 +1220,19 @@ pub fn run(
         }
         _ => None,
     };
+    let fill_in = match (&job.prequential, &consistency) {
+        (Some(split), Some(_)) if factor == 1 => Some(FillIn::apply(
+            split,
+            job.full,
+            model,
+            grid,
+            fit.noise,
+            (fraction, max_iter, gain.applied),
+            &mut t,
+            control,
+        )?),
+        _ => None,
+    };
     let held_out = score(&job.b_test, &held_out_prediction);
     let error_estimate = error_estimate(
         &job.design,
@@ -1190,6 +1316,7 @@ pub fn run(
         "contrast": gain,
         "shrunk_inverse": shrunk.as_ref().map(|s| json!({"gain": s.gain, "coefficients": s.coefficients, "basis": ShrunkInverse::BASIS})),
         "consistency": consistency,
+        "fill_in": fill_in.as_ref().map(|f| json!({"scale": f.scale, "regression": f.regression, "standard_error": f.standard_error, "prefix_rows": f.prefix_rows, "suffix_rows": f.suffix_rows, "relative_fill_in": f.relative_fill_in, "basis": FillIn::BASIS})),
         "error_estimate": error_estimate,
         "resolution": {
             "requested": [w, h],

@@ -256,6 +256,10 @@ impl<'a> Planned<'a> {
     }
 }
 
+/// The share of an `adaptive_haar` session's rows, the last measured, that judge `auto`'s
+/// fill-in of the coefficients no row measured ([`auto::FillIn`]).
+const PREQUENTIAL_SHARE: f64 = 0.2;
+
 /// `values[rows]`.
 pub(crate) fn gather(values: &[f64], rows: &[usize]) -> Vec<f64> {
     rows.iter().map(|&r| values[r]).collect()
@@ -378,6 +382,17 @@ pub fn run(
                     rows.denoised(b)
                 });
                 let b = denoised.as_ref().unwrap_or(b);
+                // adaptive_haar: its rows in the order measured, split where they were.
+                let n = planned.rows();
+                let cut = n - ((n as f64 * PREQUENTIAL_SHARE).round() as usize).min(n);
+                let ordered = match &row_noise {
+                    Some(_) if cut >= holdout::MIN_HELD_OUT && n - cut >= holdout::MIN_HELD_OUT => {
+                        let first: Vec<usize> = (0..cut).collect();
+                        let last: Vec<usize> = (cut..n).collect();
+                        Some((planned.subset(&first)?, planned.subset(&last)?, first, last))
+                    }
+                    _ => None,
+                };
                 let job = auto::Channel {
                     size,
                     full: planned.op(),
@@ -391,6 +406,14 @@ pub fn run(
                     noise: planned.noise[ch],
                     design: planned.design(),
                     row_noise,
+                    prequential: ordered.as_ref().map(|(prefix, suffix, first, last)| {
+                        auto::Prequential {
+                            prefix: prefix.as_ref(),
+                            suffix: suffix.as_ref(),
+                            b_prefix: gather(b, first),
+                            d_suffix: gather(&planned.data[ch], last),
+                        }
+                    }),
                 };
                 let out = auto::run(&job, models, *max_iter, *fit, span, control)?;
                 score.add_channel(ch, &job.b_test, &out.held_out_prediction);
