@@ -184,8 +184,8 @@ pub struct Channel<'a> {
     /// `adaptive_haar` sessions: every row's noise ([`RowNoise`]), for putting the measured
     /// coefficients back into the image ([`Consistency`]).
     pub row_noise: Option<RowNoise>,
-    /// `adaptive_haar` sessions: the rows measured first and those measured after them, for
-    /// judging the model's fill-in of coefficients no row measured ([`FillIn`]).
+    /// Adaptive sessions: the rows measured first and those measured after them, for judging
+    /// the model's fill-in of coefficients no row measured ([`FillIn`]).
     pub prequential: Option<Prequential<'a>>,
 }
 
@@ -200,8 +200,9 @@ pub struct Prequential<'a> {
 }
 
 /// The share of `auto`'s fill-in that is kept: on orthonormal rows that the session chose
-/// itself (`adaptive_haar`), the image is the measured coefficients ([`Consistency`]) plus the
-/// model's values for the coefficients no row measured, `t = A^T A t + u`. Held-out rows drawn
+/// itself (`adaptive_haar`, `adaptive_hadamard`), the image is its measured coefficients (on
+/// `adaptive_haar` put back by [`Consistency`]) plus the model's values for the coefficients no
+/// row measured, `t = A^T A t + u`. Held-out rows drawn
 /// from the measured ones cannot judge `u` (they are orthogonal to it). The rows measured last
 /// can: the model fitted at the same weight on the rows measured before them predicts them, `f`,
 /// where the zero-filled inverse predicts 0. The least-squares scale of that prediction on what
@@ -212,6 +213,10 @@ pub struct Prequential<'a> {
 /// [`FillIn`] keeps the fill-in's scale this many standard errors above its estimate: it takes
 /// away only the part of the model that the rows measured last reject beyond their spread.
 const FILL_IN_MARGIN: f64 = 1.0;
+
+/// A prefix fit whose prediction of the last rows carries less than this share of their energy
+/// filled in nothing there: [`FillIn`] keeps the final image's fill-in whole.
+const FILL_IN_NEGLIGIBLE: f64 = 1e-6;
 
 #[derive(Clone, Debug, Serialize)]
 pub struct FillIn {
@@ -257,7 +262,9 @@ impl FillIn {
         let f = super::fit::predict(split.suffix, &tp);
         let ff: f64 = f.iter().map(|v| v * v).sum();
         let fd: f64 = f.iter().zip(&split.d_suffix).map(|(a, b)| a * b).sum();
-        let regression = (ff > 0.0).then(|| fd / ff);
+        let dd: f64 = split.d_suffix.iter().map(|v| v * v).sum();
+        // A prediction of (nearly) nothing says nothing about the final image's fill-in.
+        let regression = (ff > FILL_IN_NEGLIGIBLE * dd && ff > 0.0).then(|| fd / ff);
         // Jackknife standard error of the ratio over the suffix rows.
         let standard_error = regression.map(|_| {
             let n = f.len() as f64;
@@ -1220,8 +1227,8 @@ pub fn run(
         }
         _ => None,
     };
-    let fill_in = match (&job.prequential, &consistency) {
-        (Some(split), Some(_)) if factor == 1 => Some(FillIn::apply(
+    let fill_in = match (&job.prequential, &shrunk) {
+        (Some(split), None) if factor == 1 && !job.offset => Some(FillIn::apply(
             split,
             job.full,
             model,

@@ -382,11 +382,15 @@ pub fn run(
                     rows.denoised(b)
                 });
                 let b = denoised.as_ref().unwrap_or(b);
-                // adaptive_haar: its rows in the order measured, split where they were.
+                // Adaptive sessions: their rows in the order measured, split where they were.
                 let n = planned.rows();
                 let cut = n - ((n as f64 * PREQUENTIAL_SHARE).round() as usize).min(n);
-                let ordered = match &row_noise {
-                    Some(_) if cut >= holdout::MIN_HELD_OUT && n - cut >= holdout::MIN_HELD_OUT => {
+                let adaptive = matches!(
+                    planned.spec.family(),
+                    Family::AdaptiveHaar { .. } | Family::AdaptiveHadamard { .. }
+                );
+                let ordered = match adaptive {
+                    true if cut >= holdout::MIN_HELD_OUT && n - cut >= holdout::MIN_HELD_OUT => {
                         let first: Vec<usize> = (0..cut).collect();
                         let last: Vec<usize> = (cut..n).collect();
                         Some((planned.subset(&first)?, planned.subset(&last)?, first, last))
