@@ -206,18 +206,11 @@ pub struct Prequential<'a> {
 /// from the measured ones cannot judge `u` (they are orthogonal to it). The rows measured last
 /// can: the model fitted at the same weight on the rows measured before them predicts them, `f`,
 /// where the zero-filled inverse predicts 0. The least-squares scale of that prediction on what
-/// they measured, `alpha = <f, d> / ||f||^2` in `[0, 1]`, is the share of `u` kept:
+/// they measured, `alpha = <f, d> / ||f||^2`, plus [`FILL_IN_MARGIN`] jackknife standard errors
+/// and clamped to `[0, 1]`, is the share of `u` kept:
 /// `t <- t - (1 - alpha) u`, clipped at 0 (noise in `d` is independent of `f`: the estimate is
 /// unbiased in the numerator). The last rows are chosen by the planner as the most promising of
 /// their time, so `alpha` judges the model where its fill-in matters most.
-/// [`FillIn`] keeps the fill-in's scale this many standard errors above its estimate: it takes
-/// away only the part of the model that the rows measured last reject beyond their spread.
-const FILL_IN_MARGIN: f64 = 1.0;
-
-/// A prefix fit whose prediction of the last rows carries less than this share of their energy
-/// filled in nothing there: [`FillIn`] keeps the final image's fill-in whole.
-const FILL_IN_NEGLIGIBLE: f64 = 1e-6;
-
 #[derive(Clone, Debug, Serialize)]
 pub struct FillIn {
     /// `alpha`, the share of the fill-in kept.
@@ -232,8 +225,16 @@ pub struct FillIn {
     pub relative_fill_in: f64,
 }
 
+/// [`FillIn`] keeps the fill-in's scale this many standard errors above its estimate: it takes
+/// away only the part of the model that the rows measured last reject beyond their spread.
+const FILL_IN_MARGIN: f64 = 1.0;
+
+/// A prefix fit whose prediction of the last rows carries less than this share of their energy
+/// filled in nothing there: [`FillIn`] keeps the final image's fill-in whole.
+const FILL_IN_NEGLIGIBLE: f64 = 1e-6;
+
 impl FillIn {
-    pub const BASIS: &'static str = "the model fitted at the chosen weight on the rows measured first predicts the rows measured last (the zero-filled inverse predicts 0 there); the least-squares scale of that prediction on their measured values, clamped to [0, 1], is the share of the model's values for the unmeasured coefficients that is kept";
+    pub const BASIS: &'static str = "the model fitted at the chosen weight on the rows measured first predicts the rows measured last (the zero-filled inverse predicts 0 there); the least-squares scale of that prediction on their measured values, plus one jackknife standard error, clamped to [0, 1], is the share of the model's values for the unmeasured coefficients that is kept";
 
     #[allow(clippy::too_many_arguments)]
     fn apply(

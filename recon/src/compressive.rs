@@ -256,7 +256,7 @@ impl<'a> Planned<'a> {
     }
 }
 
-/// The share of an `adaptive_haar` session's rows, the last measured, that judge `auto`'s
+/// The share of an adaptive session's rows, the last measured, that judge `auto`'s
 /// fill-in of the coefficients no row measured ([`auto::FillIn`]).
 const PREQUENTIAL_SHARE: f64 = 0.2;
 
