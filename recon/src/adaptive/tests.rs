@@ -331,7 +331,11 @@ mod reconstruction {
     use crate::preview::Preview;
     use crate::{Control, MethodConfig, Problem, ReconError, SliceSource, reconstruct};
 
-    fn solve(spec: &PatternSpec, frames: &[f64], method: &str) -> Result<Vec<f32>, ReconError> {
+    fn reconstruction(
+        spec: &PatternSpec,
+        frames: &[f64],
+        method: &str,
+    ) -> Result<crate::Reconstruction, ReconError> {
         let problem = Problem {
             spec,
             channels: 1,
@@ -344,7 +348,10 @@ mod reconstruction {
             &mut SliceSource::new(frames, 1, 7),
             &Control::new(),
         )
-        .map(|r| r.images[0].data.clone())
+    }
+
+    fn solve(spec: &PatternSpec, frames: &[f64], method: &str) -> Result<Vec<f32>, ReconError> {
+        reconstruction(spec, frames, method).map(|r| r.images[0].data.clone())
     }
 
     /// A full budget: `direct` and `auto` give the scene back; a partial one: `direct` is the
@@ -462,19 +469,7 @@ mod reconstruction {
         let (planner, clean) = run(&s, std::slice::from_ref(&image), 3.0);
         let resolved = s.with_indices(planner.indices().into()).unwrap();
         let psnr = |t: &[f32]| crate::metrics::psnr(t, &truth);
-        let problem = Problem {
-            spec: &resolved,
-            channels: 1,
-            rows: clean.len() as u64,
-        };
-        let config = MethodConfig::parse("auto", &serde_json::Value::Null).unwrap();
-        let r = reconstruct(
-            &problem,
-            &config,
-            &mut SliceSource::new(&clean, 1, 7),
-            &Control::new(),
-        )
-        .unwrap();
+        let r = reconstruction(&resolved, &clean, "auto").unwrap();
         let fill_in = &r.report.details["auto"][0]["fill_in"];
         let scale = fill_in["scale"].as_f64().expect("a fill-in scale");
         let auto = &r.images[0].data;
