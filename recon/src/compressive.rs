@@ -136,6 +136,32 @@ impl<'a> Planned<'a> {
                     .iter()
                     .map(|p| noise::from_pair_sums(&p.sums, scale, &p.data))
                     .collect();
+                // adaptive_hadamard: every pair lights the whole grid, so all pair sums form one
+                // support group; its pooled spread gives every row's noise for the consistency
+                // step ([`auto::Consistency`]). Rows are grouped by level (coefficients of one
+                // typical size). The data are fitted as measured: denoising them
+                // ([`auto::RowNoise::denoised`]) lost up to 9 dB under noise here.
+                if let Family::AdaptiveHadamard { .. } = spec.family() {
+                    let basis = crate::adaptive::Basis::Hadamard;
+                    let w = spec.width();
+                    let levels: Vec<u32> = op
+                        .natural_indices()
+                        .iter()
+                        .map(|&n| basis.level(w, n as u32))
+                        .collect();
+                    let gains = vec![(spec.pixels() as f64).sqrt(); levels.len()];
+                    for (slot, p) in row_noise.iter_mut().zip(&pairs) {
+                        let support = vec![0u64; p.sums.len()];
+                        *slot = noise::from_support_groups(&p.sums, &support).map(|noise| {
+                            auto::RowNoise {
+                                gains: gains.clone(),
+                                levels: levels.clone(),
+                                noise,
+                                measured: None,
+                            }
+                        });
+                    }
+                }
                 let data = pairs.into_iter().map(|p| p.data).collect();
                 details.insert(
                     "data".into(),
@@ -377,7 +403,8 @@ pub fn run(
                 // adaptive_haar: the model is fitted to the data shrunk by their noise
                 // ([`auto::RowNoise::denoised`]); the measured values go back in at the end.
                 let mut row_noise = planned.row_noise[ch].clone();
-                let denoised = row_noise.as_mut().map(|rows| {
+                let denoise = matches!(planned.spec.family(), Family::AdaptiveHaar { .. });
+                let denoised = row_noise.as_mut().filter(|_| denoise).map(|rows| {
                     rows.measured = Some(b.clone());
                     rows.denoised(b)
                 });
