@@ -473,7 +473,7 @@ fn g_blocks(s: &PatternSpec) -> u64 {
 
 /// The independent Python implementation still reproduces the committed vectors (so the JSON
 /// was not edited by hand and PATTERNS.md, the script and the generator agree). Needs python3,
-/// which the project's machines have; without it the test says so and passes.
+/// which the project's machines have (`.ci/run` sees to it); without it the test fails, saying so.
 #[test]
 fn python_reference_reproduces_the_committed_vectors() {
     let dir = env!("CARGO_MANIFEST_DIR");
@@ -484,10 +484,10 @@ fn python_reference_reproduces_the_committed_vectors() {
         .output()
     {
         Ok(out) => out,
-        Err(e) => {
-            eprintln!("python3 not runnable ({e}); the Rust-side checks above still ran");
-            return;
-        }
+        Err(e) => panic!(
+            "python3 is not runnable ({e}): this test runs tools/patterns_ref.py, the independent Python \
+             reference of PATTERNS.md; install Python 3 (Debian: apt-get install python3) or put python3 on PATH"
+        ),
     };
     assert!(
         out.status.success(),
