@@ -132,13 +132,13 @@ impl<'a> Planned<'a> {
                     .map(|ch| op.split_pairs_channel(used, channels, ch))
                     .collect();
                 let scale = 1.0 / (spec.pixels() as f64).sqrt();
-                let noise = pairs
+                let noise: Vec<Option<noise::NoiseEstimate>> = pairs
                     .iter()
                     .map(|p| noise::from_pair_sums(&p.sums, scale, &p.data))
                     .collect();
-                // adaptive_hadamard: every pair lights the whole grid, so all pair sums form one
-                // support group; its pooled spread gives every row's noise for the consistency
-                // step ([`auto::Consistency`]). Rows are grouped by level (coefficients of one
+                // adaptive_hadamard: every pair lights the whole grid, so the pair sums' noise
+                // estimate (drift-free) is every row's, for the consistency step
+                // ([`auto::Consistency`]). Rows are grouped by level (coefficients of one
                 // typical size). The data are fitted as measured: denoising them
                 // ([`auto::RowNoise::denoised`]) lost up to 9 dB under noise here.
                 if let Family::AdaptiveHadamard { .. } = spec.family() {
@@ -150,15 +150,12 @@ impl<'a> Planned<'a> {
                         .map(|&n| basis.level(w, n as u32))
                         .collect();
                     let gains = vec![(spec.pixels() as f64).sqrt(); levels.len()];
-                    for (slot, p) in row_noise.iter_mut().zip(&pairs) {
-                        let support = vec![0u64; p.sums.len()];
-                        *slot = noise::from_support_groups(&p.sums, &support).map(|noise| {
-                            auto::RowNoise {
-                                gains: gains.clone(),
-                                levels: levels.clone(),
-                                noise,
-                                measured: None,
-                            }
+                    for (slot, e) in row_noise.iter_mut().zip(&noise) {
+                        *slot = e.as_ref().map(|e| auto::RowNoise {
+                            gains: gains.clone(),
+                            levels: levels.clone(),
+                            noise: noise::SupportNoise::from_pair_estimate(e, scale),
+                            measured: None,
                         });
                     }
                 }

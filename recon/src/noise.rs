@@ -118,6 +118,32 @@ impl SupportNoise {
     }
 }
 
+impl SupportNoise {
+    /// From a [`from_pair_sums`] estimate whose data are `(y+ - y-) * scale`: every pair lights
+    /// the same support (Walsh-Hadamard pairs light the whole grid), and the median of the
+    /// consecutive sums' differences ignores source drift, which a pooled spread would count as
+    /// noise. `dof` is the one whose Gaussian `sqrt(2 / dof)` is the estimate's relative standard
+    /// error as a variance (twice that of `sigma`).
+    pub fn from_pair_estimate(e: &NoiseEstimate, scale: f64) -> SupportNoise {
+        let relative = if e.sigma > 0.0 {
+            2.0 * e.standard_error / e.sigma
+        } else {
+            0.0
+        };
+        let dof = if relative > 0.0 {
+            (2.0 / (relative * relative)).round().max(1.0) as usize
+        } else {
+            e.rows.saturating_sub(1).max(1)
+        };
+        SupportNoise {
+            pair_variance: (e.sigma / scale).powi(2),
+            dof,
+            groups: 1,
+            source: "the drift-free spread of the pair sums y+ + y- (every pair lights the whole grid)",
+        }
+    }
+}
+
 /// [`SupportNoise`] from the pairs' sums `y+ + y-` and a key per pair that is equal exactly for
 /// pairs of the same support. `None` when no support was shown twice.
 pub fn from_support_groups(sums: &[f64], support: &[u64]) -> Option<SupportNoise> {
@@ -263,6 +289,33 @@ mod tests {
             0.0
         );
         assert!(from_support_groups(&[1.0, 2.0], &[0, 1]).is_none());
+    }
+
+    /// Walsh-Hadamard pairs all light the whole grid: one support group. A 20 % drift of the
+    /// source over the session inflates the pooled spread of the sums, not the drift-free
+    /// estimate carried over from the pair sums.
+    #[test]
+    fn whole_grid_pairs_take_the_drift_free_noise() {
+        let n = 4000;
+        let sigma_s = 2.0;
+        let e = normals(n, 21);
+        let sums: Vec<f64> = (0..n)
+            .map(|r| 300.0 * (1.0 + 0.2 * r as f64 / n as f64) + sigma_s * e[r])
+            .collect();
+        let scale = 1.0 / 32.0;
+        let data: Vec<f64> = e.iter().map(|v| v * sigma_s * scale).collect();
+        let est = from_pair_sums(&sums, scale, &data).unwrap();
+        let carried = SupportNoise::from_pair_estimate(&est, scale);
+        let pooled = from_support_groups(&sums, &vec![0; n]).unwrap();
+        let rel = |v: f64| (v.sqrt() / sigma_s - 1.0).abs();
+        assert!(
+            rel(carried.pair_variance) < 3.0 * carried.relative_standard_error() / 2.0,
+            "{carried:?}"
+        );
+        assert!(rel(pooled.pair_variance) > 1.0, "{pooled:?}");
+        // Its standard error as a variance is twice sigma's.
+        let want = 2.0 * est.standard_error / est.sigma;
+        assert!((carried.relative_standard_error() / want - 1.0).abs() < 0.05);
     }
 
     #[test]
