@@ -393,10 +393,11 @@ fn group_factor(n: usize, v: f64, energy: f64) -> f64 {
 ///
 /// An adaptive session (`adaptive_haar`, `adaptive_hadamard`) measures orthonormal coefficients
 /// `d = A t + noise` (`A A^T = I`) chosen for being large. `auto`'s model fills in the
-/// coefficients nobody measured, but its fit also shrinks the measured ones: noise-free, the refit of the relief at 25 % missed its own
-/// data by 16 % and lost 10 dB against the zero-filled inverse. Per level (one scale: one
-/// gain, one noise level), the measured coefficients move from the model's `m = A t`
-/// towards the data by the positive-part James-Stein factor
+/// coefficients nobody measured, but its fit also shrinks the measured ones: noise-free, the
+/// refit of the relief at 25 % missed its own data by 16 % and lost 10 dB against the
+/// zero-filled inverse. Per level (one scale: one gain, one noise level), the measured
+/// coefficients move from the model's `m = A t` towards the data by the positive-part
+/// James-Stein factor
 /// `G = max(0, 1 - n v / ||d - m||^2)` (`n` rows of variance `v`, taken
 /// [`CONSISTENCY_NOISE_MARGIN`] standard errors high): `t <- t + A^T (G (d - m))`, then clipped
 /// at 0. Noise-free (`v = 0`) the image reproduces every measured coefficient exactly, and fills
