@@ -212,7 +212,10 @@ fn main() -> anyhow::Result<()> {
     );
     for key in ["relight_error_estimate", "error_estimate"] {
         if let Some(e) = report.details.get(key) {
-            println!("{key}: relative {} range {}", e["relative"], e["range"]);
+            println!(
+                "{key}: relative {} range {} upper {} resolved {}",
+                e["relative"], e["range"], e["upper"], e["resolved"]
+            );
         }
     }
     // A Hadamard subset: the share of the full-light relit image's energy in the coefficients

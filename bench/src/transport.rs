@@ -597,6 +597,15 @@ fn reported_estimate(report: &Report) -> Option<String> {
         if let Some(v) = value.as_f64() {
             return Some(format!("{key} = {v:.4}"));
         }
+        // An estimate with a bound: its value when resolved, else only the bound.
+        if let Some(upper) = value.get("upper").and_then(serde_json::Value::as_f64) {
+            return Some(
+                match value.get("relative").and_then(serde_json::Value::as_f64) {
+                    Some(v) => format!("{key}.relative = {v:.4} (upper {upper:.4})"),
+                    None => format!("{key}: unresolved, upper {upper:.4}"),
+                },
+            );
+        }
         value
             .as_object()?
             .iter()

@@ -69,7 +69,11 @@
 //!   pixels with all rows; the rows keep only their nonzero coefficients (the soft threshold
 //!   zeroes the rest), so the stored size follows the scene's complexity.
 //!   `t >= 0` is not imposed (the prox would become iterative); the reported held-out error is
-//!   that of the chosen model on the sample pixels.
+//!   that of the chosen model on the sample pixels. A Bernoulli session also reports the error
+//!   of a full-light relight (`relight_error_estimate`, [`random_relight_error`]): its held-out
+//!   frames' residuals summed over the camera, which a per-row residual cannot show (rows' errors
+//!   add up coherently in a relight: 5x the held-out residual on the Cornell box), with a bound
+//!   two jackknife standard errors above it, and a warning when it is resolved and above 0.2.
 //!   The final fit of every row runs down a continuation path (its stages before the last
 //!   solved to a tenth of the precision: they are warm starts; the larger fractions of
 //!   [`LAMBDA_PATH`], each warm-starting the next), which converges in far fewer iterations than
@@ -835,6 +839,120 @@ fn subset_light_error(
     (measured > 0.0).then(|| ((fitted - measured).abs() / measured, var.sqrt() / measured))
 }
 
+/// The full-light relight error `||(T_hat - T)^T 1|| / ||T^T 1||` of a fit to random 0/1 frames
+/// (fill `f`), estimated from its held-out frames, which the fit never saw. A held-out frame's
+/// residual in camera pixel `j` is `r_ij = -(E p_i)_j + n_ij` (`E = T_hat - T`), so its sum over
+/// the camera is `g_i = -e . p_i + noise`, `e = E^T 1` the error of the full-light relight; over
+/// the frames `Var(g) = f (1 - f) ||e||^2 + m sigma^2`. The errors of neighbouring rows are
+/// correlated (a lasso drops the same dim light in every row), so the relight error is not the
+/// rows' errors summed in quadrature; this sees it.
+///
+/// The sum comes from the sample pixels ([`energy_sample`]) in clusters, each a run of
+/// neighbouring pixels drawn together, weighted by `1 / pi_c` (`pi_c`, its chance of being
+/// drawn): `g_i = sum_c R_ci`. That estimate's own scatter over draws of the sample,
+/// `sum (1 - pi_c) / pi_c ||E_c||^2`, and the noise (`sigma` per camera pixel,
+/// [`random_noise_sigma`]) are taken off:
+/// `f (1 - f) ||e||^2 = Var(g) - sum_c (1 - pi_c) Var(R_c) - sum_c pi_c sum_(j in c) w_j^2 sigma^2`.
+/// The norm `||T^T 1||` comes from the fitted sample rows the same way. The standard error is
+/// the jackknife's over the held-out frames; `upper` is two of them above the estimate, and
+/// the estimate is `resolved` when it is more than two above 0 (otherwise it is the noise of
+/// the few held-out frames, which the noise of the frames and the weights of dim pixels
+/// amplify, and only `upper` says something). It is the error of the fit without the held-out
+/// frames: the served fit, on all frames, is at least as good on average. `None` with fewer
+/// than [`holdout::MIN_HELD_OUT`] held-out frames or no light.
+fn random_relight_error(
+    (observed, pred, h): (&[Vec<f64>], &[f64], usize),
+    t: &[f64],
+    k: usize,
+    (picked, chance): (&[usize], &[f64]),
+    fill: f64,
+    sigma: f64,
+) -> Option<RelightEstimate> {
+    let rows = observed.len();
+    let v = fill * (1.0 - fill);
+    if h < holdout::MIN_HELD_OUT || rows == 0 || v <= 0.0 || !v.is_finite() {
+        return None;
+    }
+    // Clusters: (pi_c, the weighted residuals R_c over the held-out frames).
+    let mut clusters: Vec<(f64, Vec<f64>)> = Vec::new();
+    let mut relit = vec![0.0; k];
+    let (mut noise, mut relit_scatter) = (0.0, 0.0);
+    let mut j = 0;
+    while j < rows {
+        let mut end = j + 1;
+        while end < rows && picked[end] == picked[end - 1] + 1 {
+            end += 1;
+        }
+        let mut rc = vec![0.0; h];
+        let mut tc = vec![0.0; k];
+        let (mut pis, mut w2) = (0.0, 0.0);
+        for c in j..end {
+            let pi = (rows as f64 * chance[c]).min(1.0);
+            if pi <= 0.0 {
+                continue;
+            }
+            let w = 1.0 / pi;
+            let p = &pred[c * h..(c + 1) * h];
+            rc.iter_mut()
+                .zip(observed[c].iter().zip(p))
+                .for_each(|(r, (o, p))| *r += w * (o - p));
+            tc.iter_mut()
+                .zip(&t[c * k..(c + 1) * k])
+                .for_each(|(a, b)| *a += w * b);
+            pis += pi;
+            w2 += w * w;
+        }
+        let pi = (pis / (end - j) as f64).min(1.0);
+        noise += pi * w2 * sigma * sigma;
+        relit.iter_mut().zip(&tc).for_each(|(a, b)| *a += b);
+        relit_scatter += (1.0 - pi) * tc.iter().map(|x| x * x).sum::<f64>();
+        clusters.push((pi, rc));
+        j = end;
+    }
+    let norm2 = relit.iter().map(|x| x * x).sum::<f64>() - relit_scatter;
+    if norm2 <= 0.0 || !norm2.is_finite() {
+        return None;
+    }
+    // `f (1 - f) ||e||^2` from the held-out frames other than `skip`.
+    let estimate = |skip: Option<usize>| {
+        let n = (h - usize::from(skip.is_some())) as f64;
+        let variance = |x: &dyn Fn(usize) -> f64| {
+            let keep = || (0..h).filter(|&i| Some(i) != skip);
+            let mean = keep().map(x).sum::<f64>() / n;
+            keep().map(|i| (x(i) - mean).powi(2)).sum::<f64>() / (n - 1.0)
+        };
+        let g = variance(&|i| clusters.iter().map(|c| c.1[i]).sum::<f64>());
+        let scatter: f64 = clusters
+            .iter()
+            .map(|(pi, rc)| (1.0 - pi) * variance(&|i| rc[i]))
+            .sum();
+        g - scatter - noise
+    };
+    let all = estimate(None);
+    let drops: Vec<f64> = (0..h).map(|i| estimate(Some(i))).collect();
+    let mean = drops.iter().sum::<f64>() / h as f64;
+    let se = ((h as f64 - 1.0) / h as f64 * drops.iter().map(|d| (d - mean).powi(2)).sum::<f64>())
+        .sqrt();
+    let relative = |x: f64| (x.max(0.0) / v / norm2).sqrt();
+    Some(RelightEstimate {
+        relative: relative(all),
+        upper: relative(all + 2.0 * se),
+        resolved: all > 2.0 * se,
+    })
+}
+
+/// A relight error estimate ([`random_relight_error`]).
+#[derive(Clone, Copy, Debug, serde::Serialize)]
+struct RelightEstimate {
+    /// The relative error of a full-light relight.
+    relative: f64,
+    /// Two standard errors above it.
+    upper: f64,
+    /// The error stands out of the estimate's own scatter (`relative` above two standard
+    /// errors): otherwise `relative` is noise and only `upper` says something.
+    resolved: bool,
+}
+
 /// A Hadamard subset's test of how a model fills in what no pair measured. The scale orders
 /// ([`auto::hadamard_level`]) a set measures partly (a Russian-doll set stopped inside a
 /// level) are where the unmeasured coefficients are; half of the measured pairs in those
@@ -1273,6 +1391,8 @@ struct Point {
     light: Option<(f64, f64)>,
     /// Every row's weight at least its noise floor ([`noise_floor`]).
     floored: bool,
+    /// A random-pattern session's full-light relight error ([`random_relight_error`]).
+    relight: Option<RelightEstimate>,
 }
 
 /// One candidate of the model choice, as reported.
@@ -1289,6 +1409,9 @@ struct Candidate {
     /// A Hadamard subset's relative total-light error ([`subset_light_error`]).
     #[serde(skip_serializing_if = "Option::is_none")]
     light_error: Option<f64>,
+    /// A random-pattern session's full-light relight error ([`random_relight_error`]).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    relight_error_estimate: Option<RelightEstimate>,
     iterations_mean: f64,
     nonzeros_mean: f64,
     /// Least-squares refit on the lasso's support ([`batch::refit_rows`]).
@@ -2112,6 +2235,20 @@ fn choose_model(
         }
         _ => Vec::new(),
     };
+    // A Bernoulli session's held-out frames see the relight error ([`random_relight_error`]).
+    let random_fill = match &plan.raw {
+        Raw::Bernoulli(op) => {
+            let inner = op.inner();
+            let cells = (inner.rows() * inner.cols()).max(1) as f64;
+            Some(inner.row_sums().iter().sum::<f64>() / cells)
+        }
+        _ => None,
+    };
+    let relight_sigma = match &plan.raw {
+        Raw::Bernoulli(op) => floor_sigma.or_else(|| random_noise_sigma(op, &raws)),
+        _ => None,
+    }
+    .unwrap_or(0.0);
     let level = match subset_op {
         Some(_) => LevelTest::new(plan, &raws, &floors)?,
         None => None,
@@ -2188,6 +2325,16 @@ fn choose_model(
                         .map(|e| e.relative);
                     let light = subset_op
                         .and_then(|op| subset_light_error(op, (&raws, &sums, &chance), &t));
+                    let relight = random_fill.and_then(|fill| {
+                        random_relight_error(
+                            (&observed, &pred, h),
+                            &t,
+                            k,
+                            (&picked, &chance),
+                            fill,
+                            relight_sigma,
+                        )
+                    });
                     candidates.push(Candidate {
                         transform: kind.name(),
                         lambda: frac,
@@ -2195,6 +2342,7 @@ fn choose_model(
                         held_out_se: se,
                         error_estimate: estimate,
                         light_error: light.map(|l| l.0),
+                        relight_error_estimate: relight,
                         iterations_mean: iterations.iter().sum::<usize>() as f64 / rows as f64,
                         nonzeros_mean: nnz,
                         refit,
@@ -2212,6 +2360,7 @@ fn choose_model(
                         score,
                         light,
                         floored,
+                        relight,
                     });
                 }
                 step += 1;
@@ -2323,6 +2472,27 @@ fn choose_model(
     let (transform, lambda, refit, floored) =
         (chosen.kind, chosen.lambda, chosen.refit, chosen.floored);
     *held_out = Some(chosen.score.finish(split.fraction));
+    if let Some(est) = chosen.relight {
+        details.insert(
+            "relight_error_estimate".into(),
+            json!({
+                "light": "full (every camera pixel at 1)",
+                "relative": est.resolved.then_some(est.relative),
+                "upper": est.upper,
+                "resolved": est.resolved,
+                "basis": "the chosen model fitted without the held-out frames, on the sample pixels in runs of neighbours, each run weighted by 1 / its chance of being drawn: the variance over the held-out frames of the residuals summed over the camera, less the sample's own scatter and the frames' noise, over the patterns' variance f (1 - f); upper: two jackknife standard errors (over the held-out frames) above it; resolved: the estimate is more than two standard errors above 0, else relative is null and only upper says something; the fit without the held-out frames is on average worse than the served one, so both lean high",
+            }),
+        );
+        if est.resolved && est.relative > SUBSET_ERROR_WARNING {
+            details.insert(
+                "warnings".into(),
+                json!([format!(
+                    "the frames cannot support T at {}x{}: the estimated relative error of a full-light relight is {:.2}; measure more frames",
+                    plan.grid.0, plan.grid.1, est.relative
+                )]),
+            );
+        }
+    }
     let coarser = match &plan.raw {
         Raw::Hadamard(op) => complete_binning(op, plan.grid),
         _ => None,

@@ -1377,6 +1377,59 @@ fn a_hadamard_subset_reports_the_error_its_unmeasured_coefficients_carry() {
     }
 }
 
+#[test]
+fn a_bernoulli_session_estimates_its_relight_error_from_the_held_out_frames() {
+    // Rendered scenes, 16x16 projector x 24x24 camera, 25 % Bernoulli frames. The lasso drops
+    // the same dim interreflected light in many rows of the Cornell box: a full-light relight
+    // adds those errors up (T's own error is several times smaller), and the held-out
+    // relative residual, per row, does not see it.
+    let camera = CameraGrid {
+        width: 24,
+        height: 24,
+    };
+    let m = camera.pixels();
+    let spec = PatternSpec::new(Family::Bernoulli { fill: 0.5 }, 16, 16, 64, 3).unwrap();
+    let cornell = helmholtz_sim::RenderedTransport::cornell((16, 16), (24, 24), 1);
+    let glossy = helmholtz_sim::RenderedTransport::glossy((16, 16), (24, 24), 1);
+    for (name, scene, noise, resolved) in [
+        ("cornell", &cornell, 0.0, true),
+        ("cornell", &cornell, 0.01, true),
+        // The glints' error is below what 16 held-out frames can resolve under noise: only
+        // the bound says something.
+        ("glossy", &glossy, 0.01, false),
+    ] {
+        let truth: Vec<f32> = scene.matrix().iter().map(|&v| v as f32).collect();
+        let clean = frames(&spec, &truth, m, 0.0);
+        let rms =
+            (clean.iter().map(|v| (*v as f64).powi(2)).sum::<f64>() / clean.len() as f64).sqrt();
+        let f = frames(&spec, &truth, m, noise * rms);
+        let (t, report, _) = run(&spec, camera, &f, &TransportConfig::default());
+        let [full, ..] = relight_errors(&dense(&t), &truth, camera, 256);
+        let est = &report.details["relight_error_estimate"];
+        let held = report.held_out.as_ref().unwrap().relative_residual.unwrap();
+        println!("{name} noise {noise}: relit full {full:.4}, held-out {held:.4}, estimate {est}");
+        let upper = est["upper"].as_f64().unwrap();
+        assert!(upper >= full, "{name}: bound {upper} under the true {full}");
+        assert_eq!(est["resolved"], json!(resolved), "{name} {noise}");
+        match est["relative"].as_f64() {
+            Some(r) => {
+                assert!(resolved);
+                assert!(
+                    r > full / 2.0 && r < full * 2.0,
+                    "{name}: {r} against the true {full}"
+                );
+            }
+            None => assert!(!resolved),
+        }
+        if name == "cornell" {
+            assert!(held < full / 2.0, "held-out {held} against the true {full}");
+            // T is not supported at this resolution, and the report says so.
+            assert!(full > 0.2);
+            assert!(report.details.contains_key("warnings"), "{name} {noise}");
+        }
+    }
+}
+
 /// Camera light `light` (0 every pixel, 1 the left half, 2 a checkerboard) at pixel `j` of a
 /// camera `width` pixels wide.
 fn judged_light(light: usize, j: usize, width: usize) -> f64 {
