@@ -913,26 +913,25 @@ fn random_relight_error(
     if norm2 <= 0.0 || !norm2.is_finite() {
         return None;
     }
-    // `f (1 - f) ||e||^2` from the held-out frames other than `skip`.
+    // `f (1 - f) ||e||^2` from all held-out frames and from all but each one (the jackknife),
+    // each series' variance from its sums (centred first) less the dropped frame's terms.
+    let hf = h as f64;
+    let g: Vec<f64> = (0..h)
+        .map(|i| clusters.iter().map(|c| c.1[i]).sum())
+        .collect();
+    let gm = Moments::new(&g);
+    let cm: Vec<(f64, Moments)> = clusters
+        .iter()
+        .map(|(pi, rc)| (*pi, Moments::new(rc)))
+        .collect();
     let estimate = |skip: Option<usize>| {
-        let n = (h - usize::from(skip.is_some())) as f64;
-        let variance = |x: &dyn Fn(usize) -> f64| {
-            let keep = || (0..h).filter(|&i| Some(i) != skip);
-            let mean = keep().map(x).sum::<f64>() / n;
-            keep().map(|i| (x(i) - mean).powi(2)).sum::<f64>() / (n - 1.0)
-        };
-        let g = variance(&|i| clusters.iter().map(|c| c.1[i]).sum::<f64>());
-        let scatter: f64 = clusters
-            .iter()
-            .map(|(pi, rc)| (1.0 - pi) * variance(&|i| rc[i]))
-            .sum();
-        g - scatter - noise
+        let scatter: f64 = cm.iter().map(|(pi, m)| (1.0 - pi) * m.variance(skip)).sum();
+        gm.variance(skip) - scatter - noise
     };
     let all = estimate(None);
     let drops: Vec<f64> = (0..h).map(|i| estimate(Some(i))).collect();
-    let mean = drops.iter().sum::<f64>() / h as f64;
-    let se = ((h as f64 - 1.0) / h as f64 * drops.iter().map(|d| (d - mean).powi(2)).sum::<f64>())
-        .sqrt();
+    let mean = drops.iter().sum::<f64>() / hf;
+    let se = ((hf - 1.0) / hf * drops.iter().map(|d| (d - mean).powi(2)).sum::<f64>()).sqrt();
     let relative = |x: f64| (x.max(0.0) / v / norm2).sqrt();
     Some(RelightEstimate {
         relative: relative(all),
@@ -941,8 +940,39 @@ fn random_relight_error(
     })
 }
 
+/// A series centred on its mean, with its sum and sum of squares: its sample variance, with
+/// or without one value (the jackknife), in constant time.
+struct Moments {
+    centred: Vec<f64>,
+    s1: f64,
+    s2: f64,
+}
+
+impl Moments {
+    fn new(x: &[f64]) -> Self {
+        let mean = x.iter().sum::<f64>() / x.len().max(1) as f64;
+        let centred: Vec<f64> = x.iter().map(|a| a - mean).collect();
+        let s1 = centred.iter().sum();
+        let s2 = centred.iter().map(|a| a * a).sum();
+        Moments { centred, s1, s2 }
+    }
+
+    /// The sample variance without value `skip`, if any.
+    fn variance(&self, skip: Option<usize>) -> f64 {
+        let n = self.centred.len() as f64;
+        let (s1, s2, n) = match skip {
+            Some(i) => {
+                let x = self.centred[i];
+                (self.s1 - x, self.s2 - x * x, n - 1.0)
+            }
+            None => (self.s1, self.s2, n),
+        };
+        (s2 - s1 * s1 / n) / (n - 1.0)
+    }
+}
+
 /// A relight error estimate ([`random_relight_error`]).
-#[derive(Clone, Copy, Debug, serde::Serialize)]
+#[derive(Clone, Copy, Debug)]
 struct RelightEstimate {
     /// The relative error of a full-light relight.
     relative: f64,
@@ -951,6 +981,17 @@ struct RelightEstimate {
     /// The error stands out of the estimate's own scatter (`relative` above two standard
     /// errors): otherwise `relative` is noise and only `upper` says something.
     resolved: bool,
+}
+
+impl RelightEstimate {
+    /// As reported: `relative` only when resolved (else null), `upper`, `resolved`.
+    fn to_json(self) -> Value {
+        json!({
+            "relative": self.resolved.then_some(self.relative),
+            "upper": self.upper,
+            "resolved": self.resolved,
+        })
+    }
 }
 
 /// A Hadamard subset's test of how a model fills in what no pair measured. The scale orders
@@ -1409,9 +1450,9 @@ struct Candidate {
     /// A Hadamard subset's relative total-light error ([`subset_light_error`]).
     #[serde(skip_serializing_if = "Option::is_none")]
     light_error: Option<f64>,
-    /// A random-pattern session's full-light relight error ([`random_relight_error`]).
+    /// A random-pattern session's full-light relight error ([`RelightEstimate::to_json`]).
     #[serde(skip_serializing_if = "Option::is_none")]
-    relight_error_estimate: Option<RelightEstimate>,
+    relight_error_estimate: Option<Value>,
     iterations_mean: f64,
     nonzeros_mean: f64,
     /// Least-squares refit on the lasso's support ([`batch::refit_rows`]).
@@ -2342,7 +2383,7 @@ fn choose_model(
                         held_out_se: se,
                         error_estimate: estimate,
                         light_error: light.map(|l| l.0),
-                        relight_error_estimate: relight,
+                        relight_error_estimate: relight.map(RelightEstimate::to_json),
                         iterations_mean: iterations.iter().sum::<usize>() as f64 / rows as f64,
                         nonzeros_mean: nnz,
                         refit,
@@ -2473,16 +2514,12 @@ fn choose_model(
         (chosen.kind, chosen.lambda, chosen.refit, chosen.floored);
     *held_out = Some(chosen.score.finish(split.fraction));
     if let Some(est) = chosen.relight {
-        details.insert(
-            "relight_error_estimate".into(),
-            json!({
-                "light": "full (every camera pixel at 1)",
-                "relative": est.resolved.then_some(est.relative),
-                "upper": est.upper,
-                "resolved": est.resolved,
-                "basis": "the chosen model fitted without the held-out frames, on the sample pixels in runs of neighbours, each run weighted by 1 / its chance of being drawn: the variance over the held-out frames of the residuals summed over the camera, less the sample's own scatter and the frames' noise, over the patterns' variance f (1 - f); upper: two jackknife standard errors (over the held-out frames) above it; resolved: the estimate is more than two standard errors above 0, else relative is null and only upper says something; the fit without the held-out frames is on average worse than the served one, so both lean high",
-            }),
+        let mut reported = est.to_json();
+        reported["light"] = json!("full (every camera pixel at 1)");
+        reported["basis"] = json!(
+            "the chosen model fitted without the held-out frames, on the sample pixels in runs of neighbours, each run weighted by 1 / its chance of being drawn: the variance over the held-out frames of the residuals summed over the camera, less the sample's own scatter and the frames' noise, over the patterns' variance f (1 - f); upper: two jackknife standard errors (over the held-out frames) above it; resolved: the estimate is more than two standard errors above 0, else relative is null and only upper says something; the fit without the held-out frames is on average worse than the served one, so both lean high"
         );
+        details.insert("relight_error_estimate".into(), reported);
         if est.resolved && est.relative > SUBSET_ERROR_WARNING {
             details.insert(
                 "warnings".into(),

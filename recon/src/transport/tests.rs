@@ -1378,6 +1378,22 @@ fn a_hadamard_subset_reports_the_error_its_unmeasured_coefficients_carry() {
 }
 
 #[test]
+fn moments_give_the_variance_with_and_without_each_value() {
+    let x = [3.0, -1.5, 1e6 + 2.0, 0.25, 7.0, 1e6];
+    let direct = |v: &[f64]| {
+        let mean = v.iter().sum::<f64>() / v.len() as f64;
+        v.iter().map(|a| (a - mean).powi(2)).sum::<f64>() / (v.len() - 1) as f64
+    };
+    let m = Moments::new(&x);
+    let close = |a: f64, b: f64| (a - b).abs() <= 1e-9 * b.abs().max(1.0);
+    assert!(close(m.variance(None), direct(&x)));
+    for i in 0..x.len() {
+        let rest: Vec<f64> = (0..x.len()).filter(|&j| j != i).map(|j| x[j]).collect();
+        assert!(close(m.variance(Some(i)), direct(&rest)), "without {i}");
+    }
+}
+
+#[test]
 fn a_bernoulli_session_estimates_its_relight_error_from_the_held_out_frames() {
     // Rendered scenes, 16x16 projector x 24x24 camera, 25 % Bernoulli frames. The lasso drops
     // the same dim interreflected light in many rows of the Cornell box: a full-light relight
