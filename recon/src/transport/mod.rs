@@ -2285,11 +2285,8 @@ fn choose_model(
         }
         _ => None,
     };
-    let relight_sigma = match &plan.raw {
-        Raw::Bernoulli(op) => floor_sigma.or_else(|| random_noise_sigma(op, &raws)),
-        _ => None,
-    }
-    .unwrap_or(0.0);
+    // The frames' noise: the Bernoulli floor's (none found: noise-free).
+    let relight_sigma = floor_sigma.unwrap_or(0.0);
     let level = match subset_op {
         Some(_) => LevelTest::new(plan, &raws, &floors)?,
         None => None,

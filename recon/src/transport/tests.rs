@@ -1397,8 +1397,7 @@ fn moments_give_the_variance_with_and_without_each_value() {
 fn a_bernoulli_session_estimates_its_relight_error_from_the_held_out_frames() {
     // Rendered scenes, 16x16 projector x 24x24 camera, 25 % Bernoulli frames. The lasso drops
     // the same dim interreflected light in many rows of the Cornell box: a full-light relight
-    // adds those errors up (T's own error is several times smaller), and the held-out
-    // relative residual, per row, does not see it.
+    // adds those errors up, and the held-out relative residual, per row, does not see it.
     let camera = CameraGrid {
         width: 24,
         height: 24,
