@@ -210,7 +210,7 @@ pub fn run(
                     coarse_to_fine: c2f,
                     seconds,
                     peak_heap_bytes: peak,
-                    transform: d["transform"].as_str().unwrap_or("").to_string(),
+                    transform: chosen_transform(d),
                     lambda: d["lambda"].as_f64(),
                     refit: d["refit"].as_bool().unwrap_or(false),
                     stored_bytes: t.stored_bytes(),
@@ -756,7 +756,7 @@ fn rendered_scenes(only: Option<&[String]>) -> anyhow::Result<(Vec<SceneStats>, 
             match result {
                 Ok((t, report)) => {
                     let d = &report.details;
-                    row.transform = d["transform"].as_str().unwrap_or("").to_string();
+                    row.transform = chosen_transform(d);
                     row.lambda = d["lambda"].as_f64();
                     row.refit = d["refit"].as_bool().unwrap_or(false);
                     row.nonzeros_per_row = t.nonzeros() as f64 / camera.pixels() as f64;
@@ -859,5 +859,16 @@ fn write_scenes(md: &mut String, stats: &[SceneStats], rows: &[SceneRow]) {
             r.error_estimate.as_deref().unwrap_or("-"),
             r.error.as_deref().map(|e| format!(" error: {e}")).unwrap_or_default()
         ));
+    }
+}
+
+/// The fitted transform as reported, with " (coarse as measured)" where the model took the
+/// coarse Haar coefficients of a Hadamard subset from the pairs (`details.coarse_exact`).
+fn chosen_transform(d: &serde_json::Map<String, serde_json::Value>) -> String {
+    let name = d["transform"].as_str().unwrap_or("");
+    if d.get("coarse_exact").and_then(|v| v.as_bool()) == Some(true) {
+        format!("{name} (coarse as measured)")
+    } else {
+        name.to_string()
     }
 }

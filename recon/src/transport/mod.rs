@@ -1118,8 +1118,9 @@ impl LevelTest {
 
 fn hadamard_subset_error(
     plan: &Plan,
-    model: (TransformKind, f64, bool, bool),
+    model: (TransformKind, f64, bool, bool, bool),
     (raws, sums, chance): (&[Vec<f64>], &[Vec<f64>], &[f64]),
+    (picked, camera_width): (&[usize], usize),
     config: &TransportConfig,
     chunk: usize,
     control: &Control,
@@ -1131,7 +1132,7 @@ fn hadamard_subset_error(
         return Ok(None);
     }
     let (pw, ph) = plan.size();
-    let (kind, lambda, refit, floored) = model;
+    let (kind, lambda, refit, floored, coarse) = model;
     let psi = kind.build(pw, ph);
     let sh = Shared {
         op,
@@ -1166,6 +1167,14 @@ fn hadamard_subset_error(
     }
     let mut t = vec![0.0; s.len()];
     sh.inverse(&s, &mut t);
+    if let Some(step) = coarse.then(|| CoarseExact::new(plan, op)).flatten() {
+        let sigmas: Vec<f64> = raws
+            .iter()
+            .zip(sums)
+            .map(|(raw, sum)| pair_sigma(sum, raw, op.cols()))
+            .collect();
+        t = step.images(&step.apply(op, &bs, &t, &sigmas, (picked, camera_width)));
+    }
     let Some(pooled) = subset_error(op, (raws, sums, chance), &t) else {
         return Ok(None);
     };
@@ -1294,12 +1303,26 @@ impl ExactChoice {
 /// coefficient kept in all its neighbours.) A relight sums rows,
 /// so what is dropped adds up coherently while the noise of what is kept averages out.
 fn exact_support(s: &[f64], sigmas: &[f64], k: usize, first: usize, width: usize) -> Vec<bool> {
+    let pixels: Vec<usize> = (first..first + sigmas.len()).collect();
+    exact_support_at(s, sigmas, (k, k), &pixels, width)
+}
+
+/// [`exact_support`] for rows of `k` coefficients out of a transform of `universe` (the
+/// threshold's `sqrt(2 ln universe)`) at camera pixels `pixels` (any, in any order: a tile's
+/// members are the rows that fall in it).
+fn exact_support_at(
+    s: &[f64],
+    sigmas: &[f64],
+    (k, universe): (usize, usize),
+    pixels: &[usize],
+    width: usize,
+) -> Vec<bool> {
     let len = sigmas.len();
-    let z = (2.0 * (k as f64).ln()).sqrt();
+    let z = (2.0 * (universe as f64).ln()).sqrt();
     let mut keep = vec![false; len * k];
     let mut floors = Vec::with_capacity(len);
     for (c, row) in s.chunks_exact(k).enumerate() {
-        let tau = exact_threshold(row, sigmas[c], k);
+        let tau = exact_threshold(row, sigmas[c], universe);
         let max = row.iter().fold(0.0f64, |m, v| m.max(v.abs()));
         floors.push(max * f32::EPSILON as f64 * 0.5);
         keep[c * k..(c + 1) * k]
@@ -1311,7 +1334,8 @@ fn exact_support(s: &[f64], sigmas: &[f64], k: usize, first: usize, width: usize
         return keep;
     }
     let width = width.max(1);
-    let last = first + len - 1;
+    let first = pixels.iter().copied().min().unwrap_or(0);
+    let last = pixels.iter().copied().max().unwrap_or(0);
     let lines = last / width - first / width + 1;
     let extent = width.max(lines);
     let mut mean = vec![0.0; k];
@@ -1319,8 +1343,7 @@ fn exact_support(s: &[f64], sigmas: &[f64], k: usize, first: usize, width: usize
     loop {
         // Tiles of g x g camera pixels on the camera's grid (clipped to the block).
         let mut tiles: std::collections::BTreeMap<(usize, usize), Vec<usize>> = Default::default();
-        for c in 0..len {
-            let j = first + c;
+        for (c, &j) in pixels.iter().enumerate() {
             tiles
                 .entry((j / width / g, j % width / g))
                 .or_default()
@@ -1359,6 +1382,102 @@ fn exact_support(s: &[f64], sigmas: &[f64], k: usize, first: usize, width: usize
         g *= 2;
     }
     keep
+}
+
+/// The Haar coefficients a Hadamard subset measures completely. A Russian-doll subset that
+/// holds every Walsh function constant on `b x b` projector blocks ([`complete_binning`]) is a
+/// complete orthonormal set of the block-constant images, and so are the Haar coefficients
+/// coarser than the finest `log2 b` levels (the top-left `(w / b) x (h / b)` block of the
+/// Mallat layout); every other measured Walsh function and every finer Haar function is
+/// orthogonal to them. So those coefficients of `Psi A^T b` are exact (plus the noise of their
+/// pairs, `sigma` each), whatever a model does with the finer ones. A lasso at a weight above
+/// the noise zeroes the dim light every row has a little of (an interreflection), one below it
+/// keeps hundreds of noise coefficients; here they are taken as measured and kept as a
+/// complete set's are ([`exact_support_at`]: above the noise in their row, or in their mean
+/// over a tile of neighbouring camera pixels), and the model supplies only the finer
+/// coefficients. The rows are then Haar coefficients, whatever transform the model was
+/// fitted in.
+struct CoarseExact {
+    /// Mallat-layout indices of the measured coefficients (the first is the DC).
+    positions: Vec<usize>,
+    haar: Box<dyn crate::transforms::Transform>,
+}
+
+impl CoarseExact {
+    /// For the pairs of `op` (on the plan's grid), if they measure a coarser grid completely
+    /// and not the plan's own.
+    fn new(plan: &Plan, op: &HadamardOperator) -> Option<Self> {
+        if op.rows() >= plan.k() {
+            return None;
+        }
+        let b = complete_binning(op, plan.grid)? as usize;
+        let (w, h) = plan.size();
+        Some(CoarseExact {
+            positions: (0..h / b)
+                .flat_map(|y| (0..w / b).map(move |x| y * w + x))
+                .collect(),
+            haar: TransformKind::Haar.build(w, h),
+        })
+    }
+
+    /// The Haar coefficients of images `t` (rows x k) fitted to data `bs` (rows x n, the
+    /// plain Hadamard data of `op`), with the measured ones from the data, kept where they
+    /// stand out of their rows' noise `sigmas` (in a row, or in a tile of the camera pixels
+    /// `pixels` of a camera `width` wide) and zero elsewhere; the DC always (it is free in
+    /// every fit). The finer ones below the row's f32 resolution (rounding of a transform of a
+    /// sparse image) are zero.
+    fn apply(
+        &self,
+        op: &dyn LinearOperator,
+        bs: &[f64],
+        t: &[f64],
+        sigmas: &[f64],
+        (pixels, width): (&[usize], usize),
+    ) -> Vec<f64> {
+        let (k, n) = (op.cols(), op.rows());
+        let kc = self.positions.len();
+        let rows = sigmas.len();
+        let mut coarse = vec![0.0; rows * kc];
+        let mut u = vec![0.0; rows * k];
+        let (mut g, mut z) = (vec![0.0; k], vec![0.0; k]);
+        for (c, (row, out)) in u
+            .chunks_exact_mut(k)
+            .zip(coarse.chunks_exact_mut(kc))
+            .enumerate()
+        {
+            op.adjoint(&bs[c * n..(c + 1) * n], &mut g);
+            self.haar.apply(&g, &mut z);
+            out.iter_mut()
+                .zip(&self.positions)
+                .for_each(|(v, &i)| *v = z[i]);
+            self.haar.apply(&t[c * k..(c + 1) * k], row);
+            let floor = row.iter().fold(0.0f64, |m, v| m.max(v.abs())) * f32::EPSILON as f64 * 0.5;
+            row.iter_mut()
+                .filter(|v| v.abs() <= floor)
+                .for_each(|v| *v = 0.0);
+        }
+        let keep = exact_support_at(&coarse, sigmas, (kc, k), pixels, width);
+        for ((row, c), kept) in u
+            .chunks_exact_mut(k)
+            .zip(coarse.chunks_exact(kc))
+            .zip(keep.chunks_exact(kc))
+        {
+            for (j, &i) in self.positions.iter().enumerate() {
+                row[i] = if kept[j] || j == 0 { c[j] } else { 0.0 };
+            }
+        }
+        u
+    }
+
+    /// Images of Haar rows `u`.
+    fn images(&self, u: &[f64]) -> Vec<f64> {
+        let k = self.haar.cols();
+        let mut t = vec![0.0; u.len()];
+        for (a, b) in u.chunks_exact(k).zip(t.chunks_exact_mut(k)) {
+            self.haar.adjoint(a, b);
+        }
+        t
+    }
 }
 
 fn free_coefficients(kind: TransformKind) -> usize {
@@ -1432,6 +1551,8 @@ struct Point {
     light: Option<(f64, f64)>,
     /// Every row's weight at least its noise floor ([`noise_floor`]).
     floored: bool,
+    /// The coefficients the pairs measure completely taken as measured ([`CoarseExact`]).
+    coarse: bool,
     /// A random-pattern session's full-light relight error ([`random_relight_error`]).
     relight: Option<RelightEstimate>,
 }
@@ -1460,6 +1581,9 @@ struct Candidate {
     /// Every row's weight at least its noise floor ([`noise_floor`]).
     #[serde(skip_serializing_if = "std::ops::Not::not")]
     noise_floor: bool,
+    /// The Haar coefficients the pairs measure completely taken as measured ([`CoarseExact`]).
+    #[serde(skip_serializing_if = "std::ops::Not::not")]
+    coarse_exact: bool,
 }
 
 /// Counters of the iterative solve, as reported.
@@ -1569,7 +1693,7 @@ fn plan_with(
     let mut held_out_unavailable = None;
     let mut floor_sigma = None;
 
-    let (transform, lambda, refit, noise_floor) = if plan.exact {
+    let (transform, lambda, refit, noise_floor, coarse_exact) = if plan.exact {
         let transform = match config.transform {
             Some(t) => t,
             None => {
@@ -1645,14 +1769,14 @@ fn plan_with(
              other row predicts a held-out one"
                 .to_string(),
         );
-        (transform, None, false, false)
+        (transform, None, false, false, false)
     } else {
         control.set_progress(0.0);
-        let (transform, lambda, refit, floored) = choose_model(
+        let (transform, lambda, refit, floored, coarse_exact) = choose_model(
             plan,
             config,
             source,
-            m,
+            (m, camera.width as usize),
             sample,
             &mem,
             &mut largest,
@@ -1662,7 +1786,7 @@ fn plan_with(
             &mut floor_sigma,
             control,
         )?;
-        (transform, Some(lambda), refit, floored)
+        (transform, Some(lambda), refit, floored, coarse_exact)
     };
     if control.is_cancelled() {
         return Err(ReconError::Cancelled);
@@ -1711,6 +1835,7 @@ fn plan_with(
         noise_floor,
         floor_sigma: if noise_floor { floor_sigma } else { None },
         binning: plan.binning,
+        coarse_exact,
     })
 }
 
@@ -1778,7 +1903,28 @@ fn solve_with(
         max_iter: model.max_iter,
         tol: model.tol,
     };
-    let mut builder = Builder::new(plan.grid, (camera.width, camera.height), transform);
+    let coarse_exact = match &plan.raw {
+        Raw::Hadamard(op) if model.coarse_exact => Some(
+            CoarseExact::new(plan, op).ok_or_else(|| {
+                ReconError::Unsolvable(
+                    "the stored transport model takes coarse Haar coefficients as measured, and this session's pairs do not measure them"
+                        .into(),
+                )
+            })?,
+        ),
+        _ if model.coarse_exact => {
+            return Err(ReconError::Unsolvable(
+                "the stored transport model takes coarse Haar coefficients as measured, which only Hadamard pairs do"
+                    .into(),
+            ));
+        }
+        _ => None,
+    };
+    let mut builder = Builder::new(
+        plan.grid,
+        (camera.width, camera.height),
+        model.stored_transform(),
+    );
     let progress0 = if model.exact { 0.0 } else { 0.2 };
     let mut tally = Tally::default();
     let mut largest = 0usize;
@@ -1810,8 +1956,12 @@ fn solve_with(
             let n = plan.op().rows();
             let mut bs = Vec::with_capacity(len * n);
             let mut floors = Vec::new();
+            let mut row_sigmas = Vec::new();
             for c in 0..len {
                 let raw = plan.raw_column(&frames, len, c);
+                if coarse_exact.is_some() {
+                    row_sigmas.push(pair_sigma(&plan.pair_sums(&frames, len, c), &raw, k));
+                }
                 if model.noise_floor {
                     floors.push(match (&plan.raw, model.floor_sigma) {
                         (Raw::Bernoulli(op), Some(sigma)) => random_noise_floor(op, sigma),
@@ -1835,6 +1985,18 @@ fn solve_with(
             if model.refit {
                 let it = batch::refit_rows(&shared, &bs, &mut s, model.chunk, control)?;
                 tally.refit_iterations += it.iter().sum::<usize>() as u64;
+            }
+            if let Some(step) = &coarse_exact {
+                let pixels: Vec<usize> = range.clone().collect();
+                let mut t = vec![0.0; s.len()];
+                shared.inverse(&s, &mut t);
+                s = step.apply(
+                    shared.op,
+                    &bs,
+                    &t,
+                    &row_sigmas,
+                    (&pixels, camera.width as usize),
+                );
             }
             for row in s.chunks_exact(k) {
                 builder.push_row(row, 0.0);
@@ -1899,7 +2061,7 @@ pub fn assemble_transport(
             model.blocks.len()
         )));
     }
-    let mut builder = Builder::new(model.projector, model.camera, model.transform);
+    let mut builder = Builder::new(model.projector, model.camera, model.stored_transform());
     let mut tally = Tally::default();
     let mut largest = model.largest_read_bytes;
     let mut sigmas = Vec::new();
@@ -1919,6 +2081,11 @@ pub fn assemble_transport(
     let mut details = model.details.clone();
     let stored = matrix.stored_bytes();
     details.insert("transform".into(), json!(model.transform.name()));
+    details.insert(
+        "stored_transform".into(),
+        json!(model.stored_transform().name()),
+    );
+    details.insert("coarse_exact".into(), json!(model.coarse_exact));
     details.insert("lambda".into(), json!(model.lambda));
     details.insert("refit".into(), json!(model.refit));
     details.insert(
@@ -2020,8 +2187,13 @@ fn weights(lam_max: &[f64], frac: f64, floors: &[f64]) -> Vec<f64> {
 /// of noise coefficients (1 % frame noise: 420-810 per row where the complete set keeps 4-128).
 /// 0 without a noise estimate.
 fn noise_floor(sums: &[f64], raw: &[f64], k: usize) -> f64 {
-    super::noise::from_pair_sums(sums, 1.0 / (k as f64).sqrt(), raw)
-        .map_or(0.0, |n| n.sigma * (2.0 * (k as f64).ln()).sqrt())
+    pair_sigma(sums, raw, k) * (2.0 * (k as f64).ln()).sqrt()
+}
+
+/// The noise of a Hadamard row's data (and of each coefficient of an orthonormal transform)
+/// from its split-pair sums ([`super::noise::from_pair_sums`]); 0 without an estimate.
+fn pair_sigma(sums: &[f64], raw: &[f64], k: usize) -> f64 {
+    super::noise::from_pair_sums(sums, 1.0 / (k as f64).sqrt(), raw).map_or(0.0, |n| n.sigma)
 }
 
 /// A Bernoulli session's noise floor on every row's weight: `sqrt(2 ln k) sigma sqrt(n p (1 - p))`,
@@ -2193,7 +2365,7 @@ fn choose_model(
     plan: &Plan,
     config: &TransportConfig,
     source: &mut dyn FrameSource,
-    m: usize,
+    (m, camera_width): (usize, usize),
     sample: usize,
     mem: &MemoryPlan,
     largest: &mut usize,
@@ -2202,7 +2374,7 @@ fn choose_model(
     held_out_unavailable: &mut Option<String>,
     floor_sigma: &mut Option<f64>,
     control: &Control,
-) -> Result<(TransformKind, f64, bool, bool), ReconError> {
+) -> Result<(TransformKind, f64, bool, bool, bool), ReconError> {
     let (pw, ph) = plan.size();
     let k = plan.k();
     let fraction = config
@@ -2224,7 +2396,7 @@ fn choose_model(
                 "selection".into(),
                 json!({"rule": format!("defaults (no held-out rows: {why})")}),
             );
-            return Ok((transform, lambda, false, false));
+            return Ok((transform, lambda, false, false, false));
         }
     };
     let drawn = energy_sample(plan, source, m, mem.block_pixels, sample, largest, control)?;
@@ -2291,6 +2463,17 @@ fn choose_model(
         Some(_) => LevelTest::new(plan, &raws, &floors)?,
         None => None,
     };
+    // A subset's training pairs, for the coefficients they measure completely ([`CoarseExact`]),
+    // with every sample pixel's noise.
+    let coarse = subset_op.and_then(|op| CoarseExact::new(plan, &op.select_rows(&split.train)));
+    let sample_sigmas: Vec<f64> = match subset_op {
+        Some(_) => raws
+            .iter()
+            .zip(&sums)
+            .map(|(raw, sum)| pair_sigma(sum, raw, k))
+            .collect(),
+        None => Vec::new(),
+    };
     // (transform, level-test residual, nonzeros of the point it was tested at).
     let mut level_scores: Vec<(TransformKind, f64, f64)> = Vec::new();
     let mut scored: Vec<Point> = Vec::new();
@@ -2318,6 +2501,7 @@ fn choose_model(
         };
         let lam_max = batch::lambda_max(&sh, &bs, chunk);
         let mut t = vec![0.0; rows * k];
+        let mut fitted = vec![0.0; rows * k];
         let h = test.rows();
         let mut pred = vec![0.0; rows * h];
         let smallest = lambdas.iter().copied().fold(f64::INFINITY, f64::min);
@@ -2337,69 +2521,93 @@ fn choose_model(
                 // continues nothing: the path goes on from the lasso point).
                 let mut refitted = s.clone();
                 let refit_it = batch::refit_rows(&sh, &bs, &mut refitted, chunk, control)?;
-                let nnz = s.iter().filter(|v| **v != 0.0).count() as f64 / rows as f64;
+                let fitted_nnz = s.iter().filter(|v| **v != 0.0).count() as f64 / rows as f64;
                 let mut value = f64::INFINITY;
                 for (refit, coefficients, iterations) in
                     [(false, &s, &it), (true, &refitted, &refit_it)]
                 {
-                    sh.inverse(coefficients, &mut t);
-                    test.apply_batch(&t, &mut pred, rows);
-                    let mut score = Score::new(rows);
-                    // Squared residual of every held-out row, summed over the sample pixels: their
-                    // spread gives the standard error of the score.
-                    let mut per_row = vec![0.0; h];
-                    for (j, obs) in observed.iter().enumerate() {
-                        let p = &pred[j * h..(j + 1) * h];
-                        score.add_channel(j, obs, p);
-                        per_row
-                            .iter_mut()
-                            .zip(obs.iter().zip(p))
-                            .for_each(|(e, (o, p))| *e += (o - p) * (o - p));
+                    sh.inverse(coefficients, &mut fitted);
+                    // As fitted, and (where the training pairs measure a coarser grid
+                    // completely) with those coefficients as measured ([`CoarseExact`]).
+                    for with_coarse in [false, true] {
+                        let nnz = match (&coarse, with_coarse) {
+                            (None, true) => continue,
+                            (Some(step), true) => {
+                                let u = step.apply(
+                                    train.op(),
+                                    &bs,
+                                    &fitted,
+                                    &sample_sigmas,
+                                    (&picked, camera_width),
+                                );
+                                t = step.images(&u);
+                                u.iter().filter(|v| **v != 0.0).count() as f64 / rows as f64
+                            }
+                            _ => {
+                                t.copy_from_slice(&fitted);
+                                fitted_nnz
+                            }
+                        };
+                        test.apply_batch(&t, &mut pred, rows);
+                        let mut score = Score::new(rows);
+                        // Squared residual of every held-out row, summed over the sample pixels: their
+                        // spread gives the standard error of the score.
+                        let mut per_row = vec![0.0; h];
+                        for (j, obs) in observed.iter().enumerate() {
+                            let p = &pred[j * h..(j + 1) * h];
+                            score.add_channel(j, obs, p);
+                            per_row
+                                .iter_mut()
+                                .zip(obs.iter().zip(p))
+                                .for_each(|(e, (o, p))| *e += (o - p) * (o - p));
+                        }
+                        let rho = score.finish(split.fraction).relative_residual;
+                        let se = rho.map(|r| r * relative_standard_error(&per_row));
+                        let estimate = subset_op
+                            .and_then(|op| subset_error(op, (&raws, &sums, &chance), &t))
+                            .map(|e| e.relative);
+                        let light = subset_op
+                            .and_then(|op| subset_light_error(op, (&raws, &sums, &chance), &t));
+                        let relight = random_fill.and_then(|fill| {
+                            random_relight_error(
+                                (&observed, &pred, h),
+                                &t,
+                                k,
+                                (&picked, &chance),
+                                fill,
+                                relight_sigma,
+                            )
+                        });
+                        candidates.push(Candidate {
+                            transform: kind.name(),
+                            lambda: frac,
+                            held_out: rho,
+                            held_out_se: se,
+                            error_estimate: estimate,
+                            light_error: light.map(|l| l.0),
+                            relight_error_estimate: relight.map(RelightEstimate::to_json),
+                            iterations_mean: iterations.iter().sum::<usize>() as f64 / rows as f64,
+                            nonzeros_mean: nnz,
+                            refit,
+                            noise_floor: floored,
+                            coarse_exact: with_coarse,
+                        });
+                        let v = rho.unwrap_or(f64::INFINITY);
+                        value = value.min(v);
+                        scored.push(Point {
+                            kind,
+                            lambda: frac,
+                            refit,
+                            held_out: v,
+                            se: se.unwrap_or(0.0),
+                            nonzeros: nnz,
+                            score,
+                            light,
+                            floored,
+                            coarse: with_coarse,
+                            relight,
+                        });
                     }
-                    let rho = score.finish(split.fraction).relative_residual;
-                    let se = rho.map(|r| r * relative_standard_error(&per_row));
-                    let estimate = subset_op
-                        .and_then(|op| subset_error(op, (&raws, &sums, &chance), &t))
-                        .map(|e| e.relative);
-                    let light = subset_op
-                        .and_then(|op| subset_light_error(op, (&raws, &sums, &chance), &t));
-                    let relight = random_fill.and_then(|fill| {
-                        random_relight_error(
-                            (&observed, &pred, h),
-                            &t,
-                            k,
-                            (&picked, &chance),
-                            fill,
-                            relight_sigma,
-                        )
-                    });
-                    candidates.push(Candidate {
-                        transform: kind.name(),
-                        lambda: frac,
-                        held_out: rho,
-                        held_out_se: se,
-                        error_estimate: estimate,
-                        light_error: light.map(|l| l.0),
-                        relight_error_estimate: relight.map(RelightEstimate::to_json),
-                        iterations_mean: iterations.iter().sum::<usize>() as f64 / rows as f64,
-                        nonzeros_mean: nnz,
-                        refit,
-                        noise_floor: floored,
-                    });
-                    let v = rho.unwrap_or(f64::INFINITY);
-                    value = value.min(v);
-                    scored.push(Point {
-                        kind,
-                        lambda: frac,
-                        refit,
-                        held_out: v,
-                        se: se.unwrap_or(0.0),
-                        nonzeros: nnz,
-                        score,
-                        light,
-                        floored,
-                        relight,
-                    });
                 }
                 step += 1;
                 control.set_progress(0.2 * step as f64 / steps);
@@ -2432,10 +2640,11 @@ fn choose_model(
     if let Some(level) = &level {
         for &kind in &transforms {
             // At the weight (and refit, and floor) the held-out pairs like best for this
-            // transform.
+            // transform, as fitted (the coarse coefficients taken as measured change nothing
+            // the level test or the held-out pairs see).
             let Some(at) = scored
                 .iter()
-                .filter(|c| c.kind == kind)
+                .filter(|c| c.kind == kind && !c.coarse)
                 .min_by(|a, b| a.held_out.total_cmp(&b.held_out))
             else {
                 continue;
@@ -2458,57 +2667,72 @@ fn choose_model(
     // [`subset_light_error`]; if none does, the one nearest), and among those the one the
     // held-out pairs choose.
     let by_level = !level_scores.is_empty();
+    // Within a transform (or all): the points that keep the light (subsets), the best held-out
+    // score among them, and the sparsest point within one standard error of it.
+    fn pick(pool: Vec<&Point>, subset: bool) -> Option<(&Point, &Point)> {
+        let mut eligible = pool;
+        if subset {
+            let keeps = |c: &Point| {
+                c.light
+                    .is_some_and(|(e, se)| e <= (3.0 * se).max(LIGHT_TOLERANCE))
+            };
+            if eligible.iter().any(|c| keeps(c)) {
+                eligible.retain(|c| keeps(c));
+            } else if let Some(nearest) = eligible
+                .iter()
+                .filter_map(|c| c.light.map(|l| l.0))
+                .min_by(f64::total_cmp)
+            {
+                eligible.retain(|c| c.light.is_some_and(|l| l.0 <= nearest));
+            }
+        }
+        let best = *eligible
+            .iter()
+            .min_by(|a, b| a.held_out.total_cmp(&b.held_out))?;
+        // The sparsest model within one standard error of the best held-out score (ties: the
+        // larger weight, which comes first along each path, then the lower score: a lasso
+        // point and its refit keep the same coefficients).
+        let within = best.held_out + best.se;
+        let chosen = *eligible
+            .iter()
+            .filter(|c| c.held_out <= within)
+            .min_by(|a, b| {
+                a.nonzeros
+                    .total_cmp(&b.nonzeros)
+                    .then(b.lambda.total_cmp(&a.lambda))
+                    .then(a.held_out.total_cmp(&b.held_out))
+            })?;
+        Some((best, chosen))
+    }
+    let subset = subset_op.is_some();
+    // Of the transforms whose level-test residual is within 10 % (plus [`LEVEL_TIE`]) of the
+    // lowest, the sparsest at its tested point.
     let transform_by_level = level_scores
         .iter()
         .map(|l| l.1)
         .min_by(f64::total_cmp)
-        .and_then(|best| {
+        .and_then(|lowest| {
             level_scores
                 .iter()
-                .filter(|l| l.1 <= best * 1.1 + LEVEL_TIE)
+                .filter(|l| l.1 <= lowest * 1.1 + LEVEL_TIE)
                 .min_by(|a, b| a.2.total_cmp(&b.2))
                 .map(|l| l.0)
         });
-    let mut eligible: Vec<&Point> = scored
-        .iter()
-        .filter(|c| transform_by_level.is_none_or(|t| c.kind == t))
-        .collect();
-    if subset_op.is_some() {
-        let keeps = |c: &Point| {
-            c.light
-                .is_some_and(|(e, se)| e <= (3.0 * se).max(LIGHT_TOLERANCE))
-        };
-        if eligible.iter().any(|c| keeps(c)) {
-            eligible.retain(|c| keeps(c));
-        } else if let Some(nearest) = eligible
+    let (best, chosen) = pick(
+        scored
             .iter()
-            .filter_map(|c| c.light.map(|l| l.0))
-            .min_by(f64::total_cmp)
-        {
-            eligible.retain(|c| c.light.is_some_and(|l| l.0 <= nearest));
-        }
-    }
-    let best = *eligible
-        .iter()
-        .min_by(|a, b| a.held_out.total_cmp(&b.held_out))
-        .expect("at least one candidate");
-    let (best_value, best_se) = (best.held_out, best.se);
-    // The sparsest model within one standard error of the best held-out score (ties: the
-    // larger weight, which comes first along each path, then the lower score: a lasso point
-    // and its refit keep the same coefficients).
-    let within = best_value + best_se;
-    let chosen = *eligible
-        .iter()
-        .filter(|c| c.held_out <= within)
-        .min_by(|a, b| {
-            a.nonzeros
-                .total_cmp(&b.nonzeros)
-                .then(b.lambda.total_cmp(&a.lambda))
-                .then(a.held_out.total_cmp(&b.held_out))
-        })
-        .expect("the best is within");
-    let (transform, lambda, refit, floored) =
-        (chosen.kind, chosen.lambda, chosen.refit, chosen.floored);
+            .filter(|c| transform_by_level.is_none_or(|t| c.kind == t))
+            .collect(),
+        subset,
+    )
+    .expect("at least one candidate");
+    let (transform, lambda, refit, floored, coarse_exact) = (
+        chosen.kind,
+        chosen.lambda,
+        chosen.refit,
+        chosen.floored,
+        chosen.coarse,
+    );
     *held_out = Some(chosen.score.finish(split.fraction));
     if let Some(est) = chosen.relight {
         let mut reported = est.to_json();
@@ -2533,8 +2757,9 @@ fn choose_model(
     };
     if let Some(estimate) = hadamard_subset_error(
         plan,
-        (transform, lambda, refit, floored),
+        (transform, lambda, refit, floored, coarse_exact),
         (&raws, &sums, &chance),
+        (&picked, camera_width),
         config,
         chunk,
         control,
@@ -2594,10 +2819,10 @@ fn choose_model(
             "pruned": pruned,
             "sample": "camera pixels drawn with probability in proportion to the energy of their data (systematic, deterministic)",
             "best": {"transform": best.kind.name(), "lambda": best.lambda, "refit": best.refit, "held_out": best.held_out, "standard_error": best.se, "nonzeros_mean": best.nonzeros},
-            "chosen": {"transform": transform.name(), "lambda": lambda, "refit": refit, "noise_floor": floored, "held_out": chosen.held_out, "light_error": chosen.light.map(|l| l.0), "nonzeros_mean": chosen.nonzeros},
+            "chosen": {"transform": transform.name(), "lambda": lambda, "refit": refit, "noise_floor": floored, "coarse_exact": coarse_exact, "held_out": chosen.held_out, "light_error": chosen.light.map(|l| l.0), "nonzeros_mean": chosen.nonzeros},
             "level_test": level_scores.iter().map(|(kind, v, nnz)| json!({"transform": kind.name(), "relative_residual": v, "nonzeros_mean": nnz})).collect::<Vec<_>>(),
             "candidates": candidates,
         }),
     );
-    Ok((transform, lambda, refit, floored))
+    Ok((transform, lambda, refit, floored, coarse_exact))
 }

@@ -86,6 +86,10 @@ pub struct TransportModel {
     /// `projector_binning`); `projector` is the coarse grid.
     #[serde(default = "one")]
     pub binning: u32,
+    /// The Haar coefficients the subset measures completely are taken from the data and kept
+    /// by the noise test of a complete set (`CoarseExact` in the module; version 2).
+    #[serde(default)]
+    pub coarse_exact: bool,
 }
 
 fn one() -> u32 {
@@ -93,12 +97,23 @@ fn one() -> u32 {
 }
 
 impl TransportModel {
-    pub const VERSION: u32 = 1;
+    /// 2: `coarse_exact`. A version-1 model (without it) is solved as it was planned.
+    pub const VERSION: u32 = 2;
 
     pub fn camera_grid(&self) -> CameraGrid {
         CameraGrid {
             width: self.camera.0,
             height: self.camera.1,
+        }
+    }
+
+    /// The transform of the stored rows: Haar where the coarse coefficients are taken as
+    /// measured, else the fitted one.
+    pub fn stored_transform(&self) -> TransformKind {
+        if self.coarse_exact {
+            TransformKind::Haar
+        } else {
+            self.transform
         }
     }
 
@@ -148,7 +163,7 @@ impl TransportModel {
 
     /// Refuses a spec of other dimensions than the model's.
     pub(super) fn check_spec(&self, spec: &PatternSpec) -> Result<(), ReconError> {
-        if self.version != Self::VERSION {
+        if self.version == 0 || self.version > Self::VERSION {
             return Err(ReconError::Unsolvable(format!(
                 "transport model version {} (this build solves version {})",
                 self.version,
