@@ -545,6 +545,10 @@ fn plan_memory(
     if plan.exact {
         // The block's rows, their coefficients and which of them are kept.
         per_pixel += 17 * k;
+    } else if matches!(plan.raw, Raw::Hadamard(_)) {
+        // The coarse coefficients a subset may measure completely ([`CoarseExact::apply`]: a
+        // quarter of the row at most) and which of them are kept.
+        per_pixel += (9 * k).div_ceil(4);
     }
     if coarse {
         per_pixel += (8 * n + 8 * k).div_ceil(4);
@@ -1173,7 +1177,15 @@ fn hadamard_subset_error(
             .zip(sums)
             .map(|(raw, sum)| pair_sigma(sum, raw, op.cols()))
             .collect();
-        t = step.images(&step.apply(op, &bs, &t, &sigmas, (picked, camera_width)));
+        step.apply(
+            op,
+            &bs,
+            &mut s,
+            &|row, img| sh.inverse(row, img),
+            &sigmas,
+            (picked, camera_width),
+        );
+        step.images(&s, &mut t);
     }
     let Some(pooled) = subset_error(op, (raws, sums, chance), &t) else {
         return Ok(None);
@@ -1420,27 +1432,27 @@ impl CoarseExact {
         })
     }
 
-    /// The Haar coefficients of images `t` (rows x k) fitted to data `bs` (rows x n, the
-    /// plain Hadamard data of `op`), with the measured ones from the data, kept where they
-    /// stand out of their rows' noise `sigmas` (in a row, or in a tile of the camera pixels
-    /// `pixels` of a camera `width` wide) and zero elsewhere; the DC always (it is free in
-    /// every fit). The finer ones below the row's f32 resolution (rounding of a transform of a
-    /// sparse image) are zero.
+    /// Rows fitted to data `bs` (rows x n, the plain Hadamard data of `op`) in place: in, the
+    /// fitted coefficients, whose images `image` gives; out, their Haar coefficients with the
+    /// measured ones from the data, kept where they stand out of their rows' noise `sigmas`
+    /// (in a row, or in a tile of the camera pixels `pixels` of a camera `width` wide) and
+    /// zero elsewhere; the DC always (it is free in every fit). The finer ones below the row's
+    /// f32 resolution (rounding of a transform of a sparse image) are zero. Beyond the rows it
+    /// holds the measured coefficients (`9 k / b^2` bytes a row) and two images.
     fn apply(
         &self,
         op: &dyn LinearOperator,
         bs: &[f64],
-        t: &[f64],
+        rows: &mut [f64],
+        image: &dyn Fn(&[f64], &mut [f64]),
         sigmas: &[f64],
         (pixels, width): (&[usize], usize),
-    ) -> Vec<f64> {
+    ) {
         let (k, n) = (op.cols(), op.rows());
         let kc = self.positions.len();
-        let rows = sigmas.len();
-        let mut coarse = vec![0.0; rows * kc];
-        let mut u = vec![0.0; rows * k];
+        let mut coarse = vec![0.0; sigmas.len() * kc];
         let (mut g, mut z) = (vec![0.0; k], vec![0.0; k]);
-        for (c, (row, out)) in u
+        for (c, (row, out)) in rows
             .chunks_exact_mut(k)
             .zip(coarse.chunks_exact_mut(kc))
             .enumerate()
@@ -1450,14 +1462,15 @@ impl CoarseExact {
             out.iter_mut()
                 .zip(&self.positions)
                 .for_each(|(v, &i)| *v = z[i]);
-            self.haar.apply(&t[c * k..(c + 1) * k], row);
+            image(row, &mut g);
+            self.haar.apply(&g, row);
             let floor = row.iter().fold(0.0f64, |m, v| m.max(v.abs())) * f32::EPSILON as f64 * 0.5;
             row.iter_mut()
                 .filter(|v| v.abs() <= floor)
                 .for_each(|v| *v = 0.0);
         }
         let keep = exact_support_at(&coarse, sigmas, (kc, k), pixels, width);
-        for ((row, c), kept) in u
+        for ((row, c), kept) in rows
             .chunks_exact_mut(k)
             .zip(coarse.chunks_exact(kc))
             .zip(keep.chunks_exact(kc))
@@ -1466,17 +1479,14 @@ impl CoarseExact {
                 row[i] = if kept[j] || j == 0 { c[j] } else { 0.0 };
             }
         }
-        u
     }
 
-    /// Images of Haar rows `u`.
-    fn images(&self, u: &[f64]) -> Vec<f64> {
+    /// Images `t` of Haar rows `u`.
+    fn images(&self, u: &[f64], t: &mut [f64]) {
         let k = self.haar.cols();
-        let mut t = vec![0.0; u.len()];
         for (a, b) in u.chunks_exact(k).zip(t.chunks_exact_mut(k)) {
             self.haar.adjoint(a, b);
         }
-        t
     }
 }
 
@@ -1988,12 +1998,11 @@ fn solve_with(
             }
             if let Some(step) = &coarse_exact {
                 let pixels: Vec<usize> = range.clone().collect();
-                let mut t = vec![0.0; s.len()];
-                shared.inverse(&s, &mut t);
-                s = step.apply(
+                step.apply(
                     shared.op,
                     &bs,
-                    &t,
+                    &mut s,
+                    &|row, img| shared.inverse(row, img),
                     &row_sigmas,
                     (&pixels, camera.width as usize),
                 );
@@ -2501,7 +2510,6 @@ fn choose_model(
         };
         let lam_max = batch::lambda_max(&sh, &bs, chunk);
         let mut t = vec![0.0; rows * k];
-        let mut fitted = vec![0.0; rows * k];
         let h = test.rows();
         let mut pred = vec![0.0; rows * h];
         let smallest = lambdas.iter().copied().fold(f64::INFINITY, f64::min);
@@ -2526,25 +2534,26 @@ fn choose_model(
                 for (refit, coefficients, iterations) in
                     [(false, &s, &it), (true, &refitted, &refit_it)]
                 {
-                    sh.inverse(coefficients, &mut fitted);
                     // As fitted, and (where the training pairs measure a coarser grid
                     // completely) with those coefficients as measured ([`CoarseExact`]).
                     for with_coarse in [false, true] {
                         let nnz = match (&coarse, with_coarse) {
                             (None, true) => continue,
                             (Some(step), true) => {
-                                let u = step.apply(
+                                let mut u = coefficients.clone();
+                                step.apply(
                                     train.op(),
                                     &bs,
-                                    &fitted,
+                                    &mut u,
+                                    &|row, img| sh.inverse(row, img),
                                     &sample_sigmas,
                                     (&picked, camera_width),
                                 );
-                                t = step.images(&u);
+                                step.images(&u, &mut t);
                                 u.iter().filter(|v| **v != 0.0).count() as f64 / rows as f64
                             }
                             _ => {
-                                t.copy_from_slice(&fitted);
+                                sh.inverse(coefficients, &mut t);
                                 fitted_nnz
                             }
                         };
