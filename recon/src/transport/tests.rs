@@ -50,6 +50,28 @@ fn frames(spec: &PatternSpec, t: &[f32], m: usize, noise: f64) -> Vec<f32> {
     out
 }
 
+/// A Russian-doll Hadamard session of `pairs` split pairs on a `w x h` projector.
+fn russian_doll(w: usize, h: usize, pairs: usize) -> PatternSpec {
+    PatternSpec::new(
+        Family::Hadamard {
+            ordering: HadamardOrdering::RussianDoll,
+        },
+        w as u32,
+        h as u32,
+        2 * pairs as u64,
+        0,
+    )
+    .unwrap()
+}
+
+/// The frames of `spec` noise-free and with Gaussian noise of `share` of their RMS.
+fn clean_and_noisy(spec: &PatternSpec, t: &[f32], m: usize, share: f64) -> (Vec<f32>, Vec<f32>) {
+    let clean = frames(spec, t, m, 0.0);
+    let rms = (clean.iter().map(|v| (*v as f64).powi(2)).sum::<f64>() / clean.len() as f64).sqrt();
+    let noisy = frames(spec, t, m, share * rms);
+    (clean, noisy)
+}
+
 /// The zero-filled inverse `A^T d` of Hadamard split pairs, row by row (the baseline).
 fn zero_filled(spec: &PatternSpec, f: &[f32], m: usize) -> Vec<f32> {
     let op = HadamardOperator::from_spec(spec, spec.count()).unwrap();
@@ -1586,19 +1608,7 @@ fn a_noisy_hadamard_subset_of_sparse_rows_stores_no_more_than_the_complete_set()
     let (pw, ph) = (32usize, 32usize);
     let k = pw * ph;
     let m = camera.pixels();
-    let spec_of = |pairs: usize| {
-        PatternSpec::new(
-            Family::Hadamard {
-                ordering: HadamardOrdering::RussianDoll,
-            },
-            pw as u32,
-            ph as u32,
-            2 * pairs as u64,
-            0,
-        )
-        .unwrap()
-    };
-    let (complete, half) = (spec_of(k), spec_of(k / 2));
+    let (complete, half) = (russian_doll(pw, ph, k), russian_doll(pw, ph, k / 2));
     let scenes = [
         (
             "glossy",
@@ -1611,10 +1621,7 @@ fn a_noisy_hadamard_subset_of_sparse_rows_stores_no_more_than_the_complete_set()
     ];
     for (name, scene) in scenes {
         let truth = scene.dense();
-        let clean = frames(&complete, &truth, m, 0.0);
-        let frame_rms =
-            (clean.iter().map(|v| (*v as f64).powi(2)).sum::<f64>() / clean.len() as f64).sqrt();
-        let noisy = frames(&complete, &truth, m, 0.01 * frame_rms);
+        let (clean, noisy) = clean_and_noisy(&complete, &truth, m, 0.01);
         let (t_complete, _, _) = run(&complete, camera, &noisy, &TransportConfig::default());
         // The subset's frames are the complete set's first ones (the same noise).
         let f = &noisy[..half.count() as usize * m];
@@ -1682,25 +1689,10 @@ fn a_noisy_hadamard_subset_keeps_a_dim_interreflection_from_its_coarse_pairs_in_
     let (pw, ph) = (32usize, 32usize);
     let k = pw * ph;
     let m = camera.pixels();
-    let spec_of = |pairs: usize| {
-        PatternSpec::new(
-            Family::Hadamard {
-                ordering: HadamardOrdering::RussianDoll,
-            },
-            pw as u32,
-            ph as u32,
-            2 * pairs as u64,
-            0,
-        )
-        .unwrap()
-    };
-    let (complete, half) = (spec_of(k), spec_of(k / 2));
+    let (complete, half) = (russian_doll(pw, ph, k), russian_doll(pw, ph, k / 2));
     let scene = helmholtz_sim::RenderedTransport::cornell((pw, ph), (24, 24), 1);
     let truth = scene.dense();
-    let clean = frames(&complete, &truth, m, 0.0);
-    let frame_rms =
-        (clean.iter().map(|v| (*v as f64).powi(2)).sum::<f64>() / clean.len() as f64).sqrt();
-    let noisy = frames(&complete, &truth, m, 0.01 * frame_rms);
+    let (clean, noisy) = clean_and_noisy(&complete, &truth, m, 0.01);
     let (t_complete, _, _) = run(&complete, camera, &noisy, &TransportConfig::default());
     let f = &noisy[..half.count() as usize * m];
     let (t, report, _) = run(&half, camera, f, &TransportConfig::default());
@@ -1950,16 +1942,7 @@ fn a_subset_complete_on_blocks_measures_the_coarse_haar_coefficients_exactly() {
     let (w, h) = (32usize, 32usize);
     let k = w * h;
     for share in [2, 4] {
-        let spec = PatternSpec::new(
-            Family::Hadamard {
-                ordering: HadamardOrdering::RussianDoll,
-            },
-            w as u32,
-            h as u32,
-            2 * (k / share) as u64,
-            3,
-        )
-        .unwrap();
+        let spec = russian_doll(w, h, k / share);
         let plan = Plan::new(&spec, spec.count() as usize, 1).unwrap();
         let Raw::Hadamard(op) = &plan.raw else {
             panic!("a Hadamard plan")
