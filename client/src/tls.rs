@@ -52,10 +52,19 @@ pub(crate) fn grpc_config() -> tonic::transport::ClientTlsConfig {
     }
 }
 
+/// Makes ring rustls's process-wide crypto provider, unless one is installed already. The
+/// project builds rustls with ring alone (no aws-lc C build); the REST client (reqwest) then
+/// needs a provider installed before any client is built, which this does (idempotent, cheap).
+pub fn install_crypto_provider() {
+    // Err means a provider is installed already: that one stays.
+    let _ = rustls::crypto::ring::default_provider().install_default();
+}
+
 /// Adds the trusted CA to a REST client (reqwest verifies with the platform's roots).
 pub(crate) fn http_roots(
     builder: reqwest::ClientBuilder,
 ) -> anyhow::Result<reqwest::ClientBuilder> {
+    install_crypto_provider();
     Ok(match extra_ca() {
         Some(pem) => builder.tls_certs_merge(
             reqwest::Certificate::from_pem_bundle(&pem).context("--ca-file: bad PEM")?,

@@ -498,7 +498,7 @@ impl MethodConfig {
     /// The counts are the upper envelope of the peaks the counting allocator measured over the
     /// full benchmark grid (`docs/benchmarks.json`: 2,682 reconstructions, 32x32 to 256x256, 1 %
     /// to 400 % rows; e.g. Bernoulli `auto` at most 48 vectors + 4.7 kn/8 bytes, Hadamard `auto`
-    /// 56 vectors), with a quarter more as margin; `tests/tests/memory.rs` checks the bound
+    /// 56 vectors), with a quarter more as margin; `tests/tests/e2e/memory.rs` checks the bound
     /// against the peaks the real server reports.
     pub fn memory_estimate(&self, problem: &Problem) -> u64 {
         const MIB: f64 = (1u64 << 20) as f64;

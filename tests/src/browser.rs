@@ -1,6 +1,6 @@
 //! A headless Chromium driven over the W3C WebDriver protocol by Debian's `chromedriver` (the
 //! browser vendor's own, maintained driver), for the web viewer's end-to-end tests
-//! (`tests/tests/browser.rs`). The protocol client is the fantoccini crate, connected over plain
+//! (`tests/tests/e2e/browser.rs`). The protocol client is the fantoccini crate, connected over plain
 //! HTTP (hyper-util's `HttpConnector`, no TLS) to the chromedriver started here on a free
 //! 127.0.0.1 port; [`Browser`] is the small interface the tests use on top of it.
 //!

@@ -16,6 +16,19 @@ pub mod pg;
 
 pub use backend::{Backend, backend, server_command, store_args, store_args_on};
 
+/// A plain REST client for the tests (`reqwest::Client::new()`), after installing rustls's ring
+/// provider: the workspace builds rustls with ring alone, and reqwest needs a process-wide
+/// provider before it builds a client ([`helmholtz_client::tls::install_crypto_provider`]).
+pub fn http_client() -> reqwest::Client {
+    helmholtz_client::tls::install_crypto_provider();
+    reqwest::Client::new()
+}
+
+/// `reqwest::get(url)` on [`http_client`].
+pub async fn http_get(url: impl reqwest::IntoUrl) -> reqwest::Result<reqwest::Response> {
+    http_client().get(url).send().await
+}
+
 /// Path of a workspace binary built beside this test executable (`cargo test --workspace`
 /// builds them: the server and client packages each have an integration test). Note that
 /// `cargo test -p helmholtz-tests` alone does not rebuild them: it runs whatever binaries the
@@ -215,6 +228,9 @@ impl ServerProcess {
         token: String,
         data_dir: &Path,
     ) -> anyhow::Result<ServerProcess> {
+        // A test that talks REST to this server with its own reqwest client needs rustls's
+        // provider installed first (see [`http_client`]).
+        helmholtz_client::tls::install_crypto_provider();
         let mut child = Command::new(server_bin)
             .args(args)
             .env("RUST_LOG", "warn")

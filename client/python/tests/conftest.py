@@ -5,7 +5,7 @@ real ``helmholtz-server token create``. No mocks.
   repository (build it with ``cargo build -p helmholtz-server --bins``).
 - The database: a SQLite file in a temporary data directory, or, when
   ``$HELMHOLTZ_PYTEST_DATABASE_URL`` names a PostgreSQL database (the Rust wrapper
-  ``tests/tests/python.rs`` makes a fresh one on the postgres backend), that database.
+  ``tests/tests/e2e/python.rs`` makes a fresh one on the postgres backend), that database.
 
 The server is started once for the whole run and stopped (SIGTERM) at the end.
 """

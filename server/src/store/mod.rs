@@ -12,6 +12,7 @@ use helmholtz_proto::PatternSpec;
 
 mod batches;
 mod jobs;
+mod migrations;
 pub mod postgres;
 mod record;
 mod rows;

@@ -248,6 +248,7 @@ async fn measure(args: &Args, backend: Backend) -> anyhow::Result<Report> {
                     .context("--token is not a valid header value")?,
             );
         }
+        helmholtz_client::tls::install_crypto_provider();
         reqwest::Client::builder()
             .default_headers(headers)
             .build()?

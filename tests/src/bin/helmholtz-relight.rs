@@ -172,7 +172,7 @@ async fn main() -> anyhow::Result<()> {
     eprintln!("T in {seconds:.1} s: {}", detail("transform"));
 
     // Queries: each light / pattern differs from every other (no response-cache hits).
-    let http = reqwest::Client::new();
+    let http = helmholtz_tests::http_client();
     let mut kinds: Vec<(&str, Timings)> = vec![
         ("relight, disc light, PNG", Timings::default()),
         ("relight, disc light, NPY", Timings::default()),

@@ -159,7 +159,7 @@ async fn run(
             .sum()
     };
     let (worker0, database0) = (cpu(&workers), postgres_cpu());
-    let http = reqwest::Client::new();
+    let http = helmholtz_tests::http_client();
     let r = http
         .post(api.url("/v1/sessions/cam/reconstructions"))
         .header("content-type", "application/json")

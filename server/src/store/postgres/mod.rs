@@ -70,7 +70,7 @@ impl Postgres {
             .after_release(shrink_buffers)
             .connect_with(options.clone())
             .await?;
-        sqlx::migrate!("../migrations/postgres").run(&pool).await?;
+        super::migrations::postgres().run(&pool).await?;
         let bulk = PgPoolOptions::new()
             .max_connections(BULK_CONNECTIONS)
             .acquire_timeout(Duration::from_secs(30))

@@ -48,7 +48,7 @@ impl Sqlite {
             .max_connections(8)
             .connect_with(options)
             .await?;
-        sqlx::migrate!("../migrations/sqlite").run(&pool).await?;
+        super::migrations::sqlite().run(&pool).await?;
         Ok(Sqlite { pool, path })
     }
 

@@ -18,7 +18,7 @@ const METHODS: [&str; 8] = [
 
 async fn document(server: &ServerProcess) -> (String, Value) {
     // No token: tools fetch the document as they find it.
-    let r = reqwest::get(format!("{}/openapi.json", server.address))
+    let r = helmholtz_tests::http_get(format!("{}/openapi.json", server.address))
         .await
         .unwrap();
     assert_eq!(r.status(), 200);
@@ -406,7 +406,7 @@ async fn the_router_serves_exactly_the_documented_paths_and_methods() {
     let dir = tempfile::tempdir().unwrap();
     let server = ServerProcess::start(dir.path(), 0, &[]).unwrap();
     let (_, doc) = document(&server).await;
-    let client = reqwest::Client::new();
+    let client = helmholtz_tests::http_client();
     let paths = doc["paths"].as_object().unwrap();
     assert!(paths.len() >= 15, "{} paths", paths.len());
     let mut probes = 0;
@@ -491,7 +491,7 @@ async fn real_answers_have_the_documented_statuses_and_media_types() {
     let dir = tempfile::tempdir().unwrap();
     let server = ServerProcess::start(dir.path(), 0, &[]).unwrap();
     let (_, doc) = document(&server).await;
-    let client = reqwest::Client::new();
+    let client = helmholtz_tests::http_client();
 
     // Three channels r, g, b with detector directions: dual images, a colour composite and
     // photometric stereo all apply.
@@ -653,7 +653,7 @@ async fn the_index_lists_the_documents_operations() {
     let dir = tempfile::tempdir().unwrap();
     let server = ServerProcess::start(dir.path(), 0, &[]).unwrap();
     let (_, doc) = document(&server).await;
-    let index: Value = reqwest::get(server.url("/"))
+    let index: Value = helmholtz_tests::http_get(server.url("/"))
         .await
         .unwrap()
         .json()
@@ -683,7 +683,7 @@ async fn the_docs_page_is_served_and_needs_nothing_from_another_host() {
     let dir = tempfile::tempdir().unwrap();
     let server = ServerProcess::start(dir.path(), 0, &[]).unwrap();
     // No token, like the document it reads.
-    let r = reqwest::get(format!("{}/docs", server.address))
+    let r = helmholtz_tests::http_get(format!("{}/docs", server.address))
         .await
         .unwrap();
     assert_eq!(r.status(), 200);

@@ -21,16 +21,18 @@ const UNLIMITED: &[&str] = &["--rate-per-second", "0"];
 
 /// The rows a session stored, as the server serves them back.
 async fn stored(server: &ServerProcess, id: &str) -> (Vec<usize>, Vec<f64>) {
-    let response = reqwest::get(server.url(&format!("/v1/sessions/{id}/measurements.npy")))
-        .await
-        .unwrap();
+    let response =
+        helmholtz_tests::http_get(server.url(&format!("/v1/sessions/{id}/measurements.npy")))
+            .await
+            .unwrap();
     assert_eq!(response.status(), 200, "measurements of {id}");
     parse_npy(&response.bytes().await.unwrap()).unwrap()
 }
 
 /// The committed count of every session the server knows (empty if it does not answer).
 async fn all_committed_rows(server: &ServerProcess) -> std::collections::HashMap<String, u64> {
-    let Ok(response) = reqwest::get(server.url("/v1/sessions?limit=1000")).await else {
+    let Ok(response) = helmholtz_tests::http_get(server.url("/v1/sessions?limit=1000")).await
+    else {
         return Default::default();
     };
     let list: serde_json::Value = response.json().await.unwrap_or_default();
@@ -227,12 +229,13 @@ async fn twenty_spooled_uploads_survive_the_server_killed_at_random_moments() {
             rows == *values,
             "{id}: the stored rows differ from the sent rows (seed {seed})"
         );
-        let session: serde_json::Value = reqwest::get(server.url(&format!("/v1/sessions/{id}")))
-            .await
-            .unwrap()
-            .json()
-            .await
-            .unwrap();
+        let session: serde_json::Value =
+            helmholtz_tests::http_get(server.url(&format!("/v1/sessions/{id}")))
+                .await
+                .unwrap()
+                .json()
+                .await
+                .unwrap();
         assert_eq!(session["state"], "finished", "{id}: {session}");
         resumed += 1;
     }
@@ -545,7 +548,7 @@ async fn the_client_killed_mid_spool_and_mid_upload_loses_and_duplicates_nothing
         rows == m.values,
         "the stored rows differ from the simulated rows"
     );
-    let session: serde_json::Value = reqwest::get(server.url("/v1/sessions/killed"))
+    let session: serde_json::Value = helmholtz_tests::http_get(server.url("/v1/sessions/killed"))
         .await
         .unwrap()
         .json()
@@ -621,7 +624,7 @@ async fn server_killed_mid_upload_then_restarted_loses_and_duplicates_nothing() 
     helmholtz_client::finish_session(&base, "kill-upload")
         .await
         .unwrap();
-    let bytes = reqwest::get(server.url("/v1/sessions/kill-upload/measurements.npy"))
+    let bytes = helmholtz_tests::http_get(server.url("/v1/sessions/kill-upload/measurements.npy"))
         .await
         .unwrap()
         .bytes()
@@ -691,7 +694,7 @@ async fn a_job_whose_server_died_is_taken_up_again_and_finishes_once() {
         .unwrap();
     assert!(done.is_done(), "{done:?}");
     let json: serde_json::Value =
-        reqwest::get(server.url(&format!("/v1/reconstructions/{}", rec.id)))
+        helmholtz_tests::http_get(server.url(&format!("/v1/reconstructions/{}", rec.id)))
             .await
             .unwrap()
             .json()
@@ -702,16 +705,17 @@ async fn a_job_whose_server_died_is_taken_up_again_and_finishes_once() {
         "taken up again after the lease expired: {json}"
     );
     let listed: serde_json::Value =
-        reqwest::get(server.url("/v1/sessions/kill-job/reconstructions"))
+        helmholtz_tests::http_get(server.url("/v1/sessions/kill-job/reconstructions"))
             .await
             .unwrap()
             .json()
             .await
             .unwrap();
     assert_eq!(listed["reconstructions"].as_array().unwrap().len(), 1);
-    let npy = reqwest::get(server.url(&format!("/v1/reconstructions/{}/dual.npy", rec.id)))
-        .await
-        .unwrap();
+    let npy =
+        helmholtz_tests::http_get(server.url(&format!("/v1/reconstructions/{}/dual.npy", rec.id)))
+            .await
+            .unwrap();
     let (shape, _) = parse_npy(&npy.bytes().await.unwrap()).unwrap();
     assert_eq!(shape, vec![64, 64]);
 }

@@ -31,12 +31,13 @@ fn helmholtz(server: &ServerProcess, spool: &Path, args: &[&str]) -> String {
 }
 
 async fn latest(server: &ServerProcess, session: &str) -> i64 {
-    let doc: serde_json::Value = reqwest::get(server.url(&format!("/v1/sessions/{session}")))
-        .await
-        .unwrap()
-        .json()
-        .await
-        .unwrap();
+    let doc: serde_json::Value =
+        helmholtz_tests::http_get(server.url(&format!("/v1/sessions/{session}")))
+            .await
+            .unwrap()
+            .json()
+            .await
+            .unwrap();
     doc["latest_reconstruction"]
         .as_i64()
         .unwrap_or_else(|| panic!("no reconstruction: {doc}"))
@@ -124,23 +125,26 @@ async fn four_photodiodes_give_normals_and_colour_filters_a_composite() {
         "only {determined:.2} of the pixels got a normal"
     );
     assert!(median < 1.0, "median angular error {median:.2} degrees");
-    let report: serde_json::Value =
-        reqwest::get(server.url(&format!("/v1/reconstructions/{id}/photometric.json")))
-            .await
-            .unwrap()
-            .json()
+    let report: serde_json::Value = helmholtz_tests::http_get(
+        server.url(&format!("/v1/reconstructions/{id}/photometric.json")),
+    )
+    .await
+    .unwrap()
+    .json()
+    .await
+    .unwrap();
+    assert!(report.to_string().contains("interreflection"), "{report}");
+    let png =
+        helmholtz_tests::http_get(server.url(&format!("/v1/reconstructions/{id}/normals.png")))
             .await
             .unwrap();
-    assert!(report.to_string().contains("interreflection"), "{report}");
-    let png = reqwest::get(server.url(&format!("/v1/reconstructions/{id}/normals.png")))
-        .await
-        .unwrap();
     assert_eq!(png.status(), 200);
     assert!(png.headers()["etag"].to_str().unwrap().starts_with('"'));
     // Composite needs colour channels: refused for n,e,s,w.
-    let r = reqwest::get(server.url(&format!("/v1/reconstructions/{id}/composite.png")))
-        .await
-        .unwrap();
+    let r =
+        helmholtz_tests::http_get(server.url(&format!("/v1/reconstructions/{id}/composite.png")))
+            .await
+            .unwrap();
     assert_eq!(r.status(), 409);
 
     helmholtz(
@@ -167,12 +171,13 @@ async fn four_photodiodes_give_normals_and_colour_filters_a_composite() {
         ],
     );
     let id = latest(&server, "rgb").await;
-    let bytes = reqwest::get(server.url(&format!("/v1/reconstructions/{id}/composite.png")))
-        .await
-        .unwrap()
-        .bytes()
-        .await
-        .unwrap();
+    let bytes =
+        helmholtz_tests::http_get(server.url(&format!("/v1/reconstructions/{id}/composite.png")))
+            .await
+            .unwrap()
+            .bytes()
+            .await
+            .unwrap();
     let mut reader = png::Decoder::new(std::io::Cursor::new(bytes.to_vec()))
         .read_info()
         .unwrap();
@@ -188,7 +193,7 @@ async fn four_photodiodes_give_normals_and_colour_filters_a_composite() {
     assert!(r > g && g > b, "hemisphere top is ({r}, {g}, {b})");
     // Photometric stereo needs three directions that are not coplanar: three colour filters on
     // one detector are one direction.
-    let r = reqwest::get(server.url(&format!("/v1/reconstructions/{id}/normals.png")))
+    let r = helmholtz_tests::http_get(server.url(&format!("/v1/reconstructions/{id}/normals.png")))
         .await
         .unwrap();
     assert_eq!(r.status(), 409);
@@ -227,12 +232,13 @@ async fn a_simulated_camera_rig_is_relit_and_predicted_from_the_command_line() {
         ],
     );
     let id = latest(&server, "cam").await.to_string();
-    let rec: serde_json::Value = reqwest::get(server.url(&format!("/v1/reconstructions/{id}")))
-        .await
-        .unwrap()
-        .json()
-        .await
-        .unwrap();
+    let rec: serde_json::Value =
+        helmholtz_tests::http_get(server.url(&format!("/v1/reconstructions/{id}")))
+            .await
+            .unwrap()
+            .json()
+            .await
+            .unwrap();
     let err = rec["report"]["quality"]["transport_relative_error"]
         .as_f64()
         .unwrap();
@@ -335,14 +341,14 @@ async fn a_camera_rigs_frames_upload_from_an_npy_file() {
         ],
     );
     // Stored exactly as in the file.
-    let stored = reqwest::get(server.url("/v1/sessions/camfile/measurements.npy"))
+    let stored = helmholtz_tests::http_get(server.url("/v1/sessions/camfile/measurements.npy"))
         .await
         .unwrap()
         .bytes()
         .await
         .unwrap();
     assert_eq!(&stored[stored.len() - data.len()..], &data[..]);
-    let doc: serde_json::Value = reqwest::get(server.url("/v1/sessions/camfile"))
+    let doc: serde_json::Value = helmholtz_tests::http_get(server.url("/v1/sessions/camfile"))
         .await
         .unwrap()
         .json()
@@ -369,12 +375,13 @@ async fn a_camera_rigs_frames_upload_from_an_npy_file() {
     .await
     .unwrap();
     assert!(rec.is_done(), "{rec:?}");
-    let npy = reqwest::get(server.url(&format!("/v1/reconstructions/{}/dual.npy", rec.id)))
-        .await
-        .unwrap()
-        .bytes()
-        .await
-        .unwrap();
+    let npy =
+        helmholtz_tests::http_get(server.url(&format!("/v1/reconstructions/{}/dual.npy", rec.id)))
+            .await
+            .unwrap()
+            .bytes()
+            .await
+            .unwrap();
     let (_, summed) = parse_npy(&npy).unwrap();
     let want: Vec<f64> = view
         .relight(&vec![1.0; 80])

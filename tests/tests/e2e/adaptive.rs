@@ -78,7 +78,7 @@ async fn run(server: &str, id: &str, spec: &PatternSpec, transport: &[f32]) -> A
 }
 
 async fn get_json(server: &ServerProcess, path: &str) -> (u16, Value) {
-    let r = reqwest::Client::new()
+    let r = helmholtz_tests::http_client()
         .get(server.url(path))
         .bearer_auth(&server.token)
         .send()
@@ -101,7 +101,7 @@ async fn stored(server: &ServerProcess, id: &str) -> (Vec<u32>, Vec<f64>) {
         next += 2 * b["indices"].as_array().unwrap().len() as u64;
     }
     assert_eq!(body["issued_rows"], next);
-    let bytes = reqwest::Client::new()
+    let bytes = helmholtz_tests::http_client()
         .get(server.url(&format!("/v1/sessions/{id}/measurements.npy")))
         .bearer_auth(&server.token)
         .send()
@@ -116,7 +116,7 @@ async fn stored(server: &ServerProcess, id: &str) -> (Vec<u32>, Vec<f64>) {
 
 /// Requests `method` on `id` and waits for its dual image (NPY, one channel).
 async fn reconstruct(server: &ServerProcess, id: &str, method: &str) -> Vec<f64> {
-    let r = reqwest::Client::new()
+    let r = helmholtz_tests::http_client()
         .post(server.url(&format!("/v1/sessions/{id}/reconstructions")))
         .bearer_auth(&server.token)
         .header("content-type", "application/json")
@@ -142,7 +142,7 @@ async fn reconstruct(server: &ServerProcess, id: &str, method: &str) -> Vec<f64>
         );
         tokio::time::sleep(Duration::from_millis(50)).await;
     }
-    let bytes = reqwest::Client::new()
+    let bytes = helmholtz_tests::http_client()
         .get(server.url(&format!("/v1/reconstructions/{rid}/dual.npy")))
         .bearer_auth(&server.token)
         .send()
@@ -475,7 +475,7 @@ async fn bad_values_and_rows_beyond_the_issued_batches_are_refused_with_nothing_
     assert_eq!(status.code(), Code::FailedPrecondition, "{status:?}");
     assert!(status.message().starts_with("start_row"), "{status:?}");
     let body: Vec<u8> = beyond.iter().flat_map(|v| v.to_le_bytes()).collect();
-    let r = reqwest::Client::new()
+    let r = helmholtz_tests::http_client()
         .put(server.url("/v1/sessions/bad/rows?start_row=0"))
         .bearer_auth(&server.token)
         .header("content-type", "application/octet-stream")

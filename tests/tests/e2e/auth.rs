@@ -119,7 +119,7 @@ async fn world() -> (tempfile::TempDir, World, Vec<Caller>) {
     let revoked = server.create_token("lab-a", "rig,reader,admin").unwrap();
     let admin = server.create_token("lab-a", "admin").unwrap();
     // Revoke through the REST API (the admin's own lab) so revocation is shown to work there.
-    let http = reqwest::Client::new();
+    let http = helmholtz_tests::http_client();
     let listed: serde_json::Value = http
         .get(format!("{}/v1/tokens", server.address))
         .bearer_auth(&admin)
@@ -427,7 +427,7 @@ async fn every_route_and_rpc_by_role_and_lab() {
             ok: (200, 404),
         },
     ];
-    let http = reqwest::Client::new();
+    let http = helmholtz_tests::http_client();
     let mut checked = 0;
     let mut failures = Vec::new();
     for case in &rest {
@@ -774,7 +774,7 @@ async fn tokens_are_made_listed_and_revoked_by_the_cli_and_the_admin_api() {
     let dir = tempfile::tempdir().unwrap();
     let server = ServerProcess::start(dir.path(), 0, &[]).unwrap();
     let admin = server.create_token("optics", "admin").unwrap();
-    let http = reqwest::Client::new();
+    let http = helmholtz_tests::http_client();
     let made: serde_json::Value = http
         .post(format!("{}/v1/tokens", server.address))
         .bearer_auth(&admin)

@@ -57,7 +57,7 @@ async fn watch_grpc(
 
 /// Collects the SSE frames of `url` until the final one (or the stream ends).
 async fn watch_sse(url: String, token: String) -> tokio::task::JoinHandle<Vec<Seen>> {
-    let response = reqwest::Client::new()
+    let response = helmholtz_tests::http_client()
         .get(url)
         .bearer_auth(token)
         .send()
@@ -150,12 +150,13 @@ async fn server_image(server: &ServerProcess, id: &str, method: &str) -> Vec<f32
         .await
         .unwrap();
     assert!(r.is_done(), "{r:?}");
-    let bytes = reqwest::get(server.url(&format!("/v1/reconstructions/{}/dual.npy", r.id)))
-        .await
-        .unwrap()
-        .bytes()
-        .await
-        .unwrap();
+    let bytes =
+        helmholtz_tests::http_get(server.url(&format!("/v1/reconstructions/{}/dual.npy", r.id)))
+            .await
+            .unwrap()
+            .bytes()
+            .await
+            .unwrap();
     parse_npy(&bytes)
         .unwrap()
         .1
@@ -400,7 +401,7 @@ async fn a_camera_session_is_previewed_as_the_sum_over_its_pixels() {
     assert!(last.values.iter().all(|v| v.is_finite()));
     assert!(last.values.iter().any(|&v| v != 0.0));
     // The camera's frames summed per pattern, correlated by DGI here, give the same image.
-    let npy = reqwest::get(server.url(&format!("/v1/sessions/{id}/measurements.npy")))
+    let npy = helmholtz_tests::http_get(server.url(&format!("/v1/sessions/{id}/measurements.npy")))
         .await
         .unwrap()
         .bytes()
@@ -472,7 +473,7 @@ async fn other_labs_and_bad_parameters_are_refused_naming_the_field() {
     ))
     .await
     .unwrap();
-    let http = reqwest::Client::new();
+    let http = helmholtz_tests::http_client();
     let get = |token: String, query: &str| {
         http.get(format!(
             "{}/v1/sessions/{id}/preview{query}",

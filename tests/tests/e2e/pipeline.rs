@@ -65,15 +65,16 @@ async fn reconstruct(
             .unwrap();
     assert!(done.is_done(), "{method} did not finish: {done:?}");
     let json: serde_json::Value =
-        reqwest::get(server.url(&format!("/v1/reconstructions/{}", rec.id)))
+        helmholtz_tests::http_get(server.url(&format!("/v1/reconstructions/{}", rec.id)))
             .await
             .unwrap()
             .json()
             .await
             .unwrap();
-    let npy = reqwest::get(server.url(&format!("/v1/reconstructions/{}/dual.npy", rec.id)))
-        .await
-        .unwrap();
+    let npy =
+        helmholtz_tests::http_get(server.url(&format!("/v1/reconstructions/{}/dual.npy", rec.id)))
+            .await
+            .unwrap();
     assert_eq!(npy.status(), 200);
     let (shape, values) = parse_npy(&npy.bytes().await.unwrap()).unwrap();
     assert_eq!(shape.len(), 2);
@@ -161,7 +162,7 @@ async fn dual_images_are_served_as_png_tiff_and_npy_with_etags() {
     .await;
     let (json, npy) = reconstruct(&server, "img", "direct").await;
     let id = json["id"].as_i64().unwrap();
-    let http = reqwest::Client::new();
+    let http = helmholtz_tests::http_client();
 
     let png = http
         .get(server.url(&format!("/v1/reconstructions/{id}/dual.png")))
@@ -319,7 +320,7 @@ async fn auto_chooses_its_model_and_every_report_carries_its_error_estimate() {
     // A bad parameter is refused naming the field (gRPC and REST), and nothing is queued.
     let count = || async {
         let v: serde_json::Value =
-            reqwest::get(server.url("/v1/sessions/auto-shapes/reconstructions"))
+            helmholtz_tests::http_get(server.url("/v1/sessions/auto-shapes/reconstructions"))
                 .await
                 .unwrap()
                 .json()
@@ -328,7 +329,7 @@ async fn auto_chooses_its_model_and_every_report_carries_its_error_estimate() {
         v["reconstructions"].as_array().unwrap().len()
     };
     let before = count().await;
-    let response = reqwest::Client::new()
+    let response = helmholtz_tests::http_client()
         .post(server.url("/v1/sessions/auto-shapes/reconstructions"))
         .json(&serde_json::json!({"method": "auto", "params": {"holdout": 0.9}}))
         .send()

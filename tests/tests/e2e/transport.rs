@@ -101,7 +101,7 @@ async fn reconstruct(
             .await
             .unwrap();
     assert!(done.is_done(), "{method} did not finish: {done:?}");
-    reqwest::get(server.url(&format!("/v1/reconstructions/{}", rec.id)))
+    helmholtz_tests::http_get(server.url(&format!("/v1/reconstructions/{}", rec.id)))
         .await
         .unwrap()
         .json()
@@ -110,7 +110,7 @@ async fn reconstruct(
 }
 
 async fn post(server: &ServerProcess, path: &str, body: &str) -> reqwest::Response {
-    reqwest::Client::new()
+    helmholtz_tests::http_client()
         .post(server.url(path))
         .header("content-type", "application/json")
         .body(body.to_string())
@@ -226,7 +226,7 @@ async fn a_complete_hadamard_camera_session_recovers_t_relights_and_predicts_fra
         }
         bytes
     };
-    let r = reqwest::Client::new()
+    let r = helmholtz_tests::http_client()
         .post(server.url(&format!("/v1/reconstructions/{id}/relight?format=npy")))
         .header("content-type", "application/x-npy")
         .body(light_npy)
@@ -249,7 +249,7 @@ async fn a_complete_hadamard_camera_session_recovers_t_relights_and_predicts_fra
         headers["server-timing"].to_str().unwrap().contains("cache"),
         "{headers:?}"
     );
-    let r = reqwest::Client::new()
+    let r = helmholtz_tests::http_client()
         .post(server.url(&format!("/v1/reconstructions/{id}/relight?format=npy")))
         .header("content-type", "application/json")
         .header("if-none-match", &etag)
@@ -413,9 +413,11 @@ async fn reciprocity_the_camera_summed_equals_one_bucket_detector_where_it_stand
     .await
     .unwrap();
     let rec = reconstruct(&server, "diode", "direct", serde_json::json!({})).await;
-    let npy = reqwest::get(server.url(&format!("/v1/reconstructions/{}/dual.npy", rec["id"])))
-        .await
-        .unwrap();
+    let npy = helmholtz_tests::http_get(
+        server.url(&format!("/v1/reconstructions/{}/dual.npy", rec["id"])),
+    )
+    .await
+    .unwrap();
     let (_, dual) = parse_npy(&npy.bytes().await.unwrap()).unwrap();
     // Equal up to the bucket noise: per pixel the exact inverse spreads noise 1e-3 over 256 pairs,
     // about 1e-3 * sqrt(2/256) ~ 1e-4 against values ~0.1-0.5, so a few 1e-4 relative overall.

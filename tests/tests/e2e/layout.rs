@@ -89,3 +89,35 @@ fn the_benchmarks_measure_the_numerics_without_the_service() {
     let bench = linked("helmholtz-bench");
     assert!(bench.contains("helmholtz-recon") && bench.contains("helmholtz-sim"));
 }
+
+#[test]
+fn one_crypto_provider_and_no_second_build_of_the_databases() {
+    // ring is the one TLS crypto provider (aws-lc would be a second, built from C), and the
+    // migrations are embedded without sqlx's macros (which build SQLite and the PostgreSQL
+    // driver again for the compiler). Build and dev dependencies included: that is where a macro's
+    // second build would show.
+    let root = concat!(env!("CARGO_MANIFEST_DIR"), "/..");
+    let out = Command::new(env!("CARGO"))
+        .current_dir(root)
+        .args(["tree", "--locked", "--workspace", "-e", "normal,build,dev"])
+        .args(["--prefix", "none", "--format", "{p}"])
+        .output()
+        .expect("running cargo tree");
+    assert!(
+        out.status.success(),
+        "cargo tree failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let names: BTreeSet<String> = String::from_utf8(out.stdout)
+        .unwrap()
+        .lines()
+        .filter_map(|l| l.split_whitespace().next().map(str::to_string))
+        .collect();
+    for forbidden in ["aws-lc-rs", "aws-lc-sys", "sqlx-macros", "sqlx-macros-core"] {
+        assert!(
+            !names.contains(forbidden),
+            "the workspace links {forbidden}"
+        );
+    }
+    assert!(names.contains("ring") && names.contains("libsqlite3-sys"));
+}

@@ -232,6 +232,7 @@ async fn one_tls_port_speaks_http1_and_http2_by_alpn() {
     let ca =
         reqwest::Certificate::from_pem(&std::fs::read(dir.path().join("ca.pem")).unwrap()).unwrap();
     let url = format!("{}/v1/sessions", server.address);
+    helmholtz_client::tls::install_crypto_provider();
     for (client, version) in [
         (
             reqwest::Client::builder()
@@ -260,7 +261,11 @@ async fn one_tls_port_speaks_http1_and_http2_by_alpn() {
         assert_eq!(r.headers()["x-content-type-options"], "nosniff");
     }
     // A client that does not trust the lab's CA is refused by its own verifier.
-    let e = reqwest::Client::new().get(&url).send().await.unwrap_err();
+    let e = helmholtz_tests::http_client()
+        .get(&url)
+        .send()
+        .await
+        .unwrap_err();
     let chain = format!("{:?}", e).to_ascii_lowercase();
     assert!(chain.contains("certificate"), "{chain}");
 }

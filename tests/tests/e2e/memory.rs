@@ -46,7 +46,7 @@ async fn session(
 }
 
 async fn request(server: &ServerProcess, id: &str, method: &str) -> reqwest::Response {
-    reqwest::Client::new()
+    helmholtz_tests::http_client()
         .post(server.url(&format!("/v1/sessions/{id}/reconstructions")))
         .json(&json!({ "method": method, "params": {} }))
         .send()
@@ -57,7 +57,7 @@ async fn request(server: &ServerProcess, id: &str, method: &str) -> reqwest::Res
 async fn wait_done(server: &ServerProcess, rec: i64) -> Value {
     let deadline = Instant::now() + Duration::from_secs(300);
     loop {
-        let r: Value = reqwest::get(server.url(&format!("/v1/reconstructions/{rec}")))
+        let r: Value = helmholtz_tests::http_get(server.url(&format!("/v1/reconstructions/{rec}")))
             .await
             .unwrap()
             .json()
@@ -124,7 +124,7 @@ async fn a_reconstruction_that_can_never_fit_is_refused_up_front() {
         .unwrap_err();
     assert_eq!(status.code(), Code::ResourceExhausted, "{status:?}");
     assert!(status.message().contains("MiB"), "{}", status.message());
-    let listed: Value = reqwest::get(server.url("/v1/sessions/huge/reconstructions"))
+    let listed: Value = helmholtz_tests::http_get(server.url("/v1/sessions/huge/reconstructions"))
         .await
         .unwrap()
         .json()
@@ -269,7 +269,7 @@ async fn memory_is_given_back_after_a_job_is_cancelled() {
     let mut high = 0;
     loop {
         high = high.max(rss(server.pid()));
-        let r: Value = reqwest::get(server.url(&format!("/v1/reconstructions/{id}")))
+        let r: Value = helmholtz_tests::http_get(server.url(&format!("/v1/reconstructions/{id}")))
             .await
             .unwrap()
             .json()
@@ -285,7 +285,7 @@ async fn memory_is_given_back_after_a_job_is_cancelled() {
         assert!(Instant::now() < deadline, "the job never got going: {r}");
         tokio::time::sleep(Duration::from_millis(20)).await;
     }
-    let cancelled = reqwest::Client::new()
+    let cancelled = helmholtz_tests::http_client()
         .post(server.url(&format!("/v1/reconstructions/{id}/cancel")))
         .send()
         .await

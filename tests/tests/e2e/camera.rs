@@ -248,7 +248,7 @@ async fn camera_frames_upload_resume_and_come_back_byte_for_byte() {
     .unwrap();
 
     // measurements.npy: uint16 frames of shape (16, 5, 6), exactly the bytes sent.
-    let http = reqwest::Client::new();
+    let http = helmholtz_tests::http_client();
     let resp = http
         .get(server.url("/v1/sessions/c/measurements.npy"))
         .send()

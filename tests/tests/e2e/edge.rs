@@ -40,7 +40,7 @@ async fn until_closed(mut s: TcpStream, limit: Duration) -> Result<(Vec<u8>, Ins
 }
 
 async fn healthz(address: &str) -> reqwest::Response {
-    reqwest::Client::new()
+    helmholtz_tests::http_client()
         .get(format!("{address}/healthz"))
         .timeout(Duration::from_secs(10))
         .send()
@@ -214,7 +214,7 @@ async fn sigterm_cuts_an_idle_upload_stream_at_the_deadline_and_keeps_committed_
         .unwrap()
         .into_inner();
     assert_eq!(status.committed_rows, 50);
-    let r = reqwest::Client::new()
+    let r = helmholtz_tests::http_client()
         .get(server.url("/v1/sessions/idle/measurements.npy"))
         .send()
         .await
@@ -236,7 +236,7 @@ async fn dot_session_ids_are_refused() {
         assert!(status.message().contains("session_id"), "{status:?}");
     }
     // Nothing was stored; a normal id still works.
-    let r = reqwest::Client::new()
+    let r = helmholtz_tests::http_client()
         .get(server.url("/v1/sessions"))
         .send()
         .await
@@ -303,7 +303,7 @@ async fn a_raster_past_one_scan_is_refused_unless_it_declares_its_repeats() {
         }))
     );
     // Only that one session exists.
-    let listed: Value = reqwest::Client::new()
+    let listed: Value = helmholtz_tests::http_client()
         .get(server.url("/v1/sessions"))
         .send()
         .await
@@ -420,7 +420,7 @@ async fn images_are_private_every_response_is_nosniff_and_cors_is_off_by_default
     let dir = tempfile::tempdir().unwrap();
     let server = ServerProcess::start(dir.path(), 0, &[]).unwrap();
     let id = reconstructed(&server, "hdr").await;
-    let http = reqwest::Client::new();
+    let http = helmholtz_tests::http_client();
     let image = http
         .get(server.url(&format!("/v1/reconstructions/{id}/dual.png")))
         .header("origin", "https://viewer.example")
@@ -500,7 +500,7 @@ async fn cors_allows_exactly_the_configured_origins() {
         ],
     )
     .unwrap();
-    let http = reqwest::Client::new();
+    let http = helmholtz_tests::http_client();
     for origin in ["https://viewer.example", "http://localhost:5173"] {
         let r = http
             .get(format!("{}/v1/sessions", server.address))
@@ -565,7 +565,7 @@ async fn relight_weights_whose_result_overflows_f32_are_refused_naming_the_field
     let dir = tempfile::tempdir().unwrap();
     let server = ServerProcess::start(dir.path(), 0, &[]).unwrap();
     let id = reconstructed(&server, "big").await;
-    let http = reqwest::Client::new();
+    let http = helmholtz_tests::http_client();
     let relight = |w: f64| {
         http.post(server.url(&format!("/v1/reconstructions/{id}/relight?format=npy")))
             .json(&serde_json::json!({"light": {"weights": {"bucket": w}}}))
@@ -662,14 +662,14 @@ async fn camera_relight_and_primal_inputs_whose_result_overflows_f32_are_refused
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    let doc: Value = reqwest::get(server.url("/v1/sessions/cam"))
+    let doc: Value = helmholtz_tests::http_get(server.url("/v1/sessions/cam"))
         .await
         .unwrap()
         .json()
         .await
         .unwrap();
     let id = doc["latest_reconstruction"].as_i64().unwrap();
-    let http = reqwest::Client::new();
+    let http = helmholtz_tests::http_client();
     let post = |what: &str, body: Vec<u8>| {
         http.post(server.url(&format!("/v1/reconstructions/{id}/{what}?format=npy")))
             .header("content-type", "application/x-npy")

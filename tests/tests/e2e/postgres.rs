@@ -34,13 +34,13 @@ async fn simulated(spec: &str) -> (PatternSpec, Vec<f64>) {
 }
 
 async fn get(server: &ServerProcess, path: &str) -> (u16, Value) {
-    let r = reqwest::get(server.url(path)).await.unwrap();
+    let r = helmholtz_tests::http_get(server.url(path)).await.unwrap();
     let status = r.status().as_u16();
     (status, r.json().await.unwrap_or(Value::Null))
 }
 
 async fn request(server: &ServerProcess, id: &str, body: &str) -> i64 {
-    let r = reqwest::Client::new()
+    let r = helmholtz_tests::http_client()
         .post(server.url(&format!("/v1/sessions/{id}/reconstructions")))
         .header("content-type", "application/json")
         .body(body.to_string())
@@ -67,7 +67,7 @@ async fn wait_state(server: &ServerProcess, id: i64, states: &[&str], within: Du
 }
 
 async fn stored_bits(server: &ServerProcess, id: &str) -> Vec<u64> {
-    let r = reqwest::get(server.url(&format!("/v1/sessions/{id}/measurements.npy")))
+    let r = helmholtz_tests::http_get(server.url(&format!("/v1/sessions/{id}/measurements.npy")))
         .await
         .unwrap();
     assert_eq!(r.status(), 200, "measurements of {id}");
@@ -189,7 +189,14 @@ async fn api_nodes_and_worker_processes_share_one_postgres_database() {
     // Either node serves the result, the same bytes.
     let image = |s: &ServerProcess| {
         let url = s.url(&format!("/v1/reconstructions/{job}/dual.npy"));
-        async move { reqwest::get(url).await.unwrap().bytes().await.unwrap() }
+        async move {
+            helmholtz_tests::http_get(url)
+                .await
+                .unwrap()
+                .bytes()
+                .await
+                .unwrap()
+        }
     };
     let (from_a, from_b) = (image(&a).await, image(&b).await);
     let (shape, pixels) = parse_npy(&from_a).unwrap();
@@ -351,7 +358,7 @@ async fn a_node_that_loses_the_database_says_so_and_recovers_without_losing_rows
     let token = db.create_token("e2e", "rig,reader").unwrap();
     let api = ServerProcess::start_on_postgres(&db, &token, &["--workers", "0"]).unwrap();
     let health = || async {
-        let r = reqwest::get(format!("{}/healthz", api.address))
+        let r = helmholtz_tests::http_get(format!("{}/healthz", api.address))
             .await
             .unwrap();
         (

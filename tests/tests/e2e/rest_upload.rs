@@ -155,7 +155,7 @@ async fn a_bucket_session_made_and_filled_over_rest_keeps_every_row_and_refuses_
     let rest = Rest {
         server: &server,
         token: server.token.clone(),
-        http: reqwest::Client::new(),
+        http: helmholtz_tests::http_client(),
     };
     let (id, rows, channels) = ("rest-buckets", 256u64, 2usize);
     let declaration = json!({
@@ -591,7 +591,7 @@ async fn a_bucket_session_made_and_filled_over_rest_keeps_every_row_and_refuses_
     let as_reader = Rest {
         server: &server,
         token: reader,
-        http: reqwest::Client::new(),
+        http: helmholtz_tests::http_client(),
     };
     let mut another = declaration.clone();
     another["id"] = json!("rest-by-reader");
@@ -608,7 +608,7 @@ async fn a_bucket_session_made_and_filled_over_rest_keeps_every_row_and_refuses_
     let as_stranger = Rest {
         server: &server,
         token: stranger,
-        http: reqwest::Client::new(),
+        http: helmholtz_tests::http_client(),
     };
     assert_eq!(
         as_stranger
@@ -640,7 +640,7 @@ async fn camera_frames_over_rest_are_stored_as_sent_and_bodies_over_the_chunk_ca
     let rest = Rest {
         server: &server,
         token: server.token.clone(),
-        http: reqwest::Client::new(),
+        http: helmholtz_tests::http_client(),
     };
     let (w, h, rows) = (16u64, 12u64, 16u64);
     for (id, format) in [("rest-cam-f32", "f32"), ("rest-cam-u16", "u16")] {
@@ -811,7 +811,7 @@ async fn the_curl_example_uploads_a_session_that_reconstructs_exactly() {
     let rest = Rest {
         server: &server,
         token: server.token.clone(),
-        http: reqwest::Client::new(),
+        http: helmholtz_tests::http_client(),
     };
     let job = rest
         .send(

@@ -233,7 +233,7 @@ async fn the_viewer_in_a_real_browser() {
 
     // 3. A dual image: the report's figures, the plot, the image drawn, zoomed, side by side
     // with a second reconstruction of the same session (requested here over REST).
-    let client = reqwest::Client::new();
+    let client = helmholtz_tests::http_client();
     let second: Value = client
         .post(format!(
             "{base}/v1/sessions/demo-usaf-hadamard/reconstructions"

@@ -220,9 +220,14 @@ fn acquire_spools_rows_from_stdin_and_a_rerun_continues_after_a_bad_line() {
     assert_eq!(json["spooled_before"], 200);
     assert_eq!(json["finished"], true);
     let url = server.url("/v1/sessions/rig-stdin/measurements.npy");
-    let bytes = tokio::runtime::Runtime::new()
-        .unwrap()
-        .block_on(async { reqwest::get(url).await.unwrap().bytes().await.unwrap() });
+    let bytes = tokio::runtime::Runtime::new().unwrap().block_on(async {
+        helmholtz_tests::http_get(url)
+            .await
+            .unwrap()
+            .bytes()
+            .await
+            .unwrap()
+    });
     let (shape, values) = parse_npy(&bytes).unwrap();
     assert_eq!(shape, vec![300, 2]);
     let expected: Vec<f64> = (0..300)
@@ -325,7 +330,7 @@ fn text_output_says_what_the_report_knows() {
     let rt = tokio::runtime::Runtime::new().unwrap();
     let (rest, grpc) = rt.block_on(async {
         let list: serde_json::Value =
-            reqwest::get(server.url("/v1/sessions/cli-report/reconstructions"))
+            helmholtz_tests::http_get(server.url("/v1/sessions/cli-report/reconstructions"))
                 .await
                 .unwrap()
                 .json()

@@ -36,7 +36,7 @@ async fn acquire(server: &str, id: &str, spec: &str) {
 }
 
 async fn get(server: &ServerProcess, token: &str, path: &str) -> (u16, Value) {
-    let r = reqwest::Client::new()
+    let r = helmholtz_tests::http_client()
         .get(format!("{}{path}", server.address))
         .bearer_auth(token)
         .send()
@@ -47,7 +47,7 @@ async fn get(server: &ServerProcess, token: &str, path: &str) -> (u16, Value) {
 }
 
 async fn post(server: &ServerProcess, token: &str, path: &str, body: &str) -> reqwest::Response {
-    reqwest::Client::new()
+    helmholtz_tests::http_client()
         .post(format!("{}{path}", server.address))
         .bearer_auth(token)
         .header("content-type", "application/json")
@@ -185,7 +185,7 @@ async fn queued_and_running_jobs_are_cancelled_and_the_worker_is_freed() {
     assert_eq!(r.state, "cancelled");
     // The running one (DELETE is the same): the worker stops at its next check.
     let cancelled_at = Instant::now();
-    let r = reqwest::Client::new()
+    let r = helmholtz_tests::http_client()
         .delete(format!("{}/v1/reconstructions/{first}", server.address))
         .bearer_auth(&t)
         .send()
@@ -418,7 +418,7 @@ async fn each_token_has_a_request_rate() {
     for _ in 0..3 {
         assert_eq!(get(&server, t, "/v1/sessions").await.0, 200);
     }
-    let r = reqwest::Client::new()
+    let r = helmholtz_tests::http_client()
         .get(format!("{}/v1/sessions", server.address))
         .bearer_auth(t)
         .send()
@@ -441,7 +441,7 @@ async fn each_token_has_a_request_rate() {
     assert_eq!(get(&server, &other, "/v1/sessions").await.0, 200);
     for _ in 0..5 {
         assert_eq!(
-            reqwest::get(format!("{}/healthz", server.address))
+            helmholtz_tests::http_get(format!("{}/healthz", server.address))
                 .await
                 .unwrap()
                 .status(),
@@ -520,7 +520,7 @@ async fn metrics_describe_uploads_jobs_and_latencies() {
     );
     assert_eq!(get(&server, "", "/metrics").await.0, 401);
     let scraper = server.create_token("ops", "metrics").unwrap();
-    let on_main_port = reqwest::Client::new()
+    let on_main_port = helmholtz_tests::http_client()
         .get(format!("{}/metrics", server.address))
         .bearer_auth(&scraper)
         .send()
@@ -530,7 +530,7 @@ async fn metrics_describe_uploads_jobs_and_latencies() {
     let main_text = on_main_port.text().await.unwrap();
     // A metrics token reads nothing of any lab.
     assert_eq!(get(&server, &scraper, "/v1/sessions").await.0, 403);
-    let text = reqwest::get(&metrics_url)
+    let text = helmholtz_tests::http_get(&metrics_url)
         .await
         .unwrap()
         .text()
@@ -652,7 +652,7 @@ async fn sigterm_finishes_uploads_in_flight_and_gives_running_jobs_back() {
         .unwrap()
         .into_inner();
     assert_eq!(status.committed_rows, 200);
-    let bytes = reqwest::get(server.url("/v1/sessions/up/measurements.npy"))
+    let bytes = helmholtz_tests::http_get(server.url("/v1/sessions/up/measurements.npy"))
         .await
         .unwrap()
         .bytes()
@@ -672,7 +672,7 @@ async fn sigterm_finishes_uploads_in_flight_and_gives_running_jobs_back() {
 async fn the_index_names_every_method_and_route() {
     let dir = tempfile::tempdir().unwrap();
     let server = ServerProcess::start(dir.path(), 0, &[]).unwrap();
-    let index: Value = reqwest::get(server.url("/"))
+    let index: Value = helmholtz_tests::http_get(server.url("/"))
         .await
         .unwrap()
         .json()

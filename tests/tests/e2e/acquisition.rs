@@ -147,7 +147,7 @@ async fn absurd_specs_are_refused_and_create_nothing() {
         Code::InvalidArgument,
         "ground_truth.transport",
     );
-    let listed: serde_json::Value = reqwest::get(server.url("/v1/sessions"))
+    let listed: serde_json::Value = helmholtz_tests::http_get(server.url("/v1/sessions"))
         .await
         .unwrap()
         .json()
@@ -182,7 +182,7 @@ async fn sessions_are_idempotent_on_their_id() {
         Code::AlreadyExists,
         "patterns",
     );
-    let session: serde_json::Value = reqwest::get(server.url("/v1/sessions/s1"))
+    let session: serde_json::Value = helmholtz_tests::http_get(server.url("/v1/sessions/s1"))
         .await
         .unwrap()
         .json()
@@ -294,7 +294,7 @@ async fn bad_chunks_are_refused_and_change_nothing() {
         Code::FailedPrecondition,
         "13 of 100",
     );
-    let bytes = reqwest::get(server.url("/v1/sessions/s/measurements.npy"))
+    let bytes = helmholtz_tests::http_get(server.url("/v1/sessions/s/measurements.npy"))
         .await
         .unwrap()
         .bytes()
@@ -336,7 +336,7 @@ async fn bad_chunks_are_refused_and_change_nothing() {
         .unwrap()
         .into_inner();
     assert_eq!(done, again);
-    let bytes = reqwest::get(server.url("/v1/sessions/s/measurements.npy"))
+    let bytes = helmholtz_tests::http_get(server.url("/v1/sessions/s/measurements.npy"))
         .await
         .unwrap()
         .bytes()
@@ -430,7 +430,7 @@ async fn reconstruction_requests_are_validated() {
         Code::FailedPrecondition,
         "bernoulli",
     );
-    let http = reqwest::Client::new();
+    let http = helmholtz_tests::http_client();
     let bad = http
         .post(server.url("/v1/sessions/r/reconstructions"))
         .body("{\"method\": 3}")
@@ -491,7 +491,7 @@ async fn health_is_served_on_grpc_and_http() {
         reply.status,
         tonic_health::pb::health_check_response::ServingStatus::Serving as i32
     );
-    let http: serde_json::Value = reqwest::get(format!("{}/healthz", server.address))
+    let http: serde_json::Value = helmholtz_tests::http_get(format!("{}/healthz", server.address))
         .await
         .unwrap()
         .json()

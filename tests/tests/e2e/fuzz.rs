@@ -5,7 +5,7 @@
 //! refused request must store nothing.
 //!
 //! `HELMHOLTZ_PROPTEST_CASES` sets the number of cases per property (default 256, for CI); the
-//! on-demand run is `HELMHOLTZ_PROPTEST_CASES=25000 cargo test -p helmholtz-tests --test fuzz`
+//! on-demand run is `HELMHOLTZ_PROPTEST_CASES=25000 cargo test -p helmholtz-tests --test e2e -- fuzz::`
 //! (4 properties x 25,000 = 100,000 cases).
 
 use std::collections::HashSet;
@@ -94,7 +94,7 @@ fn harness() -> Harness {
         server,
         rt,
         grpc,
-        http: reqwest::Client::new(),
+        http: helmholtz_tests::http_client(),
     }
 }
 

@@ -77,9 +77,10 @@ fn write_csv(dir: &Path, name: &str, values: &[f64]) -> String {
 
 /// The session's stored rows, as bit patterns (so -0.0 and 0.0, or NaN payloads, differ).
 async fn stored_bits(server: &ServerProcess, id: &str) -> Vec<u64> {
-    let response = reqwest::get(server.url(&format!("/v1/sessions/{id}/measurements.npy")))
-        .await
-        .unwrap();
+    let response =
+        helmholtz_tests::http_get(server.url(&format!("/v1/sessions/{id}/measurements.npy")))
+            .await
+            .unwrap();
     assert_eq!(response.status(), 200, "measurements of {id}");
     let (_, values) = parse_npy(&response.bytes().await.unwrap()).unwrap();
     values.iter().map(|v| v.to_bits()).collect()
@@ -549,7 +550,7 @@ async fn lab_caps_hold_under_concurrent_requests() {
         }
     }
     assert_eq!(created.len(), 3, "30 concurrent creations under a cap of 3");
-    let listed: serde_json::Value = reqwest::get(server.url("/v1/sessions?limit=100"))
+    let listed: serde_json::Value = helmholtz_tests::http_get(server.url("/v1/sessions?limit=100"))
         .await
         .unwrap()
         .json()

@@ -1,4 +1,0 @@
-fn main() {
-    // sqlx::migrate! embeds ../migrations at compile time.
-    println!("cargo:rerun-if-changed=../migrations");
-}

@@ -1,0 +1,31 @@
+//! The end-to-end tests: the real `helmholtz-server` (and `helmholtz-demo`) binaries on
+//! 127.0.0.1 port 0 with a real SQLite file, or a real PostgreSQL database with
+//! `HELMHOLTZ_TEST_BACKEND=postgres`, talked to by the real client library and binary.
+//!
+//! One test binary, one module per area (run one with `cargo test -p helmholtz-tests --test e2e
+//! -- browser::`): every file as a binary of its own linked the server's client stack again,
+//! which took 10 of the default test run's 35 build minutes on a 2-core machine.
+
+mod acquisition;
+mod adaptive;
+mod auth;
+mod browser;
+mod camera;
+mod cli;
+mod edge;
+mod faults;
+mod fuzz;
+mod integrity;
+mod lambert_cli;
+mod layout;
+mod memory;
+mod openapi;
+mod pipeline;
+mod postgres;
+mod preview;
+mod python;
+mod reflection;
+mod rest_upload;
+mod service;
+mod tls;
+mod transport;
