@@ -42,12 +42,22 @@ pub fn report_lines(report: &Report) -> Vec<String> {
         .get("transform")
         .and_then(Value::as_str)
     {
+        let details = &report.recon.details;
         let mut s = format!("transform {transform}");
         if let Some(l) = report.detail_f64("lambda") {
             s.push_str(&format!(", weight {l:.3e}"));
         }
+        // A Hadamard subset's rows may be stored in another transform than the one fitted:
+        // the coarse Haar coefficients the pairs measure completely, taken as measured.
+        if let Some(stored) = details.get("stored_transform").and_then(Value::as_str)
+            && stored != transform
+        {
+            s.push_str(&format!(", stored in {stored}"));
+        }
+        if details.get("coarse_exact").and_then(Value::as_bool) == Some(true) {
+            s.push_str(" (coarse coefficients as measured)");
+        }
         lines.push(s);
-        let details = &report.recon.details;
         if let Some(e) = details.get("error_estimate")
             && let Some(rel) = e.get("relative").and_then(Value::as_f64)
         {
@@ -61,14 +71,22 @@ pub fn report_lines(report: &Report) -> Vec<String> {
             }
             lines.push(s);
         }
-        if let Some(rel) = details
-            .get("relight_error_estimate")
-            .and_then(|e| e.get("relative"))
-            .and_then(Value::as_f64)
-        {
-            lines.push(format!(
-                "estimated error of the full-light relight {rel:.4}"
-            ));
+        if let Some(e) = details.get("relight_error_estimate") {
+            let rel = e.get("relative").and_then(Value::as_f64);
+            let upper = e.get("upper").and_then(Value::as_f64);
+            match (rel, upper) {
+                (Some(rel), Some(upper)) => lines.push(format!(
+                    "estimated error of the full-light relight {rel:.4} (at most {upper:.4})"
+                )),
+                (Some(rel), None) => lines.push(format!(
+                    "estimated error of the full-light relight {rel:.4}"
+                )),
+                // Not resolved from the held-out frames' scatter: only the bound is known.
+                (None, Some(upper)) => lines.push(format!(
+                    "error of the full-light relight at most {upper:.4} (not resolved by the held-out frames)"
+                )),
+                (None, None) => {}
+            }
         }
     }
     if let Some(warnings) = report
@@ -251,10 +269,36 @@ mod tests {
     }
 
     #[test]
+    fn a_bernoulli_transport_report_shows_the_relight_bound_when_the_estimate_is_not_resolved() {
+        let relight = |e: Value| {
+            let report: Report = serde_json::from_value(json!({
+                "method": "transport", "params": {}, "rows_used": 64, "iterations": 0,
+                "details": {"transform": "haar", "lambda": 0.5, "relight_error_estimate": e},
+            }))
+            .unwrap();
+            report_lines(&report).join("\n")
+        };
+        let text = relight(json!({"relative": null, "upper": 0.09, "resolved": false}));
+        assert!(
+            text.contains(
+                "error of the full-light relight at most 0.0900 (not resolved by the held-out frames)"
+            ),
+            "{text}"
+        );
+        assert!(!text.contains("stored in"), "{text}");
+        let text = relight(json!({"relative": 0.031, "upper": 0.05, "resolved": true}));
+        assert!(
+            text.contains("estimated error of the full-light relight 0.0310 (at most 0.0500)"),
+            "{text}"
+        );
+    }
+
+    #[test]
     fn a_transport_report_shows_its_transform_and_t_error_and_an_unavailable_held_out() {
         let report: Report = serde_json::from_value(json!({
             "method": "transport", "params": {}, "rows_used": 64, "iterations": 0,
-            "details": {"transform": "haar", "lambda": 0.5,
+            "details": {"transform": "identity", "lambda": 0.5,
+                        "stored_transform": "haar", "coarse_exact": true,
                         "error_estimate": {"relative": 0.31, "range": [0.2, 0.9]},
                         "relight_error_estimate": {"relative": 0.0042},
                         "warnings": ["the measured pairs cannot support T at 32x32"]},
@@ -265,7 +309,7 @@ mod tests {
         .unwrap();
         let text = report_lines(&report).join("\n");
         for want in [
-            "transform haar, weight 5.000e-1",
+            "transform identity, weight 5.000e-1, stored in haar (coarse coefficients as measured)",
             "estimated error of T 0.310 (0.200 to 0.900)",
             "estimated error of the full-light relight 0.0042",
             "warning: the measured pairs cannot support T at 32x32",

@@ -1120,11 +1120,14 @@ impl LevelTest {
     }
 }
 
+/// A Hadamard subset's error estimate of T (`details.error_estimate`): the sample pixels (`raws`,
+/// their pair sums `sums`, their chance of being drawn `chance`, their noise `sigmas`) fitted
+/// with the chosen model on all measured pairs ([`subset_error`]).
 fn hadamard_subset_error(
     plan: &Plan,
     model: (TransformKind, f64, bool, bool, bool),
     (raws, sums, chance): (&[Vec<f64>], &[Vec<f64>], &[f64]),
-    (picked, camera_width): (&[usize], usize),
+    (picked, camera_width, sigmas): (&[usize], usize, &[f64]),
     config: &TransportConfig,
     chunk: usize,
     control: &Control,
@@ -1132,7 +1135,7 @@ fn hadamard_subset_error(
     let Raw::Hadamard(op) = &plan.raw else {
         return Ok(None);
     };
-    if raws.is_empty() || sums.len() != raws.len() {
+    if raws.is_empty() || sums.len() != raws.len() || sigmas.len() != raws.len() {
         return Ok(None);
     }
     let (pw, ph) = plan.size();
@@ -1172,17 +1175,12 @@ fn hadamard_subset_error(
     let mut t = vec![0.0; s.len()];
     sh.inverse(&s, &mut t);
     if let Some(step) = coarse.then(|| CoarseExact::new(plan, op)).flatten() {
-        let sigmas: Vec<f64> = raws
-            .iter()
-            .zip(sums)
-            .map(|(raw, sum)| pair_sigma(sum, raw, op.cols()))
-            .collect();
         step.apply(
             op,
             &bs,
             &mut s,
             &|row, img| sh.inverse(row, img),
-            &sigmas,
+            sigmas,
             (picked, camera_width),
         );
         step.images(&s, &mut t);
@@ -2768,7 +2766,7 @@ fn choose_model(
         plan,
         (transform, lambda, refit, floored, coarse_exact),
         (&raws, &sums, &chance),
-        (&picked, camera_width),
+        (&picked, camera_width, &sample_sigmas),
         config,
         chunk,
         control,

@@ -1591,6 +1591,57 @@ fn a_hadamard_subset_relights_within_1_5x_of_the_best_candidate_model() {
     }
 }
 
+/// What the noisy-subset tests compare: a scene's complete Russian-doll set (32x32 projector,
+/// 24x24 camera) with Gaussian frame noise of 1 % of the frames' RMS, and its first half (the
+/// same frames, the same noise), with the half's relit errors, its total light against the
+/// truth's, and the relit errors of the same half noise-free.
+struct HalfOfNoisySet {
+    t_complete: TransportMatrix,
+    t: TransportMatrix,
+    report: Report,
+    errors: [f64; 3],
+    clean_errors: [f64; 3],
+    light: f64,
+}
+
+fn half_of_noisy_set(scene: &helmholtz_sim::RenderedTransport) -> HalfOfNoisySet {
+    let camera = CameraGrid {
+        width: 24,
+        height: 24,
+    };
+    let k = 32 * 32;
+    let m = camera.pixels();
+    let (complete, half) = (russian_doll(32, 32, k), russian_doll(32, 32, k / 2));
+    let truth = scene.dense();
+    let (clean, noisy) = clean_and_noisy(&complete, &truth, m, 0.01);
+    let (t_complete, _, _) = run(&complete, camera, &noisy, &TransportConfig::default());
+    // The subset's frames are the complete set's first ones.
+    let f = &noisy[..half.count() as usize * m];
+    let (t, report, _) = run(&half, camera, f, &TransportConfig::default());
+    let errors = relight_errors(&dense(&t), &truth, camera, k);
+    let light = t
+        .relight(&vec![1.0; m])
+        .iter()
+        .map(|v| *v as f64)
+        .sum::<f64>()
+        / truth.iter().map(|v| *v as f64).sum::<f64>();
+    let (t_clean, _, _) = run(
+        &half,
+        camera,
+        &clean[..f.len()],
+        &TransportConfig::default(),
+    );
+    let clean_errors = relight_errors(&dense(&t_clean), &truth, camera, k);
+    HalfOfNoisySet {
+        t_complete,
+        t,
+        report,
+        errors,
+        clean_errors,
+        light,
+    }
+}
+
 #[test]
 fn a_noisy_hadamard_subset_of_sparse_rows_stores_no_more_than_the_complete_set() {
     // Rendered scenes whose rows are sparse (glints and a caustic; a slide at a grazing angle),
@@ -1601,39 +1652,26 @@ fn a_noisy_hadamard_subset_of_sparse_rows_stores_no_more_than_the_complete_set()
     // more than the complete set of the same scene, keep the total light, and relight within
     // 1.5x of the model chosen without the floor would (which these scenes' sparse rows do
     // not need).
-    let camera = CameraGrid {
-        width: 24,
-        height: 24,
-    };
-    let (pw, ph) = (32usize, 32usize);
-    let k = pw * ph;
-    let m = camera.pixels();
-    let (complete, half) = (russian_doll(pw, ph, k), russian_doll(pw, ph, k / 2));
     let scenes = [
         (
             "glossy",
-            helmholtz_sim::RenderedTransport::glossy((pw, ph), (24, 24), 1),
+            helmholtz_sim::RenderedTransport::glossy((32, 32), (24, 24), 1),
         ),
         (
             "slide",
-            helmholtz_sim::RenderedTransport::slide((pw, ph), (24, 24), 1),
+            helmholtz_sim::RenderedTransport::slide((32, 32), (24, 24), 1),
         ),
     ];
     for (name, scene) in scenes {
-        let truth = scene.dense();
-        let (clean, noisy) = clean_and_noisy(&complete, &truth, m, 0.01);
-        let (t_complete, _, _) = run(&complete, camera, &noisy, &TransportConfig::default());
-        // The subset's frames are the complete set's first ones (the same noise).
-        let f = &noisy[..half.count() as usize * m];
-        let (t, report, _) = run(&half, camera, f, &TransportConfig::default());
+        let HalfOfNoisySet {
+            t_complete,
+            t,
+            report,
+            errors,
+            clean_errors,
+            light,
+        } = half_of_noisy_set(&scene);
         let chosen = &report.details["selection"]["chosen"];
-        let errors = relight_errors(&dense(&t), &truth, camera, k);
-        let light = t
-            .relight(&vec![1.0; m])
-            .iter()
-            .map(|v| *v as f64)
-            .sum::<f64>()
-            / truth.iter().map(|v| *v as f64).sum::<f64>();
         // The best point without the floor, refitted at the chosen transform and weight.
         let unfloored = report.details["selection"]["candidates"]
             .as_array()
@@ -1656,13 +1694,6 @@ fn a_noisy_hadamard_subset_of_sparse_rows_stores_no_more_than_the_complete_set()
         );
         assert!((light - 1.0).abs() < 0.01, "{name}: total light {light}");
         // Relit as well as the noise-free subset's (the same pairs, the same model choice).
-        let (t_clean, _, _) = run(
-            &half,
-            camera,
-            &clean[..f.len()],
-            &TransportConfig::default(),
-        );
-        let clean_errors = relight_errors(&dense(&t_clean), &truth, camera, k);
         assert!(
             rms(&errors) <= 1.5 * rms(&clean_errors) + 0.005,
             "{name}: relit {errors:?} against the noise-free subset's {clean_errors:?}"
@@ -1682,35 +1713,19 @@ fn a_noisy_hadamard_subset_keeps_a_dim_interreflection_from_its_coarse_pairs_in_
     // complete set keeps its coefficients (in a row, or in a tile of camera pixels), the
     // model fills in only the finer ones. The subset must store no more than the complete
     // set, keep the total light, and relight as well as the same pairs do noise-free.
-    let camera = CameraGrid {
-        width: 24,
-        height: 24,
-    };
-    let (pw, ph) = (32usize, 32usize);
-    let k = pw * ph;
-    let m = camera.pixels();
-    let (complete, half) = (russian_doll(pw, ph, k), russian_doll(pw, ph, k / 2));
-    let scene = helmholtz_sim::RenderedTransport::cornell((pw, ph), (24, 24), 1);
-    let truth = scene.dense();
-    let (clean, noisy) = clean_and_noisy(&complete, &truth, m, 0.01);
-    let (t_complete, _, _) = run(&complete, camera, &noisy, &TransportConfig::default());
-    let f = &noisy[..half.count() as usize * m];
-    let (t, report, _) = run(&half, camera, f, &TransportConfig::default());
+    let HalfOfNoisySet {
+        t_complete,
+        t,
+        report,
+        errors,
+        clean_errors,
+        light,
+    } = half_of_noisy_set(&helmholtz_sim::RenderedTransport::cornell(
+        (32, 32),
+        (24, 24),
+        1,
+    ));
     let chosen = &report.details["selection"]["chosen"];
-    let errors = relight_errors(&dense(&t), &truth, camera, k);
-    let light = t
-        .relight(&vec![1.0; m])
-        .iter()
-        .map(|v| *v as f64)
-        .sum::<f64>()
-        / truth.iter().map(|v| *v as f64).sum::<f64>();
-    let (t_clean, _, _) = run(
-        &half,
-        camera,
-        &clean[..f.len()],
-        &TransportConfig::default(),
-    );
-    let clean_errors = relight_errors(&dense(&t_clean), &truth, camera, k);
     println!(
         "cornell: subset {} nonzeros ({chosen}), complete {}; relit {errors:.4?}, noise-free {clean_errors:.4?}, total light {light:.4}",
         t.nonzeros(),
