@@ -52,7 +52,7 @@ pub(crate) fn grpc_config() -> tonic::transport::ClientTlsConfig {
     }
 }
 
-/// Makes ring rustls's process-wide crypto provider, unless one is installed already. The
+/// Installs ring as rustls's process-wide crypto provider, unless one is installed already. The
 /// project builds rustls with ring alone (no aws-lc C build); the REST client (reqwest) then
 /// needs a provider installed before any client is built, which this does (idempotent, cheap).
 pub fn install_crypto_provider() {
