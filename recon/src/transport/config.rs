@@ -28,9 +28,12 @@ pub struct TransportConfig {
     pub transform: Option<TransformKind>,
     /// l1 weight as a fraction of each row's `lambda_max`; `None`: the data choose.
     pub lambda: Option<f64>,
-    /// FISTA iterations per row at most.
+    /// Iterations per row at most (FISTA iterations; coordinate-descent sweeps for random
+    /// patterns).
     pub max_iter: usize,
-    /// Per-row stop: `||s_k - s_{k-1}|| <= tol ||s_k||` on 3 consecutive iterations.
+    /// Per-row stop: `||s_k - s_{k-1}|| <= tol ||s_k||` on 3 consecutive FISTA iterations, or in
+    /// one coordinate-descent sweep followed by a check that no coefficient held at zero
+    /// violates the optimality conditions.
     pub tol: f64,
     /// Fraction of rows (Hadamard: split pairs) held out for the error estimate and the choice;
     /// `None`: [`crate::holdout::default_fraction`].

@@ -90,6 +90,11 @@ pub struct TransportModel {
     /// by the noise test of a complete set (`CoarseExact` in the module; version 2).
     #[serde(default)]
     pub coarse_exact: bool,
+    /// The rows are solved by coordinate descent on `A Psi^T` held densely (random patterns;
+    /// `batch::Dense` in the module; version 3); else by FISTA on the operator. A model planned
+    /// before version 3 is solved by FISTA, as it was planned.
+    #[serde(default)]
+    pub dense: bool,
 }
 
 fn one() -> u32 {
@@ -97,8 +102,8 @@ fn one() -> u32 {
 }
 
 impl TransportModel {
-    /// 2: `coarse_exact`. A version-1 model (without it) is solved as it was planned.
-    pub const VERSION: u32 = 2;
+    /// 2: `coarse_exact`; 3: `dense`. An older model (without them) is solved as it was planned.
+    pub const VERSION: u32 = 3;
 
     pub fn camera_grid(&self) -> CameraGrid {
         CameraGrid {

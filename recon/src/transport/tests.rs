@@ -463,11 +463,22 @@ fn small_session() -> (PatternSpec, CameraGrid, Vec<f32>, Vec<f32>) {
     (spec, camera, truth, f)
 }
 
+/// The budget decides the blocks, never the result: blocked and unblocked `T` are the same bits.
+/// (A camera of 64x64 over a 16x16 projector, 128 Bernoulli frames: the frames, 2 MiB, exceed
+/// the small budget, while `A Psi^T` held densely, 260 KiB, fits a quarter of it, so both runs
+/// solve by coordinate descent; a budget too small for it would solve by FISTA, another
+/// iteration.)
 #[test]
 fn blocked_equals_unblocked_and_reads_stay_within_the_budget() {
-    let (spec, camera, truth, f) = small_session();
+    let camera = CameraGrid {
+        width: 64,
+        height: 64,
+    };
+    let spec = PatternSpec::new(Family::Bernoulli { fill: 0.5 }, 16, 16, 128, 5).unwrap();
+    let truth = synthetic_t(camera, 16, 16);
+    let f = frames(&spec, &truth, camera.pixels(), 0.0);
     let frame_bytes = f.len() * 4;
-    let budget = 100_000;
+    let budget = 1_500_000;
     assert!(
         frame_bytes > budget,
         "the session's frames ({frame_bytes} B) must exceed the budget"
@@ -508,6 +519,16 @@ fn blocked_equals_unblocked_and_reads_stay_within_the_budget() {
     assert!(s1.largest_read_bytes > budget);
     assert_eq!(r1.details["transform"], r2.details["transform"]);
     assert_eq!(r1.details["lambda"], r2.details["lambda"]);
+    for r in [&r1, &r2] {
+        assert!(
+            r.details["path"]
+                .as_str()
+                .unwrap()
+                .contains("coordinate descent"),
+            "{}",
+            r.details["path"]
+        );
+    }
     assert!(
         whole == blocked,
         "blocked and unblocked differ: {} vs {}",
@@ -521,14 +542,14 @@ fn blocked_equals_unblocked_and_reads_stay_within_the_budget() {
         &spec,
         camera,
         128,
-        &config.clone().with_memory_budget(10_000),
+        &config.clone().with_memory_budget(2_000),
         &mut source,
         &Control::new(),
     )
     .unwrap_err();
     assert!(
         e.to_string()
-            .contains("memory budget of 10000 bytes is too small"),
+            .contains("memory budget of 2000 bytes is too small"),
         "{e}"
     );
 }
@@ -776,6 +797,7 @@ fn study_model_choice() {
                 let psi = kind.build(pw as usize, ph as usize);
                 let sh = Shared {
                     op: train.op(),
+                    dense: None,
                     psi: psi.as_ref(),
                     identity: kind == TransformKind::Identity,
                     lipschitz,
@@ -785,6 +807,7 @@ fn study_model_choice() {
                 };
                 let shf = Shared {
                     op: plan.op(),
+                    dense: None,
                     psi: psi.as_ref(),
                     identity: kind == TransformKind::Identity,
                     lipschitz: full_l,
@@ -946,6 +969,7 @@ fn the_refit_is_least_squares_on_the_lasso_support() {
     let l = spectral_norm(&a, 500, 1e-9).powi(2) * 1.02;
     let sh = Shared {
         op: &a,
+        dense: None,
         psi: psi.as_ref(),
         identity: true,
         lipschitz: l,
@@ -1145,6 +1169,44 @@ fn shards_of_a_compressive_bernoulli_subset_assemble_to_the_single_process_t() {
     let model = shards_assemble_to_the_single_call(&spec, camera, &f, &config, &groupings);
     assert!(!model.exact && model.lambda.is_some());
     assert!(model.block_count() >= 4, "{} blocks", model.block_count());
+}
+
+/// Coordinate descent on the dense `A Psi^T` (random patterns where it fits the budget) keeps
+/// the shard contract: parts solved anywhere assemble to the single call's `T`, bit for bit. A
+/// model planned before version 3 (no `dense`) is solved by FISTA, as it was planned.
+#[test]
+fn shards_of_a_dense_coordinate_descent_solve_assemble_to_the_single_process_t() {
+    let camera = CameraGrid {
+        width: 64,
+        height: 64,
+    };
+    let spec = PatternSpec::new(Family::Bernoulli { fill: 0.5 }, 16, 16, 128, 5).unwrap();
+    let f = frames(&spec, &synthetic_t(camera, 16, 16), camera.pixels(), 0.0);
+    let config = TransportConfig {
+        sample_pixels: 8,
+        ..TransportConfig::default()
+    }
+    .with_memory_budget(1_500_000);
+    let model = shards_assemble_to_the_single_call(&spec, camera, &f, &config, &groupings);
+    assert!(model.dense, "{:?}", model.notes);
+    assert!(model.block_count() >= 4, "{} blocks", model.block_count());
+    let mut old: serde_json::Value = serde_json::from_str(&model.to_json()).unwrap();
+    old.as_object_mut().unwrap().remove("dense");
+    old["version"] = json!(2);
+    let old = TransportModel::from_json(&old.to_string()).unwrap();
+    assert!(!old.dense);
+    let solve = |m: &TransportModel| {
+        let mut source = SliceFrames::new(&f, camera.pixels());
+        let part = solve_transport_blocks(&spec, m, 0..1, &mut source, &Control::new()).unwrap();
+        let rows = m.block_pixels(0..1).len();
+        assert!(part.iterations > 0 && rows > 0);
+        part
+    };
+    let (by_cd, by_fista) = (solve(&model), solve(&old));
+    assert_ne!(
+        by_cd, by_fista,
+        "the old model was solved by coordinate descent too"
+    );
 }
 
 #[test]
@@ -1992,4 +2054,190 @@ fn a_subset_complete_on_blocks_measures_the_coarse_haar_coefficients_exactly() {
             "1/{share}: the finer coefficients are measured too ({off})"
         );
     }
+}
+
+/// A Bernoulli session's fitting operator (centred; 16x16 projector, 96 frames), the Haar
+/// transform and the fitting data of three camera pixels of [`synthetic_t`] (noise-free).
+fn bernoulli_rows() -> (PatternSpec, Vec<Vec<f64>>) {
+    let spec = PatternSpec::new(Family::Bernoulli { fill: 0.5 }, 16, 16, 96, 4).unwrap();
+    let camera = CameraGrid {
+        width: 3,
+        height: 1,
+    };
+    let t = synthetic_t(camera, 16, 16);
+    let f = frames(&spec, &t, 3, 0.0);
+    let plan = Plan::new(&spec, 96, 1).unwrap();
+    let rows = (0..3)
+        .map(|c| plan.fit_data(&plan.raw_column(&f, 3, c)))
+        .collect();
+    (spec, rows)
+}
+
+/// `1/2 ||M s - b||^2 + lambda ||s[free..]||_1` for one row.
+fn lasso_objective(dense: &batch::Dense, b: &[f64], s: &[f64], lam: f64, free: usize) -> f64 {
+    let fit = dense.product(s);
+    let r2: f64 = fit.iter().zip(b).map(|(f, b)| (f - b) * (f - b)).sum();
+    0.5 * r2 + lam * s[free..].iter().map(|v| v.abs()).sum::<f64>()
+}
+
+/// Coordinate descent on the dense `A Psi^T` ([`batch::Dense`]) solves the problem FISTA on the
+/// operator solves (a known answer: both, run from zero to a tight tolerance on a Bernoulli
+/// session's rows in the Haar basis, reach the same lasso solution and the same refit), and its
+/// solution meets the lasso's optimality conditions: `|g_c| <= lambda` where `s_c = 0`,
+/// `g_c = lambda sign(s_c)` elsewhere, `g_c = 0` for the free DC coefficient, with
+/// `g = Psi A^T (b - A Psi^T s)` computed by the operator, not by the dense columns.
+#[test]
+fn coordinate_descent_on_the_dense_system_solves_the_lasso_fista_solves() {
+    let (spec, rows) = bernoulli_rows();
+    let plan = Plan::new(&spec, 96, 1).unwrap();
+    let op = plan.op();
+    let k = op.cols();
+    let kind = TransformKind::Haar;
+    let psi = kind.build(16, 16);
+    let free = free_coefficients(kind);
+    let fista = Shared {
+        op,
+        dense: None,
+        psi: psi.as_ref(),
+        identity: false,
+        lipschitz: plan.lipschitz(op),
+        free,
+        max_iter: 400_000,
+        tol: 1e-13,
+    };
+    let dense = batch::Dense::new(&fista);
+    let cd = Shared {
+        dense: Some(&dense),
+        ..fista
+    };
+    // The dense columns are the operator: M s = A Psi^T s.
+    let mut rng = crate::testutil::Rng::new(3);
+    let s: Vec<f64> = (0..k).map(|_| rng.uniform() - 0.5).collect();
+    let mut x = vec![0.0; k];
+    psi.adjoint(&s, &mut x);
+    let mut want = vec![0.0; op.rows()];
+    op.apply(&x, &mut want);
+    let got = dense.product(&s);
+    let scale = want.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    for (g, w) in got.iter().zip(&want) {
+        assert!(
+            (g - w).abs() <= 1e-12 * scale,
+            "M s {g} against A Psi^T s {w}"
+        );
+    }
+    let bs: Vec<f64> = rows.iter().flatten().copied().collect();
+    let lams: Vec<f64> = batch::lambda_max(&fista, &bs, 3)
+        .iter()
+        .map(|l| 0.02 * l)
+        .collect();
+    let mut by_fista = vec![0.0; 3 * k];
+    let mut by_cd = vec![0.0; 3 * k];
+    batch::solve_rows(&fista, &bs, &lams, &mut by_fista, 3, &Control::new()).unwrap();
+    let sweeps = batch::solve_rows(&cd, &bs, &lams, &mut by_cd, 3, &Control::new()).unwrap();
+    let n = op.rows();
+    for r in 0..3 {
+        let (sf, sc) = (&by_fista[r * k..(r + 1) * k], &by_cd[r * k..(r + 1) * k]);
+        let b = &bs[r * n..(r + 1) * n];
+        let (of, oc) = (
+            lasso_objective(&dense, b, sf, lams[r], free),
+            lasso_objective(&dense, b, sc, lams[r], free),
+        );
+        assert!(
+            (of - oc).abs() <= 1e-9 * of,
+            "row {r}: objective {oc} by coordinate descent ({} sweeps), {of} by FISTA",
+            sweeps[r]
+        );
+        let big = sf.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        for (c, (a, b)) in sf.iter().zip(sc).enumerate() {
+            assert!(
+                (a - b).abs() <= 1e-6 * big,
+                "row {r} coefficient {c}: {b} by coordinate descent, {a} by FISTA"
+            );
+        }
+        let mut fit = vec![0.0; k];
+        psi.adjoint(sc, &mut fit);
+        let mut pred = vec![0.0; n];
+        op.apply(&fit, &mut pred);
+        let res: Vec<f64> = b.iter().zip(&pred).map(|(b, p)| b - p).collect();
+        let mut back = vec![0.0; k];
+        op.adjoint(&res, &mut back);
+        let mut g = vec![0.0; k];
+        psi.apply(&back, &mut g);
+        let lam = lams[r];
+        for c in 0..k {
+            let ok = if c < free {
+                g[c].abs() <= 1e-6 * lam
+            } else if sc[c] == 0.0 {
+                g[c].abs() <= lam * (1.0 + 1e-6)
+            } else {
+                (g[c] - lam * sc[c].signum()).abs() <= 1e-6 * lam
+            };
+            assert!(
+                ok,
+                "row {r} coefficient {c}: s {}, gradient {} against lambda {lam}",
+                sc[c], g[c]
+            );
+        }
+    }
+    batch::refit_rows(&fista, &bs, &mut by_fista, 3, &Control::new()).unwrap();
+    batch::refit_rows(&cd, &bs, &mut by_cd, 3, &Control::new()).unwrap();
+    let big = by_fista.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    for (i, (a, b)) in by_fista.iter().zip(&by_cd).enumerate() {
+        assert!(
+            (a - b).abs() <= 1e-6 * big,
+            "refit coefficient {i}: {b} by coordinate descent, {a} by FISTA"
+        );
+    }
+}
+
+/// A row solved by coordinate descent depends on its own data, weight and warm start alone: the
+/// same bits solved with other rows or alone (any block, shard or chunk), and with the AVX2 copy
+/// of the sweep or the baseline one.
+#[test]
+fn a_coordinate_descent_row_is_the_same_alone_in_a_batch_and_on_either_instruction_set() {
+    let (spec, rows) = bernoulli_rows();
+    let plan = Plan::new(&spec, 96, 1).unwrap();
+    let op = plan.op();
+    let (n, k) = (op.rows(), op.cols());
+    let psi = TransformKind::Haar.build(16, 16);
+    let mut sh = Shared {
+        op,
+        dense: None,
+        psi: psi.as_ref(),
+        identity: false,
+        lipschitz: plan.lipschitz(op),
+        free: 1,
+        max_iter: 300,
+        tol: 1e-4,
+    };
+    let dense = batch::Dense::new(&sh);
+    sh.dense = Some(&dense);
+    let bs: Vec<f64> = rows.iter().flatten().copied().collect();
+    let lams: Vec<f64> = batch::lambda_max(&sh, &bs, 3)
+        .iter()
+        .map(|l| 0.01 * l)
+        .collect();
+    let mut all = vec![0.0; 3 * k];
+    batch::solve_rows(&sh, &bs, &lams, &mut all, 2, &Control::new()).unwrap();
+    for baseline in [true, false] {
+        crate::simd::force_baseline(baseline);
+        let mut alone = vec![0.0; k];
+        batch::solve_rows(
+            &sh,
+            &bs[n..2 * n],
+            &lams[1..2],
+            &mut alone,
+            1,
+            &Control::new(),
+        )
+        .unwrap();
+        assert!(
+            alone
+                .iter()
+                .zip(&all[k..2 * k])
+                .all(|(a, b)| a.to_bits() == b.to_bits()),
+            "row 1 alone (baseline copies: {baseline}) differs from row 1 among three"
+        );
+    }
+    crate::simd::force_baseline(false);
 }
