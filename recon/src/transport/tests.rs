@@ -453,9 +453,15 @@ fn encode_decode_round_trips_and_corrupt_bytes_are_refused() {
 
 /// A 16x16 camera over a 16x16 projector, Bernoulli 50 %: 128 frames x 256 pixels = 128 KiB.
 fn small_session() -> (PatternSpec, CameraGrid, Vec<f32>, Vec<f32>) {
+    bernoulli_session(16)
+}
+
+/// A `side x side` camera over a 16x16 projector, 128 Bernoulli 50 % frames of
+/// [`synthetic_t`], noise-free: spec, camera, truth and frames.
+fn bernoulli_session(side: u32) -> (PatternSpec, CameraGrid, Vec<f32>, Vec<f32>) {
     let camera = CameraGrid {
-        width: 16,
-        height: 16,
+        width: side,
+        height: side,
     };
     let spec = PatternSpec::new(Family::Bernoulli { fill: 0.5 }, 16, 16, 128, 5).unwrap();
     let truth = synthetic_t(camera, 16, 16);
@@ -470,13 +476,7 @@ fn small_session() -> (PatternSpec, CameraGrid, Vec<f32>, Vec<f32>) {
 /// iteration.)
 #[test]
 fn blocked_equals_unblocked_and_reads_stay_within_the_budget() {
-    let camera = CameraGrid {
-        width: 64,
-        height: 64,
-    };
-    let spec = PatternSpec::new(Family::Bernoulli { fill: 0.5 }, 16, 16, 128, 5).unwrap();
-    let truth = synthetic_t(camera, 16, 16);
-    let f = frames(&spec, &truth, camera.pixels(), 0.0);
+    let (spec, camera, truth, f) = bernoulli_session(64);
     let frame_bytes = f.len() * 4;
     let budget = 1_500_000;
     assert!(
@@ -1199,12 +1199,7 @@ fn shards_of_a_compressive_bernoulli_subset_assemble_to_the_single_process_t() {
 /// model planned before version 3 (no `dense`) is solved by FISTA, as it was planned.
 #[test]
 fn shards_of_a_dense_coordinate_descent_solve_assemble_to_the_single_process_t() {
-    let camera = CameraGrid {
-        width: 64,
-        height: 64,
-    };
-    let spec = PatternSpec::new(Family::Bernoulli { fill: 0.5 }, 16, 16, 128, 5).unwrap();
-    let f = frames(&spec, &synthetic_t(camera, 16, 16), camera.pixels(), 0.0);
+    let (spec, camera, _, f) = bernoulli_session(64);
     let config = TransportConfig {
         sample_pixels: 8,
         ..TransportConfig::default()
