@@ -276,6 +276,59 @@ fn main() -> anyhow::Result<()> {
             err_me / n2,
         );
     }
+    // PRUNE=e1,e2,...: each row's smallest stored coefficients dropped while their energy stays
+    // within e^2 of the row's (the first coefficient of a wavelet/DCT row kept), and the result
+    // judged as above (what a compaction of the stored T would cost).
+    if let Ok(list) = std::env::var("PRUNE") {
+        let kind = t.transform();
+        let free = usize::from(kind.name() != "identity");
+        let psi = kind.build(p as usize, p as usize);
+        for eps in list.split(',').map(|s| s.parse::<f64>()) {
+            let eps = eps?;
+            let mut dense = Vec::with_capacity(m * k as usize);
+            let mut kept = 0usize;
+            let mut s = vec![0.0f64; k as usize];
+            let mut row = vec![0.0f64; k as usize];
+            for j in 0..m {
+                let (idx, val) = t.row_coefficients(j);
+                s.iter_mut().for_each(|v| *v = 0.0);
+                let energy: f64 = val.iter().map(|v| (*v as f64).powi(2)).sum();
+                let mut order: Vec<usize> = (0..idx.len())
+                    .filter(|&q| (idx[q] as usize) >= free)
+                    .collect();
+                order.sort_by(|&a, &b| val[a].abs().total_cmp(&val[b].abs()));
+                let mut dropped = 0.0;
+                let mut drop = vec![false; idx.len()];
+                for q in order {
+                    let e = (val[q] as f64).powi(2);
+                    if dropped + e > eps * eps * energy {
+                        break;
+                    }
+                    dropped += e;
+                    drop[q] = true;
+                }
+                for (q, (&i, &v)) in idx.iter().zip(val).enumerate() {
+                    if !drop[q] {
+                        s[i as usize] = v as f64;
+                        kept += 1;
+                    }
+                }
+                psi.adjoint(&s, &mut row);
+                dense.extend(row.iter().map(|&v| v as f32));
+            }
+            let mut line = format!(
+                "prune {eps:e}: nnz/row {:.1}, T err {:.4}, relit",
+                kept as f64 / m as f64,
+                relative_error(&dense, &truth)
+            );
+            for (name, l) in &lights {
+                let want: Vec<f32> = view.relight(l).into_iter().map(|v| v as f32).collect();
+                line += &format!(" {name} {:.4}", relative_error(&relit_of(&dense, l), &want));
+            }
+            line += &format!(", total light {:.4}", total(&dense) / total(&truth));
+            println!("{line}");
+        }
+    }
     if std::env::var_os("TRANSPORT_REPORT").is_some() {
         println!("{}", serde_json::to_string_pretty(&report.details)?);
     }

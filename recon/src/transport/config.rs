@@ -48,6 +48,11 @@ pub struct TransportConfig {
     /// function is constant on the blocks measure the coarse `T` exactly (half of a
     /// Russian-doll set holds the complete set at half the resolution), the others are unused.
     pub projector_binning: u32,
+    /// Let the model choice also consider every point compacted (its smallest coefficients
+    /// dropped within a third of its held-out residual, refitted; `prune_rows` in the module).
+    /// Off by default (`false` keeps every coefficient the lasso kept): on noise-free synthetic
+    /// rows it took a fit of T error 6e-7 where the best fixed weight reaches 9e-8.
+    pub compact: bool,
     /// The whole working set of one reconstruction (frame block, solutions, scratch, operator);
     /// set by the server ([`TransportConfig::with_memory_budget`]), not a request parameter.
     pub memory_budget_bytes: usize,
@@ -64,6 +69,7 @@ impl Default for TransportConfig {
             sample_pixels: 64,
             coarse_to_fine: false,
             projector_binning: 1,
+            compact: false,
             memory_budget_bytes: DEFAULT_MEMORY_BUDGET,
         }
     }
@@ -173,6 +179,16 @@ impl TransportConfig {
                 ));
             }
         };
+        let compact = match map.remove("compact") {
+            None | Some(Value::Null) => d.compact,
+            Some(Value::Bool(b)) => b,
+            Some(other) => {
+                return Err(bad(
+                    "compact",
+                    format!("must be true or false, got {other}"),
+                ));
+            }
+        };
         let projector_binning = number(
             &mut map,
             "projector_binning",
@@ -184,7 +200,7 @@ impl TransportConfig {
             return Err(bad(
                 key,
                 format!(
-                    "method transport takes no parameter {key:?}; known: transform, lambda, max_iter, tol, holdout, sample_pixels, coarse_to_fine, projector_binning"
+                    "method transport takes no parameter {key:?}; known: transform, lambda, max_iter, tol, holdout, sample_pixels, coarse_to_fine, projector_binning, compact"
                 ),
             ));
         }
@@ -197,6 +213,7 @@ impl TransportConfig {
             sample_pixels,
             coarse_to_fine,
             projector_binning,
+            compact,
             memory_budget_bytes: d.memory_budget_bytes,
         })
     }
@@ -213,6 +230,7 @@ impl TransportConfig {
             "sample_pixels": self.sample_pixels,
             "coarse_to_fine": self.coarse_to_fine,
             "projector_binning": self.projector_binning,
+            "compact": self.compact,
         })
     }
 

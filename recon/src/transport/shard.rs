@@ -95,6 +95,12 @@ pub struct TransportModel {
     /// before version 3 is solved by FISTA, as it was planned.
     #[serde(default)]
     pub dense: bool,
+    /// Every stored row is compacted at these shares in turn (`prune_rows` in the module: its
+    /// smallest coefficients dropped within the share of its energy and of its light), each
+    /// round refitted where `refit` is set and the coarse coefficients are not taken as measured
+    /// (version 4).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub prune: Vec<f64>,
 }
 
 fn one() -> u32 {
@@ -102,8 +108,9 @@ fn one() -> u32 {
 }
 
 impl TransportModel {
-    /// 2: `coarse_exact`; 3: `dense`. An older model (without them) is solved as it was planned.
-    pub const VERSION: u32 = 3;
+    /// 2: `coarse_exact`; 3: `dense`; 4: `prune`. An older model (without them) is solved as it
+    /// was planned; an older build refuses a newer model.
+    pub const VERSION: u32 = 4;
 
     pub fn camera_grid(&self) -> CameraGrid {
         CameraGrid {
