@@ -33,6 +33,8 @@ struct Row {
     camera: [u32; 2],
     frames: u64,
     coarse_to_fine: bool,
+    /// The model choice may compact the rows (`TransportConfig::compact`).
+    compact: bool,
     seconds: f64,
     peak_heap_bytes: Option<usize>,
     transform: String,
@@ -121,56 +123,45 @@ pub fn run(
     };
     let k = (pw * ph) as u64;
     let rd = HadamardOrdering::RussianDoll;
-    let mut cases: Vec<(String, Family, u64, bool)> = vec![
+    // (case, family, frames, coarse-to-fine, compact): the compressive sessions also without
+    // compaction (`compact: false`), side by side.
+    let mut cases: Vec<(String, Family, u64, bool, bool)> = Vec::new();
+    for (name, family, count, variants) in [
         (
-            "hadamard complete".into(),
+            "hadamard complete",
             Family::Hadamard { ordering: rd },
             2 * k,
-            false,
+            &[(false, true)][..],
         ),
         (
-            "hadamard 50 %".into(),
+            "hadamard 50 %",
             Family::Hadamard { ordering: rd },
             k,
-            false,
+            &[(false, true), (false, false), (true, true)][..],
         ),
         (
-            "hadamard 50 %".into(),
-            Family::Hadamard { ordering: rd },
-            k,
-            true,
-        ),
-        (
-            "hadamard 25 %".into(),
+            "hadamard 25 %",
             Family::Hadamard { ordering: rd },
             k / 2,
-            false,
+            &[(false, true), (true, true)][..],
         ),
         (
-            "hadamard 25 %".into(),
-            Family::Hadamard { ordering: rd },
-            k / 2,
-            true,
-        ),
-        (
-            "bernoulli 25 %".into(),
+            "bernoulli 25 %",
             Family::Bernoulli { fill: 0.5 },
             k / 4,
-            false,
+            &[(false, true), (false, false), (true, true)][..],
         ),
         (
-            "bernoulli 25 %".into(),
-            Family::Bernoulli { fill: 0.5 },
-            k / 4,
-            true,
-        ),
-        (
-            "bernoulli 10 %".into(),
+            "bernoulli 10 %",
             Family::Bernoulli { fill: 0.5 },
             k / 10,
-            false,
+            &[(false, true), (false, false)][..],
         ),
-    ];
+    ] {
+        for &(c2f, compact) in variants {
+            cases.push((name.into(), family.clone(), count, c2f, compact));
+        }
+    }
     if latency_only {
         cases.clear();
     }
@@ -179,7 +170,7 @@ pub fn run(
     }
     let mut rows = Vec::new();
     let mut cache: Option<(String, Vec<f32>)> = None;
-    for (name, family, count, c2f) in cases {
+    for (name, family, count, c2f, compact) in cases {
         let spec = PatternSpec::new(family, pw, ph, count, 3)?;
         let key = format!("{name}/{count}");
         if cache.as_ref().map(|c| &c.0) != Some(&key) {
@@ -188,6 +179,7 @@ pub fn run(
         let f = &cache.as_ref().expect("cached").1;
         let config = TransportConfig {
             coarse_to_fine: c2f,
+            compact,
             ..TransportConfig::default()
         };
         let mut source = SliceFrames::new(f, camera.pixels());
@@ -208,6 +200,7 @@ pub fn run(
                     camera: [cw, chh],
                     frames: count,
                     coarse_to_fine: c2f,
+                    compact,
                     seconds,
                     peak_heap_bytes: peak,
                     transform: chosen_transform(d),
@@ -229,6 +222,7 @@ pub fn run(
                 camera: [cw, chh],
                 frames: count,
                 coarse_to_fine: c2f,
+                compact,
                 seconds,
                 peak_heap_bytes: peak,
                 transform: String::new(),
@@ -245,9 +239,10 @@ pub fn run(
             },
         };
         eprintln!(
-            "{:<18} c2f {:<5} {:>8.2} s  {:>9} B  err {:.4}  relit {:.2} dB  held-out {:?}  it/row {:.0}  {}{}",
+            "{:<18} c2f {:<5} compact {:<5} {:>8.2} s  {:>9} B  err {:.4}  relit {:.2} dB  held-out {:?}  it/row {:.0}  {}{}",
             row.case,
             row.coarse_to_fine,
+            row.compact,
             row.seconds,
             row.stored_bytes,
             row.relative_error,
@@ -361,14 +356,15 @@ fn write(
     md.push_str("`cargo run -p helmholtz-bench -- --preset transport --out docs` ");
     md.push_str(&format!("({} threads; {}). Scene: `helmholtz_sim::Relief::demo(64, 64, 7)`, camera `Camera::tilted(32, 32, 25)`; noise-free frames `c_i = T p_i`. ", rayon::current_num_threads(), super::machine::sentence(machine)));
     md.push_str("Error: relative Frobenius error of T; relit PSNR over three camera-side lights (uniform, checkerboard, random) against the scene's own relight.\n\n");
-    md.push_str("| case | frames | coarse-to-fine | seconds | peak heap MiB | transform | lambda | stored KiB (dense KiB) | nnz/row | rel. error T | relit PSNR dB | held-out | iterations/row |\n");
-    md.push_str("|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
+    md.push_str("| case | frames | coarse-to-fine | compact | seconds | peak heap MiB | transform | lambda | stored KiB (dense KiB) | nnz/row | rel. error T | relit PSNR dB | held-out | iterations/row |\n");
+    md.push_str("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");
     for r in rows {
         md.push_str(&format!(
-            "| {} | {} | {} | {:.2} | {} | {} | {} | {:.0} ({:.0}) | {:.1} | {:.4} | {:.2} | {} | {:.0} |{}\n",
+            "| {} | {} | {} | {} | {:.2} | {} | {} | {} | {:.0} ({:.0}) | {:.1} | {:.4} | {:.2} | {} | {:.0} |{}\n",
             r.case,
             r.frames,
             if r.coarse_to_fine { "yes" } else { "no" },
+            if r.compact { "yes" } else { "no" },
             r.seconds,
             r.peak_heap_bytes.map_or("-".into(), |b| format!("{:.1}", b as f64 / 1048576.0)),
             r.transform,
@@ -740,35 +736,49 @@ fn rendered_scenes(only: Option<&[String]>) -> anyhow::Result<(Vec<SceneStats>, 
                 error_estimate: None,
                 error: None,
             };
-            // The reconstruction, default configuration.
-            let mut row = blank("reconstruct_transport");
-            let mut source = SliceFrames::new(&frames, camera.pixels());
-            let started = Instant::now();
-            let result = reconstruct_transport(
-                &spec,
-                camera,
-                count,
-                &TransportConfig::default(),
-                &mut source,
-                &Control::new(),
-            );
-            row.seconds = started.elapsed().as_secs_f64();
-            match result {
-                Ok((t, report)) => {
-                    let d = &report.details;
-                    row.transform = chosen_transform(d);
-                    row.lambda = d["lambda"].as_f64();
-                    row.refit = d["refit"].as_bool().unwrap_or(false);
-                    row.nonzeros_per_row = t.nonzeros() as f64 / camera.pixels() as f64;
-                    row.held_out = report.held_out.as_ref().and_then(|h| h.relative_residual);
-                    row.error_estimate = reported_estimate(&report);
-                    let t_hat: Vec<f64> = dense(&t).into_iter().map(|v| v as f64).collect();
-                    score(&scene, &t_hat, &mut row);
+            // The reconstruction, default configuration; a compressive session also without
+            // compaction (`compact: false`), side by side.
+            let complete = case.contains("complete");
+            let configs = [
+                ("reconstruct_transport", TransportConfig::default()),
+                (
+                    "compact: false",
+                    TransportConfig {
+                        compact: false,
+                        ..TransportConfig::default()
+                    },
+                ),
+            ];
+            for (method, config) in configs.iter().take(if complete { 1 } else { 2 }) {
+                let mut row = blank(method);
+                let mut source = SliceFrames::new(&frames, camera.pixels());
+                let started = Instant::now();
+                let result = reconstruct_transport(
+                    &spec,
+                    camera,
+                    count,
+                    config,
+                    &mut source,
+                    &Control::new(),
+                );
+                row.seconds = started.elapsed().as_secs_f64();
+                match result {
+                    Ok((t, report)) => {
+                        let d = &report.details;
+                        row.transform = chosen_transform(d);
+                        row.lambda = d["lambda"].as_f64();
+                        row.refit = d["refit"].as_bool().unwrap_or(false);
+                        row.nonzeros_per_row = t.nonzeros() as f64 / camera.pixels() as f64;
+                        row.held_out = report.held_out.as_ref().and_then(|h| h.relative_residual);
+                        row.error_estimate = reported_estimate(&report);
+                        let t_hat: Vec<f64> = dense(&t).into_iter().map(|v| v as f64).collect();
+                        score(&scene, &t_hat, &mut row);
+                    }
+                    Err(e) => row.error = Some(e.to_string()),
                 }
-                Err(e) => row.error = Some(e.to_string()),
+                log_scene_row(&row);
+                rows.push(row);
             }
-            log_scene_row(&row);
-            rows.push(row);
             // The oracle-free baseline: plain least squares.
             let mut row = blank("least squares");
             let started = Instant::now();
@@ -833,7 +843,7 @@ fn write_scenes(md: &mut String, stats: &[SceneStats], rows: &[SceneRow]) {
             s.render_seconds
         ));
     }
-    md.push_str(&format!("\nSessions, each noise-free and with Gaussian frame noise of sigma = {:.0} % of each frame's RMS: a complete Hadamard set (split pairs); the first 50 % of the Hadamard pairs in Russian-doll order; 25 % Bernoulli (fill 0.5) frames. Each is reconstructed by `reconstruct_transport` with the default `TransportConfig`, and solved by plain least squares for comparison: for Hadamard `T = (1/k) sum d_i h_i^T` over the measured pairs (the exact inverse of a complete set, the minimum-norm zero-filled solution of a subset), for Bernoulli the minimum-norm solution `A^T (A A^T)^-1 Y`.\n\n", 100.0 * FRAME_NOISE));
+    md.push_str(&format!("\nSessions, each noise-free and with Gaussian frame noise of sigma = {:.0} % of each frame's RMS: a complete Hadamard set (split pairs); the first 50 % of the Hadamard pairs in Russian-doll order; 25 % Bernoulli (fill 0.5) frames. Each is reconstructed by `reconstruct_transport` with the default `TransportConfig` (method `reconstruct_transport`; the compressive sessions also with params `compact: false`, which keeps every coefficient the fit kept: method `compact: false`), and solved by plain least squares for comparison: for Hadamard `T = (1/k) sum d_i h_i^T` over the measured pairs (the exact inverse of a complete set, the minimum-norm zero-filled solution of a subset), for Bernoulli the minimum-norm solution `A^T (A A^T)^-1 Y`.\n\n", 100.0 * FRAME_NOISE));
     md.push_str("Columns, all against the true T: **rel. error T**, `||T_hat - T||_F / ||T||_F`; **relit** errors `||T_hat^T c - T^T c|| / ||T^T c||` for a full camera-side light (all ones), the left half of the camera, and a checkerboard of 4x4 camera blocks; **total light**, `sum T_hat / sum T` (1 when no light is lost); **primal**, `||T_hat p - T p|| / ||T p||` for a random 0/1 projector pattern; **held-out**, the report's held-out relative residual (its own error estimate; none for complete sets); **estimate**, any other error estimate the report's `details` carry.\n\n");
     md.push_str("| scene | case | frames | noise | method | seconds | transform | lambda | nnz/row | rel. error T | relit full | relit half | relit checker | total light | primal | held-out | estimate |\n");
     md.push_str("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n");

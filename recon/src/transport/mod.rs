@@ -69,10 +69,11 @@
 //!   coefficients) with the refit often predicts as well as a small one without it.
 //!   The chosen (transform, fraction, refit) is applied to all camera
 //!   pixels with all rows; the rows keep only their nonzero coefficients (the soft threshold
-//!   zeroes the rest), so the stored size follows the scene's complexity. With `compact` (off
-//!   by default) every point is also
+//!   zeroes the rest), so the stored size follows the scene's complexity. With `compact` (the
+//!   default) every point is also
 //!   scored compacted ([`prune_rows`]: each row's smallest coefficients dropped while they hold
-//!   at most a third of the point's own held-out residual of the row's energy and of its light),
+//!   at most a third of the point's own held-out residual of the row's energy and of its light;
+//!   a refitted point refitted on what is left, and again, while its held-out score falls),
 //!   and the rule above takes it where its held-out score stays within the standard error: a
 //!   lasso at a small weight keeps hundreds of tiny coefficients per row that buy almost
 //!   nothing, which made a compressive `T` larger than the exact complete set's.
@@ -1595,7 +1596,9 @@ fn relative_standard_error(e: &[f64]) -> f64 {
 const PRUNE_SHARE: f64 = 1.0 / 3.0;
 
 /// A refitted point is compacted and refitted again while its held-out residual falls, up to
-/// this many rounds, each at a third of the residual the previous round left ([`prune_rows`]).
+/// this many rounds, each at the share of the point as solved ([`PRUNE_SHARE`] of its
+/// held-out residual; [`prune_rows`]); a round that drops nothing still refits, from where the
+/// last refit stopped.
 const PRUNE_ROUNDS: usize = 16;
 
 /// The coefficients of the constant image in `kind` (`Psi 1`): a row's sum (its full-light
@@ -2828,7 +2831,11 @@ fn choose_model(
                                 TransformKind::Haar if with_coarse => &haar_ones,
                                 _ => &kind_ones,
                             };
-                            if prune_rows(&mut u, k, share, free_coefficients(stored), ones) == 0 {
+                            // Where nothing more goes, a refitted point is refitted once more: the
+                            // held-out rows decide whether the refit had converged.
+                            let dropped =
+                                prune_rows(&mut u, k, share, free_coefficients(stored), ones);
+                            if dropped == 0 && !refitted_here {
                                 break;
                             }
                             if refitted_here {
