@@ -4,7 +4,10 @@
 //! `transport_one FAMILY PROJ CAM RATIO NOISE [PARAMS_JSON]`: FAMILY `hadamard` (Russian doll)
 //! or `bernoulli`; PROJ and CAM square sizes (`32`, `64`); RATIO frames over projector pixels
 //! (Hadamard: pairs, so 1 is the complete set); NOISE Gaussian frame noise relative to the frames'
-//! RMS (`0.01`). `TRANSPORT_REPORT=1` prints the report's details.
+//! RMS (`0.01`). `TRANSPORT_REPORT=1` prints the report's details. A Hadamard subset also
+//! prints where the full-light relit image's error lies (measured or unmeasured coefficients)
+//! and `q`, the share of the truth's energy the fit misses in the pairs a set twice as large
+//! would add, and in all unmeasured ones (what an error estimate must predict).
 
 use std::time::Instant;
 
@@ -275,6 +278,58 @@ fn main() -> anyhow::Result<()> {
             err_un / n2,
             err_me / n2,
         );
+        // The next band: the pairs a set of twice as many would add. The share of the truth's
+        // energy there the fit misses (q^2), for the full-light relit image and for the rows
+        // pooled, and the same for every unmeasured coefficient.
+        if count * 2 <= 2 * k {
+            let next = helmholtz_recon::ops::HadamardOperator::from_spec(
+                &PatternSpec::new(spec.family().clone(), p, p, count * 2, 3)?,
+                count * 2,
+            )?;
+            let mut band = vec![false; k as usize];
+            next.natural_indices()
+                .iter()
+                .filter(|&&n| !measured[n])
+                .for_each(|&n| band[n] = true);
+            let split = |d: &[f64], sel: &[bool]| {
+                let mut co = vec![0.0; k as usize];
+                full.apply(d, &mut co);
+                co.iter()
+                    .zip(sel)
+                    .filter(|(_, s)| **s)
+                    .map(|(v, _)| v * v)
+                    .sum::<f64>()
+            };
+            let unmeasured: Vec<bool> = measured.iter().map(|m| !m).collect();
+            let relit_band = split(&diff, &band) / split(&truth_relit, &band);
+            let relit_un = split(&diff, &unmeasured) / split(&truth_relit, &unmeasured);
+            let (mut rb, mut tb, mut ru, mut tu) = (0.0, 0.0, 0.0, 0.0);
+            let kk = k as usize;
+            for j in 0..m {
+                let tr: Vec<f64> = truth[j * kk..(j + 1) * kk]
+                    .iter()
+                    .map(|&v| v as f64)
+                    .collect();
+                let d: Vec<f64> = est[j * kk..(j + 1) * kk]
+                    .iter()
+                    .zip(&tr)
+                    .map(|(&e, t)| e as f64 - t)
+                    .collect();
+                rb += split(&d, &band);
+                tb += split(&tr, &band);
+                ru += split(&d, &unmeasured);
+                tu += split(&tr, &unmeasured);
+            }
+            println!(
+                "q (missed share of the truth's energy, sqrt): next band relit {:.4} rows {:.4}; all unmeasured relit {:.4} rows {:.4}; truth's band share relit {:.4e} rows {:.4e}",
+                relit_band.sqrt(),
+                (rb / tb).sqrt(),
+                relit_un.sqrt(),
+                (ru / tu).sqrt(),
+                split(&truth_relit, &band) / n2,
+                tb / truth.iter().map(|&v| (v as f64).powi(2)).sum::<f64>(),
+            );
+        }
     }
     // PRUNE=e1,e2,...: each row's smallest stored coefficients dropped while their energy stays
     // within e^2 of the row's (the first coefficient of a wavelet/DCT row kept), and the result

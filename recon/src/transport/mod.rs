@@ -2677,10 +2677,9 @@ fn choose_model(
     };
     let steps = (transforms.len() * lambdas.len() * floor_options.len()) as f64;
     let mut step = 0usize;
-    // The constant image's coefficients, for the light a compaction may drop ([`prune_rows`]).
-    let haar_ones = constant_coefficients(TransformKind::Haar, (pw, ph));
     for &kind in &transforms {
         let psi = kind.build(pw, ph);
+        // The constant image's coefficients, for the light a compaction may drop ([`prune_rows`]).
         let kind_ones = constant_coefficients(kind, (pw, ph));
         let mut sh = Shared {
             op: train.op(),
@@ -2724,8 +2723,8 @@ fn choose_model(
                     // As fitted, and (where the training pairs measure a coarser grid
                     // completely) with those coefficients as measured ([`CoarseExact`]).
                     for with_coarse in [false, true] {
-                        // The stored coefficients and their transform.
-                        let (mut u, stored) = match (&coarse, with_coarse) {
+                        // The stored coefficients.
+                        let mut u = match (&coarse, with_coarse) {
                             (None, true) => continue,
                             (Some(step), true) => {
                                 let mut u = coefficients.clone();
@@ -2737,24 +2736,24 @@ fn choose_model(
                                     &sample_sigmas,
                                     (&picked, camera_width),
                                 );
-                                (u, TransformKind::Haar)
+                                u
                             }
-                            _ => (coefficients.clone(), kind),
+                            _ => coefficients.clone(),
                         };
                         // As solved, then compacted at a share of its own held-out residual
-                        // ([`prune_rows`]), where that drops anything.
+                        // ([`prune_rows`]).
                         let mut prune: Vec<f64> = Vec::new();
                         let mut last = f64::INFINITY;
                         let mut solved = f64::INFINITY;
-                        let refitted_here = refit && !with_coarse;
-                        // Only a refitted point is compacted: without the refit, dropping a
-                        // lasso point's smallest coefficients is only a larger threshold,
-                        // which the path already tries (on an adaptive Hadamard set a compacted
-                        // lasso point with the coarse coefficients as measured predicted the
-                        // held-out pairs as well and had 2.6x the T error).
-                        let rounds = match (config.compact, refitted_here) {
-                            (true, true) => PRUNE_ROUNDS,
-                            _ => 0,
+                        // Only a refitted point as fitted is compacted: without the refit,
+                        // dropping a lasso point's smallest coefficients is only a larger
+                        // threshold, which the path already tries (on an adaptive Hadamard set
+                        // a compacted lasso point with the coarse coefficients as measured
+                        // predicted the held-out pairs as well and had 2.6x the T error).
+                        let rounds = if config.compact && refit && !with_coarse {
+                            PRUNE_ROUNDS
+                        } else {
+                            0
                         };
                         loop {
                             match (&coarse, with_coarse) {
@@ -2858,20 +2857,10 @@ fn choose_model(
                                 }
                                 _ => break,
                             };
-                            let ones = match stored {
-                                TransformKind::Haar if with_coarse => &haar_ones,
-                                _ => &kind_ones,
-                            };
-                            // Where nothing more goes, a refitted point is refitted once more: the
-                            // held-out rows decide whether the refit had converged.
-                            let dropped =
-                                prune_rows(&mut u, k, share, free_coefficients(stored), ones);
-                            if dropped == 0 && !refitted_here {
-                                break;
-                            }
-                            if refitted_here {
-                                batch::refit_rows(&sh, &bs, &mut u, chunk, control)?;
-                            }
+                            // Prune, then refit (also where nothing more goes: the held-out
+                            // rows decide whether the refit had converged).
+                            prune_rows(&mut u, k, share, free_coefficients(kind), &kind_ones);
+                            batch::refit_rows(&sh, &bs, &mut u, chunk, control)?;
                             prune.push(share);
                         }
                     }
