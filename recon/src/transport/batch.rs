@@ -32,6 +32,10 @@ pub(crate) struct Shared<'a> {
     pub free: usize,
     pub max_iter: usize,
     pub tol: f64,
+    /// The refit ([`refit_rows`]) without dense columns: CGLS to the least-squares fit on the
+    /// support ([`cgls_chunk`], models of version 5 on), else a projected FISTA stopped by its
+    /// step size (version 4 and older, solved as they were planned).
+    pub cgls_refit: bool,
 }
 
 impl Shared<'_> {
@@ -114,6 +118,14 @@ pub(crate) fn solve_rows(
 /// plus the free ones), no penalty, the rest held at zero; `s` in, refitted out. The soft
 /// threshold shrinks every kept coefficient by `lambda`; at a weight large enough to keep only
 /// the coefficients the data support, the refit removes that bias. Returns each row's iterations.
+///
+/// Rows solved on the operator (no [`Dense`] columns) are refitted by conjugate gradients on the
+/// normal equations restricted to the support ([`cgls_chunk`], with `cgls_refit`), which reach
+/// the least-squares fit in at most as many iterations as the support has coefficients (in exact
+/// arithmetic). The projected FISTA before it, stopped by its step size, stopped far from it
+/// where progress was slow: on the noise-free slide from half a Hadamard set, 16 more refits
+/// from where it had stopped lowered the held-out residual from 7.1e-6 to 6.1e-8 on the same
+/// support.
 pub(crate) fn refit_rows(
     sh: &Shared,
     bs: &[f64],
@@ -121,8 +133,160 @@ pub(crate) fn refit_rows(
     chunk: usize,
     control: &Control,
 ) -> Result<Vec<usize>, ReconError> {
-    let lams = vec![0.0; s.len() / sh.k().max(1)];
-    in_chunks(sh, bs, &lams, s, chunk, true, control)
+    let (k, n) = (sh.k(), sh.n());
+    let rows = s.len() / k.max(1);
+    if sh.dense.is_some() || !sh.cgls_refit {
+        let lams = vec![0.0; rows];
+        return in_chunks(sh, bs, &lams, s, chunk, true, control);
+    }
+    assert_eq!(bs.len(), rows * n);
+    let chunk = chunk.max(1);
+    let mut iterations = vec![0usize; rows];
+    let results: Vec<Result<(), ReconError>> = s
+        .par_chunks_mut(chunk * k)
+        .zip(bs.par_chunks(chunk * n.max(1)))
+        .zip(iterations.par_chunks_mut(chunk))
+        .map(|((s, b), it)| cgls_chunk(sh, b, s, it, control))
+        .collect();
+    results.into_iter().collect::<Result<Vec<()>, _>>()?;
+    Ok(iterations)
+}
+
+/// The refit of one chunk of rows ([`refit_rows`]): CGLS (Hestenes-Stiefel conjugate gradients
+/// on `P Psi A^T A Psi^T P s = P Psi A^T b`, `P` the support of the warm start `out`, plus the
+/// free coefficients), from the warm start, every row in its own recurrence; the rows still
+/// iterating share one `apply_batch` and one `adjoint_batch` per iteration, like
+/// [`fista_chunk`]. A row stops when its normal-equation residual `||P Psi A^T r||` is at most
+/// `tol^2` (at least 1e-13) of `||P Psi A^T b||` (its value at `s = 0`), or after `max_iter`
+/// iterations. A row's
+/// result depends only on its own data and warm start (any chunk, block or shard).
+fn cgls_chunk(
+    sh: &Shared,
+    bs: &[f64],
+    out: &mut [f64],
+    iterations: &mut [usize],
+    control: &Control,
+) -> Result<(), ReconError> {
+    let (k, n) = (sh.k(), sh.n());
+    let rows = iterations.len();
+    if rows == 0 || k == 0 {
+        return Ok(());
+    }
+    let mut keep: Vec<bool> = out
+        .chunks_exact(k)
+        .flat_map(|row| {
+            row.iter()
+                .enumerate()
+                .map(|(i, v)| i < sh.free || *v != 0.0)
+        })
+        .collect();
+    let mut ids: Vec<usize> = (0..rows).collect();
+    let mut s = out.to_vec();
+    let mut x = vec![0.0; rows * k];
+    let mut z = vec![0.0; rows * k];
+    let mut r = vec![0.0; rows * n];
+    let mut q = vec![0.0; rows * n];
+    // `||z||^2` over the support, zeroing `z` off it.
+    let norm2 = |z: &mut [f64], keep: &[bool]| {
+        z.iter_mut()
+            .zip(keep)
+            .map(|(v, &kept)| {
+                if !kept {
+                    *v = 0.0;
+                }
+                *v * *v
+            })
+            .sum::<f64>()
+    };
+    // The masked gradient at s = 0, for the stopping rule.
+    sh.op.adjoint_batch(bs, &mut x, rows);
+    sh.forward(&x, &mut z);
+    let mut reference: Vec<f64> = z
+        .chunks_exact_mut(k)
+        .zip(keep.chunks_exact(k))
+        .map(|(z, keep)| norm2(z, keep))
+        .collect();
+    // r = b - A Psi^T s, z = P Psi A^T r, p = z.
+    sh.inverse(&s, &mut x);
+    sh.op.apply_batch(&x, &mut r, rows);
+    r.iter_mut().zip(bs).for_each(|(r, b)| *r = b - *r);
+    sh.op.adjoint_batch(&r, &mut x, rows);
+    sh.forward(&x, &mut z);
+    let mut gamma: Vec<f64> = z
+        .chunks_exact_mut(k)
+        .zip(keep.chunks_exact(k))
+        .map(|(z, keep)| norm2(z, keep))
+        .collect();
+    let mut p = z.clone();
+    // `tol^2`, but not below what f64 sums of `n` products resolve.
+    let eps = (sh.tol * sh.tol).max(1e-13);
+    let eps2 = eps * eps;
+    let mut active = rows;
+    let mut it = 0;
+    loop {
+        // Retire converged rows (highest slot first, so swaps never move a retiring row).
+        let done: Vec<usize> = (0..active)
+            .filter(|&a| gamma[a] <= eps2 * reference[a] || !gamma[a].is_finite())
+            .collect();
+        for &a in done.iter().rev() {
+            let id = ids[a];
+            out[id * k..(id + 1) * k].copy_from_slice(&s[a * k..(a + 1) * k]);
+            let last = active - 1;
+            if a != last {
+                s.copy_within(last * k..(last + 1) * k, a * k);
+                p.copy_within(last * k..(last + 1) * k, a * k);
+                keep.copy_within(last * k..(last + 1) * k, a * k);
+                r.copy_within(last * n..(last + 1) * n, a * n);
+                ids[a] = ids[last];
+                gamma[a] = gamma[last];
+                reference[a] = reference[last];
+            }
+            active -= 1;
+        }
+        if active == 0 || it >= sh.max_iter {
+            break;
+        }
+        if control.is_cancelled() {
+            return Err(ReconError::Cancelled);
+        }
+        it += 1;
+        let (ka, na) = (active * k, active * n);
+        // q = A Psi^T p; the step along p.
+        sh.inverse(&p[..ka], &mut x[..ka]);
+        sh.op.apply_batch(&x[..ka], &mut q[..na], active);
+        for a in 0..active {
+            let qa = &q[a * n..(a + 1) * n];
+            let qq: f64 = qa.iter().map(|v| v * v).sum();
+            let alpha = if qq > 0.0 { gamma[a] / qq } else { 0.0 };
+            s[a * k..(a + 1) * k]
+                .iter_mut()
+                .zip(&p[a * k..(a + 1) * k])
+                .for_each(|(s, p)| *s += alpha * p);
+            r[a * n..(a + 1) * n]
+                .iter_mut()
+                .zip(qa)
+                .for_each(|(r, q)| *r -= alpha * q);
+        }
+        // z = P Psi A^T r; the next direction.
+        sh.op.adjoint_batch(&r[..na], &mut x[..ka], active);
+        sh.forward(&x[..ka], &mut z[..ka]);
+        for a in 0..active {
+            let row = a * k..(a + 1) * k;
+            let g = norm2(&mut z[row.clone()], &keep[row.clone()]);
+            let beta = if gamma[a] > 0.0 { g / gamma[a] } else { 0.0 };
+            p[row.clone()]
+                .iter_mut()
+                .zip(&z[row])
+                .for_each(|(p, z)| *p = z + beta * *p);
+            gamma[a] = g;
+            iterations[ids[a]] += 1;
+        }
+    }
+    for a in 0..active {
+        let id = ids[a];
+        out[id * k..(id + 1) * k].copy_from_slice(&s[a * k..(a + 1) * k]);
+    }
+    Ok(())
 }
 
 /// [`fista_chunk`] over chunks of `chunk` rows, in parallel.

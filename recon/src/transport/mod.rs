@@ -1118,6 +1118,7 @@ impl LevelTest {
             free: free_coefficients(kind),
             max_iter: config.max_iter,
             tol: config.tol,
+            cgls_refit: true,
         };
         let lams = weights(
             &batch::lambda_max(&sh, &self.data, chunk),
@@ -1182,6 +1183,7 @@ fn hadamard_subset_error(
         free: free_coefficients(kind),
         max_iter: config.max_iter,
         tol: config.tol,
+        cgls_refit: true,
     };
     let bs: Vec<f64> = raws.iter().flatten().copied().collect();
     let floors: Vec<f64> = if floored {
@@ -1601,7 +1603,9 @@ const PRUNE_SHARE: f64 = 1.0 / 3.0;
 /// A refitted point is compacted and refitted again while its held-out residual falls, up to
 /// this many rounds, each at the share of the point as solved ([`PRUNE_SHARE`] of its
 /// held-out residual; [`prune_rows`]); a round that drops nothing still refits, from where the
-/// last refit stopped.
+/// last refit stopped (the coordinate-descent refit on dense columns stops short of the
+/// least-squares fit; the CGLS refit on the operator reaches it, and such a round then changes
+/// nothing and ends the rounds).
 const PRUNE_ROUNDS: usize = 16;
 
 /// The coefficients of the constant image in `kind` (`Psi 1`): a row's sum (its full-light
@@ -2062,6 +2066,7 @@ fn solve_with(
         free: free_coefficients(transform),
         max_iter: model.max_iter,
         tol: model.tol,
+        cgls_refit: model.version >= 5,
     };
     let dense = model.dense.then(|| batch::Dense::new(&shared));
     shared.dense = dense.as_ref();
@@ -2453,6 +2458,7 @@ fn solve_path(
     // The stages before the last only warm-start the next: solved to a tenth of the precision.
     let loose = Shared {
         tol: sh.tol * WARM_STAGE_TOL_FACTOR,
+        cgls_refit: true,
         ..*sh
     };
     for (stage, &frac) in path.iter().enumerate() {
@@ -2690,6 +2696,7 @@ fn choose_model(
             free: free_coefficients(kind),
             max_iter: config.max_iter,
             tol: config.tol,
+            cgls_refit: true,
         };
         let dense = plan
             .dense_pays(train.op(), mem.budget)

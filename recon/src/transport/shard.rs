@@ -108,9 +108,10 @@ fn one() -> u32 {
 }
 
 impl TransportModel {
-    /// 2: `coarse_exact`; 3: `dense`; 4: `prune`. An older model (without them) is solved as it
-    /// was planned; an older build refuses a newer model.
-    pub const VERSION: u32 = 4;
+    /// 2: `coarse_exact`; 3: `dense`; 4: `prune`; 5: the refit on the operator by CGLS
+    /// (`batch::refit_rows`). An older model is solved as it was planned; an older build
+    /// refuses a newer model.
+    pub const VERSION: u32 = 5;
 
     pub fn camera_grid(&self) -> CameraGrid {
         CameraGrid {

@@ -841,6 +841,7 @@ fn study_model_choice() {
                     free: free_coefficients(kind),
                     max_iter: 300,
                     tol: 1e-4,
+                    cgls_refit: true,
                 };
                 let shf = Shared {
                     op: plan.op(),
@@ -851,6 +852,7 @@ fn study_model_choice() {
                     free: free_coefficients(kind),
                     max_iter: 300,
                     tol: 1e-4,
+                    cgls_refit: true,
                 };
                 let lam_max = batch::lambda_max(&sh, &bs, 8);
                 let lam_full = batch::lambda_max(&shf, &full_bs, 8);
@@ -1013,6 +1015,7 @@ fn the_refit_is_least_squares_on_the_lasso_support() {
         free: 0,
         max_iter: 20_000,
         tol: 1e-12,
+        cgls_refit: true,
     };
     // Row r: 8 spikes of height 1..2 (rows 0 and 1), row 2 also one small spike of 1e-3 the
     // lasso drops.
@@ -1068,6 +1071,37 @@ fn the_refit_is_least_squares_on_the_lasso_support() {
     assert!(
         lasso_err > 1e-2,
         "the lasso is shrunk: relative error {lasso_err:e}"
+    );
+    // At the default tolerance and iteration cap, the refit on the operator (CGLS) still reaches
+    // the least-squares fit; the projected FISTA of version-4 models stopped short of it.
+    let mut lasso = vec![0.0; rows * k];
+    batch::solve_rows(&sh, &bs, &lams, &mut lasso, 2, &Control::new()).unwrap();
+    let defaults = TransportConfig::default();
+    let refit_err = |cgls_refit: bool| {
+        let at = Shared {
+            max_iter: defaults.max_iter,
+            tol: defaults.tol,
+            cgls_refit,
+            ..sh
+        };
+        let mut s = lasso.clone();
+        batch::refit_rows(&at, &bs, &mut s, 2, &Control::new()).unwrap();
+        (0..2)
+            .map(|r| {
+                let row = r * k..(r + 1) * k;
+                s[row.clone()]
+                    .iter()
+                    .zip(&truth[row])
+                    .map(|(a, b)| (a - b) * (a - b))
+                    .sum::<f64>()
+                    .sqrt()
+            })
+            .fold(0.0, f64::max)
+    };
+    let (cgls, fista) = (refit_err(true), refit_err(false));
+    assert!(
+        cgls < 1e-6,
+        "CGLS refit at the default tolerance: error {cgls:e} (projected FISTA {fista:e})"
     );
 }
 
@@ -2154,6 +2188,7 @@ fn coordinate_descent_on_the_dense_system_solves_the_lasso_fista_solves() {
         free,
         max_iter: 400_000,
         tol: 1e-13,
+        cgls_refit: true,
     };
     let dense = batch::Dense::new(&fista);
     let cd = Shared {
@@ -2259,6 +2294,7 @@ fn a_coordinate_descent_row_is_the_same_alone_in_a_batch_and_on_either_instructi
         free: 1,
         max_iter: 300,
         tol: 1e-4,
+        cgls_refit: true,
     };
     let dense = batch::Dense::new(&sh);
     sh.dense = Some(&dense);
