@@ -1278,6 +1278,45 @@ fn shards_of_a_compacted_solve_assemble_to_the_single_process_t() {
     );
 }
 
+/// The CGLS refit on the operator (a Hadamard subset) keeps the shard contract: parts solved
+/// anywhere assemble to the single call's `T`, bit for bit. A model planned before version 5 is
+/// refitted by the projected FISTA it was planned with.
+#[test]
+fn shards_of_a_refitted_hadamard_subset_assemble_to_the_single_process_t() {
+    let camera = CameraGrid {
+        width: 12,
+        height: 12,
+    };
+    let spec = russian_doll(16, 16, 128);
+    let truth = synthetic_t(camera, 16, 16);
+    let f = frames(&spec, &truth, camera.pixels(), 1e-3);
+    let config = TransportConfig {
+        sample_pixels: 16,
+        ..TransportConfig::default()
+    }
+    .with_memory_budget(400_000);
+    let model = shards_assemble_to_the_single_call(&spec, camera, &f, &config, &groupings);
+    assert!(
+        model.refit && !model.dense && !model.coarse_exact,
+        "{}",
+        model.details["selection"]["chosen"]
+    );
+    assert!(model.block_count() >= 2, "{} blocks", model.block_count());
+    let mut old: serde_json::Value = serde_json::from_str(&model.to_json()).unwrap();
+    old["version"] = json!(4);
+    let old = TransportModel::from_json(&old.to_string()).unwrap();
+    let solve = |m: &TransportModel| {
+        let mut source = SliceFrames::new(&f, camera.pixels());
+        solve_transport_blocks(&spec, m, 0..m.block_count(), &mut source, &Control::new()).unwrap()
+    };
+    let (by_cgls, by_fista) = (solve(&model), solve(&old));
+    assert!(by_cgls.refit_iterations > 0 && by_fista.refit_iterations > 0);
+    assert_ne!(
+        by_cgls, by_fista,
+        "the version-4 model was refitted by CGLS too"
+    );
+}
+
 /// Coordinate descent on the dense `A Psi^T` (random patterns where it fits the budget) keeps
 /// the shard contract: parts solved anywhere assemble to the single call's `T`, bit for bit. A
 /// model planned before version 3 (no `dense`) is solved by FISTA, as it was planned.
