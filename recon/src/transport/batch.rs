@@ -33,8 +33,11 @@ pub(crate) struct Shared<'a> {
     pub max_iter: usize,
     pub tol: f64,
     /// The refit ([`refit_rows`]) without dense columns: CGLS to the least-squares fit on the
-    /// support ([`cgls_chunk`], models of version 5 on), else a projected FISTA stopped by its
-    /// step size (version 4 and older, solved as they were planned).
+    /// support ([`cgls_chunk`]; Hadamard pairs, models of version 5 on), else a projected FISTA
+    /// stopped by its step size (random patterns, and version 4 and older, solved as they were
+    /// planned). Supports of orthonormal Hadamard rows are well conditioned; on random patterns
+    /// CGLS to the same precision took far more iterations (measured on their dense columns:
+    /// Cornell 32x32 x 64x64 from 25 % Bernoulli frames, 12 s -> 79 s).
     pub cgls_refit: bool,
 }
 

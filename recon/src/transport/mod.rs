@@ -461,6 +461,11 @@ impl<'a> Plan<'a> {
             && batch::Dense::bytes(op.rows(), op.cols()) <= DENSE_MAX_BYTES.min(budget / 4)
     }
 
+    /// Whether refits on the operator run CGLS ([`batch::Shared::cgls_refit`]): Hadamard pairs.
+    fn cgls_refit(&self) -> bool {
+        matches!(self.raw, Raw::Hadamard(_))
+    }
+
     /// `L >= ||A||^2` for a fitting operator: 1 for Hadamard split pairs (orthonormal rows),
     /// else the power-iteration estimate with a 2 % margin.
     fn lipschitz(&self, op: &dyn LinearOperator) -> f64 {
@@ -2066,7 +2071,7 @@ fn solve_with(
         free: free_coefficients(transform),
         max_iter: model.max_iter,
         tol: model.tol,
-        cgls_refit: model.version >= 5,
+        cgls_refit: model.version >= 5 && plan.cgls_refit(),
     };
     let dense = model.dense.then(|| batch::Dense::new(&shared));
     shared.dense = dense.as_ref();
@@ -2458,7 +2463,6 @@ fn solve_path(
     // The stages before the last only warm-start the next: solved to a tenth of the precision.
     let loose = Shared {
         tol: sh.tol * WARM_STAGE_TOL_FACTOR,
-        cgls_refit: true,
         ..*sh
     };
     for (stage, &frac) in path.iter().enumerate() {
@@ -2696,7 +2700,7 @@ fn choose_model(
             free: free_coefficients(kind),
             max_iter: config.max_iter,
             tol: config.tol,
-            cgls_refit: true,
+            cgls_refit: plan.cgls_refit(),
         };
         let dense = plan
             .dense_pays(train.op(), mem.budget)
