@@ -122,10 +122,10 @@ pub(crate) fn solve_rows(
 /// threshold shrinks every kept coefficient by `lambda`; at a weight large enough to keep only
 /// the coefficients the data support, the refit removes that bias. Returns each row's iterations.
 ///
-/// Rows solved on the operator (no [`Dense`] columns) are refitted by conjugate gradients on the
-/// normal equations restricted to the support ([`cgls_chunk`], with `cgls_refit`), which reach
-/// the least-squares fit in at most as many iterations as the support has coefficients (in exact
-/// arithmetic). The projected FISTA before it, stopped by its step size, stopped far from it
+/// With `cgls_refit` (Hadamard pairs), rows solved on the operator (no [`Dense`] columns) are
+/// refitted by conjugate gradients on the normal equations restricted to the support
+/// ([`cgls_chunk`]), which reach the least-squares fit in at most as many iterations as the
+/// support has coefficients (in exact arithmetic). The projected FISTA before it, stopped by its step size, stopped far from it
 /// where progress was slow: on the noise-free slide from half a Hadamard set, 16 more refits
 /// from where it had stopped lowered the held-out residual from 7.1e-6 to 6.1e-8 on the same
 /// support.
@@ -161,8 +161,8 @@ pub(crate) fn refit_rows(
 /// iterating share one `apply_batch` and one `adjoint_batch` per iteration, like
 /// [`fista_chunk`]. A row stops when its normal-equation residual `||P Psi A^T r||` is at most
 /// `tol^2` (at least 1e-13) of `||P Psi A^T b||` (its value at `s = 0`), or after `max_iter`
-/// iterations. A row's
-/// result depends only on its own data and warm start (any chunk, block or shard).
+/// iterations. A row's result depends only on its own data and warm start (any chunk, block or
+/// shard).
 fn cgls_chunk(
     sh: &Shared,
     bs: &[f64],

@@ -1609,8 +1609,8 @@ const PRUNE_SHARE: f64 = 1.0 / 3.0;
 /// this many rounds, each at the share of the point as solved ([`PRUNE_SHARE`] of its
 /// held-out residual; [`prune_rows`]); a round that drops nothing still refits, from where the
 /// last refit stopped (the coordinate-descent refit on dense columns stops short of the
-/// least-squares fit; the CGLS refit on the operator reaches it, and such a round then changes
-/// nothing and ends the rounds).
+/// least-squares fit; the CGLS refit of Hadamard pairs reaches it, and such a round then
+/// changes nothing and ends the rounds).
 const PRUNE_ROUNDS: usize = 16;
 
 /// The coefficients of the constant image in `kind` (`Psi 1`): a row's sum (its full-light
