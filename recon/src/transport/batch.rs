@@ -227,25 +227,16 @@ fn cgls_chunk(
     let mut active = rows;
     let mut it = 0;
     loop {
-        // Retire converged rows (highest slot first, so swaps never move a retiring row).
         let done: Vec<usize> = (0..active)
             .filter(|&a| gamma[a] <= eps2 * reference[a] || !gamma[a].is_finite())
             .collect();
-        for &a in done.iter().rev() {
-            let id = ids[a];
-            out[id * k..(id + 1) * k].copy_from_slice(&s[a * k..(a + 1) * k]);
-            let last = active - 1;
-            if a != last {
-                s.copy_within(last * k..(last + 1) * k, a * k);
-                p.copy_within(last * k..(last + 1) * k, a * k);
-                keep.copy_within(last * k..(last + 1) * k, a * k);
-                r.copy_within(last * n..(last + 1) * n, a * n);
-                ids[a] = ids[last];
-                gamma[a] = gamma[last];
-                reference[a] = reference[last];
-            }
-            active -= 1;
-        }
+        retire(&done, &mut active, (&mut ids, &mut s, out), k, |a, last| {
+            p.copy_within(last * k..(last + 1) * k, a * k);
+            keep.copy_within(last * k..(last + 1) * k, a * k);
+            r.copy_within(last * n..(last + 1) * n, a * n);
+            gamma[a] = gamma[last];
+            reference[a] = reference[last];
+        });
         if active == 0 || it >= sh.max_iter {
             break;
         }
@@ -344,6 +335,30 @@ fn soft(v: f64, t: f64) -> f64 {
         v + t
     } else {
         0.0
+    }
+}
+
+/// Retires the rows in slots `done` (ascending) of the `active` still iterating: each one's
+/// iterate (row `a` of `s`) goes out to its original row `ids[a]` of `out`, and the last active
+/// row moves into its slot, highest slot first so that a move never takes a retiring row;
+/// `moved(a, last)` moves the caller's other per-row state the same way.
+fn retire(
+    done: &[usize],
+    active: &mut usize,
+    (ids, s, out): (&mut [usize], &mut [f64], &mut [f64]),
+    k: usize,
+    mut moved: impl FnMut(usize, usize),
+) {
+    for &a in done.iter().rev() {
+        let id = ids[a];
+        out[id * k..(id + 1) * k].copy_from_slice(&s[a * k..(a + 1) * k]);
+        let last = *active - 1;
+        if a != last {
+            s.copy_within(last * k..(last + 1) * k, a * k);
+            ids[a] = ids[last];
+            moved(a, last);
+        }
+        *active -= 1;
     }
 }
 
@@ -447,25 +462,16 @@ fn fista_chunk(
                 done.push(a);
             }
         }
-        // Retire converged rows (highest slot first, so swaps never move a retiring row).
-        for &a in done.iter().rev() {
-            let id = ids[a];
-            out[id * k..(id + 1) * k].copy_from_slice(&s[a * k..(a + 1) * k]);
-            let last = active - 1;
-            if a != last {
-                s.copy_within(last * k..(last + 1) * k, a * k);
-                y.copy_within(last * k..(last + 1) * k, a * k);
-                b.copy_within(last * n..(last + 1) * n, a * n);
-                if refit {
-                    keep.copy_within(last * k..(last + 1) * k, a * k);
-                }
-                ids[a] = ids[last];
-                lam[a] = lam[last];
-                momentum[a] = momentum[last];
-                streak[a] = streak[last];
+        retire(&done, &mut active, (&mut ids, &mut s, out), k, |a, last| {
+            y.copy_within(last * k..(last + 1) * k, a * k);
+            b.copy_within(last * n..(last + 1) * n, a * n);
+            if refit {
+                keep.copy_within(last * k..(last + 1) * k, a * k);
             }
-            active -= 1;
-        }
+            lam[a] = lam[last];
+            momentum[a] = momentum[last];
+            streak[a] = streak[last];
+        });
     }
     for a in 0..active {
         let id = ids[a];
