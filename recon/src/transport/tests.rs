@@ -1073,7 +1073,8 @@ fn the_refit_is_least_squares_on_the_lasso_support() {
         "the lasso is shrunk: relative error {lasso_err:e}"
     );
     // At the default tolerance and iteration cap, the refit on the operator (CGLS) still reaches
-    // the least-squares fit; the projected FISTA of version-4 models stopped short of it.
+    // the least-squares fit (the projected FISTA refit of version-4 models, which the message
+    // shows, is not held to it).
     let mut lasso = vec![0.0; rows * k];
     batch::solve_rows(&sh, &bs, &lams, &mut lasso, 2, &Control::new()).unwrap();
     let defaults = TransportConfig::default();
