@@ -7,7 +7,8 @@
 //! RMS (`0.01`). `TRANSPORT_REPORT=1` prints the report's details. A Hadamard subset also
 //! prints where the full-light relit image's error lies (measured or unmeasured coefficients)
 //! and `q`, the share of the truth's energy the fit misses in the pairs a set twice as large
-//! would add, and in all unmeasured ones (what an error estimate must predict).
+//! would add (`BAND_TO=r`: as large as `r` pairs per projector pixel), and in all unmeasured
+//! ones (what an error estimate must predict).
 
 use std::time::Instant;
 
@@ -216,8 +217,8 @@ fn main() -> anyhow::Result<()> {
     for key in ["relight_error_estimate", "error_estimate"] {
         if let Some(e) = report.details.get(key) {
             println!(
-                "{key}: relative {} range {} upper {} resolved {}",
-                e["relative"], e["range"], e["upper"], e["resolved"]
+                "{key}: relative {} range {} upper {} resolved {} noise {} from {}",
+                e["relative"], e["range"], e["upper"], e["resolved"], e["noise"], e["held_out"]
             );
         }
     }
@@ -281,10 +282,15 @@ fn main() -> anyhow::Result<()> {
         // The next band: the pairs a set of twice as many would add. The share of the truth's
         // energy there the fit misses (q^2), for the full-light relit image and for the rows
         // pooled, and the same for every unmeasured coefficient.
-        if count * 2 <= 2 * k {
+        // BAND_TO=r: the band ends at r pairs per projector pixel instead.
+        let next_count = match std::env::var("BAND_TO") {
+            Ok(r) => 2 * ((k as f64 * r.parse::<f64>()?).round() as u64),
+            Err(_) => count * 2,
+        };
+        if next_count <= 2 * k && next_count > count {
             let next = helmholtz_recon::ops::HadamardOperator::from_spec(
-                &PatternSpec::new(spec.family().clone(), p, p, count * 2, 3)?,
-                count * 2,
+                &PatternSpec::new(spec.family().clone(), p, p, next_count, 3)?,
+                next_count,
             )?;
             let mut band = vec![false; k as usize];
             next.natural_indices()

@@ -596,9 +596,15 @@ fn reported_estimate(report: &Report) -> Option<String> {
         // An estimate with a bound: its value when resolved, else only the bound.
         if let Some(upper) = value.get("upper").and_then(serde_json::Value::as_f64) {
             return Some(
-                match value.get("relative").and_then(serde_json::Value::as_f64) {
-                    Some(v) => format!("{key}.relative = {v:.4} (upper {upper:.4})"),
-                    None => format!("{key}: unresolved, upper {upper:.4}"),
+                match (
+                    value.get("relative").and_then(serde_json::Value::as_f64),
+                    value.get("resolved").and_then(serde_json::Value::as_bool),
+                ) {
+                    (Some(v), Some(false)) => {
+                        format!("{key}.relative = {v:.4} (noise alone; upper {upper:.4})")
+                    }
+                    (Some(v), _) => format!("{key}.relative = {v:.4} (upper {upper:.4})"),
+                    (None, _) => format!("{key}: unresolved, upper {upper:.4}"),
                 },
             );
         }

@@ -74,7 +74,12 @@ pub fn report_lines(report: &Report) -> Vec<String> {
         if let Some(e) = details.get("relight_error_estimate") {
             let rel = e.get("relative").and_then(Value::as_f64);
             let upper = e.get("upper").and_then(Value::as_f64);
+            let unresolved = e.get("resolved").and_then(Value::as_bool) == Some(false);
             match (rel, upper) {
+                // Not resolved by the held-out frames: the estimate is the frames' noise alone.
+                (Some(rel), Some(upper)) if unresolved => lines.push(format!(
+                    "estimated error of the full-light relight {rel:.4}, what the frames' noise alone makes (at most {upper:.4}: the held-out frames do not resolve more)"
+                )),
                 (Some(rel), Some(upper)) => lines.push(format!(
                     "estimated error of the full-light relight {rel:.4} (at most {upper:.4})"
                 )),
@@ -289,6 +294,15 @@ mod tests {
         let text = relight(json!({"relative": 0.031, "upper": 0.05, "resolved": true}));
         assert!(
             text.contains("estimated error of the full-light relight 0.0310 (at most 0.0500)"),
+            "{text}"
+        );
+        let text = relight(
+            json!({"relative": 0.0027, "upper": 0.043, "resolved": false, "noise": 0.0027}),
+        );
+        assert!(
+            text.contains(
+                "estimated error of the full-light relight 0.0027, what the frames' noise alone makes (at most 0.0430: the held-out frames do not resolve more)"
+            ),
             "{text}"
         );
     }

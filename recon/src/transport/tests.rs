@@ -1628,12 +1628,32 @@ fn a_bernoulli_session_estimates_its_relight_error_from_the_held_out_frames() {
     let spec = PatternSpec::new(Family::Bernoulli { fill: 0.5 }, 16, 16, 64, 3).unwrap();
     let cornell = helmholtz_sim::RenderedTransport::cornell((16, 16), (24, 24), 1);
     let glossy = helmholtz_sim::RenderedTransport::glossy((16, 16), (24, 24), 1);
-    for (name, scene, noise, resolved) in [
-        ("cornell", &cornell, 0.0, true),
-        ("cornell", &cornell, 0.01, true),
-        // The glints' error is below what 16 held-out frames can resolve under noise: only
-        // the bound says something.
-        ("glossy", &glossy, 0.01, false),
+    // (scene, noise, how the estimate is resolved, whether it is within 2x of the truth).
+    for (name, scene, noise, source, within) in [
+        (
+            "cornell",
+            &cornell,
+            0.0,
+            "the choice's held-out frames",
+            true,
+        ),
+        (
+            "cornell",
+            &cornell,
+            0.01,
+            "the choice's held-out frames",
+            true,
+        ),
+        // The glints' error under noise is below what the choice's 16 held-out frames resolve;
+        // cross-validation over all 64 does, with fits on 56 frames, where sparse recovery
+        // of this 16x16 scene is failing: the estimate leans high (3.8x, measured).
+        (
+            "glossy",
+            &glossy,
+            0.01,
+            "cross-validation over every frame in 8 folds",
+            false,
+        ),
     ] {
         let truth: Vec<f32> = scene.matrix().iter().map(|&v| v as f32).collect();
         let clean = frames(&spec, &truth, m, 0.0);
@@ -1647,17 +1667,27 @@ fn a_bernoulli_session_estimates_its_relight_error_from_the_held_out_frames() {
         println!("{name} noise {noise}: relit full {full:.4}, held-out {held:.4}, estimate {est}");
         let upper = est["upper"].as_f64().unwrap();
         assert!(upper >= full, "{name}: bound {upper} under the true {full}");
-        assert_eq!(est["resolved"], json!(resolved), "{name} {noise}");
-        match est["relative"].as_f64() {
-            Some(r) => {
-                assert!(resolved);
-                assert!(
-                    r > full / 2.0 && r < full * 2.0,
-                    "{name}: {r} against the true {full}"
-                );
-            }
-            None => assert!(!resolved),
-        }
+        assert_eq!(est["resolved"], json!(true), "{name} {noise}");
+        assert_eq!(est["held_out"], json!(source), "{name} {noise}");
+        let r = est["relative"]
+            .as_f64()
+            .unwrap_or_else(|| panic!("{name} {noise}: no estimate in {est}"));
+        // Within 2x where the target holds; where cross-validation leans high, no
+        // more than 5x (the known lean, not a claim of calibration).
+        let factor = if within { 2.0 } else { 5.0 };
+        assert!(
+            r > full / 2.0 && r < full * factor,
+            "{name} {noise}: {r} against the true {full}"
+        );
+        // The fit's own noise is estimated where the choice's held-out frames do not resolve
+        // the error of noisy frames, and the estimate is at least that.
+        let fit_noise = est["noise"].as_f64();
+        assert_eq!(
+            fit_noise.is_some(),
+            source.starts_with("cross"),
+            "{name} {noise}: {est}"
+        );
+        assert!(fit_noise.is_none_or(|n| n <= r), "{name} {noise}: {est}");
         if name == "cornell" {
             assert!(held < full / 2.0, "held-out {held} against the true {full}");
             // T is not supported at this resolution, and the report says so.
