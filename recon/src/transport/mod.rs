@@ -1012,20 +1012,42 @@ const RELIGHT_FOLDS: usize = 8;
 /// already under 1 %.
 const RELIGHT_CROSS_VALIDATE_ABOVE: f64 = 0.01;
 
+/// A random-pattern session's sample rows and the chosen model, for the relight error's
+/// cross-validation and bootstrap ([`random_cv_relight_error`], [`random_bootstrap_noise`]):
+/// each sample row's raw data on every frame, the rows' camera pixels and chances of being
+/// drawn ([`energy_sample`]), the patterns' fill and the frames' noise.
+#[derive(Clone, Copy)]
+struct RelightSample<'a, 'p> {
+    plan: &'a Plan<'p>,
+    model: &'a ModelChoice,
+    raws: &'a [Vec<f64>],
+    picked: &'a [usize],
+    chance: &'a [f64],
+    fill: f64,
+    sigma: f64,
+    config: &'a TransportConfig,
+    chunk: usize,
+    control: &'a Control,
+}
+
 /// The sample rows fitted with a chosen model on a random-pattern fitting operator `op` (data
 /// `bs`, rows x `op.rows()`, of `frames` raw frames): down the continuation path from zero,
 /// refitted and compacted as chosen, with the model's noise floor ([`random_noise_floor`] on
 /// these frames). Returns the images (rows x k).
-#[allow(clippy::too_many_arguments)]
 fn fit_sample(
-    plan: &Plan,
-    model: &ModelChoice,
+    sample: &RelightSample,
     (op, bs, frames): (&dyn LinearOperator, &[f64], usize),
-    (fill, sigma): (f64, f64),
-    config: &TransportConfig,
-    chunk: usize,
-    control: &Control,
 ) -> Result<Vec<f64>, ReconError> {
+    let RelightSample {
+        plan,
+        model,
+        fill,
+        sigma,
+        config,
+        chunk,
+        control,
+        ..
+    } = *sample;
     let (pw, ph) = plan.size();
     let k = plan.k();
     let rows = bs.len() / op.rows().max(1);
@@ -1089,17 +1111,17 @@ fn fit_sample(
 /// of the frames, so the estimate leans high. With noisy frames it carries the fit's own noise
 /// ([`random_bootstrap_noise`]). `None` for anything but Bernoulli frames, or fewer than two
 /// frames a fold.
-#[allow(clippy::too_many_arguments)]
-fn random_cv_relight_error(
-    plan: &Plan,
-    model: &ModelChoice,
-    raws: &[Vec<f64>],
-    (picked, chance): (&[usize], &[f64]),
-    (fill, sigma): (f64, f64),
-    config: &TransportConfig,
-    chunk: usize,
-    control: &Control,
-) -> Result<Option<RelightEstimate>, ReconError> {
+fn random_cv_relight_error(sample: &RelightSample) -> Result<Option<RelightEstimate>, ReconError> {
+    let RelightSample {
+        plan,
+        raws,
+        picked,
+        chance,
+        fill,
+        sigma,
+        control,
+        ..
+    } = *sample;
     let Raw::Bernoulli(_) = &plan.raw else {
         return Ok(None);
     };
@@ -1126,15 +1148,7 @@ fn random_cv_relight_error(
             let train_raw: Vec<f64> = split.train.iter().map(|&i| raw[i]).collect();
             bs.extend(train.data(&train_raw));
         }
-        let t = fit_sample(
-            plan,
-            model,
-            (train.op(), &bs, split.train.len()),
-            (fill, sigma),
-            config,
-            chunk,
-            control,
-        )?;
+        let t = fit_sample(sample, (train.op(), &bs, split.train.len()))?;
         let h = test.rows();
         let mut pred = vec![0.0; rows * h];
         test.apply_batch(&t, &mut pred, rows);
@@ -1162,16 +1176,7 @@ fn random_cv_relight_error(
     if sigma <= 0.0 {
         return Ok(Some(estimate));
     }
-    let noise2 = random_bootstrap_noise(
-        plan,
-        model,
-        raws,
-        (picked, chance),
-        (fill, sigma),
-        config,
-        chunk,
-        control,
-    )?;
+    let noise2 = random_bootstrap_noise(sample)?;
     Ok(Some(match noise2 {
         Some(noise2) => estimate.with_noise(noise2),
         None => estimate,
@@ -1190,17 +1195,15 @@ fn random_cv_relight_error(
 /// glossy 0.0025 against 0.0049; the least-squares variance on the fixed support,
 /// `sigma^2 tr((M_S^T M_S)^-1)`, gave 0.0007 and 0.0015). It does not see the light the fit
 /// `t` has already lost to the noise, so it leans low. `None` without Bernoulli frames.
-#[allow(clippy::too_many_arguments)]
-fn random_bootstrap_noise(
-    plan: &Plan,
-    model: &ModelChoice,
-    raws: &[Vec<f64>],
-    (picked, chance): (&[usize], &[f64]),
-    (fill, sigma): (f64, f64),
-    config: &TransportConfig,
-    chunk: usize,
-    control: &Control,
-) -> Result<Option<f64>, ReconError> {
+fn random_bootstrap_noise(sample: &RelightSample) -> Result<Option<f64>, ReconError> {
+    let RelightSample {
+        plan,
+        raws,
+        picked,
+        chance,
+        sigma,
+        ..
+    } = *sample;
     let Raw::Bernoulli(op) = &plan.raw else {
         return Ok(None);
     };
@@ -1212,15 +1215,7 @@ fn random_bootstrap_noise(
         raws.flat_map(|raw| plan.fit_data(&raw)).collect()
     };
     let bs = data(&mut raws.iter().cloned());
-    let t = fit_sample(
-        plan,
-        model,
-        (fitting, &bs, frames),
-        (fill, sigma),
-        config,
-        chunk,
-        control,
-    )?;
+    let t = fit_sample(sample, (fitting, &bs, frames))?;
     let mut simulated = vec![0.0; rows * n];
     op.inner().apply_batch(&t, &mut simulated, rows);
     for (c, row) in simulated.chunks_exact_mut(n).enumerate() {
@@ -1233,15 +1228,7 @@ fn random_bootstrap_noise(
         }
     }
     let bs_sim = data(&mut simulated.chunks_exact(n).map(<[f64]>::to_vec));
-    let t_sim = fit_sample(
-        plan,
-        model,
-        (fitting, &bs_sim, frames),
-        (fill, sigma),
-        config,
-        chunk,
-        control,
-    )?;
+    let t_sim = fit_sample(sample, (fitting, &bs_sim, frames))?;
     // Each row is fitted on its own noise: the rows' differences are independent, and the
     // relight's squared norm is their squared norms summed (weighted by `1 / pi`), which the
     // cross terms of one draw would only scatter (to below 0, measured).
@@ -3376,16 +3363,18 @@ fn choose_model(
             chosen.relight
         }
         Some(fill) => {
-            let cv = random_cv_relight_error(
+            let cv = random_cv_relight_error(&RelightSample {
                 plan,
-                &choice,
-                &raws,
-                (&picked, &chance),
-                (fill, relight_sigma),
+                model: &choice,
+                raws: &raws,
+                picked: &picked,
+                chance: &chance,
+                fill,
+                sigma: relight_sigma,
                 config,
                 chunk,
                 control,
-            )?;
+            })?;
             match chosen.relight {
                 Some(est) => Some(est.or_cross_validated(cv)),
                 None => cv,
