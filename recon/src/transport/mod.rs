@@ -1069,9 +1069,7 @@ fn fit_sample(
         .then(|| batch::Dense::new(&sh));
     sh.dense = dense.as_ref();
     let floors = if model.floored {
-        let floor =
-            sigma * (frames as f64 * fill * (1.0 - fill)).sqrt() * (2.0 * (k as f64).ln()).sqrt();
-        vec![floor; rows]
+        vec![random_floor(sigma, frames, fill, k); rows]
     } else {
         Vec::new()
     };
@@ -2714,9 +2712,14 @@ fn pair_sigma(sums: &[f64], raw: &[f64], k: usize) -> f64 {
 /// 0 to 11.7 where the frame noise was 0.4).
 fn random_noise_floor(op: &CentredOperator<BernoulliOperator>, sigma: f64) -> f64 {
     let inner = op.inner();
-    let (n, k) = (inner.rows() as f64, inner.cols() as f64);
-    let p = inner.row_sums().iter().sum::<f64>() / (n * k).max(1.0);
-    sigma * (n * p * (1.0 - p)).sqrt() * (2.0 * k.ln()).sqrt()
+    let (n, k) = (inner.rows(), inner.cols());
+    let p = inner.row_sums().iter().sum::<f64>() / (n as f64 * k as f64).max(1.0);
+    random_floor(sigma, n, p, k)
+}
+
+/// [`random_noise_floor`] for `n` frames of fill `p` over `k` pixels.
+fn random_floor(sigma: f64, n: usize, p: f64, k: usize) -> f64 {
+    sigma * (n as f64 * p * (1.0 - p)).sqrt() * (2.0 * (k as f64).ln()).sqrt()
 }
 
 /// The median of the sample rows' frame-noise estimates (random patterns), if any row has one.
