@@ -891,7 +891,10 @@ fn subset_light_error(
 /// [`random_noise_sigma`]) are taken off:
 /// `f (1 - f) ||e||^2 = Var(g) - sum_c (1 - pi_c) Var(R_c) - sum_c pi_c sum_(j in c) w_j^2 sigma^2`.
 /// The norm `||T^T 1||` comes from the fitted sample rows the same way. The standard error is
-/// the jackknife's over the held-out frames; `upper` is two of them above the estimate, and
+/// the jackknife's over the held-out frames; `upper` is two of them above the estimate (taken
+/// at 0 where it is negative: the fit chosen for its held-out score is the one these frames
+/// favour most, so its estimate leans low, and on glossy spheres with 3 % frame noise it came
+/// out below 0 by more than two standard errors, a bound of 0 against a true 0.0148), and
 /// the estimate is `resolved` when it is more than two above 0 (otherwise it is the noise of
 /// the few held-out frames, which the noise of the frames and the weights of dim pixels
 /// amplify, and only `upper` says something). It is the error of the fit without the held-out
@@ -995,7 +998,7 @@ fn relight_from_residuals(
     let relative = |x: f64| (x.max(0.0) / v / norm2).sqrt();
     Some(RelightEstimate {
         relative: relative(all),
-        upper: relative(all + 2.0 * se),
+        upper: relative(all.max(0.0) + 2.0 * se),
         resolved: all > 2.0 * se,
         norm2,
         noise: None,
@@ -1283,7 +1286,7 @@ impl Moments {
 struct RelightEstimate {
     /// The relative error of a full-light relight.
     relative: f64,
-    /// Two standard errors above it.
+    /// Two standard errors above it (above 0 where it is below 0).
     upper: f64,
     /// The error stands out of the estimate's own scatter (`relative` above two standard
     /// errors): otherwise `relative` is noise and only `upper` says something.
@@ -3389,7 +3392,7 @@ fn choose_model(
         let mut reported = est.to_json();
         reported["light"] = json!("full (every camera pixel at 1)");
         reported["basis"] = json!(
-            "the chosen model fitted without the held-out frames, on the sample pixels in runs of neighbours, each run weighted by 1 / its chance of being drawn: the variance over the held-out frames of the residuals summed over the camera, less the sample's own scatter and the frames' noise, over the patterns' variance f (1 - f); upper: two jackknife standard errors (over the held-out frames) above it; resolved: the estimate is more than two standard errors above 0; the fit without the held-out frames is on average worse than the served one, so both lean high; held_out: where the choice's held-out frames did not resolve the error, cross-validation over every frame (each fold fitted on the others: fits on 7/8 of the frames, so it leans higher still where the frames are near the fewest a sparse fit needs); noise (noisy frames, where the held-out frames did not resolve it): the error the frames' noise alone makes, by a parametric bootstrap (the sample rows fitted on every frame, frames simulated from that fit with the estimated noise, fitted again: the relight of the difference; it does not see light the fit already lost, so it leans low); relative: the held-out estimate where resolved, at least the noise; where unresolved, the noise (null without it), which upper bounds with the rest"
+            "the chosen model fitted without the held-out frames, on the sample pixels in runs of neighbours, each run weighted by 1 / its chance of being drawn: the variance over the held-out frames of the residuals summed over the camera, less the sample's own scatter and the frames' noise, over the patterns' variance f (1 - f); upper: two jackknife standard errors (over the held-out frames) above it (above 0 where it is negative); resolved: the estimate is more than two standard errors above 0; the fit without the held-out frames is on average worse than the served one, so both lean high; held_out: where the choice's held-out frames did not resolve the error, cross-validation over every frame (each fold fitted on the others: fits on 7/8 of the frames, so it leans higher still where the frames are near the fewest a sparse fit needs); noise (noisy frames, where the held-out frames did not resolve it): the error the frames' noise alone makes, by a parametric bootstrap (the sample rows fitted on every frame, frames simulated from that fit with the estimated noise, fitted again: the relight of the difference; it does not see light the fit already lost, so it leans low); relative: the held-out estimate where resolved, at least the noise; where unresolved, the noise (null without it), which upper bounds with the rest"
         );
         details.insert("relight_error_estimate".into(), reported);
         if let Some(relative) = est.reported().filter(|&r| r > SUBSET_ERROR_WARNING) {

@@ -1697,6 +1697,41 @@ fn a_bernoulli_session_estimates_its_relight_error_from_the_held_out_frames() {
     }
 }
 
+#[test]
+fn a_held_out_relight_bound_does_not_read_zero_where_the_estimate_falls_below_it() {
+    // Eight sample pixels (runs of one, each drawn with chance 1/2) and 24 held-out frames
+    // whose residuals vary by far less than the noise the caller expects (sigma 3 against a
+    // spread of 1): the variance left after the noise is taken off is far below 0, more than
+    // two standard errors (the jackknife's, over the frames). What the frames say is that the
+    // error is small, not that it is 0: the bound is two standard errors above 0. (The chosen
+    // fit's estimate leans low like this; on glossy spheres at 3 % frame noise the bound read
+    // 0 against a true relight error of 0.0148.)
+    let (rows, h, k) = (8usize, 24usize, 4usize);
+    let picked: Vec<usize> = (0..rows).map(|r| 2 * r).collect();
+    let chance = vec![0.5 / rows as f64; rows];
+    let mut rng = crate::testutil::Rng::new(11);
+    let residuals: Vec<Vec<f64>> = (0..rows)
+        .map(|_| (0..h).map(|_| rng.normal()).collect())
+        .collect();
+    let t = vec![1.0; rows * k];
+    let est = relight_from_residuals(&residuals, &t, k, (&picked, &chance), 0.5, 3.0).unwrap();
+    assert!(!est.resolved);
+    assert_eq!(est.relative, 0.0);
+    assert!(
+        est.upper > 0.0 && est.upper.is_finite(),
+        "the bound reads {}",
+        est.upper
+    );
+    // The same residuals with the noise they have: the bound is at least as high.
+    let fair = relight_from_residuals(&residuals, &t, k, (&picked, &chance), 0.5, 1.0).unwrap();
+    assert!(
+        fair.upper >= est.upper,
+        "{} against {}",
+        fair.upper,
+        est.upper
+    );
+}
+
 /// Camera light `light` (0 every pixel, 1 the left half, 2 a checkerboard) at pixel `j` of a
 /// camera `width` pixels wide.
 fn judged_light(light: usize, j: usize, width: usize) -> f64 {
