@@ -1310,8 +1310,13 @@ impl RelightEstimate {
     }
 
     /// An unresolved held-out estimate (`self`, the choice's) against the cross-validated one:
-    /// the latter where it is resolved, else the former (its bound: the noise the
-    /// cross-validation subtracts can push its bound to 0) with the cross-validation's noise.
+    /// the latter where it is resolved, else the former with the cross-validation's noise and
+    /// the lower of the two bounds. Each bound is two standard errors above its estimate (taken
+    /// at 0 where negative), so neither reads 0 while its frames scatter, and the lower holds
+    /// with at least 95 % where each holds with 97.7 %. The cross-validation's, on every frame,
+    /// is the tighter one where the noise swamps both estimates (32x32 x 48x48 rendered scenes
+    /// from 25 % of the frames at 1 % and 3 % frame noise: 0.043-0.22 against the choice's
+    /// 0.053-0.42, every one above the true relight error, measured).
     fn or_cross_validated(self, cv: Option<RelightEstimate>) -> RelightEstimate {
         let Some(cv) = cv else {
             return self;
@@ -1321,6 +1326,7 @@ impl RelightEstimate {
         } else {
             RelightEstimate {
                 noise: cv.noise,
+                upper: self.upper.min(cv.upper),
                 ..self
             }
         }
@@ -3392,7 +3398,7 @@ fn choose_model(
         let mut reported = est.to_json();
         reported["light"] = json!("full (every camera pixel at 1)");
         reported["basis"] = json!(
-            "the chosen model fitted without the held-out frames, on the sample pixels in runs of neighbours, each run weighted by 1 / its chance of being drawn: the variance over the held-out frames of the residuals summed over the camera, less the sample's own scatter and the frames' noise, over the patterns' variance f (1 - f); upper: two jackknife standard errors (over the held-out frames) above it (above 0 where it is negative); resolved: the estimate is more than two standard errors above 0; the fit without the held-out frames is on average worse than the served one, so both lean high; held_out: where the choice's held-out frames did not resolve the error, cross-validation over every frame (each fold fitted on the others: fits on 7/8 of the frames, so it leans higher still where the frames are near the fewest a sparse fit needs); noise (noisy frames, where the held-out frames did not resolve it): the error the frames' noise alone makes, by a parametric bootstrap (the sample rows fitted on every frame, frames simulated from that fit with the estimated noise, fitted again: the relight of the difference; it does not see light the fit already lost, so it leans low); relative: the held-out estimate where resolved, at least the noise; where unresolved, the noise (null without it), which upper bounds with the rest"
+            "the chosen model fitted without the held-out frames, on the sample pixels in runs of neighbours, each run weighted by 1 / its chance of being drawn: the variance over the held-out frames of the residuals summed over the camera, less the sample's own scatter and the frames' noise, over the patterns' variance f (1 - f); upper: two jackknife standard errors (over the held-out frames) above it (above 0 where it is negative), or the cross-validation's bound where that is lower; resolved: the estimate is more than two standard errors above 0; the fit without the held-out frames is on average worse than the served one, so both lean high; held_out: where the choice's held-out frames did not resolve the error, cross-validation over every frame (each fold fitted on the others: fits on 7/8 of the frames, so it leans higher still where the frames are near the fewest a sparse fit needs); noise (noisy frames, where the held-out frames did not resolve it): the error the frames' noise alone makes, by a parametric bootstrap (the sample rows fitted on every frame, frames simulated from that fit with the estimated noise, fitted again: the relight of the difference; it does not see light the fit already lost, so it leans low); relative: the held-out estimate where resolved, at least the noise; where unresolved, the noise (null without it), which upper bounds with the rest"
         );
         details.insert("relight_error_estimate".into(), reported);
         if let Some(relative) = est.reported().filter(|&r| r > SUBSET_ERROR_WARNING) {

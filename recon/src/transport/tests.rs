@@ -1730,6 +1730,24 @@ fn a_held_out_relight_bound_does_not_read_zero_where_the_estimate_falls_below_it
         fair.upper,
         est.upper
     );
+    // Against an unresolved cross-validation, the choice's estimate stays, with the lower of
+    // the two bounds and the cross-validation's noise; a resolved one replaces it.
+    let cv = RelightEstimate {
+        noise: Some(0.01),
+        folds: RELIGHT_FOLDS,
+        ..est
+    };
+    let both = fair.or_cross_validated(Some(cv));
+    assert_eq!(both.upper, est.upper.min(fair.upper));
+    assert_eq!(
+        (both.relative, both.folds, both.noise),
+        (fair.relative, 0, Some(0.01))
+    );
+    let resolved = RelightEstimate {
+        resolved: true,
+        ..cv
+    };
+    assert_eq!(fair.or_cross_validated(Some(resolved)).folds, RELIGHT_FOLDS);
 }
 
 /// Camera light `light` (0 every pixel, 1 the left half, 2 a checkerboard) at pixel `j` of a
