@@ -90,6 +90,14 @@ fn main() {
             r.report.iterations,
             r.report.held_out.as_ref().map(|h| h.relative_residual)
         );
+        // The image's bits, hashed (FNV-1a): "the same image" means bit for bit.
+        let hash = img.iter().fold(0xcbf2_9ce4_8422_2325_u64, |h, v| {
+            v.to_bits()
+                .to_le_bytes()
+                .iter()
+                .fold(h, |h, &b| (h ^ b as u64).wrapping_mul(0x0100_0000_01b3))
+        });
+        println!("image bits fnv1a {hash:016x}");
         if std::env::var_os("ONE_REPORT").is_some() {
             let mut v = serde_json::to_value(&r.report.details).unwrap_or_default();
             strip(&mut v);

@@ -1179,9 +1179,11 @@ pub fn run(
     } else {
         &binned_train_fit
     };
-    // One Bregman step on the fitting rows ([`bregman`]); the held-out rows say how much of it
-    // to take.
-    let debias_started = Instant::now();
+    // One Bregman step on the fitting rows ([`bregman`]; the held-out rows say how much of it
+    // to take), and the refit on all rows (from the held-out fit at the same weight). Both start
+    // from the held-out fit and neither needs the other, so they run at the same time: the
+    // solves at these sizes keep about one core busy (the same arithmetic either way, so the
+    // same images).
     // Solved as far as the refit on all rows will be (the held-out rows judge that image).
     let step_opts = SolveOptions {
         max_iter,
@@ -1189,17 +1191,38 @@ pub fn run(
         progress: (hi, hi),
         ..SolveOptions::default()
     };
-    let refit_train = bregman(
-        model,
-        grid,
-        train_op,
-        &b_train_fit,
-        &warm,
-        lambda_train,
-        Noise::Gaussian,
-        &step_opts,
-        control,
-    )?;
+    let refit_opts = SolveOptions {
+        max_iter,
+        lambda: Lambda::Relative(fraction),
+        warm_start: Some(warm.clone()),
+        warm_dual,
+        progress: (lo + (hi - lo) * 2.0 / stages, hi),
+        ..SolveOptions::default()
+    };
+    let (refit_train, debias_seconds, solution) = std::thread::scope(|scope| {
+        let step = scope.spawn(|| {
+            let started = Instant::now();
+            let r = bregman(
+                model,
+                grid,
+                train_op,
+                &b_train_fit,
+                &warm,
+                lambda_train,
+                Noise::Gaussian,
+                &step_opts,
+                control,
+            );
+            (r, started.elapsed().as_secs_f64())
+        });
+        let solution = fit_model(model, grid, full, &b_fit, fit.noise, &refit_opts, control);
+        let (refit_train, seconds) = step
+            .join()
+            .unwrap_or_else(|panic| std::panic::resume_unwind(panic));
+        (refit_train, seconds, solution)
+    });
+    let (refit_train, mut solution) = (refit_train?, solution?);
+    let mut debias_seconds = debias_seconds;
     let debias = Debias::choose(
         &job.b_test,
         refit_train.as_ref(),
@@ -1207,7 +1230,6 @@ pub fn run(
         &predict_held_out,
         sigma,
     );
-    let mut debias_seconds = debias_started.elapsed().as_secs_f64();
     let debiased = debias.blend(&warm, refit_train.as_ref().map(|r| r.t.as_slice()));
     let q1 = if debias.share > 0.0 {
         predict_held_out(&debiased)
@@ -1218,17 +1240,6 @@ pub fn run(
     let p0 = super::fit::predict(train_op, &flat);
     let gain = contrast(&job.b_test, &q0, &q1, (&b_train_fit, &p0, &p1), sigma);
     let held_out_prediction = along(&q0, &q1, gain.applied);
-
-    // Refit on all rows (from the held-out fit at the same weight: a few dozen iterations).
-    let refit_opts = SolveOptions {
-        max_iter,
-        lambda: Lambda::Relative(fraction),
-        warm_start: Some(warm),
-        warm_dual,
-        progress: (lo + (hi - lo) * 2.0 / stages, hi),
-        ..SolveOptions::default()
-    };
-    let mut solution = fit_model(model, grid, full, &b_fit, fit.noise, &refit_opts, control)?;
     let mut debias = debias;
     if debias.share > 0.0 {
         let started = Instant::now();
