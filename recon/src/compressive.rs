@@ -93,14 +93,8 @@ impl<'a> Planned<'a> {
                 // The pair sums light supports of every size: no one noise level for the held-out
                 // comparisons; per support, they give every row's ([`auto::RowNoise`]).
                 let w = spec.width();
-                let support: Vec<u64> = indices
-                    .iter()
-                    .map(|&n| {
-                        let f = helmholtz_proto::HaarFunction::new(w, n);
-                        ((f.scale as u64) << 48) | ((f.y0 as u64) << 24) | f.x0 as u64
-                    })
-                    .collect();
-                let gains: Vec<f64> = support.iter().map(|s| (1u64 << (s >> 48)) as f64).collect();
+                let (support, gains): (Vec<u64>, Vec<f64>) =
+                    indices.iter().map(|&n| noise::haar_support(w, n)).unzip();
                 let basis = crate::adaptive::Basis::Haar;
                 let levels: Vec<u32> = indices.iter().map(|&n| basis.level(w, n)).collect();
                 for (ch, slot) in row_noise.iter_mut().enumerate() {

@@ -259,6 +259,9 @@ fn hadamard(
     let mut stats = vec![PairStats::default(); m];
     // The pair sums in arrival order, per channel: the noise estimate ([`noise::from_pair_sums`]).
     let mut sums: Vec<Vec<f64>> = vec![Vec::new(); m];
+    // Pairs measured other than the mean's (natural 0): the coefficients whose noise the
+    // image's variation about its mean carries.
+    let mut detail_pairs = 0usize;
     let frames = 2 * pairs.min(k) as u64;
     while let Some(b) = stream.next_block()? {
         for (i, row) in b.values.chunks_exact(m).enumerate() {
@@ -274,6 +277,7 @@ fn hadamard(
             }
             debug_assert!(have_positive, "frames arrive in order, P+ first");
             let n = sf.natural as usize;
+            detail_pairs += usize::from(n != 0);
             for ch in 0..m {
                 let (yp, ym) = (positive[ch], row[ch]);
                 d[ch * k + n] = yp - ym;
@@ -292,6 +296,20 @@ fn hadamard(
         .map(|ch| {
             let data: Vec<f64> = d[ch * k..(ch + 1) * k].iter().map(|v| v * root).collect();
             noise::from_pair_sums(&sums[ch], root, &data)
+        })
+        .collect();
+    // Each measured coefficient (in the data's units, `(y+ - y-) / sqrt(k)`) carries the
+    // noise `sigma` of one datum; the inverse is orthonormal, so the image's variation about its
+    // mean is their energy (the unmeasured ones are 0).
+    let shares: Vec<Option<f64>> = noise
+        .iter()
+        .enumerate()
+        .map(|(ch, e)| {
+            let energy: f64 = d[ch * k + 1..(ch + 1) * k]
+                .iter()
+                .map(|v| (v * root).powi(2))
+                .sum();
+            e.and_then(|e| noise::noise_share(detail_pairs as f64 * e.sigma * e.sigma, energy))
         })
         .collect();
     let scale = 1.0 / k as f64;
@@ -331,7 +349,54 @@ fn hadamard(
     // Per channel, in the units of (y+ - y-) / sqrt(k); for the exact inverse this is also
     // each pixel's noise (the transform is orthonormal).
     details.insert("noise_estimate".into(), json!(noise));
+    noisy_image_warning(&mut details, &shares);
     Ok((images, details))
+}
+
+/// At or above this share of the image's variation about its mean in noise
+/// ([`noise::noise_share`]), a linear inverse is mostly noise and the report says so.
+pub const NOISY_IMAGE_SHARE: f64 = 0.5;
+
+/// Records each channel's [`noise::noise_share`] as `details.noise_share` and, where one reaches
+/// [`NOISY_IMAGE_SHARE`], a warning (`details.warnings`, which clients show): a linear inverse
+/// passes every measured coefficient's noise into the image, which the user cannot see from the
+/// image alone.
+fn noisy_image_warning(details: &mut Map<String, Value>, shares: &[Option<f64>]) {
+    details.insert(
+        "noise_share".into(),
+        Value::Array(
+            shares
+                .iter()
+                .map(|v| v.map_or(Value::Null, finite))
+                .collect(),
+        ),
+    );
+    let worst = shares
+        .iter()
+        .enumerate()
+        .filter_map(|(ch, v)| v.map(|v| (ch, v)))
+        .max_by(|a, b| a.1.total_cmp(&b.1));
+    if let Some((ch, share)) = worst.filter(|w| w.1 >= NOISY_IMAGE_SHARE) {
+        let which = if shares.len() > 1 {
+            format!(" (channel {ch})")
+        } else {
+            String::new()
+        };
+        let pct = if share >= 1.0 {
+            "all".to_string()
+        } else {
+            format!("{:.0} %", 100.0 * share)
+        };
+        details.insert(
+            "warnings".into(),
+            json!([format!(
+                "the detector noise the pair sums show is {pct} of this image's variation about its \
+                 mean{which}: an inverse passes every measured coefficient's noise into the image; \
+                 tv and cs (and auto on an incomplete set, which shrinks the coefficients by their \
+                 signal-to-noise ratio) keep less of it"
+            )]),
+        );
+    }
 }
 
 /// The zero-filled Haar inverse of a resolved adaptive_haar session's pairs: coefficient
@@ -353,6 +418,11 @@ fn adaptive_haar(
     let mut coefficients = vec![0.0f64; m * k];
     let mut positive = vec![0.0f64; m];
     let mut dark = vec![f64::NAN; m];
+    // Per pair: its support's key and gain ([`noise::haar_support`]), and per channel its sum
+    // `y+ + y-`, for the noise estimate.
+    let mut support = Vec::with_capacity(pairs);
+    let mut gains = Vec::with_capacity(pairs);
+    let mut sums: Vec<Vec<f64>> = vec![Vec::with_capacity(pairs); m];
     while let Some(b) = stream.next_block()? {
         for (i, row) in b.values.chunks_exact(m).enumerate() {
             let frame = b.first_row + i as u64;
@@ -365,8 +435,11 @@ fn adaptive_haar(
                 continue;
             }
             let n = indices[pair];
-            let gain = helmholtz_proto::HaarFunction::new(w, n).side() as f64;
+            let (key, gain) = noise::haar_support(w, n);
+            support.push(key);
+            gains.push((n != 0).then_some(gain));
             for ch in 0..m {
+                sums[ch].push(positive[ch] + row[ch]);
                 coefficients[ch * k + n as usize] = (positive[ch] - row[ch]) / gain;
                 if n == 0 {
                     dark[ch] = row[ch]; // P- of the scaling function lights nothing
@@ -375,6 +448,25 @@ fn adaptive_haar(
         }
         control.set_progress(0.95 * stream.rows_seen() as f64 / stream.total() as f64);
     }
+    // Each detail coefficient `(y+ - y-) / g` carries the pair's noise over `g`; the pairs of
+    // one support give that noise ([`noise::from_support_groups`]).
+    let support_noise: Vec<Option<noise::SupportNoise>> = sums
+        .iter()
+        .map(|s| noise::from_support_groups(s, &support))
+        .collect();
+    let shares: Vec<Option<f64>> = support_noise
+        .iter()
+        .zip(coefficients.chunks_exact(k))
+        .map(|(e, c)| {
+            let e = (*e)?;
+            let variance: f64 = gains
+                .iter()
+                .flatten()
+                .map(|g| e.pair_variance / (g * g))
+                .sum();
+            noise::noise_share(variance, c[1..].iter().map(|v| v * v).sum())
+        })
+        .collect();
     let wavelet = crate::transforms::wavelet::Wavelet2d::haar(w as usize, w as usize);
     let mut image = vec![0.0f64; k];
     let mut images = Vec::with_capacity(m);
@@ -397,6 +489,10 @@ fn adaptive_haar(
         "dark_level".into(),
         Value::Array(dark.iter().map(|&v| finite(v)).collect()),
     );
+    // Per channel (`null` where no support was shown twice): the variance of one pair's
+    // `y+ + y-`, and so of its `y+ - y-`.
+    details.insert("support_noise".into(), json!(support_noise));
+    noisy_image_warning(&mut details, &shares);
     Ok((images, details))
 }
 

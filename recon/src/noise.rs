@@ -144,6 +144,27 @@ impl SupportNoise {
     }
 }
 
+/// The support key and gain of `adaptive_haar` function `n` on a `width`-wide grid, for
+/// [`from_support_groups`]: pairs of equal keys light the same block (siblings; the scaling
+/// function and the coarsest details), so their sums `y+ + y-` differ by noise alone; the gain
+/// is the support's side `2^s` (the pair's `y+ - y-` over it is the orthonormal coefficient).
+pub fn haar_support(width: u32, n: u32) -> (u64, f64) {
+    let f = helmholtz_proto::HaarFunction::new(width, n);
+    (
+        ((f.scale as u64) << 48) | ((f.y0 as u64) << 24) | f.x0 as u64,
+        (1u64 << f.scale) as f64,
+    )
+}
+
+/// The share of a linear inverse's variation about its mean that is noise: `noise` (the summed
+/// noise variances of the measured coefficients other than the mean) over `energy` (those
+/// coefficients' summed squares, noise included). About 0 noise-free, 1 when the image varies by
+/// its noise alone; it can read above 1 where the noise estimate is high by chance. `None` when
+/// nothing but the mean was measured.
+pub fn noise_share(noise: f64, energy: f64) -> Option<f64> {
+    (energy > 0.0 && noise.is_finite()).then(|| noise / energy)
+}
+
 /// [`SupportNoise`] from the pairs' sums `y+ + y-` and a key per pair that is equal exactly for
 /// pairs of the same support. `None` when no support was shown twice.
 pub fn from_support_groups(sums: &[f64], support: &[u64]) -> Option<SupportNoise> {

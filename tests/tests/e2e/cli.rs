@@ -361,6 +361,35 @@ fn text_output_says_what_the_report_knows() {
         "REST job state warnings: {warnings:?}"
     );
     assert_eq!(grpc.warnings, warnings, "gRPC and REST job states differ");
+
+    // A linear inverse of noisy split pairs says how much of its image is noise: 10 % of the
+    // Russian-doll pairs at 20 dB read noise, reconstructed zero-filled.
+    let text = run(&[
+        "simulate",
+        "--scene",
+        "camera",
+        "--family",
+        "hadamard",
+        "--ordering",
+        "russian-doll",
+        "--width",
+        "64",
+        "--height",
+        "64",
+        "--count",
+        "820",
+        "--snr-db",
+        "20",
+        "--session-id",
+        "cli-noisy",
+        "--reconstruct",
+        "zero_filled",
+        "--wait",
+    ]);
+    assert!(
+        text.contains("warning: the detector noise the pair sums show is "),
+        "no noise warning in:\n{text}"
+    );
 }
 
 /// `completions SHELL` prints a script that names the subcommands, for both binaries; bash
