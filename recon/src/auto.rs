@@ -2473,12 +2473,23 @@ mod tests {
     /// `method` on `c` (default parameters): the image's raw PSNR, or after the gain/offset fit
     /// for the correlators.
     fn psnr_of(spec: &PatternSpec, c: &[f64], method: &str, truth: &[f32]) -> f64 {
+        psnr_with(spec, c, method, json!({}), truth)
+    }
+
+    /// [`psnr_of`] with `params`.
+    fn psnr_with(
+        spec: &PatternSpec,
+        c: &[f64],
+        method: &str,
+        params: serde_json::Value,
+        truth: &[f32],
+    ) -> f64 {
         let problem = Problem {
             spec,
             channels: 1,
             rows: c.len() as u64,
         };
-        let config = MethodConfig::parse(method, &json!({})).unwrap();
+        let config = MethodConfig::parse(method, &params).unwrap();
         let r = reconstruct(
             &problem,
             &config,
@@ -2567,11 +2578,6 @@ mod tests {
         let truth = scene("camera", n);
         let spec = russian_doll(n, 2 * (n * n / 10) as u64);
         let clean = buckets(&spec, &truth);
-        let problem = Problem {
-            spec: &spec,
-            channels: 1,
-            rows: clean.len() as u64,
-        };
         // Two noise draws: the bench's (seed 17), where the stale points cost 0.8 dB, and
         // another, where they happened not to.
         for seed in [17, 11] {
@@ -2586,16 +2592,8 @@ mod tests {
             let sweep: Vec<(f64, f64)> = [0.5, 0.35, 0.25, 0.18, 0.12, 0.08, 0.05]
                 .iter()
                 .map(|&f| {
-                    let config =
-                        MethodConfig::parse("tv", &json!({"lambda": f, "max_iter": 500})).unwrap();
-                    let r = reconstruct(
-                        &problem,
-                        &config,
-                        &mut SliceSource::new(&noisy, 1, 500),
-                        &Control::new(),
-                    )
-                    .unwrap();
-                    (f, metrics::psnr(&r.images[0].data, &truth))
+                    let params = json!({"lambda": f, "max_iter": 500});
+                    (f, psnr_with(&spec, &noisy, "tv", params, &truth))
                 })
                 .collect();
             let best = sweep.iter().map(|p| p.1).fold(f64::NEG_INFINITY, f64::max);
@@ -2686,21 +2684,9 @@ mod tests {
         }
         // Nothing the race skipped was needed: the image is as good as before (18.32 dB) and
         // within 0.5 dB of TV's best weight by the ground truth (18.06 dB at 0.12 in the bench).
-        let problem = Problem {
-            spec: &spec,
-            channels: 1,
-            rows: noisy.len() as u64,
-        };
         let sweep = [0.35, 0.25, 0.18, 0.12, 0.08, 0.05].map(|f| {
-            let config = MethodConfig::parse("tv", &json!({"lambda": f, "max_iter": 500})).unwrap();
-            let r = reconstruct(
-                &problem,
-                &config,
-                &mut SliceSource::new(&noisy, 1, 500),
-                &Control::new(),
-            )
-            .unwrap();
-            metrics::psnr(&r.images[0].data, &truth)
+            let params = json!({"lambda": f, "max_iter": 500});
+            psnr_with(&spec, &noisy, "tv", params, &truth)
         });
         let oracle = sweep.iter().copied().fold(f64::NEG_INFINITY, f64::max);
         println!("auto {pa:.2} dB, tv sweep {sweep:?}");
