@@ -695,7 +695,9 @@ impl<'a> Running<'a> {
     /// that noise, so lighter weights only fit more of it; noise-free (`sigma = 0`) the path
     /// ends by [`MIN_POINTS`] and two stale points alone.
     fn past_minimum(&self) -> bool {
-        let last = self.points.len().wrapping_sub(1);
+        let Some(last) = self.points.len().checked_sub(1) else {
+            return false;
+        };
         self.sigma > 0.0
             && self.stale >= 1
             && self.best.1 > 0
@@ -1199,7 +1201,7 @@ pub fn run(
         progress: (lo + (hi - lo) * 2.0 / stages, hi),
         ..SolveOptions::default()
     };
-    let (refit_train, debias_seconds, solution) = std::thread::scope(|scope| {
+    let (refit_train, mut debias_seconds, solution) = std::thread::scope(|scope| {
         let step = scope.spawn(|| {
             let started = Instant::now();
             let r = bregman(
@@ -1222,7 +1224,6 @@ pub fn run(
         (refit_train, seconds, solution)
     });
     let (refit_train, mut solution) = (refit_train?, solution?);
-    let mut debias_seconds = debias_seconds;
     let debias = Debias::choose(
         &job.b_test,
         refit_train.as_ref(),
