@@ -36,6 +36,15 @@ fn main() {
     let (spec, frames, truth) =
         helmholtz_bench::adaptive::probe_session(&scene, size, ratio, noisy, family)
             .expect("session");
+    {
+        let (planner, _) = recon::adaptive::replay(&spec, 1, &frames).expect("the session replays");
+        println!(
+            "planner: {} pairs, estimated error {:?}, stop {:?}",
+            planner.observed_pairs(),
+            planner.estimated_error(),
+            planner.finished()
+        );
+    }
     let problem = Problem {
         spec: &spec,
         channels: 1,
@@ -54,6 +63,12 @@ fn main() {
         .expect("reconstruct");
         let s = started.elapsed().as_secs_f64();
         let img = &r.images[0].data;
+        let norm = |v: &mut dyn Iterator<Item = f64>| v.map(|x| x * x).sum::<f64>().sqrt();
+        println!(
+            "{method:<8} relative L2 error {:.4}",
+            norm(&mut img.iter().zip(&truth).map(|(a, b)| (a - b) as f64))
+                / norm(&mut truth.iter().map(|&b| b as f64))
+        );
         let mean = |v: &[f32]| v.iter().map(|&x| x as f64).sum::<f64>() / v.len() as f64;
         println!(
             "{method:<8} {:>7.2} dB  {s:>7.3} s  ({} frames; mean {:.4} against {:.4}, max {:.3})",

@@ -44,7 +44,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use anyhow::Context as _;
-use helmholtz_proto::{Family, HaarFunction, HadamardOrdering, PatternSpec};
+use helmholtz_proto::{ErrorEstimate, Family, HaarFunction, HadamardOrdering, PatternSpec};
 use helmholtz_recon::adaptive::{Basis, Planner, StopReason};
 use helmholtz_recon::fwht::fwht;
 use helmholtz_recon::linop::LinearOperator;
@@ -106,7 +106,17 @@ pub struct PlannerFigures {
     /// Display time of one full batch at 20 kHz binary frames.
     pub batch_display_ms: f64,
     pub memory_bytes: usize,
+    /// The planner's `measured` estimate of the zero-filled image's relative error (the spec's
+    /// default `error_estimate`) ...
     pub estimated_error: Option<f64>,
+    /// ... the `prediction` estimate of the same session (replayed with that rule) ...
+    pub prediction_estimate: Option<f64>,
+    /// ... and the true relative L2 error of the zero-filled image against the scene.
+    pub true_error: f64,
+    /// The noise of one pair difference the pair sums show (standard deviation, frame units),
+    /// against the rig's `sqrt(2) sigma`.
+    pub pair_noise: Option<f64>,
+    pub drawn_pair_noise: f64,
     pub stop: Option<String>,
 }
 
@@ -335,7 +345,7 @@ fn run_adaptive(
     sigma: f64,
 ) -> anyhow::Result<Session> {
     let haar = matches!(family, Family::AdaptiveHaar { .. });
-    let spec = PatternSpec::new(family, size, size, frames, 0)?;
+    let spec = PatternSpec::new(family.clone(), size, size, frames, 0)?;
     let exact = Exact::new(truth, size as usize, haar);
     let mut planner = Planner::new(&spec, 1)?;
     let mut queue = std::collections::VecDeque::new();
@@ -358,6 +368,23 @@ fn run_adaptive(
         values.extend_from_slice(&batch_values);
     }
     let stats = planner.decision_stats();
+    let observed = &planner.indices()[..planner.observed_pairs() as usize];
+    let image = zero_filled(planner.coefficients(0), observed, size as usize, haar);
+    let true_error = (image
+        .iter()
+        .zip(truth)
+        .map(|(&a, &b)| (a as f64 - b).powi(2))
+        .sum::<f64>()
+        / truth.iter().map(|b| b * b).sum::<f64>())
+    .sqrt();
+    let prediction = PatternSpec::new(
+        family.with_error_estimate(ErrorEstimate::Prediction),
+        size,
+        size,
+        frames,
+        0,
+    )?;
+    let (replayed, _) = helmholtz_recon::adaptive::replay(&prediction, 1, &values)?;
     let figures = PlannerFigures {
         batch_pairs: planner.batch_pairs(),
         batches: stats.batches,
@@ -366,6 +393,10 @@ fn run_adaptive(
         batch_display_ms: 2.0 * planner.batch_pairs() as f64 * 0.05,
         memory_bytes: planner.memory_bytes(),
         estimated_error: planner.estimated_error(),
+        prediction_estimate: replayed.estimated_error(),
+        true_error,
+        pair_noise: planner.pair_noise(0).map(|(s, _)| s),
+        drawn_pair_noise: 2f64.sqrt() * sigma,
         stop: planner.finished().map(|s| match s {
             StopReason::Budget => "budget".into(),
             StopReason::TargetError => "target_error".into(),
@@ -796,7 +827,72 @@ fn markdown(rows: &[Row], oracles: &[OracleRow], opts: &Options, machine: &str) 
             p.memory_bytes as f64 / (1 << 20) as f64
         );
     }
+    error_estimates(&mut md, rows);
     md
+}
+
+/// The planner's error estimates against the true error of its zero-filled image.
+fn error_estimates(md: &mut String, rows: &[Row]) {
+    let _ = writeln!(md, "\n## Error estimate: the planner's against the truth\n");
+    let _ = writeln!(
+        md,
+        "What `target_error` compares with: the planner's estimate of the relative L2 error of \
+         its zero-filled image (`direct`) at the end of the session, against that image's true \
+         relative error. `measured` = the default `error_estimate` (PATTERNS.md, \"Error \
+         estimate\"), `prediction` = the rule of sessions stored before it (the same session \
+         replayed with it). Ratio = estimate / truth: below 1 a `target_error` stop fires with \
+         an image worse than asked. `noise` = the pair-difference noise the pair sums show \
+         against the drawn `sqrt(2) sigma`.\n"
+    );
+    let _ = writeln!(
+        md,
+        "| size | noise | scene | family | frames | true error | measured | ratio | prediction | ratio | noise shown / drawn |"
+    );
+    let _ = writeln!(md, "|---|---|---|---|---|---|---|---|---|---|---|");
+    let (mut measured, mut prediction) = (Vec::new(), Vec::new());
+    for r in rows.iter().filter(|r| r.method == "direct") {
+        let Some(p) = r.planner.as_ref() else {
+            continue;
+        };
+        let ratio = |e: Option<f64>| e.map(|e| e / p.true_error);
+        let (m, q) = (ratio(p.estimated_error), ratio(p.prediction_estimate));
+        measured.extend(m);
+        prediction.extend(q);
+        let f = |v: Option<f64>, digits: usize| {
+            v.map(|v| format!("{v:.digits$}")).unwrap_or("-".into())
+        };
+        let _ = writeln!(
+            md,
+            "| {0}x{0} | {1} | {2} | {3} | {4} | {5:.4} | {6} | {7} | {8} | {9} | {10} |",
+            r.size,
+            if r.noisy { "30 dB" } else { "none" },
+            r.scene,
+            r.family,
+            r.frames,
+            p.true_error,
+            f(p.estimated_error, 4),
+            f(m, 2),
+            f(p.prediction_estimate, 4),
+            f(q, 2),
+            if r.noisy {
+                format!("{} / {:.2}", f(p.pair_noise, 2), p.drawn_pair_noise)
+            } else {
+                f(p.pair_noise, 2)
+            }
+        );
+    }
+    let span = |v: &[f64]| {
+        let lo = v.iter().cloned().fold(f64::INFINITY, f64::min);
+        let hi = v.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+        let below = v.iter().filter(|&&x| x < 1.0).count();
+        format!("{lo:.2} to {hi:.2}, below 1 in {below} of {}", v.len())
+    };
+    let _ = writeln!(
+        md,
+        "\nRatio estimate / truth: `measured` {}; `prediction` {}.",
+        span(&measured),
+        span(&prediction)
+    );
 }
 
 fn oracle_find<'a>(oracles: &'a [OracleRow], r: &Row, basis: &str) -> Option<&'a OracleRow> {

@@ -26,5 +26,5 @@ pub mod v1 {
 }
 
 pub use patterns::{
-    Family, HaarFunction, HadamardOrdering, PatternGenerator, PatternSpec, SpecError,
+    ErrorEstimate, Family, HaarFunction, HadamardOrdering, PatternGenerator, PatternSpec, SpecError,
 };

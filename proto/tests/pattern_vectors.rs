@@ -463,7 +463,7 @@ fn vectors_cover_the_contract() {
             "{family} with a batch and a target error"
         );
     }
-    assert_eq!(array(&v, "adaptive_replays").len(), 14);
+    assert_eq!(array(&v, "adaptive_replays").len(), 22);
 }
 
 fn g_blocks(s: &PatternSpec) -> u64 {

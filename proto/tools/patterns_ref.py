@@ -88,7 +88,7 @@ ADAPTIVE = ("adaptive_haar", "adaptive_hadamard")
 def canonical_adaptive(raw: dict) -> dict:
     """An adaptive spec (PATTERNS.md, "Adaptive families"), canonicalised."""
     allowed = {"family", "width", "height", "count", "seed", "batch", "target_error",
-               "persistence"}
+               "persistence", "error_estimate"}
     for key in raw:
         if key not in allowed:
             raise SpecError(key, "unknown field")
@@ -99,6 +99,7 @@ def canonical_adaptive(raw: dict) -> dict:
     seed, batch = raw.get("seed", 0), raw.get("batch", 0)
     target = raw.get("target_error", 0.0)
     beta = raw.get("persistence", 0.5 if raw["family"] == "adaptive_haar" else 0.0)
+    estimate = raw.get("error_estimate", "measured")
     for key, v, top in (("width", width, 2**32), ("height", height, 2**32),
                         ("count", count, 2**64), ("seed", seed, 2**64), ("batch", batch, 2**32)):
         if not _is_uint(v) or v >= top:
@@ -120,9 +121,11 @@ def canonical_adaptive(raw: dict) -> dict:
     if isinstance(beta, bool) or not isinstance(beta, (int, float)) \
             or not math.isfinite(beta) or beta < 0:
         raise SpecError("persistence", "a finite number >= 0")
+    if estimate not in ("prediction", "measured"):
+        raise SpecError("error_estimate", "prediction or measured")
     return {"family": raw["family"], "batch": batch, "target_error": float(target),
-            "persistence": float(beta), "width": width, "height": height, "count": count,
-            "seed": seed}
+            "persistence": float(beta), "error_estimate": estimate, "width": width,
+            "height": height, "count": count, "seed": seed}
 
 
 def canonical_spec(raw: dict) -> dict:
@@ -539,6 +542,18 @@ class AdaptivePlanner:
         self.energy = [0.0] * channels
         self.score = [0.0] * self.k
         self.estimate, self.stopped = None, False
+        # The measured error estimate (PATTERNS.md, "Error estimate").
+        self.measured = self.spec["error_estimate"] == "measured"
+        m = log2(w)
+        self.m = m
+        self.size = [haar_scale(w, n) if self.spec["family"] == "adaptive_haar" else m
+                     for n in range(self.k)]
+        self.group = [support_group(self.spec, n) for n in range(self.k)]
+        self.group_count = {}
+        self.group_mean = [{} for _ in range(channels)]
+        self.squares = [[0.0] * (m + 1) for _ in range(channels)]
+        self.dof = [0] * (m + 1)
+        self.observed = [False] * self.k
 
     def poll(self):
         if len(self.outstanding) >= 2 or self.stopped or len(self.order) >= self.budget:
@@ -570,6 +585,20 @@ class AdaptivePlanner:
                 val = (frames[2 * j * c + ch] - frames[(2 * j + 1) * c + ch]) / gain(self.spec, n)
                 self.v[ch][n] = val
                 self.energy[ch] += val * val
+            if self.measured:
+                g, sz = self.group[n], self.size[n]
+                cnt = self.group_count.get(g, 0)
+                for ch in range(c):
+                    t = frames[2 * j * c + ch] + frames[(2 * j + 1) * c + ch]
+                    old = self.group_mean[ch].get(g, 0.0)
+                    new = old + (t - old) / (cnt + 1.0)
+                    self.group_mean[ch][g] = new
+                    if cnt > 0:
+                        self.squares[ch][sz] += (t - old) * (t - new)
+                if cnt > 0:
+                    self.dof[sz] += 1
+                self.group_count[g] = cnt + 1
+                self.observed[n] = True
         self.score = [0.0] * self.k
         ratio, lit = 0.0, 0
         for ch in range(c):
@@ -588,9 +617,97 @@ class AdaptivePlanner:
                 self.score[n] += size / norm
                 if not self.issued[n]:
                     e += p[n] * p[n]
-            ratio += e / self.energy[ch]
+            if self.measured:
+                ratio += self.relative_squared(ch, v, p)
+            else:
+                ratio += e / self.energy[ch]
             lit += 1
         self.estimate = math.sqrt(ratio / lit) if lit else None
+
+
+    def pair_variance(self, ch: int, s: int) -> float:
+        if self.dof[s] >= 32:
+            return self.squares[ch][s] / self.dof[s]
+        squares, dof = 0.0, 0
+        for t in range(self.m + 1):
+            squares += self.squares[ch][t]
+            dof += self.dof[t]
+        return squares / dof if dof > 0 else 0.0
+
+    def relative_squared(self, ch: int, v: list[float], p: list[float]) -> float:
+        var = [self.pair_variance(ch, s) / 4.0 ** s for s in range(self.m + 1)]
+        levels = self.m + 1
+        vp, pp, seen = [0.0] * levels, [0.0] * levels, [0] * levels
+        noise, signal = 0.0, v[0] * v[0]
+        for n in range(1, self.k):
+            vn = var[self.size[n]]
+            if self.issued[n]:
+                noise += vn
+            if self.observed[n]:
+                lv = level(self.spec, n)
+                vp[lv] += v[n] * p[n]
+                pp[lv] += p[n] * p[n]
+                seen[lv] += 1
+                if v[n] * v[n] > 25.0 * vn:
+                    signal += v[n] * v[n] - vn
+        slope = [max(vp[lv] / pp[lv], 0.0) if seen[lv] >= 8 and pp[lv] > 0 else 1.0
+                 for lv in range(levels)]
+        miss = [0.0] * levels
+        for n in range(1, self.k):
+            if self.observed[n]:
+                lv = level(self.spec, n)
+                d = v[n] - slope[lv] * p[n]
+                miss[lv] += d * d - var[self.size[n]]
+        tau = level_misses(miss, seen)
+        fill = 0.0
+        for n in range(1, self.k):
+            if not self.issued[n]:
+                lv = level(self.spec, n)
+                q = slope[lv] * p[n]
+                fill += q * q + tau[lv]
+        if not signal > 0:
+            signal = self.energy[ch]
+        return (fill + noise) / signal
+
+
+def support_group(spec: dict, n: int) -> tuple:
+    """Pairs of equal support share the key (PATTERNS.md, "Error estimate")."""
+    w = spec["width"]
+    if spec["family"] != "adaptive_hadamard":
+        s = haar_scale(w, n)
+        if s < log2(w):
+            r, c = divmod(n, w)
+            h = w >> s
+            return (s, r % h, c % h)
+        return (log2(w), 0, 0)
+    return (0,)
+
+
+def level_misses(miss: list[float], seen: list[int]) -> list[float]:
+    """tau per level (PATTERNS.md, "Error estimate")."""
+    levels = len(miss)
+    tau = [0.0] * levels
+    if levels < 2:
+        return tau
+
+    def resolved(lv):
+        return max(miss[lv] / seen[lv], 0.0) if seen[lv] >= 8 else None
+    finest = [resolved(lv) for lv in range(levels - 1) if resolved(lv) is not None][:2]
+    rho = min(max(finest[0] / finest[1], 1.0 / 16.0), 1.0) \
+        if len(finest) == 2 and finest[1] > 0 else 0.25
+    above = None
+    for lv in range(levels - 2, -1, -1):
+        own = resolved(lv)
+        if own is not None:
+            t = own if above is None else min(own, above)
+        elif above is not None:
+            t = above * rho
+        else:
+            t = max(miss[lv] / seen[lv], 0.0) if seen[lv] > 0 else 0.0
+        if own is not None or above is not None:
+            above = t
+        tau[lv] = t
+    return tau
 
 
 def replay(spec: dict, channels: int, frames: list[float]) -> list[int]:
@@ -608,11 +725,13 @@ def replay(spec: dict, channels: int, frames: list[float]) -> list[int]:
     return planner.order
 
 
-def simulate_adaptive(spec: dict, scenes: list[list[int]], dark: int) -> list[float]:
+def simulate_adaptive(spec: dict, scenes: list[list[int]], dark: int, noise: int = 0) -> list[float]:
     """A simulated rig: shows what the planner asks, returns every frame value (integers, so
-    the JSON is exact)."""
+    the JSON is exact), each with an integer read noise uniform in [-noise, noise] from a fixed
+    linear congruential sequence."""
     c = len(scenes)
     planner, queue, frames = AdaptivePlanner(spec, c), [], []
+    state = 12345
     while True:
         while (b := planner.poll()) is not None:
             queue.append(b)
@@ -623,7 +742,10 @@ def simulate_adaptive(spec: dict, scenes: list[list[int]], dark: int) -> list[fl
             for sign in (1, -1):
                 pat = adaptive(planner.spec, 0 if sign == 1 else 1, [n])
                 for t in scenes:
-                    values.append(float(dark + sum(tv for on, tv in zip(pat, t) if on)))
+                    state = (state * 6364136223846793005 + 1442695040888963407) % 2**64
+                    jitter = (state >> 33) % (2 * noise + 1) - noise if noise else 0
+                    values.append(float(dark + jitter
+                                        + sum(tv for on, tv in zip(pat, t) if on)))
         planner.observe(values)
         frames += values
     return frames
@@ -877,12 +999,17 @@ def build() -> dict:
 
     adaptive_replays = []
     for fam in ADAPTIVE:
-        # persistence None: the family's default (what a declaration without it gets).
-        for w, c, count, batch, target, dark, beta in (
-                (16, 1, 160, 0, 0.0, 7, 0.0), (16, 2, 200, 12, 0.0, 0, 0.0),
-                (8, 1, 128, 0, 0.0, 3, 0.0), (16, 1, 512, 16, 0.02, 1, 0.0),
-                (16, 1, 160, 0, 0.0, 7, None), (16, 2, 200, 12, 0.0, 0, 1.0),
-                (32, 1, 256, 16, 0.0, 5, None)):
+        # persistence None: the family's default (what a declaration without it gets); the
+        # error estimate None: the default (measured); noise: the rig's integer read noise.
+        for w, c, count, batch, target, dark, beta, estimate, noise in (
+                (16, 1, 160, 0, 0.0, 7, 0.0, None, 0), (16, 2, 200, 12, 0.0, 0, 0.0, None, 0),
+                (8, 1, 128, 0, 0.0, 3, 0.0, None, 0), (16, 1, 512, 16, 0.02, 1, 0.0, None, 0),
+                (16, 1, 512, 16, 0.02, 1, 0.0, "prediction", 0),
+                (16, 1, 160, 0, 0.0, 7, None, None, 0), (16, 2, 200, 12, 0.0, 0, 1.0, None, 0),
+                (32, 1, 256, 16, 0.0, 5, None, None, 0),
+                (32, 1, 1024, 16, 0.12, 50, None, None, 60),
+                (32, 2, 1024, 16, 0.12, 50, None, "prediction", 60),
+                (32, 2, 1024, 16, 0.12, 50, None, None, 60)):
             def scene(shift: int) -> list[int]:
                 # An edge, a bright square and a ramp, in integers (exact JSON).
                 return [(3 * x + (40 if (x - shift) ** 2 + (y - 9) ** 2 < 20 else 0)
@@ -891,10 +1018,13 @@ def build() -> dict:
                    "target_error": target}
             if beta is not None:
                 raw["persistence"] = beta
+            if estimate is not None:
+                raw["error_estimate"] = estimate
             scenes = [scene(6 + 4 * i) for i in range(c)]
-            frames = simulate_adaptive(raw, scenes, dark)
+            frames = simulate_adaptive(raw, scenes, dark, noise)
             order = replay(raw, c, frames)
             adaptive_replays.append({"spec": canonical_spec(raw), "channels": c,
+                                     "dark": dark, "noise": noise,
                                      "frames": [int(f) for f in frames], "indices": order})
 
     return {
@@ -915,8 +1045,9 @@ def build() -> dict:
             "basis_indices": "adaptive families: the basis index of each split pair (frames "
                              "2r, 2r + 1 show basis_indices[r])",
             "adaptive_replays": "adaptive sessions of a simulated rig: the frames (integers, "
-                                "frame-major, channels inner) replay through the planner to "
-                                "the issued indices",
+                                "frame-major, channels inner; the scene's light plus the dark "
+                                "level plus an integer read noise in [-noise, noise]) replay "
+                                "through the planner to the issued indices",
         },
         "random_words": random_words,
         "fills": fills,

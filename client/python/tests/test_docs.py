@@ -34,10 +34,14 @@ def test_the_readme_walkthrough_runs_as_written(server, monkeypatch, capsys) -> 
     assert ns["predicted"].shape == (8, 8)
     assert "400 light.radius" in capsys.readouterr().out
     run, scene = ns["run"], ns["scene"]
-    assert (run.reason, run.rows, run.batches) == ("target_error", 192, 6), run
+    assert (run.reason, run.rows, run.batches) == ("target_error", 224, 7), run
     assert run.indices == ns["client"].adaptive_sequence("walkthrough-adaptive-1")["indices"]
     error = np.linalg.norm(ns["adaptive_image"] - scene) / np.linalg.norm(scene)
-    assert error < 0.03, error  # measured 0.024 (the planner's estimate: 0.016)
+    # Within the target asked for: the planner's (measured) estimate does not read below the
+    # truth here. (The prediction-only estimate of sessions stored before 2026-11-29 stopped this
+    # session at 0.02 with 0.024.)
+    assert error < 0.03 and run.estimated_error >= error, (error, run.estimated_error)
+    print(f"adaptive walkthrough: error {error:.4f}, estimated {run.estimated_error:.4f}")
     ns["client"].close()
 
 

@@ -86,7 +86,8 @@ def test_adaptive_bases_are_orthogonal_split_pairs(family: str) -> None:
 @pytest.mark.parametrize("replay", VECTORS["adaptive_replays"], ids=lambda r: f"{r['spec']['family']}-{r['spec']['width']}-{r['channels']}ch-{r['spec']['count']}")
 def test_adaptive_replay_frames_are_the_patterns_on_the_vectors_scene(replay: dict) -> None:
     # The simulated rig of the vectors (patterns_ref.build: an edge, a bright square and a ramp,
-    # a dark level d) measured these frames; ours give the same integers, frame for frame.
+    # a dark level d, an integer read noise in [-noise, noise]) measured these frames; ours give
+    # the same integers, frame for frame, but for that noise.
     spec = hz.PatternSpec.from_dict(replay["spec"])
     w, c = spec.width, replay["channels"]
     y, x = np.mgrid[0:w, 0:w]
@@ -98,8 +99,9 @@ def test_adaptive_replay_frames_are_the_patterns_on_the_vectors_scene(replay: di
     indices = replay["indices"][: len(frames) // 2]
     pats = adaptive_patterns(spec, indices, dtype=np.int64).reshape(len(frames), -1)
     sums = np.stack([pats @ t.reshape(-1) for t in scenes], axis=1)
-    dark = frames - sums
-    assert (dark == dark[0, 0]).all(), "one dark level for every frame and channel"
+    dark = frames - sums - replay["dark"]
+    assert (np.abs(dark) <= replay["noise"]).all(), "the dark level and the rig's noise alone"
+    assert replay["noise"] == 0 or dark.std() > replay["noise"] / 3, "the noise is there"
 
 
 def test_adaptive_specs_need_their_indices() -> None:
@@ -205,6 +207,7 @@ def test_specs_are_validated_naming_the_field() -> None:
         (dict(family="adaptive_haar", width=8, height=8, count=8, persistence=-0.5), "persistence"),
         (dict(family="adaptive_hadamard", width=8, height=8, count=8, persistence=float("inf")), "persistence"),
         (dict(family="adaptive_haar", width=8, height=8, count=8, persistence="0.5"), "persistence"),
+        (dict(family="adaptive_haar", width=8, height=8, count=8, error_estimate="oracle"), "error_estimate"),
         (dict(family="adaptive_hadamard", width=8, height=8, count=8, ordering="natural"), "ordering"),
         (dict(family="hadamard", width=8, height=8, count=8, batch=4), "batch"),
     ]
@@ -224,6 +227,7 @@ def test_protobuf_form_round_trips() -> None:
         hz.PatternSpec.adaptive_haar(32, 400, persistence=0.0),
         hz.PatternSpec.adaptive_hadamard(16),
         hz.PatternSpec.adaptive_hadamard(16, persistence=1.5),
+        hz.PatternSpec.adaptive_hadamard(16, target_error=0.1, error_estimate="prediction"),
     ]:
         assert hz.PatternSpec.from_proto(spec.to_proto()) == spec
     # proto3 zeros (and no params at all) are the adaptive defaults; an explicit persistence
@@ -234,7 +238,7 @@ def test_protobuf_form_round_trips() -> None:
     )
     assert bare.to_dict() == {
         "family": "adaptive_haar", "batch": 0, "target_error": 0.0, "persistence": 0.5,
-        "width": 8, "height": 8, "count": 64, "seed": 0,
+        "error_estimate": "measured", "width": 8, "height": 8, "count": 64, "seed": 0,
     }
     wrong = hz.PatternSpec.adaptive_hadamard(8).to_proto()
     wrong.hadamard.ordering = 1
@@ -267,6 +271,6 @@ def test_the_server_canonicalises_adaptive_specs_as_this_package_does(client, se
     assert s.spec.to_dict() == {
         "family": family, "batch": 0, "target_error": 0.05,
         "persistence": HAAR_PERSISTENCE if family == "adaptive_haar" else 0.0,
-        "width": 8, "height": 8, "count": 40, "seed": 0,
+        "error_estimate": "measured", "width": 8, "height": 8, "count": 40, "seed": 0,
     }
     assert client.session(s.id).spec == spec.canonical()

@@ -26,6 +26,16 @@ pub enum AdaptiveArg {
     Hadamard,
 }
 
+/// What an adaptive session's `--target-error` compares with (the spec's `error_estimate`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum ErrorEstimateArg {
+    /// The predicted energy of what is not measured, each level's measured prediction miss and
+    /// the noise the pair sums show.
+    Measured,
+    /// The predicted energy alone.
+    Prediction,
+}
+
 /// The adaptive spec of `--adaptive`: `family` (from `Family::adaptive`) on the grid and seed of
 /// the pattern flags, `count` the frame budget (default: the whole basis, 2 x width x height
 /// frames).

@@ -17,7 +17,9 @@ use crate::spool::{DrainReport, SpoolDir};
 use crate::upload::{self, NewSession, SampleFormat};
 
 use super::Outcome;
-use super::adaptive::{AdaptiveArg, AdaptiveRun, adaptive_spec, measure_batch, simulate_adaptive};
+use super::adaptive::{
+    AdaptiveArg, AdaptiveRun, ErrorEstimateArg, adaptive_spec, measure_batch, simulate_adaptive,
+};
 use super::args::{
     FrameFormatArg, PatternArgs, ResultArgs, TransferArgs, parse_metadata, parse_params, spec_json,
     spec_summary,
@@ -134,6 +136,12 @@ pub struct SimulateArgs {
     /// `persistence`, proto/PATTERNS.md) [default: the family's, haar 0.5, hadamard 0].
     #[arg(long, value_name = "BETA")]
     pub persistence: Option<f64>,
+    /// --adaptive: what --target-error compares with (the spec's `error_estimate`,
+    /// proto/PATTERNS.md): `measured` (the predicted energy of what is not measured plus each
+    /// level's measured prediction miss and the noise the pair sums show) or `prediction` (the
+    /// predicted energy alone, 2-4x low noise-free and blind to noise).
+    #[arg(long, value_enum, default_value_t = ErrorEstimateArg::Measured)]
+    pub error_estimate: ErrorEstimateArg,
     /// Detector channel names, comma separated (each sees the same scene, see --channel-gains).
     /// Image scenes only (lambert names its channels by --detectors / --colour).
     #[arg(long, value_delimiter = ',', default_value = "bucket")]
@@ -281,7 +289,11 @@ pub(super) async fn simulate_cmd(
                 a.adaptive_batch,
                 a.target_error,
                 a.persistence,
-            );
+            )
+            .with_error_estimate(match a.error_estimate {
+                ErrorEstimateArg::Measured => helmholtz_proto::ErrorEstimate::Measured,
+                ErrorEstimateArg::Prediction => helmholtz_proto::ErrorEstimate::Prediction,
+            });
             adaptive_spec(family, p.width, p.height, p.count, p.seed)?
         }
         None => a.patterns.to_spec()?,

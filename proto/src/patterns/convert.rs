@@ -1,6 +1,6 @@
 //! Conversions between the gRPC `PatternSpec` message and the validated [`PatternSpec`].
 
-use super::{Family, HadamardOrdering, PatternSpec, SpecError};
+use super::{ErrorEstimate, Family, HadamardOrdering, PatternSpec, SpecError};
 use crate::v1;
 
 /// Why a protobuf spec could not be accepted.
@@ -45,10 +45,27 @@ impl TryFrom<&v1::PatternSpec> for PatternSpec {
                 Family::Speckle { grain }
             }
             Ok(f @ (v1::PatternFamily::AdaptiveHaar | v1::PatternFamily::AdaptiveHadamard)) => {
-                let (batch, target_error, persistence) = match &m.params {
-                    Some(Params::Adaptive(p)) => (p.batch, p.target_error, p.persistence),
-                    None => (0, 0.0, None),
+                let (batch, target_error, persistence, estimate) = match &m.params {
+                    Some(Params::Adaptive(p)) => {
+                        (p.batch, p.target_error, p.persistence, p.error_estimate)
+                    }
+                    None => (0, 0.0, None, 0),
                     Some(_) => return Err(params_mismatch("an adaptive family")),
+                };
+                let error_estimate = match v1::AdaptiveErrorEstimate::try_from(estimate) {
+                    Ok(v1::AdaptiveErrorEstimate::Prediction) => ErrorEstimate::Prediction,
+                    Ok(
+                        v1::AdaptiveErrorEstimate::Measured
+                        | v1::AdaptiveErrorEstimate::Unspecified,
+                    ) => ErrorEstimate::Measured,
+                    Err(_) => {
+                        return Err(SpecError {
+                            field: "error_estimate",
+                            message: format!(
+                                "unknown AdaptiveErrorEstimate {estimate}: 1 (prediction) or 2 (measured)"
+                            ),
+                        });
+                    }
                 };
                 Family::adaptive(
                     f == v1::PatternFamily::AdaptiveHaar,
@@ -56,6 +73,7 @@ impl TryFrom<&v1::PatternSpec> for PatternSpec {
                     target_error,
                     persistence,
                 )
+                .with_error_estimate(error_estimate)
             }
             Ok(v1::PatternFamily::Unspecified) | Err(_) => {
                 return Err(SpecError {
@@ -129,24 +147,28 @@ impl From<&PatternSpec> for v1::PatternSpec {
                 batch,
                 target_error,
                 persistence,
+                error_estimate,
             } => (
                 v1::PatternFamily::AdaptiveHaar,
                 Params::Adaptive(v1::AdaptiveParams {
                     batch,
                     target_error,
                     persistence: Some(persistence),
+                    error_estimate: proto_estimate(error_estimate) as i32,
                 }),
             ),
             Family::AdaptiveHadamard {
                 batch,
                 target_error,
                 persistence,
+                error_estimate,
             } => (
                 v1::PatternFamily::AdaptiveHadamard,
                 Params::Adaptive(v1::AdaptiveParams {
                     batch,
                     target_error,
                     persistence: Some(persistence),
+                    error_estimate: proto_estimate(error_estimate) as i32,
                 }),
             ),
         };
@@ -161,6 +183,13 @@ impl From<&PatternSpec> for v1::PatternSpec {
     }
 }
 
+fn proto_estimate(e: ErrorEstimate) -> v1::AdaptiveErrorEstimate {
+    match e {
+        ErrorEstimate::Prediction => v1::AdaptiveErrorEstimate::Prediction,
+        ErrorEstimate::Measured => v1::AdaptiveErrorEstimate::Measured,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -172,11 +201,13 @@ mod tests {
                 batch: 32,
                 target_error: 0.02,
                 persistence: 0.25,
+                error_estimate: ErrorEstimate::Measured,
             },
             Family::AdaptiveHadamard {
                 batch: 0,
                 target_error: 0.0,
                 persistence: 0.0,
+                error_estimate: ErrorEstimate::Prediction,
             },
         ] {
             let spec = PatternSpec::new(family, 16, 16, 100, 3).unwrap();
@@ -199,6 +230,7 @@ mod tests {
                 batch: 0,
                 target_error: 0.0,
                 persistence: crate::patterns::HADAMARD_PERSISTENCE,
+                error_estimate: ErrorEstimate::Measured,
             }
         );
         let haar = |persistence| v1::PatternSpec {
@@ -207,6 +239,7 @@ mod tests {
                 batch: 0,
                 target_error: 0.0,
                 persistence,
+                error_estimate: 0,
             })),
             ..m
         };

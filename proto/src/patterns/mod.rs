@@ -14,8 +14,8 @@ pub use adaptive::HaarFunction;
 pub use convert::ProtoSpecError;
 pub use hadamard::{HadamardOrdering, HadamardPlan};
 pub use spec::{
-    FILL_BITS, Family, HAAR_PERSISTENCE, HADAMARD_PERSISTENCE, MAX_COUNT, MAX_PIXELS, MAX_SIDE,
-    PatternSpec, SpecError, fill_quantum,
+    ErrorEstimate, FILL_BITS, Family, HAAR_PERSISTENCE, HADAMARD_PERSISTENCE, MAX_COUNT,
+    MAX_PIXELS, MAX_SIDE, PatternSpec, SpecError, fill_quantum,
 };
 
 use rng::stream_word;

@@ -56,6 +56,11 @@ pub enum Family {
         /// before the parameter existed: 0 (the rule it was planned with).
         #[serde(default = "haar_persistence")]
         persistence: f64,
+        /// What `target_error` is compared with (PATTERNS.md, "The planner"). Absent in a new
+        /// declaration: [`ErrorEstimate::Measured`]; absent in a session stored before the
+        /// parameter existed: [`ErrorEstimate::Prediction`] (the rule it was planned with).
+        #[serde(default)]
+        error_estimate: ErrorEstimate,
     },
     /// Adaptive scan of the 2D Walsh-Hadamard basis (natural index, as the hadamard family).
     AdaptiveHadamard {
@@ -66,7 +71,35 @@ pub enum Family {
         /// As for `adaptive_haar`; absent: [`HADAMARD_PERSISTENCE`].
         #[serde(default = "hadamard_persistence")]
         persistence: f64,
+        /// As for `adaptive_haar`.
+        #[serde(default)]
+        error_estimate: ErrorEstimate,
     },
+}
+
+/// How an adaptive planner estimates the relative error of its zero-filled image, the number its
+/// `target_error` stop compares with (`proto/PATTERNS.md`, "The planner").
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ErrorEstimate {
+    /// The predicted energy of the coefficients not yet shown, alone: 2-4x below the true error
+    /// noise-free and blind to noise (what sessions stored before 2026-11-29 were planned with).
+    Prediction,
+    /// The predicted energy plus, per level, the mean squared miss of the predictions where the
+    /// coefficient was measured, and the noise of every coefficient shown, as the pair sums of
+    /// equal supports measure it.
+    #[default]
+    Measured,
+}
+
+impl ErrorEstimate {
+    pub fn name(self) -> &'static str {
+        match self {
+            ErrorEstimate::Prediction => "prediction",
+            ErrorEstimate::Measured => "measured",
+        }
+    }
 }
 
 fn one() -> u32 {
@@ -124,13 +157,34 @@ impl Family {
                 batch,
                 target_error,
                 persistence: persistence.unwrap_or(HAAR_PERSISTENCE),
+                error_estimate: ErrorEstimate::default(),
             }
         } else {
             Family::AdaptiveHadamard {
                 batch,
                 target_error,
                 persistence: persistence.unwrap_or(HADAMARD_PERSISTENCE),
+                error_estimate: ErrorEstimate::default(),
             }
+        }
+    }
+
+    /// This adaptive family with `estimate` as its error estimate (other families unchanged).
+    pub fn with_error_estimate(mut self, estimate: ErrorEstimate) -> Family {
+        if let Family::AdaptiveHaar { error_estimate, .. }
+        | Family::AdaptiveHadamard { error_estimate, .. } = &mut self
+        {
+            *error_estimate = estimate;
+        }
+        self
+    }
+
+    /// The planner's error estimate of an adaptive family.
+    pub fn adaptive_error_estimate(&self) -> Option<ErrorEstimate> {
+        match *self {
+            Family::AdaptiveHaar { error_estimate, .. }
+            | Family::AdaptiveHadamard { error_estimate, .. } => Some(error_estimate),
+            _ => None,
         }
     }
 
@@ -350,11 +404,13 @@ impl PatternSpec {
                 batch,
                 target_error,
                 persistence,
+                ..
             }
             | Family::AdaptiveHadamard {
                 batch,
                 target_error,
                 persistence,
+                ..
             } => {
                 let name = family.name();
                 if !width.is_power_of_two() {
@@ -663,6 +719,12 @@ mod tests {
                 "persistence",
             ),
         ];
+        // An unknown error estimate is refused by the parser, naming the value.
+        let e = serde_json::from_str::<PatternSpec>(
+            r#"{"family":"adaptive_haar","width":8,"height":8,"count":8,"error_estimate":"oracle"}"#,
+        )
+        .unwrap_err();
+        assert!(e.to_string().contains("oracle"), "{e}");
         for (json, field) in cases {
             let raw: RawSpec = serde_json::from_str(json).unwrap();
             let e = PatternSpec::try_from(raw).unwrap_err();
@@ -683,13 +745,23 @@ mod tests {
                 batch: 0,
                 target_error: 0.05,
                 persistence: HAAR_PERSISTENCE,
+                error_estimate: ErrorEstimate::Measured,
             }
         );
         assert!(s.is_adaptive() && s.adaptive_indices().is_none());
         assert_eq!(
             s.to_json(),
-            r#"{"family":"adaptive_haar","batch":0,"target_error":0.05,"persistence":0.5,"width":8,"height":8,"count":40,"seed":0}"#
+            r#"{"family":"adaptive_haar","batch":0,"target_error":0.05,"persistence":0.5,"error_estimate":"measured","width":8,"height":8,"count":40,"seed":0}"#
         );
+        let prediction: PatternSpec = serde_json::from_str(
+            r#"{"family":"adaptive_haar","width":8,"height":8,"count":40,"target_error":0.05,"error_estimate":"prediction"}"#,
+        )
+        .unwrap();
+        assert_eq!(
+            prediction.family().adaptive_error_estimate(),
+            Some(ErrorEstimate::Prediction)
+        );
+        assert_ne!(prediction, s);
         let h: PatternSpec = serde_json::from_str(
             r#"{"family":"adaptive_hadamard","width":8,"height":8,"count":40}"#,
         )

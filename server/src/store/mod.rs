@@ -223,19 +223,23 @@ pub(crate) fn parse_spec(json: &str) -> Result<PatternSpec, StoreError> {
         .map_err(|e| StoreError::Corrupt(format!("stored spec: {e}")))
 }
 
-/// An adaptive session stored before `persistence` was part of the spec (PATTERNS.md) was
-/// planned without it, so it reads as `persistence: 0`: a replay of its values must give back
-/// the indices it showed. (A new declaration that leaves `persistence` out gets the family's
-/// default instead; the canonical form stored since states it.)
+/// An adaptive session stored before `persistence` or `error_estimate` was part of the spec
+/// (PATTERNS.md) was planned without it, so it reads as `persistence: 0` and
+/// `error_estimate: "prediction"`: a replay of its values must give back the indices it showed.
+/// (A new declaration that leaves either out gets the default instead; the canonical form stored
+/// since states both.)
 fn legacy_adaptive(json: &str) -> Option<String> {
-    if !json.contains("\"adaptive_") || json.contains("\"persistence\"") {
+    if !json.contains("\"adaptive_")
+        || (json.contains("\"persistence\"") && json.contains("\"error_estimate\""))
+    {
         return None;
     }
     let mut v: serde_json::Map<String, serde_json::Value> = serde_json::from_str(json).ok()?;
     if !v.get("family")?.as_str()?.starts_with("adaptive_") {
         return None;
     }
-    v.insert("persistence".into(), 0.0.into());
+    v.entry("persistence").or_insert(0.0.into());
+    v.entry("error_estimate").or_insert("prediction".into());
     Some(serde_json::Value::Object(v).to_string())
 }
 

@@ -1,6 +1,6 @@
 use std::collections::BTreeMap;
 
-use helmholtz_proto::{Family, PatternSpec};
+use helmholtz_proto::{ErrorEstimate, Family, PatternSpec};
 
 use super::*;
 use sqlx::Row;
@@ -529,7 +529,16 @@ async fn upgrading_a_database_keeps_its_sessions_and_jobs_in_the_default_lab() {
     .execute(&pool)
     .await
     .unwrap();
-    // An adaptive session stored before `persistence` existed.
+    // An adaptive session stored before `persistence` and `error_estimate` existed, and one
+    // stored after `persistence` but before `error_estimate`.
+    sqlx::query(
+        "INSERT INTO sessions (id, rig, spec_json, channels_json, metadata_json, expected_rows, committed_rows, created_ms) \
+         VALUES ('old-estimate', 'r', $1, '[\"a\"]', '{}', 32, 0, 1)",
+    )
+    .bind(r#"{"family":"adaptive_hadamard","batch":0,"target_error":0.1,"persistence":0.25,"width":4,"height":4,"count":32,"seed":0}"#)
+    .execute(&pool)
+    .await
+    .unwrap();
     sqlx::query(
         "INSERT INTO sessions (id, rig, spec_json, channels_json, metadata_json, expected_rows, committed_rows, created_ms) \
          VALUES ('old-adaptive', 'r', $1, '[\"a\"]', '{}', 32, 0, 1)",
@@ -553,7 +562,7 @@ async fn upgrading_a_database_keeps_its_sessions_and_jobs_in_the_default_lab() {
     assert_eq!(s.session("demo-usaf-hadamard").await.unwrap().lab, "demo");
     let r = s.reconstruction(1).await.unwrap();
     assert_eq!((r.lab.as_str(), r.state.as_str()), ("default", "queued"));
-    assert_eq!(s.list_sessions("default", 10).await.unwrap().len(), 3);
+    assert_eq!(s.list_sessions("default", 10).await.unwrap().len(), 4);
     // The old repeated raster still opens, now declaring the two scans its count holds.
     let old = s.session("old-repeat").await.unwrap();
     assert_eq!(old.spec.family(), &Family::Raster { block: 1, scans: 2 });
@@ -562,6 +571,16 @@ async fn upgrading_a_database_keeps_its_sessions_and_jobs_in_the_default_lab() {
     // a new declaration without the field gets the family's default.
     let old = s.session("old-adaptive").await.unwrap();
     assert_eq!(old.spec.family().adaptive_persistence(), Some(0.0));
+    assert_eq!(
+        old.spec.family().adaptive_error_estimate(),
+        Some(ErrorEstimate::Prediction)
+    );
+    let old = s.session("old-estimate").await.unwrap();
+    assert_eq!(old.spec.family().adaptive_persistence(), Some(0.25));
+    assert_eq!(
+        old.spec.family().adaptive_error_estimate(),
+        Some(ErrorEstimate::Prediction)
+    );
     let new: PatternSpec = serde_json::from_str(
         r#"{"family":"adaptive_haar","batch":0,"target_error":0.0,"width":4,"height":4,"count":32,"seed":0}"#,
     )
@@ -569,6 +588,10 @@ async fn upgrading_a_database_keeps_its_sessions_and_jobs_in_the_default_lab() {
     assert_eq!(
         new.family().adaptive_persistence(),
         Some(helmholtz_proto::patterns::HAAR_PERSISTENCE)
+    );
+    assert_eq!(
+        new.family().adaptive_error_estimate(),
+        Some(ErrorEstimate::Measured)
     );
     assert!(
         s.claim_job("w", 60_000, 0).await.unwrap().is_some(),
@@ -1085,6 +1108,7 @@ async fn adaptive_batches_bound_the_rows_and_resolve_the_spec(s: Store) {
             batch: 2,
             target_error: 0.0,
             persistence: 0.5,
+            error_estimate: ErrorEstimate::Measured,
         },
         4,
         4,

@@ -608,6 +608,49 @@ fn simulate_adaptive_on_the_command_line() {
     assert_eq!(json["adaptive"]["reason"], "budget", "{json}");
     assert_eq!(json["adaptive"]["indices"].as_array().unwrap().len(), 256);
     assert_eq!(json["reconstruction"]["state"], "done", "{json}");
+    assert_eq!(json["spec"]["error_estimate"], "measured", "{json}");
+    // The error estimate is the spec's: `prediction` (the rule of sessions stored before it
+    // existed) stops this smooth scene at a target its measured estimate does not reach yet.
+    let run = |id: &str, estimate: &str| {
+        let out = std::process::Command::new(binary("helmholtz"))
+            .arg("--server")
+            .arg(&server.base_url)
+            .arg("--json")
+            .env("HELMHOLTZ_SPOOL", dir.path().join("client-spool"))
+            .args(["simulate", "--adaptive", "haar", "--scene", "lambert"])
+            .args(["--width", "32", "--height", "32", "--session-id", id])
+            .args(["--target-error", "0.05", "--error-estimate", estimate])
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        serde_json::from_slice::<Value>(&out.stdout).unwrap()
+    };
+    let (prediction, measured) = (
+        run("cli-prediction", "prediction"),
+        run("cli-measured", "measured"),
+    );
+    assert_eq!(prediction["spec"]["error_estimate"], "prediction");
+    assert_eq!(measured["spec"]["error_estimate"], "measured");
+    let rows = |j: &Value| j["adaptive"]["rows"].as_u64().unwrap();
+    eprintln!(
+        "prediction: {} rows, estimate {}; measured: {} rows, estimate {}",
+        rows(&prediction),
+        prediction["adaptive"]["estimated_error"],
+        rows(&measured),
+        measured["adaptive"]["estimated_error"]
+    );
+    assert_eq!(
+        prediction["adaptive"]["reason"], "target_error",
+        "{prediction}"
+    );
+    assert!(
+        rows(&prediction) < rows(&measured),
+        "{prediction}\n{measured}"
+    );
 }
 
 #[test]

@@ -47,6 +47,15 @@ FAMILIES = ("raster", "bernoulli", "hadamard", "speckle", *ADAPTIVE_FAMILIES)
 #: The adaptive families' ``persistence`` when a declaration leaves it out (PATTERNS.md).
 HAAR_PERSISTENCE = 0.5
 HADAMARD_PERSISTENCE = 0.0
+#: What an adaptive planner's ``target_error`` compares with (PATTERNS.md, "Error estimate"):
+#: ``measured`` (the default) or ``prediction`` (sessions stored before 2026-11-29).
+ERROR_ESTIMATES = ("measured", "prediction")
+_ESTIMATE_TO_PB = {
+    "prediction": pb.ADAPTIVE_ERROR_ESTIMATE_PREDICTION,
+    "measured": pb.ADAPTIVE_ERROR_ESTIMATE_MEASURED,
+}
+_PB_TO_ESTIMATE = {v: k for k, v in _ESTIMATE_TO_PB.items()}
+_PB_TO_ESTIMATE[pb.ADAPTIVE_ERROR_ESTIMATE_UNSPECIFIED] = "measured"
 ORDERINGS = ("natural", "sequency", "zigzag", "russian_doll", "cake_cutting")
 
 _FAMILY_TO_PB = {
@@ -121,6 +130,9 @@ class PatternSpec:
         persistence: adaptive families: how much a measured detail pulls its finer children
             forward in the planner's ranking (PATTERNS.md); ``None`` = the family's default
             (:data:`HAAR_PERSISTENCE`, :data:`HADAMARD_PERSISTENCE`).
+        error_estimate: adaptive families: what ``target_error`` compares with, one of
+            :data:`ERROR_ESTIMATES`; ``None`` = ``measured`` (the prediction plus the measured
+            prediction miss and noise, PATTERNS.md "Error estimate").
     """
 
     family: str
@@ -136,6 +148,7 @@ class PatternSpec:
     batch: Optional[int] = None
     target_error: Optional[float] = None
     persistence: Optional[float] = None
+    error_estimate: Optional[str] = None
 
     # -- constructors ---------------------------------------------------------------------
     @classmethod
@@ -178,12 +191,14 @@ class PatternSpec:
         batch: int = 0,
         target_error: float = 0.0,
         persistence: Optional[float] = None,
+        error_estimate: Optional[str] = None,
     ) -> "PatternSpec":
         """An adaptive session over the 2D Haar basis (Mallat layout) of a ``side x side`` grid
         (a power of two). ``count`` is the frame budget, two frames per split pair (default:
         the whole basis, ``2 * side * side``); ``batch`` split pairs per batch (0: the server
         sizes them); ``target_error`` > 0 stops early once the estimated error is below it;
-        ``persistence`` weighs a measured detail in its children's ranking (default 0.5)."""
+        ``persistence`` weighs a measured detail in its children's ranking (default 0.5);
+        ``error_estimate`` is what ``target_error`` compares with (default ``measured``)."""
         if count is None:
             count = 2 * side * side
         return cls(
@@ -194,6 +209,7 @@ class PatternSpec:
             batch=batch,
             target_error=target_error,
             persistence=persistence,
+            error_estimate=error_estimate,
         ).canonical()
 
     @classmethod
@@ -205,6 +221,7 @@ class PatternSpec:
         batch: int = 0,
         target_error: float = 0.0,
         persistence: Optional[float] = None,
+        error_estimate: Optional[str] = None,
     ) -> "PatternSpec":
         """As :meth:`adaptive_haar`, over the Walsh-Hadamard basis (natural index);
         ``persistence`` defaults to 0."""
@@ -218,6 +235,7 @@ class PatternSpec:
             batch=batch,
             target_error=target_error,
             persistence=persistence,
+            error_estimate=error_estimate,
         ).canonical()
 
     # -- properties -----------------------------------------------------------------------
@@ -264,7 +282,7 @@ class PatternSpec:
         adaptive = family in ADAPTIVE_FAMILIES
         allowed = {"family", "width", "height", "count", "seed"}
         if adaptive:
-            allowed |= {"batch", "target_error", "persistence"}
+            allowed |= {"batch", "target_error", "persistence", "error_estimate"}
         else:
             allowed.add(_PARAMS[family])
         if family == "raster":
@@ -353,6 +371,7 @@ class PatternSpec:
             "batch",
             "target_error",
             "persistence",
+            "error_estimate",
         ):
             value = getattr(spec, name)
             if value is not None:
@@ -384,6 +403,7 @@ class PatternSpec:
             msg.adaptive.batch = s.batch or 0
             msg.adaptive.target_error = float(s.target_error or 0.0)
             msg.adaptive.persistence = float(s.persistence)
+            msg.adaptive.error_estimate = _ESTIMATE_TO_PB[s.error_estimate]
         else:
             msg.speckle.grain = s.grain or 1
         return msg
@@ -418,6 +438,12 @@ class PatternSpec:
             raw["target_error"] = msg.adaptive.target_error
             if msg.adaptive.HasField("persistence"):
                 raw["persistence"] = msg.adaptive.persistence
+            estimate = _PB_TO_ESTIMATE.get(msg.adaptive.error_estimate)
+            if estimate is None:
+                raise SpecError(
+                    "error_estimate", f"unknown AdaptiveErrorEstimate {msg.adaptive.error_estimate}"
+                )
+            raw["error_estimate"] = estimate
         return cls.from_dict(raw)
 
     def with_count(self, count: int) -> "PatternSpec":
@@ -428,7 +454,7 @@ class PatternSpec:
 def _adaptive_params(
     family: str, raw: Mapping[str, Any], width: int, height: int, count: int
 ) -> dict[str, Any]:
-    """``batch``, ``target_error`` and ``persistence`` of an adaptive spec, checked with its grid and budget
+    """``batch``, ``target_error``, ``persistence`` and ``error_estimate`` of an adaptive spec, checked with its grid and budget
     (PATTERNS.md, adaptive families: the checks and their order are the server's)."""
     if width & (width - 1):
         raise SpecError("width", f"{family} needs a power of two, got {width}")
@@ -451,7 +477,12 @@ def _adaptive_params(
     target = _non_negative(raw, "target_error", 0.0, "0 = use the whole budget")
     default = HAAR_PERSISTENCE if family == "adaptive_haar" else HADAMARD_PERSISTENCE
     beta = _non_negative(raw, "persistence", default, "0 = rank by the prediction alone")
-    return {"batch": batch, "target_error": target, "persistence": beta}
+    estimate = raw.get("error_estimate", "measured")
+    if estimate not in ERROR_ESTIMATES:
+        raise SpecError(
+            "error_estimate", f"unknown error estimate {estimate!r}; one of {', '.join(ERROR_ESTIMATES)}"
+        )
+    return {"batch": batch, "target_error": target, "persistence": beta, "error_estimate": estimate}
 
 
 def _non_negative(raw: Mapping[str, Any], key: str, default: float, zero: str) -> float:

@@ -26,6 +26,12 @@ class HadamardOrdering(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     HADAMARD_ORDERING_RUSSIAN_DOLL: _ClassVar[HadamardOrdering]
     HADAMARD_ORDERING_CAKE_CUTTING: _ClassVar[HadamardOrdering]
 
+class AdaptiveErrorEstimate(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    ADAPTIVE_ERROR_ESTIMATE_UNSPECIFIED: _ClassVar[AdaptiveErrorEstimate]
+    ADAPTIVE_ERROR_ESTIMATE_PREDICTION: _ClassVar[AdaptiveErrorEstimate]
+    ADAPTIVE_ERROR_ESTIMATE_MEASURED: _ClassVar[AdaptiveErrorEstimate]
+
 class SampleFormat(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     __slots__ = ()
     SAMPLE_FORMAT_UNSPECIFIED: _ClassVar[SampleFormat]
@@ -58,6 +64,9 @@ HADAMARD_ORDERING_SEQUENCY: HadamardOrdering
 HADAMARD_ORDERING_ZIGZAG: HadamardOrdering
 HADAMARD_ORDERING_RUSSIAN_DOLL: HadamardOrdering
 HADAMARD_ORDERING_CAKE_CUTTING: HadamardOrdering
+ADAPTIVE_ERROR_ESTIMATE_UNSPECIFIED: AdaptiveErrorEstimate
+ADAPTIVE_ERROR_ESTIMATE_PREDICTION: AdaptiveErrorEstimate
+ADAPTIVE_ERROR_ESTIMATE_MEASURED: AdaptiveErrorEstimate
 SAMPLE_FORMAT_UNSPECIFIED: SampleFormat
 SAMPLE_FORMAT_F64: SampleFormat
 SAMPLE_FORMAT_F32: SampleFormat
@@ -97,14 +106,16 @@ class SpeckleParams(_message.Message):
     def __init__(self, grain: _Optional[int] = ...) -> None: ...
 
 class AdaptiveParams(_message.Message):
-    __slots__ = ("batch", "target_error", "persistence")
+    __slots__ = ("batch", "target_error", "persistence", "error_estimate")
     BATCH_FIELD_NUMBER: _ClassVar[int]
     TARGET_ERROR_FIELD_NUMBER: _ClassVar[int]
     PERSISTENCE_FIELD_NUMBER: _ClassVar[int]
+    ERROR_ESTIMATE_FIELD_NUMBER: _ClassVar[int]
     batch: int
     target_error: float
     persistence: float
-    def __init__(self, batch: _Optional[int] = ..., target_error: _Optional[float] = ..., persistence: _Optional[float] = ...) -> None: ...
+    error_estimate: AdaptiveErrorEstimate
+    def __init__(self, batch: _Optional[int] = ..., target_error: _Optional[float] = ..., persistence: _Optional[float] = ..., error_estimate: _Optional[_Union[AdaptiveErrorEstimate, str]] = ...) -> None: ...
 
 class PatternSpec(_message.Message):
     __slots__ = ("family", "width", "height", "count", "seed", "raster", "bernoulli", "hadamard", "speckle", "adaptive")
