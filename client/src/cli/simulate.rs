@@ -139,7 +139,7 @@ pub struct SimulateArgs {
     /// --adaptive: what --target-error compares with (the spec's `error_estimate`,
     /// proto/PATTERNS.md): `measured` (the predicted energy of what is not measured plus each
     /// level's measured prediction miss and the noise the pair sums show) or `prediction` (the
-    /// predicted energy alone, 2-4x low noise-free and blind to noise).
+    /// predicted energy alone, several times low noise-free and blind to noise).
     #[arg(long, value_enum, default_value_t = ErrorEstimateArg::Measured)]
     pub error_estimate: ErrorEstimateArg,
     /// Detector channel names, comma separated (each sees the same scene, see --channel-gains).

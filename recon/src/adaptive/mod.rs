@@ -38,8 +38,9 @@
 //! E_c / S_c)`, which the stop rule `target_error` compares with. The spec's `error_estimate`
 //! chooses its parts:
 //! - `prediction` (sessions stored before 2026-11-29): `E_c` the predicted energy of the
-//!   coefficients not yet issued, `S_c = ||c_c||^2`. The bicubic guess is smooth, so this reads
-//!   2-4x below the true error noise-free, and it ignores noise (500x low at 30 dB on Haar).
+//!   coefficients not yet issued, `S_c = ||c_c||^2`. The bicubic guess misses what the coarse levels
+//!   do not show, so this reads a median 0.23-0.40 of the true error noise-free, and it ignores
+//!   noise (about 0 of it at 30 dB on Haar: `docs/benchmarks-adaptive.md`).
 //! - `measured` (the default): `E_c` is, for every coefficient not issued, its prediction scaled
 //!   by its level's measured slope of values on predictions, squared, plus that level's measured
 //!   mean squared miss; plus the noise of every coefficient issued (measured from the pair sums
