@@ -570,16 +570,34 @@ async fn another_labs_token_and_a_reader_token_are_refused() {
     );
 }
 
-#[test]
-fn simulate_adaptive_on_the_command_line() {
-    let dir = tempfile::tempdir().unwrap();
-    let server = ServerProcess::start(dir.path(), 0, &[]).unwrap();
+/// `helmholtz --server <server> --json <args>` with its spool in `dir`: its JSON output (the
+/// command must succeed).
+fn helmholtz_json(server: &ServerProcess, dir: &std::path::Path, args: &[&str]) -> Value {
     let out = std::process::Command::new(binary("helmholtz"))
         .arg("--server")
         .arg(&server.base_url)
         .arg("--json")
-        .env("HELMHOLTZ_SPOOL", dir.path().join("client-spool"))
-        .args([
+        .env("HELMHOLTZ_SPOOL", dir.join("client-spool"))
+        .args(args)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}\n{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    serde_json::from_slice(&out.stdout).unwrap()
+}
+
+#[test]
+fn simulate_adaptive_on_the_command_line() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = ServerProcess::start(dir.path(), 0, &[]).unwrap();
+    let json = helmholtz_json(
+        &server,
+        dir.path(),
+        &[
             "simulate",
             "--adaptive",
             "hadamard",
@@ -594,16 +612,8 @@ fn simulate_adaptive_on_the_command_line() {
             "--reconstruct",
             "direct",
             "--wait",
-        ])
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}\n{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
+        ],
     );
-    let json: Value = serde_json::from_slice(&out.stdout).unwrap();
     assert_eq!(json["adaptive"]["rows"], 512, "{json}");
     assert_eq!(json["adaptive"]["reason"], "budget", "{json}");
     assert_eq!(json["adaptive"]["indices"].as_array().unwrap().len(), 256);
@@ -612,22 +622,27 @@ fn simulate_adaptive_on_the_command_line() {
     // The error estimate is the spec's: `prediction` (the rule of sessions stored before it
     // existed) stops this smooth scene at a target its measured estimate does not reach yet.
     let run = |id: &str, estimate: &str| {
-        let out = std::process::Command::new(binary("helmholtz"))
-            .arg("--server")
-            .arg(&server.base_url)
-            .arg("--json")
-            .env("HELMHOLTZ_SPOOL", dir.path().join("client-spool"))
-            .args(["simulate", "--adaptive", "haar", "--scene", "lambert"])
-            .args(["--width", "32", "--height", "32", "--session-id", id])
-            .args(["--target-error", "0.05", "--error-estimate", estimate])
-            .output()
-            .unwrap();
-        assert!(
-            out.status.success(),
-            "{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
-        serde_json::from_slice::<Value>(&out.stdout).unwrap()
+        helmholtz_json(
+            &server,
+            dir.path(),
+            &[
+                "simulate",
+                "--adaptive",
+                "haar",
+                "--scene",
+                "lambert",
+                "--width",
+                "32",
+                "--height",
+                "32",
+                "--session-id",
+                id,
+                "--target-error",
+                "0.05",
+                "--error-estimate",
+                estimate,
+            ],
+        )
     };
     let (prediction, measured) = (
         run("cli-prediction", "prediction"),
