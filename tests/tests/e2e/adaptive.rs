@@ -570,33 +570,12 @@ async fn another_labs_token_and_a_reader_token_are_refused() {
     );
 }
 
-/// `helmholtz --server <server> --json <args>` with its spool in `dir`: its JSON output (the
-/// command must succeed).
-fn helmholtz_json(server: &ServerProcess, dir: &std::path::Path, args: &[&str]) -> Value {
-    let out = std::process::Command::new(binary("helmholtz"))
-        .arg("--server")
-        .arg(&server.base_url)
-        .arg("--json")
-        .env("HELMHOLTZ_SPOOL", dir.join("client-spool"))
-        .args(args)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}\n{}",
-        String::from_utf8_lossy(&out.stdout),
-        String::from_utf8_lossy(&out.stderr)
-    );
-    serde_json::from_slice(&out.stdout).unwrap()
-}
-
 #[test]
 fn simulate_adaptive_on_the_command_line() {
     let dir = tempfile::tempdir().unwrap();
     let server = ServerProcess::start(dir.path(), 0, &[]).unwrap();
-    let json = helmholtz_json(
+    let json = crate::cli::helmholtz(
         &server,
-        dir.path(),
         &[
             "simulate",
             "--adaptive",
@@ -622,9 +601,8 @@ fn simulate_adaptive_on_the_command_line() {
     // The error estimate is the spec's: `prediction` (the rule of sessions stored before it
     // existed) stops this smooth scene at a target its measured estimate does not reach yet.
     let run = |id: &str, estimate: &str| {
-        helmholtz_json(
+        crate::cli::helmholtz(
             &server,
-            dir.path(),
             &[
                 "simulate",
                 "--adaptive",

@@ -6,7 +6,8 @@ use std::process::Command;
 use helmholtz_sim::Target;
 use helmholtz_tests::{ServerProcess, binary, correlation, parse_npy};
 
-fn helmholtz(server: &ServerProcess, args: &[&str]) -> serde_json::Value {
+/// `helmholtz --server <server> --json <args>`: its JSON output (the command must succeed).
+pub(crate) fn helmholtz(server: &ServerProcess, args: &[&str]) -> serde_json::Value {
     let out = Command::new(binary("helmholtz"))
         .arg("--server")
         .arg(&server.base_url)
