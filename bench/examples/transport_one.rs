@@ -8,7 +8,9 @@
 //! prints where the full-light relit image's error lies (measured or unmeasured coefficients)
 //! and `q`, the share of the truth's energy the fit misses in the pairs a set twice as large
 //! would add (`BAND_TO=r`: as large as `r` pairs per projector pixel), and in all unmeasured
-//! ones (what an error estimate must predict).
+//! ones (what an error estimate must predict). `EXTRA=1` counts the stored coefficients where
+//! the exact `T` is zero (with their light and their size against their row's largest, by
+//! decade) and the exact `T`'s nonzeros not stored (identity transform: pixels of `T`).
 
 use std::time::Instant;
 
@@ -139,6 +141,41 @@ fn main() -> anyhow::Result<()> {
     );
     let seconds = start.elapsed().as_secs_f64();
     let est: Vec<f32> = (0..m).flat_map(|j| t.row(j)).collect();
+    let identity = t.transform() == helmholtz_recon::transforms::TransformKind::Identity;
+    if std::env::var_os("EXTRA").is_some() && !identity {
+        println!(
+            "EXTRA: T is stored in {:?}; the counts need the identity transform",
+            t.transform()
+        );
+    }
+    if std::env::var_os("EXTRA").is_some() && identity {
+        let kk = k as usize;
+        let mut hist = [0usize; 8];
+        let (mut extra, mut missing, mut extra_light, mut total_light) =
+            (0usize, 0usize, 0f64, 0f64);
+        for j in 0..m {
+            let (idx, val) = t.row_coefficients(j);
+            let tr = &truth[j * kk..(j + 1) * kk];
+            let mx = tr.iter().fold(0f32, |a, b| a.max(b.abs())).max(1e-30);
+            total_light += tr.iter().map(|v| *v as f64).sum::<f64>();
+            for (&i, &v) in idx.iter().zip(val) {
+                if tr[i as usize] == 0.0 {
+                    extra += 1;
+                    extra_light += v as f64;
+                    let r = (v.abs() / mx).log10().floor() as i32;
+                    hist[(-r).clamp(0, 7) as usize] += 1;
+                }
+            }
+            missing += tr
+                .iter()
+                .enumerate()
+                .filter(|(i, v)| **v != 0.0 && !idx.contains(&(*i as u32)))
+                .count();
+        }
+        println!(
+            "stored: extra {extra} (light {extra_light:.2e} of {total_light:.3e}), missing {missing}, extra by -log10(|v|/rowmax) {hist:?}"
+        );
+    }
     let total = |v: &[f32]| v.iter().map(|x| *x as f64).sum::<f64>();
     let lights: [(&str, Vec<f64>); 3] = [
         ("full", vec![1.0; m]),
