@@ -5,6 +5,9 @@
 //!
 //! `ONE_ALPHA=1` (with `direct,auto`, noise-free) also prints the PSNR of `direct + alpha u` for
 //! `u = auto - direct`, the fill-in of the coefficients no pair measured, and the oracle `alpha`.
+//! `ONE_AUDIT=r` (with `direct,auto`, noise-free) asks what random audit pairs would say: `r`
+//! times the pairs measured, drawn uniformly from the coefficients none measured (taken from the
+//! truth), estimate the zero-filled image's error and the `alpha` of `auto`'s fill-in.
 
 use std::time::Instant;
 
@@ -83,6 +86,89 @@ fn main() {
             println!(
                 "{}",
                 serde_json::to_string_pretty(&r.report.details).unwrap()
+            );
+        }
+    }
+    // Probe: audit coefficients. `ONE_AUDIT=r`: a share `r` of the pair budget drawn at random
+    // from the coefficients no pair measured (noise-free truth), as a planner could reserve
+    // them. From them alone: the zero-filled image's error (their mean energy times the count
+    // of unmeasured coefficients) and the scale `alpha` of `auto`'s fill-in they support,
+    // against the truth over all unmeasured coefficients.
+    if let Some(share) = std::env::var("ONE_AUDIT")
+        .ok()
+        .and_then(|v| v.parse::<f64>().ok())
+    {
+        use helmholtz_recon::linop::LinearOperator;
+        let get = |name: &str| {
+            images
+                .iter()
+                .find(|(m, _)| m == name)
+                .map(|(_, v)| v.clone())
+        };
+        let (planner, _) = recon::adaptive::replay(&spec, 1, &frames).expect("replays");
+        let k = (size * size) as usize;
+        let full: Box<dyn LinearOperator> = if haar {
+            Box::new(recon::ops::HaarSubsetOperator::new(size, (0..k).collect()))
+        } else {
+            Box::new(recon::ops::HadamardOperator::with_natural(
+                size,
+                size,
+                (0..k).collect(),
+            ))
+        };
+        let coef = |img: &[f32]| {
+            let x: Vec<f64> = img.iter().map(|&v| v as f64).collect();
+            let mut c = vec![0.0; k];
+            full.apply(&x, &mut c);
+            c
+        };
+        let mut measured = vec![false; k];
+        planner
+            .indices()
+            .iter()
+            .for_each(|&n| measured[n as usize] = true);
+        let unmeasured: Vec<usize> = (0..k).filter(|&n| !measured[n]).collect();
+        let t = coef(&truth);
+        let truth_energy: f64 = t.iter().map(|v| v * v).sum();
+        let true_u: f64 = unmeasured.iter().map(|&n| t[n] * t[n]).sum();
+        let audit_n = ((planner.indices().len() as f64 * share).round() as usize).max(1);
+        // A fixed pseudo-random draw of the unmeasured coefficients.
+        let mut order: Vec<(u64, usize)> = unmeasured
+            .iter()
+            .map(|&n| {
+                (
+                    (n as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15) ^ 0x5851_F42D,
+                    n,
+                )
+            })
+            .collect();
+        order.sort_unstable();
+        let audit: Vec<usize> = order.iter().take(audit_n).map(|p| p.1).collect();
+        let scale = unmeasured.len() as f64 / audit.len() as f64;
+        let est_u: f64 = audit.iter().map(|&n| t[n] * t[n]).sum::<f64>() * scale;
+        println!(
+            "audit {} of {} unmeasured: zero-filled error estimate {:.4}, true {:.4}, planner {:?}",
+            audit.len(),
+            unmeasured.len(),
+            (est_u / truth_energy).sqrt(),
+            (true_u / truth_energy).sqrt(),
+            planner.estimated_error()
+        );
+        if let (Some(d), Some(au)) = (get("direct"), get("auto")) {
+            let (cd, ca) = (coef(&d), coef(&au));
+            let alpha = |set: &[usize]| {
+                let (mut um, mut uu) = (0.0, 0.0);
+                for &n in set {
+                    let u = ca[n] - cd[n];
+                    um += u * (t[n] - cd[n]);
+                    uu += u * u;
+                }
+                um / uu
+            };
+            println!(
+                "alpha of auto's fill-in: audit {:.3}, all unmeasured {:.3}",
+                alpha(&audit),
+                alpha(&unmeasured)
             );
         }
     }
