@@ -89,6 +89,7 @@ fn main() {
             );
         }
     }
+    let get = |name: &str| images.iter().find(|(m, _)| m == name).map(|(_, v)| v);
     // Probe: audit coefficients. `ONE_AUDIT=r`: a share `r` of the pair budget drawn at random
     // from the coefficients no pair measured (noise-free truth), as a planner could reserve
     // them. From them alone: the zero-filled image's error (their mean energy times the count
@@ -99,12 +100,6 @@ fn main() {
         .and_then(|v| v.parse::<f64>().ok())
     {
         use helmholtz_recon::linop::LinearOperator;
-        let get = |name: &str| {
-            images
-                .iter()
-                .find(|(m, _)| m == name)
-                .map(|(_, v)| v.clone())
-        };
         let (planner, _) = recon::adaptive::replay(&spec, 1, &frames).expect("replays");
         let k = (size * size) as usize;
         let full: Box<dyn LinearOperator> = if haar {
@@ -155,7 +150,7 @@ fn main() {
             planner.estimated_error()
         );
         if let (Some(d), Some(au)) = (get("direct"), get("auto")) {
-            let (cd, ca) = (coef(&d), coef(&au));
+            let (cd, ca) = (coef(d), coef(au));
             let alpha = |set: &[usize]| {
                 let (mut um, mut uu) = (0.0, 0.0);
                 for &n in set {
@@ -174,24 +169,23 @@ fn main() {
     }
     // Probe: the fill-in `u = auto - direct` scaled by alpha (noise-free, `direct` holds the
     // measured coefficients exactly and `auto` the same plus its model's fill-in).
-    if std::env::var_os("ONE_ALPHA").is_some() {
-        let get = |name: &str| images.iter().find(|(m, _)| m == name).map(|(_, v)| v);
-        if let (Some(d), Some(au)) = (get("direct"), get("auto")) {
-            let u: Vec<f64> = au.iter().zip(d).map(|(a, b)| (*a - *b) as f64).collect();
-            let miss: Vec<f64> = truth.iter().zip(d).map(|(t, b)| (*t - *b) as f64).collect();
-            let uu: f64 = u.iter().map(|x| x * x).sum();
-            let um: f64 = u.iter().zip(&miss).map(|(x, y)| x * y).sum();
-            let best = um / uu;
-            let mut line = format!("oracle alpha {best:.3}:");
-            for alpha in [0.0, 0.25, 0.5, 0.75, 1.0, best] {
-                let img: Vec<f32> = d
-                    .iter()
-                    .zip(&u)
-                    .map(|(b, x)| ((*b as f64 + alpha * x).max(0.0)) as f32)
-                    .collect();
-                line += &format!(" {alpha:.2} -> {:.2} dB", metrics::psnr(&img, &truth));
-            }
-            println!("{line}");
+    if std::env::var_os("ONE_ALPHA").is_some()
+        && let (Some(d), Some(au)) = (get("direct"), get("auto"))
+    {
+        let u: Vec<f64> = au.iter().zip(d).map(|(a, b)| (*a - *b) as f64).collect();
+        let miss: Vec<f64> = truth.iter().zip(d).map(|(t, b)| (*t - *b) as f64).collect();
+        let uu: f64 = u.iter().map(|x| x * x).sum();
+        let um: f64 = u.iter().zip(&miss).map(|(x, y)| x * y).sum();
+        let best = um / uu;
+        let mut line = format!("oracle alpha {best:.3}:");
+        for alpha in [0.0, 0.25, 0.5, 0.75, 1.0, best] {
+            let img: Vec<f32> = d
+                .iter()
+                .zip(&u)
+                .map(|(b, x)| ((*b as f64 + alpha * x).max(0.0)) as f32)
+                .collect();
+            line += &format!(" {alpha:.2} -> {:.2} dB", metrics::psnr(&img, &truth));
         }
+        println!("{line}");
     }
 }
