@@ -132,11 +132,15 @@ const REFINE_GAP: f64 = 1.3;
 /// Daubechies-4 fit 2.5 deviations ahead of the flat image on 164 held-out rows was 6.8 dB
 /// worse than it against the truth).
 const NOISE_BAND: f64 = 3.0;
-/// The band of [`within_noise`] between neighbouring weights of one path: one standard
-/// deviation (the one-standard-error rule). Neighbours differ little, and a wide band there
-/// pushes moderately noisy data (Poisson, 1e4 photons) to needlessly heavy weights (measured:
-/// 0.6-1.6 dB lost on the photo with 3).
-const PATH_BAND: f64 = 1.0;
+/// The band of [`within_noise`] between neighbouring weights of one path: half a standard
+/// deviation (a narrower one-standard-error rule). Neighbours differ little, and a wide band
+/// there pushes noisy data to needlessly heavy weights. Measured: 3 lost 0.6-1.6 dB on the
+/// photo at 1e4 photons against 1; on 60 noisy problems (15 scenes, 10 of them images the
+/// project had never seen, x Bernoulli / Russian-doll Hadamard 10 % x 30 dB / Poisson 1e4;
+/// `bench/examples/one`), 1 against 0.5 lost 1.13 dB on a text page and 0.42 on a portrait
+/// (Poisson) and 0.09-0.10 on two more, 0.5 against 1 lost 0.14 dB on one (coins, Bernoulli,
+/// Poisson); 0 lost 1.80 dB on the coins at 30 dB (a noise pick).
+const PATH_BAND: f64 = 0.5;
 /// The smallest coarse grid side tried.
 const MIN_COARSE_SIDE: usize = 4;
 /// Above this held-out relative residual the rows explain under ~30 % of the held-out variance.
@@ -311,10 +315,11 @@ impl FillIn {
     }
 }
 
-/// The noise of each row of an adaptive session's orthonormal split-pair data: row `r`'s datum
+/// The noise of each row of orthonormal split-pair data: row `r`'s datum
 /// `(y+ - y-) / gains[r]` has the variance `noise.pair_variance / gains[r]^2`. Rows are
-/// weighed in groups of one `levels[r]` (the basis function's level, [`crate::adaptive::Basis::level`]):
-/// one noise level and, in a multiscale basis, coefficients of one typical size.
+/// weighed in groups of one `levels[r]` (`adaptive_haar`: the basis function's level,
+/// [`crate::adaptive::Basis::level`]; Walsh-Hadamard pairs: [`hadamard_groups`]): one noise
+/// level and coefficients of one typical size.
 #[derive(Clone, Debug)]
 pub struct RowNoise {
     pub gains: Vec<f64>,
@@ -322,10 +327,69 @@ pub struct RowNoise {
     pub noise: crate::noise::SupportNoise,
     /// The measured data as they are, when the model is fitted to [`RowNoise::denoised`] ones.
     pub measured: Option<Vec<f64>>,
+    /// A group whose James-Stein factor is below this is left out (factor 0):
+    /// [`MIN_GROUP_FACTOR`] for Haar pairs, [`WALSH_MIN_GROUP_FACTOR`] for Walsh-Hadamard pairs.
+    pub min_factor: f64,
 }
 
 impl RowNoise {
-    /// Row indices grouped by level, finest first.
+    /// Walsh-Hadamard split pairs (a Hadamard subset in any order, or `adaptive_hadamard`):
+    /// every pair lights half the grid, so every datum has the noise of the pair sums' estimate
+    /// (`scale = 1 / sqrt(k)`, the data's units); rows grouped by scale order
+    /// ([`hadamard_groups`]). `natural`: every row's natural (Sylvester) index.
+    pub fn walsh(
+        estimate: &crate::noise::NoiseEstimate,
+        scale: f64,
+        natural: &[usize],
+        size: (usize, usize),
+    ) -> Self {
+        RowNoise {
+            gains: vec![1.0 / scale; natural.len()],
+            levels: hadamard_groups(natural, size),
+            noise: crate::noise::SupportNoise::from_pair_estimate(estimate, scale),
+            measured: None,
+            min_factor: WALSH_MIN_GROUP_FACTOR,
+        }
+    }
+}
+
+/// Rows of Walsh-Hadamard coefficients (natural indices `natural` on a `size` grid) grouped for
+/// [`Consistency`]: the mean (index 0) alone, the others by scale order ([`hadamard_level`]:
+/// coefficients of one typical size), consecutive orders joined coarse to fine until a group
+/// has [`SHRINK_MIN_GROUP`] rows (a short last group joins the one before it), as
+/// [`ShrunkInverse`] groups them. Returns each row's group key: 0 for the mean, else the first
+/// order of its group.
+pub(crate) fn hadamard_groups(natural: &[usize], size: (usize, usize)) -> Vec<u32> {
+    let order: Vec<u32> = natural.iter().map(|&n| hadamard_level(n, size)).collect();
+    let mut rows: Vec<usize> = (0..natural.len()).filter(|&r| natural[r] != 0).collect();
+    rows.sort_by_key(|&r| order[r]);
+    let mut keys = vec![0; natural.len()];
+    for group in order_groups(&rows, &order) {
+        let first = order[group[0]];
+        group.iter().for_each(|&r| keys[r] = first);
+    }
+    keys
+}
+
+/// `rows`, sorted by `order`, in runs of one order joined coarse to fine until a group has
+/// [`SHRINK_MIN_GROUP`] rows; a short last group joins the one before it.
+fn order_groups(rows: &[usize], order: &[u32]) -> Vec<Vec<usize>> {
+    let mut groups: Vec<Vec<usize>> = Vec::new();
+    for run in rows.chunk_by(|&a, &c| order[a] == order[c]) {
+        match groups.last_mut() {
+            Some(last) if last.len() < SHRINK_MIN_GROUP => last.extend_from_slice(run),
+            _ => groups.push(run.to_vec()),
+        }
+    }
+    if groups.len() > 1 && groups.last().is_some_and(|g| g.len() < SHRINK_MIN_GROUP) {
+        let tail = groups.pop().expect("more than one");
+        groups.last_mut().expect("one left").extend(tail);
+    }
+    groups
+}
+
+impl RowNoise {
+    /// Row indices grouped by `levels`, in increasing order of it (Haar: finest level first).
     fn groups(&self) -> Vec<Vec<usize>> {
         let mut order: Vec<usize> = (0..self.levels.len()).collect();
         order.sort_by_key(|&r| self.levels[r]);
@@ -359,7 +423,7 @@ impl RowNoise {
             let energy: f64 = group.iter().map(|&r| b[r] * b[r]).sum();
             let v = self.group_variance(&group);
             let factor = if energy > 0.0 {
-                group_factor(group.len(), v, energy)
+                group_factor(group.len(), v, energy, self.min_factor)
             } else {
                 1.0
             };
@@ -380,23 +444,33 @@ const CONSISTENCY_NOISE_MARGIN: f64 = 2.0;
 /// shrinks towards, and a level whose data spread beyond the pooled noise estimate (measured on
 /// the 30 dB relief at 10 %: the `4 x 4` details' spread 29 % beyond it, though they can carry
 /// little light) turned a factor of 0.24 into a loss of 14 dB.
-const MIN_GROUP_FACTOR: f64 = 0.5;
+pub const MIN_GROUP_FACTOR: f64 = 0.5;
+/// [`MIN_GROUP_FACTOR`] for Walsh-Hadamard pairs. Every such pair lights half the grid, so one
+/// noise estimate (the pair sums') holds for every row, and a group's factor is not thrown by
+/// a support whose noise differs from the pooled one, as a Haar level's was. Measured
+/// (`bench/examples/one` with `ONE_GROUPS=1 ONE_JS_SIGMA=report`, 128x128, 10 % of a
+/// Russian-doll set, 15 scenes x 30 dB / Poisson 1e4): 0.5 kept the 30 dB coins image at
+/// 14.58 dB, 0.25 at 14.95, 0 at 15.15 (the step's input 13.23, the best TV weight 15.46), but 0
+/// lost 0.02-0.04 dB on three others (a finest group at a factor of 0.07-0.09 from noise alone);
+/// 0.25 lost nothing.
+pub const WALSH_MIN_GROUP_FACTOR: f64 = 0.25;
 
 /// The positive-part James-Stein factor of `n` data of noise variance `v` and energy `energy`
-/// about their shrinkage target, 0 below [`MIN_GROUP_FACTOR`].
-fn group_factor(n: usize, v: f64, energy: f64) -> f64 {
+/// about their shrinkage target, 0 below `min`.
+fn group_factor(n: usize, v: f64, energy: f64, min: f64) -> f64 {
     let f = if energy > 0.0 {
         (1.0 - n as f64 * v / energy).max(0.0)
     } else {
         0.0
     };
-    if f < MIN_GROUP_FACTOR { 0.0 } else { f }
+    if f < min { 0.0 } else { f }
 }
 
 /// The measured coefficients put back into `auto`'s image, by as much as their noise allows.
 ///
-/// An adaptive session (`adaptive_haar`, `adaptive_hadamard`) measures orthonormal coefficients
-/// `d = A t + noise` (`A A^T = I`) chosen for being large. `auto`'s model fills in the
+/// Split pairs (a Hadamard set in any order, `adaptive_haar`, `adaptive_hadamard`) measure
+/// orthonormal coefficients `d = A t + noise` (`A A^T = I`); an adaptive session chooses them
+/// for being large. `auto`'s model fills in the
 /// coefficients nobody measured, but its fit also shrinks the measured ones: noise-free, the
 /// refit of the relief at 25 % missed its own data by 16 % and lost 10 dB against the
 /// zero-filled inverse. Per level (one scale: one gain, one noise level), the measured
@@ -416,7 +490,9 @@ pub struct Consistency {
 
 #[derive(Clone, Debug, Serialize)]
 pub struct ConsistencyGroup {
-    /// The rows' level (their functions are determined by `2^level` blocks).
+    /// The rows' group: `adaptive_haar`, their level (their functions are determined by
+    /// `2^level` blocks); Walsh-Hadamard pairs, the group's first scale order `jx + jy` (0: the
+    /// mean alone) ([`hadamard_groups`]).
     pub level: u32,
     pub rows: usize,
     /// The factor the data were shrunk by before the fit ([`RowNoise::denoised`]; 1 when they
@@ -446,7 +522,7 @@ impl Consistency {
             let level = rows.levels[group[0]];
             let variance = rows.group_variance(&group);
             let miss: f64 = group.iter().map(|&r| (b[r] - m[r]).powi(2)).sum();
-            let factor = group_factor(group.len(), variance, miss);
+            let factor = group_factor(group.len(), variance, miss, rows.min_factor);
             for &r in &group {
                 correction[r] = factor * (b[r] - m[r]);
             }
@@ -1498,19 +1574,7 @@ impl ShrunkInverse {
         };
         let mut rows: Vec<usize> = (0..n).filter(|&r| !is_mean[r]).collect();
         rows.sort_by_key(|&r| order[r]);
-        // Consecutive orders, coarse to fine, until a group has enough coefficients; a short
-        // last group joins the one before it.
-        let mut groups: Vec<Vec<usize>> = Vec::new();
-        for run in rows.chunk_by(|&a, &c| order[a] == order[c]) {
-            match groups.last_mut() {
-                Some(last) if last.len() < SHRINK_MIN_GROUP => last.extend_from_slice(run),
-                _ => groups.push(run.to_vec()),
-            }
-        }
-        if groups.len() > 1 && groups.last().is_some_and(|g| g.len() < SHRINK_MIN_GROUP) {
-            let tail = groups.pop().expect("more than one");
-            groups.last_mut().expect("one left").extend(tail);
-        }
+        let groups = order_groups(&rows, &order);
         let mut shrunk = vec![0.0; n];
         let mut report = Vec::new();
         for group in &groups {
@@ -2478,13 +2542,13 @@ mod tests {
     }
 
     /// [`psnr_of`] with `params`.
-    fn psnr_with(
+    /// The image `method` with `params` reconstructs from `c`.
+    fn solve_image(
         spec: &PatternSpec,
         c: &[f64],
         method: &str,
         params: serde_json::Value,
-        truth: &[f32],
-    ) -> f64 {
+    ) -> Vec<f32> {
         let problem = Problem {
             spec,
             channels: 1,
@@ -2498,7 +2562,17 @@ mod tests {
             &Control::new(),
         )
         .unwrap();
-        let image = &r.images[0].data;
+        r.images.into_iter().next().expect("one channel").data
+    }
+
+    fn psnr_with(
+        spec: &PatternSpec,
+        c: &[f64],
+        method: &str,
+        params: serde_json::Value,
+        truth: &[f32],
+    ) -> f64 {
+        let image = &solve_image(spec, c, method, params);
         if method == "dgi" {
             let (a, b) = metrics::fit_affine(image, truth);
             let fitted: Vec<f32> = image.iter().map(|&v| (a * v as f64 + b) as f32).collect();
@@ -2706,6 +2780,84 @@ mod tests {
         let clean = buckets(&spec, &truth);
         let (noisy, _) = helmholtz_sim::simulate::apply_noise(&clean, 1, &noise);
         (spec, truth, noisy)
+    }
+
+    /// `auto` on a Russian-doll subset puts the measured coefficients back into its image
+    /// ([`Consistency`], grouped by scale order, [`hadamard_groups`]): noise-free the image
+    /// reproduces every measured coefficient (the model fills in only the rest): measured
+    /// 1.1e-8 of their norm off (f32 rounding), against 6.8e-5 before the step (the refit's
+    /// shrinkage).
+    #[test]
+    fn auto_on_a_hadamard_subset_reproduces_what_the_pairs_measured() {
+        use crate::linop::LinearOperator;
+        let n = 64u32;
+        let truth = scene("camera", n);
+        let spec = russian_doll(n, 2 * (n * n / 4) as u64);
+        let clean = buckets(&spec, &truth);
+        let r = auto(&spec, &clean, json!({}));
+        let groups = r.report.details["auto"][0]["consistency"]["groups"]
+            .as_array()
+            .cloned()
+            .unwrap_or_default();
+        assert!(!groups.is_empty(), "the consistency step ran");
+        let op = crate::ops::HadamardOperator::from_spec(&spec, spec.count()).unwrap();
+        let t: Vec<f64> = r.images[0].data.iter().map(|&v| v as f64).collect();
+        let exact: Vec<f64> = truth.iter().map(|&v| v as f64).collect();
+        let (mut fitted, mut measured) = (vec![0.0; op.rows()], vec![0.0; op.rows()]);
+        op.apply(&t, &mut fitted);
+        op.apply(&exact, &mut measured);
+        let miss = fitted
+            .iter()
+            .zip(&measured)
+            .map(|(a, b)| (a - b) * (a - b))
+            .sum::<f64>()
+            .sqrt()
+            / measured.iter().map(|b| b * b).sum::<f64>().sqrt();
+        println!("measured coefficients off by {miss:.2e}; groups {groups:?}");
+        assert!(miss < 1e-6, "measured coefficients off by {miss:.2e}");
+    }
+
+    /// Under noise the step puts back only what stands out of the noise, per group of scale
+    /// orders: from an image that a heavy TV weight has flattened (the photo from 10 % of its
+    /// pairs at 30 dB, TV at 0.5 `lambda_max`), part of the coarse orders' residual (the
+    /// contrast TV took) goes back and the fine orders, noise, stay out. Measured: 15.71 ->
+    /// 16.35 dB, factors 0.47 on orders 1-3 and 0.35 on order 5, 0 from order 6 on.
+    #[test]
+    fn the_consistency_step_restores_the_coarse_orders_a_heavy_weight_flattened() {
+        use super::{Consistency, RowNoise, WALSH_MIN_GROUP_FACTOR};
+        use crate::noise::from_pair_sums;
+        let (spec, truth, noisy) = noisy_tenth(
+            "camera",
+            helmholtz_sim::simulate::NoiseModel {
+                snr_db: Some(30.0),
+                seed: 5,
+                ..Default::default()
+            },
+        );
+        let heavy = solve_image(&spec, &noisy, "tv", json!({"lambda": 0.5}));
+        let op = crate::ops::HadamardOperator::from_spec(&spec, spec.count()).unwrap();
+        let pairs = op.split_pairs_channel(&noisy, 1, 0);
+        let scale = 1.0 / (spec.pixels() as f64).sqrt();
+        let estimate = from_pair_sums(&pairs.sums, scale, &pairs.data).expect("noise");
+        let size = (spec.width() as usize, spec.height() as usize);
+        let rows = RowNoise::walsh(&estimate, scale, op.natural_indices(), size);
+        let mut t: Vec<f64> = heavy.iter().map(|&v| v as f64).collect();
+        let step = Consistency::apply(&op, &pairs.data, &mut t, &rows);
+        let after: Vec<f32> = t.iter().map(|&v| v as f32).collect();
+        let (before, after) = (metrics::psnr(&heavy, &truth), metrics::psnr(&after, &truth));
+        let factors: Vec<(u32, usize, f64)> = step
+            .groups
+            .iter()
+            .map(|g| (g.level, g.rows, g.factor))
+            .collect();
+        println!("TV at 0.5: {before:.2} dB, after the step {after:.2} dB; groups {factors:?}");
+        assert!(after > before + 0.3, "{before:.2} -> {after:.2} dB");
+        // The coarsest orders go back in part; the finest, noise, do not.
+        assert!(factors[1].2 > WALSH_MIN_GROUP_FACTOR, "{factors:?}");
+        assert!(
+            factors.iter().rev().take(3).all(|g| g.2 == 0.0),
+            "{factors:?}"
+        );
     }
 
     /// Where no model beats the flat image on held-out Hadamard rows, the served image is the

@@ -107,6 +107,7 @@ impl<'a> Planned<'a> {
                             levels: levels.clone(),
                             noise,
                             measured: None,
+                            min_factor: auto::MIN_GROUP_FACTOR,
                         });
                 }
                 (PlannedOp::Haar(op), data, vec![None; channels])
@@ -130,28 +131,16 @@ impl<'a> Planned<'a> {
                     .iter()
                     .map(|p| noise::from_pair_sums(&p.sums, scale, &p.data))
                     .collect();
-                // adaptive_hadamard: every pair lights the whole grid, so the pair sums' noise
-                // estimate (drift-free) is every row's, for the consistency step
-                // ([`auto::Consistency`]). Rows are grouped by level (coefficients of one
-                // typical size). The data are fitted as measured: denoising them
-                // ([`auto::RowNoise::denoised`]) lost up to 9 dB under noise here.
-                if let Family::AdaptiveHadamard { .. } = spec.family() {
-                    let basis = crate::adaptive::Basis::Hadamard;
-                    let w = spec.width();
-                    let levels: Vec<u32> = op
-                        .natural_indices()
-                        .iter()
-                        .map(|&n| basis.level(w, n as u32))
-                        .collect();
-                    let gains = vec![(spec.pixels() as f64).sqrt(); levels.len()];
-                    for (slot, e) in row_noise.iter_mut().zip(&noise) {
-                        *slot = e.as_ref().map(|e| auto::RowNoise {
-                            gains: gains.clone(),
-                            levels: levels.clone(),
-                            noise: noise::SupportNoise::from_pair_estimate(e, scale),
-                            measured: None,
-                        });
-                    }
+                // Every pair lights half the grid, so the pair sums' noise estimate
+                // (drift-free) is every row's, for the consistency step
+                // ([`auto::Consistency`]). The data are fitted as measured: denoising them
+                // ([`auto::RowNoise::denoised`]) lost up to 9 dB under noise on
+                // `adaptive_hadamard`.
+                let size = (spec.width() as usize, spec.height() as usize);
+                for (slot, e) in row_noise.iter_mut().zip(&noise) {
+                    *slot = e
+                        .as_ref()
+                        .map(|e| auto::RowNoise::walsh(e, scale, op.natural_indices(), size));
                 }
                 let data = pairs.into_iter().map(|p| p.data).collect();
                 details.insert(
