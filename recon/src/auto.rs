@@ -44,6 +44,11 @@
 //!    ([`contrast`]: l1 and TV shrink, most at the heavy weights noisy data need), when the
 //!    gain is significant against the estimated noise, fits the fitted rows no worse, and pays
 //!    by more than one fitted parameter does by chance.
+//! 7. Split pairs (Hadamard sets in any order, the adaptive families): the measured
+//!    coefficients go back into the image by as much as their noise allows ([`Consistency`]:
+//!    per group of scales, the James-Stein factor of what the model missed; noise-free the image
+//!    reproduces every measured coefficient). A weight heavy enough for the noise of the fine
+//!    scales flattens the coarse ones, whose contrast this returns.
 //!
 //! Where the session's noise estimate says the noise dominates the buckets, more rows are held
 //! out ([`holdout::noisy_fraction`], chosen by the driver, `compressive`).
