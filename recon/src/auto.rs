@@ -337,27 +337,6 @@ pub struct RowNoise {
     pub min_factor: f64,
 }
 
-impl RowNoise {
-    /// Walsh-Hadamard split pairs (a Hadamard subset in any order, or `adaptive_hadamard`):
-    /// every pair lights half the grid, so every datum has the noise of the pair sums' estimate
-    /// (`scale = 1 / sqrt(k)`, the data's units); rows grouped by scale order
-    /// ([`hadamard_groups`]). `natural`: every row's natural (Sylvester) index.
-    pub fn walsh(
-        estimate: &crate::noise::NoiseEstimate,
-        scale: f64,
-        natural: &[usize],
-        size: (usize, usize),
-    ) -> Self {
-        RowNoise {
-            gains: vec![1.0 / scale; natural.len()],
-            levels: hadamard_groups(natural, size),
-            noise: crate::noise::SupportNoise::from_pair_estimate(estimate, scale),
-            measured: None,
-            min_factor: WALSH_MIN_GROUP_FACTOR,
-        }
-    }
-}
-
 /// Rows of Walsh-Hadamard coefficients (natural indices `natural` on a `size` grid) grouped for
 /// [`Consistency`]: the mean (index 0) alone, the others by scale order ([`hadamard_level`]:
 /// coefficients of one typical size), consecutive orders joined coarse to fine until a group
@@ -394,6 +373,25 @@ fn order_groups(rows: &[usize], order: &[u32]) -> Vec<Vec<usize>> {
 }
 
 impl RowNoise {
+    /// Walsh-Hadamard split pairs (a Hadamard subset in any order, or `adaptive_hadamard`):
+    /// every pair lights half the grid, so every datum has the noise of the pair sums' estimate
+    /// (`scale = 1 / sqrt(k)`, the data's units); rows grouped by scale order
+    /// ([`hadamard_groups`]). `natural`: every row's natural (Sylvester) index.
+    pub fn walsh(
+        estimate: &crate::noise::NoiseEstimate,
+        scale: f64,
+        natural: &[usize],
+        size: (usize, usize),
+    ) -> Self {
+        RowNoise {
+            gains: vec![1.0 / scale; natural.len()],
+            levels: hadamard_groups(natural, size),
+            noise: crate::noise::SupportNoise::from_pair_estimate(estimate, scale),
+            measured: None,
+            min_factor: WALSH_MIN_GROUP_FACTOR,
+        }
+    }
+
     /// Row indices grouped by `levels`, in increasing order of it (Haar: finest level first).
     fn groups(&self) -> Vec<Vec<usize>> {
         let mut order: Vec<usize> = (0..self.levels.len()).collect();
@@ -2546,7 +2544,6 @@ mod tests {
         psnr_with(spec, c, method, json!({}), truth)
     }
 
-    /// [`psnr_of`] with `params`.
     /// The image `method` with `params` reconstructs from `c`.
     fn solve_image(
         spec: &PatternSpec,
@@ -2570,6 +2567,7 @@ mod tests {
         r.images.into_iter().next().expect("one channel").data
     }
 
+    /// [`psnr_of`] with `params`.
     fn psnr_with(
         spec: &PatternSpec,
         c: &[f64],
