@@ -144,7 +144,11 @@ const NOISE_BAND: f64 = 3.0;
 /// project had never seen, x Bernoulli / Russian-doll Hadamard 10 % x 30 dB / Poisson 1e4;
 /// `bench/examples/one`), 1 against 0.5 lost 1.13 dB on a text page and 0.42 on a portrait
 /// (Poisson) and 0.09-0.10 on two more, 0.5 against 1 lost 0.14 dB on one (coins, Bernoulli,
-/// Poisson); 0 lost 1.80 dB on the coins at 30 dB (a noise pick).
+/// Poisson); 0 lost 1.80 dB on the coins at 30 dB (a noise pick). Under the adaptive bench's
+/// read noise (128x128) 0.5 gained 1.68 and 0.83 dB on the photo from Russian-doll pairs and
+/// 1.71 on the shapes from Bernoulli rows, and lost 0.86 dB on the shapes from
+/// `adaptive_hadamard` pairs, 0.37 from Russian-doll pairs, 0.02-0.10 on three text sessions
+/// (docs/benchmark-notes.md, "Ten images the project had never seen").
 const PATH_BAND: f64 = 0.5;
 /// The smallest coarse grid side tried.
 const MIN_COARSE_SIDE: usize = 4;
