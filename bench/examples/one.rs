@@ -150,17 +150,7 @@ fn groups(
     let (mut pi, mut pt) = (vec![0.0; op.rows()], vec![0.0; op.rows()]);
     op.apply(&to64(img), &mut pi);
     op.apply(&to64(truth), &mut pt);
-    let level = |n: usize| {
-        let (u, v) = (n / w, n % w);
-        let l = |bits: usize, side: usize| {
-            if bits == 0 {
-                0
-            } else {
-                (side >> bits.trailing_zeros()).trailing_zeros()
-            }
-        };
-        l(v, w) + l(u, h)
-    };
+    let level = |n: usize| helmholtz_recon::auto::hadamard_level(n, (w, h));
     let mut g = std::collections::BTreeMap::<u32, [f64; 5]>::new();
     for (i, &n) in op.natural_indices().iter().enumerate() {
         let e = g.entry(level(n)).or_default();

@@ -2050,7 +2050,7 @@ const LEVEL_MIN_COEFFICIENTS: usize = 8;
 /// low-order part, with more energy than the rest.
 ///
 /// [`HadamardOperator::finest_resolution`]: super::ops::HadamardOperator::finest_resolution
-pub(crate) fn hadamard_level(n: usize, (w, h): (usize, usize)) -> u32 {
+pub fn hadamard_level(n: usize, (w, h): (usize, usize)) -> u32 {
     let (u, v) = (n / w, n % w);
     let level = |bits: usize, side: usize| {
         if bits == 0 {
