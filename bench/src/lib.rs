@@ -82,21 +82,22 @@ struct Args {
     /// family's own (adaptive_haar 0.5, adaptive_hadamard 0).
     #[arg(long)]
     persistence: Option<f64>,
-    /// noisy, adaptive: scenes (comma-separated; built-in names or PNG paths; adaptive also
-    /// takes "relief").
+    /// noisy, adaptive, compare: scenes (comma-separated; built-in names or PNG paths; adaptive
+    /// also takes "relief"). compare: issue 20's noisy problems on these scenes (with
+    /// --families, --noises, --size, --ratio) instead of the built-in problems.
     #[arg(long, value_delimiter = ',')]
     scenes: Option<Vec<String>>,
-    /// noisy: pattern families (bernoulli, hadamard).
+    /// noisy, compare with --scenes: pattern families (bernoulli, hadamard).
     #[arg(long, value_delimiter = ',', default_value = "bernoulli,hadamard", value_parser = ["bernoulli", "hadamard"])]
     families: Vec<String>,
-    /// noisy: noise conventions (snr30: Gaussian at 30 dB of the total bucket power; poisson:
+    /// noisy, compare with --scenes: noise conventions (snr30: Gaussian at 30 dB of the total bucket power; poisson:
     /// 1e4 photons per pattern; none).
     #[arg(long, value_delimiter = ',', default_value = "snr30,poisson", value_parser = ["none", "snr30", "poisson"])]
     noises: Vec<String>,
-    /// noisy: image side (Hadamard needs a power of two).
+    /// noisy, compare with --scenes: image side (Hadamard needs a power of two).
     #[arg(long, default_value_t = 128)]
     size: u32,
-    /// noisy: measurements / pixels (Hadamard: split pairs / pixels).
+    /// noisy, compare with --scenes: measurements / pixels (Hadamard: split pairs / pixels).
     #[arg(long, default_value_t = 0.1)]
     ratio: f64,
     /// noisy: skip the oracle's weight sweeps.
@@ -145,7 +146,30 @@ impl Measurement {
 
 pub fn main() {
     let args = Args::parse();
+    let noises: Vec<Noise> = args
+        .noises
+        .iter()
+        .map(|n| match n.as_str() {
+            "snr30" => Noise::Snr30,
+            "poisson" => Noise::Poisson,
+            _ => Noise::None,
+        })
+        .collect();
     if args.preset == "compare" {
+        let (scene_problems, scene_args) = match &args.scenes {
+            Some(scenes) => (
+                compare::scene_problems(scenes, &args.families, &noises, args.size, args.ratio),
+                format!(
+                    " --scenes {} --families {} --noises {} --size {} --ratio {}",
+                    scenes.join(","),
+                    args.families.join(","),
+                    args.noises.join(","),
+                    args.size,
+                    args.ratio
+                ),
+            ),
+            None => (Vec::new(), String::new()),
+        };
         let opts = compare::Options {
             out: args.out.clone(),
             work: args.work_dir.clone(),
@@ -153,6 +177,8 @@ pub fn main() {
             repeat: args.repeat,
             only_ours: args.only_ours,
             problems: args.problems.clone(),
+            scene_problems,
+            scene_args,
         };
         if let Err(e) = compare::run(&opts) {
             eprintln!("helmholtz-bench: {e:#}");
@@ -172,15 +198,7 @@ pub fn main() {
                 .clone()
                 .unwrap_or_else(noisy::Options::default_scenes),
             families: args.families.clone(),
-            noises: args
-                .noises
-                .iter()
-                .map(|n| match n.as_str() {
-                    "snr30" => Noise::Snr30,
-                    "poisson" => Noise::Poisson,
-                    _ => Noise::None,
-                })
-                .collect(),
+            noises: noises.clone(),
             size: args.size,
             ratio: args.ratio,
             oracle: !args.no_oracle,
