@@ -90,8 +90,8 @@ struct Args {
     /// noisy, compare with --scenes: pattern families (bernoulli, hadamard).
     #[arg(long, value_delimiter = ',', default_value = "bernoulli,hadamard", value_parser = ["bernoulli", "hadamard"])]
     families: Vec<String>,
-    /// noisy, compare with --scenes: noise conventions (snr30: Gaussian at 30 dB of the total bucket power; poisson:
-    /// 1e4 photons per pattern; none).
+    /// noisy, compare with --scenes: noise conventions (snr30: Gaussian at 30 dB of the total
+    /// bucket power; poisson: 1e4 photons per pattern; none).
     #[arg(long, value_delimiter = ',', default_value = "snr30,poisson", value_parser = ["none", "snr30", "poisson"])]
     noises: Vec<String>,
     /// noisy, compare with --scenes: image side (Hadamard needs a power of two).

@@ -353,7 +353,6 @@ fn fista_core(
     // rule stopped the point there (measured: noise-free 10 % Hadamard pairs of the smooth
     // scene, TV points from f = 0.003 on stopped after 4 iterations, 2.4 dB lost).
     let mut warm_dual = opts.warm_dual.as_deref();
-    let mut fell_back = false;
     let mut accepted = 0usize;
     let mut scratch = Vec::new();
     let resid = |ax: &[f64], r: &mut [f64]| {
@@ -463,20 +462,11 @@ fn fista_core(
             }
             // A plain proximal-gradient step did not decrease F: exact arithmetic forbids this,
             // so we are at working precision, or the inexact prox needs to be tighter.
-            // A cold first step (from the cold start: neither a warm start nor its dual) gets
-            // two more tightenings:
-            // from a zero dual at a heavy weight the prox needs far more inner iterations than
-            // the cap allows (measured: 30 dB Bernoulli buckets of a 128x128 photo, TV at 0.4
-            // `lambda_max` from the flat image: gaps 92, 16, 4.0, 1.1 at caps 5 to 320, every
-            // step rejected, the solve stalled on the flat image, 12.82 dB, objective 8.4610e6;
-            // the minimum is 8.406e6, 13.7 dB).
-            // A warm start (a path's next point, a refit, a Bregman step) is near its minimum,
-            // and there the extra calls only confirm a stall (measured: `auto`'s Bregman step on
-            // 10 % Hadamard pairs of the text page, 0.05 -> 0.36 s, the same image).
+            // The first step from the cold start (neither a warm start nor its dual given)
+            // may tighten further ([`COLD_FIRST_TIGHTENINGS`]).
             let cold_first = accepted == 0
                 && opts.warm_start.is_none()
-                && warm_dual.is_none()
-                && !fell_back
+                && opts.warm_dual.is_none()
                 && tightened < COLD_FIRST_TIGHTENINGS
                 && lambda < heaviest_useful(a, b, w, reg, opts);
             if prox.inexact() && (tightened < 3 || cold_first) {
@@ -498,7 +488,6 @@ fn fista_core(
                 && lambda < heaviest_useful(a, b, w, reg, opts)
             {
                 prox.start_dual(dual, 1.0 / lip);
-                fell_back = true;
                 tightened = 1;
                 retry = true;
                 history.record(it, fx);
@@ -603,7 +592,14 @@ fn fista_core(
 
 /// Tightenings of the prox (each 4x the inner-iteration cap: up to 5,120 for TV) the first
 /// step from the cold start may take before the solve is called stalled; other steps take 3
-/// (the usual end at working precision, where more would only cost).
+/// (the usual end at working precision, where more would only cost). From a zero dual at a
+/// heavy weight the prox needs far more inner iterations than the usual caps allow (measured:
+/// 30 dB Bernoulli buckets of a 128x128 photo, TV at 0.4 `lambda_max` from the flat image: gaps
+/// 92, 16, 4.0, 1.1 at caps 5 to 320, every step rejected, the solve stalled on the flat image,
+/// 12.82 dB, objective 8.4610e6; with these two, 13.69 dB and 8.4066e6, the primal-dual's
+/// minimum). A warm start (a path's next point, a refit, a Bregman step) lies near its minimum,
+/// where the extra calls only confirmed stalls (`auto`'s Bregman step on 10 % Hadamard pairs of
+/// the text page: 0.05 -> 0.36 s, the same image), so it keeps 3.
 const COLD_FIRST_TIGHTENINGS: usize = 5;
 
 /// The weight at and above which the solution is the flat image (TV) or the empty model (l1,
