@@ -301,6 +301,7 @@ fn fit_fixed(
             let o = SolveOptions {
                 lambda: Lambda::Relative(*lambda),
                 max_iter: *max_iter,
+                accelerated_prox: true,
                 ..opts
             };
             fit_model(Model::Tv, size, op, b, fit.noise, &o, control)
@@ -452,6 +453,7 @@ pub fn run(
                 let opts = SolveOptions {
                     progress: (mid, span.1),
                     warm_start: Some(first.t),
+                    warm_dual: first.dual,
                     ..SolveOptions::default()
                 };
                 let sol = fit_fixed(config, size, op_fit.as_ref(), &b_fit, opts, control)?;

@@ -19,8 +19,9 @@
 //!   `MAX_INNER` iterations for TV, `MAX_INNER_ORTHO` in a transform (4x more after each
 //!   step the inexact prox failed, see [`Prox::tighten`]; when no step from a warm start
 //!   succeeds, once more from the dual that ended the warm start's solve,
-//!   [`SolveOptions::warm_dual`]). With `Psi = I` the prox is exact
-//!   and closed-form: `max(v - gamma, 0)`.
+//!   [`SolveOptions::warm_dual`]; with [`SolveOptions::accelerated_prox`] the calls at a raised
+//!   cap run the accelerated dual iteration, FGP, which the heavy weights need). With `Psi = I`
+//!   the prox is exact and closed-form: `max(v - gamma, 0)`.
 //! * Step size: `L` starts at the power-iteration estimate of `||W^1/2 A||^2` (or the given
 //!   one) and backtracks (Beck-Teboulle, `L <- 1.2 max(L, Rayleigh quotient)`) whenever the
 //!   quadratic upper bound fails. For a quadratic data term the test is exact and needs no extra
@@ -348,6 +349,7 @@ fn fista_core(
     let mut r = vec![0.0; n];
     let mut ay = ax.clone();
     let mut prox = Prox::new(reg, opts.nonnegative, k);
+    prox.accelerated = opts.accelerated_prox;
     // The warm dual is the fallback of a first step that fails (below): started from it
     // always, the first steps of a point next to its neighbour are tiny and the relative-change
     // rule stopped the point there (measured: noise-free 10 % Hadamard pairs of the smooth
