@@ -82,7 +82,7 @@ fn main() {
             img.iter().copied().fold(f32::NEG_INFINITY, f32::max)
         );
         images.push((method.to_string(), img.clone()));
-        if std::env::var_os("ONE_REPORT").is_some() {
+        if helmholtz_bench::env_flag("ONE_REPORT") {
             println!(
                 "{}",
                 serde_json::to_string_pretty(&r.report.details).unwrap()
@@ -169,7 +169,7 @@ fn main() {
     }
     // Probe: the fill-in `u = auto - direct` scaled by alpha (noise-free, `direct` holds the
     // measured coefficients exactly and `auto` the same plus its model's fill-in).
-    if std::env::var_os("ONE_ALPHA").is_some()
+    if helmholtz_bench::env_flag("ONE_ALPHA")
         && let (Some(d), Some(au)) = (get("direct"), get("auto"))
     {
         let u: Vec<f64> = au.iter().zip(d).map(|(a, b)| (*a - *b) as f64).collect();

@@ -109,7 +109,7 @@ fn main() {
                 .fold(h, |h, &b| (h ^ b as u64).wrapping_mul(0x0100_0000_01b3))
         });
         println!("image bits fnv1a {hash:016x}");
-        if std::env::var_os("ONE_GROUPS").is_some() {
+        if helmholtz_bench::env_flag("ONE_GROUPS") {
             // ONE_JS_SIGMA=report: the report's noise estimate, two standard errors high.
             let reported = serde_json::to_value(&r.report.details).ok().and_then(|v| {
                 let n = &v["auto"][0]["noise_estimate"];
@@ -117,7 +117,7 @@ fn main() {
             });
             groups(&spec, &sim.values, img, &truth, reported);
         }
-        if std::env::var_os("ONE_REPORT").is_some() {
+        if helmholtz_bench::env_flag("ONE_REPORT") {
             let mut v = serde_json::to_value(&r.report.details).unwrap_or_default();
             strip(&mut v);
             println!("{}", serde_json::to_string_pretty(&v).unwrap_or_default());
@@ -174,7 +174,7 @@ fn groups(
             .ok()
             .and_then(|v| v.parse().ok())
             .unwrap_or(0.0);
-        let by_level = std::env::var_os("ONE_JS_LEVEL").is_some();
+        let by_level = helmholtz_bench::env_flag("ONE_JS_LEVEL");
         let rd = |n: usize| {
             let (u, v) = (n / w, n % w);
             let tz = |a: usize| {
@@ -191,7 +191,7 @@ fn groups(
             .iter()
             .map(|&n| if by_level { 20 - rd(n) } else { level(n) })
             .collect();
-        let dc_too = std::env::var_os("ONE_JS_DC").is_some();
+        let dc_too = helmholtz_bench::env_flag("ONE_JS_DC");
         let mut rows: Vec<usize> = (0..op.rows())
             .filter(|&r| op.natural_indices()[r] != 0)
             .collect();

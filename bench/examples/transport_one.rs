@@ -142,13 +142,13 @@ fn main() -> anyhow::Result<()> {
     let seconds = start.elapsed().as_secs_f64();
     let est: Vec<f32> = (0..m).flat_map(|j| t.row(j)).collect();
     let identity = t.transform() == helmholtz_recon::transforms::TransformKind::Identity;
-    if std::env::var_os("EXTRA").is_some() && !identity {
+    if helmholtz_bench::env_flag("EXTRA") && !identity {
         println!(
             "EXTRA: T is stored in {:?}; the counts need the identity transform",
             t.transform()
         );
     }
-    if std::env::var_os("EXTRA").is_some() && identity {
+    if helmholtz_bench::env_flag("EXTRA") && identity {
         let kk = k as usize;
         let mut hist = [0usize; 8];
         let (mut extra, mut missing, mut extra_light, mut total_light) =
@@ -427,7 +427,7 @@ fn main() -> anyhow::Result<()> {
             println!("{line}");
         }
     }
-    if std::env::var_os("TRANSPORT_REPORT").is_some() {
+    if helmholtz_bench::env_flag("TRANSPORT_REPORT") {
         println!("{}", serde_json::to_string_pretty(&report.details)?);
     }
     Ok(())

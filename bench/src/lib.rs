@@ -424,6 +424,17 @@ fn without_histories(v: serde_json::Value) -> serde_json::Value {
 }
 
 /// Frames for a sampling ratio: Bernoulli/speckle count patterns, Hadamard counts P+/P- pairs.
+/// Whether the probes' environment switch `name` (`ONE_REPORT`, `TRANSPORT_REPORT`, ...) is on:
+/// set to anything but empty, `0`, `false` or `no`.
+pub fn env_flag(name: &str) -> bool {
+    flag_is_on(std::env::var(name).ok().as_deref())
+}
+
+/// [`env_flag`] on the variable's value (`None`: unset).
+fn flag_is_on(value: Option<&str>) -> bool {
+    value.is_some_and(|v| !matches!(v.trim(), "" | "0" | "false" | "no"))
+}
+
 pub fn frames_for(family: &Family, k: usize, ratio: f64) -> u64 {
     let rows = ((ratio * k as f64).round() as u64).clamp(1, k as u64);
     match family {

@@ -82,3 +82,18 @@ fn noisy_preset_runs_and_reports_against_the_targets_and_the_truth() {
     .unwrap();
     assert_eq!(json["problems"].as_array().unwrap().len(), 1);
 }
+
+#[test]
+fn env_flags_are_off_when_unset_empty_or_zero() {
+    assert!(!crate::flag_is_on(None));
+    for (value, on) in [
+        ("", false),
+        ("0", false),
+        ("no", false),
+        ("false", false),
+        ("1", true),
+        ("yes", true),
+    ] {
+        assert_eq!(crate::flag_is_on(Some(value)), on, "{value:?}");
+    }
+}
