@@ -1301,16 +1301,7 @@ fn poisson_irls_ignores_a_deflation_decision_made_for_other_weights() {
 fn tv_fista_leaves_the_flat_start_at_a_heavy_weight_on_noisy_rows() {
     let side = 64;
     let k = side * side;
-    let n = k / 10;
-    let scene = helmholtz_sim::Target::builtin("camera", side as u32, side as u32).unwrap();
-    let x0: Vec<f64> = scene.pixels.iter().map(|&v| v as f64).collect();
-    let a = FastBinary::new(n, k, 5);
-    let mut b = measure(&a, &x0);
-    // Read noise at 30 dB of the total bucket power (most of it the common mode).
-    let power = (b.iter().map(|v| v * v).sum::<f64>() / n as f64).sqrt();
-    let mut rng = Rng::new(11);
-    b.iter_mut()
-        .for_each(|v| *v += 10f64.powf(-1.5) * power * rng.normal());
+    let (a, b, x0) = noisy_camera_rows(side);
     let control = Control::new();
     let grid = Grid::new(side, side);
     let flat = psnr64(&vec![mean_of(&x0); k], &x0);
@@ -1347,6 +1338,23 @@ fn tv_fista_leaves_the_flat_start_at_a_heavy_weight_on_noisy_rows() {
     }
 }
 
+/// The camera scene on a `side x side` grid (a power of two) measured by 10 % fast 0/1 rows, with
+/// read noise at 30 dB of the total bucket power (most of it the common mode):
+/// `(rows, buckets, truth)`.
+fn noisy_camera_rows(side: usize) -> (FastBinary, Vec<f64>, Vec<f64>) {
+    let k = side * side;
+    let n = k / 10;
+    let scene = helmholtz_sim::Target::builtin("camera", side as u32, side as u32).unwrap();
+    let x0: Vec<f64> = scene.pixels.iter().map(|&v| v as f64).collect();
+    let a = FastBinary::new(n, k, 5);
+    let mut b = measure(&a, &x0);
+    let power = (b.iter().map(|v| v * v).sum::<f64>() / n as f64).sqrt();
+    let mut rng = Rng::new(11);
+    b.iter_mut()
+        .for_each(|v| *v += 10f64.powf(-1.5) * power * rng.normal());
+    (a, b, x0)
+}
+
 fn mean_of(t: &[f64]) -> f64 {
     t.iter().sum::<f64>() / t.len() as f64
 }
@@ -1361,17 +1369,8 @@ fn mean_of(t: &[f64]) -> f64 {
 #[test]
 fn tv_fista_warm_started_at_heavy_weights_reaches_the_minimum_with_the_accelerated_prox() {
     let side = 128;
-    let k = side * side;
-    let n = k / 10;
-    let scene = helmholtz_sim::Target::builtin("camera", side as u32, side as u32).unwrap();
-    let x0: Vec<f64> = scene.pixels.iter().map(|&v| v as f64).collect();
-    let a = FastBinary::new(n, k, 5);
-    let mut b = measure(&a, &x0);
-    // Read noise at 30 dB of the total bucket power (most of it the common mode).
-    let power = (b.iter().map(|v| v * v).sum::<f64>() / n as f64).sqrt();
-    let mut rng = Rng::new(11);
-    b.iter_mut()
-        .for_each(|v| *v += 10f64.powf(-1.5) * power * rng.normal());
+    let (a, b, x0) = noisy_camera_rows(side);
+    let n = a.rows();
     let control = Control::new();
     let grid = Grid::new(side, side);
     let m = n * 9 / 10;
