@@ -11,6 +11,12 @@
 //! ones (what an error estimate must predict). `EXTRA=1` counts the stored coefficients where
 //! the exact `T` is zero (with their light and their size against their row's largest, by
 //! decade) and the exact `T`'s nonzeros not stored (identity transform: pixels of `T`).
+//! Where the error lies and what could estimate it: `ORDERS=1` (Hadamard) splits the full relit
+//! image's error and the truth's energy by scale order, measured and unmeasured coefficients;
+//! `ROWERR=1` lists the rows carrying most of T's error; `POLYTOPE=n` measures every row's
+//! distance to the nearest nonnegative row the measured pairs cannot tell from it (n Dykstra
+//! iterations) and the full relight of those distances; `SECOND=params` reconstructs the session
+//! again with other params and compares the two T.
 
 use std::time::Instant;
 
@@ -141,6 +147,35 @@ fn main() -> anyhow::Result<()> {
     );
     let seconds = start.elapsed().as_secs_f64();
     let est: Vec<f32> = (0..m).flat_map(|j| t.row(j)).collect();
+    // SECOND=params: the session reconstructed again with other params; the full relight of
+    // the difference between the two T, against the first's true relight error.
+    if let Ok(second) = std::env::var("SECOND") {
+        let config2 = TransportConfig::parse(&serde_json::from_str(&second)?)?;
+        let model2 = plan_transport(&spec, grid, count, &config2, &mut source, &control)?;
+        let part2 = solve_transport_blocks(
+            &spec,
+            &model2,
+            0..model2.blocks.len(),
+            &mut source,
+            &control,
+        )?;
+        let (t2, _) = assemble_transport(&model2, std::slice::from_ref(&part2))?;
+        let est2: Vec<f32> = (0..m).flat_map(|j| t2.row(j)).collect();
+        let ones = vec![1.0f32; m];
+        let (r1, r2) = (t.relight(&ones), t2.relight(&ones));
+        let want: Vec<f32> = view
+            .relight(&vec![1.0; m])
+            .into_iter()
+            .map(|v| v as f32)
+            .collect();
+        println!(
+            "second {second}: relight difference {:.4} (first's error {:.4}, second's {:.4}); rows difference {:.4}",
+            relative_error(&r2, &r1),
+            relative_error(&r1, &want),
+            relative_error(&r2, &want),
+            relative_error(&est2, &est),
+        );
+    }
     let identity = t.transform() == helmholtz_recon::transforms::TransformKind::Identity;
     if helmholtz_bench::env_flag("EXTRA") && !identity {
         println!(
@@ -253,10 +288,11 @@ fn main() -> anyhow::Result<()> {
     );
     for key in ["relight_error_estimate", "error_estimate"] {
         if let Some(e) = report.details.get(key) {
-            println!(
-                "{key}: relative {} range {} upper {} resolved {} noise {} from {}",
-                e["relative"], e["range"], e["upper"], e["resolved"], e["noise"], e["held_out"]
-            );
+            let mut e = e.clone();
+            if let Some(o) = e.as_object_mut() {
+                o.remove("basis");
+            }
+            println!("{key}: {e}");
         }
     }
     // A Hadamard subset: the share of the full-light relit image's energy in the coefficients
@@ -297,6 +333,38 @@ fn main() -> anyhow::Result<()> {
         let n2: f64 = truth_relit.iter().map(|v| v * v).sum();
         let mut co = vec![0.0; k as usize];
         full.apply(&diff, &mut co);
+        // ORDERS=1: per scale order, the full relit image's error and the truth's energy in
+        // its unmeasured and measured coefficients, relative to the truth's squared norm.
+        if helmholtz_bench::env_flag("ORDERS") {
+            let mut tco = vec![0.0; k as usize];
+            full.apply(&truth_relit, &mut tco);
+            let pp = p as usize;
+            let top = helmholtz_recon::auto::hadamard_level(k as usize - 1, (pp, pp)) as usize;
+            for o in 0..=top {
+                let (mut eu, mut tu, mut em, mut tm, mut nu, mut nm) = (0.0, 0.0, 0.0, 0.0, 0, 0);
+                for n in 0..k as usize {
+                    if helmholtz_recon::auto::hadamard_level(n, (pp, pp)) as usize != o {
+                        continue;
+                    }
+                    if measured[n] {
+                        em += co[n] * co[n];
+                        tm += tco[n] * tco[n];
+                        nm += 1;
+                    } else {
+                        eu += co[n] * co[n];
+                        tu += tco[n] * tco[n];
+                        nu += 1;
+                    }
+                }
+                println!(
+                    "order {o}: measured {nm} (error {:.2e}, truth {:.2e}), unmeasured {nu} (error {:.2e}, truth {:.2e})",
+                    em / n2,
+                    tm / n2,
+                    eu / n2,
+                    tu / n2
+                );
+            }
+        }
         let err_un: f64 = co
             .iter()
             .zip(&measured)
@@ -372,6 +440,101 @@ fn main() -> anyhow::Result<()> {
                 split(&truth_relit, &band) / n2,
                 tb / truth.iter().map(|&v| (v as f64).powi(2)).sum::<f64>(),
             );
+        }
+    }
+    // POLYTOPE=n: every row's nearest nonnegative row that the measured pairs cannot tell from
+    // it (Dykstra, n iterations, from the zero-filled part), and the full relight of the
+    // difference against the true relight error.
+    if let Ok(iters) = std::env::var("POLYTOPE") {
+        use helmholtz_recon::linop::LinearOperator;
+        let iters: usize = iters.parse()?;
+        let op = helmholtz_recon::ops::HadamardOperator::from_spec(&spec, count)?;
+        let kk = k as usize;
+        let mr = op.rows();
+        let mut diff = vec![0.0f64; kk];
+        let mut diff_truth = vec![0.0f64; kk];
+        let (mut e2rows, mut t2rows, mut c2rows) = (0.0, 0.0, 0.0);
+        let tp = Instant::now();
+        let (mut d, mut r, mut back) = (vec![0.0; mr], vec![0.0; mr], vec![0.0; kk]);
+        for j in 0..m {
+            let row: Vec<f64> = est[j * kk..(j + 1) * kk]
+                .iter()
+                .map(|&v| v as f64)
+                .collect();
+            op.apply(&row, &mut d);
+            let mut x = vec![0.0; kk];
+            op.adjoint(&d, &mut x);
+            let (mut pp, mut q, mut y) = (vec![0.0; kk], vec![0.0; kk], vec![0.0; kk]);
+            for _ in 0..iters {
+                for i in 0..kk {
+                    let z = x[i] + pp[i];
+                    y[i] = z.max(0.0);
+                    pp[i] = z - y[i];
+                }
+                let yq: Vec<f64> = y.iter().zip(&q).map(|(a, b)| a + b).collect();
+                op.apply(&yq, &mut r);
+                r.iter_mut().zip(&d).for_each(|(a, b)| *a = b - *a);
+                op.adjoint(&r, &mut back);
+                for i in 0..kk {
+                    let nx = yq[i] + back[i];
+                    q[i] = yq[i] - nx;
+                    x[i] = nx;
+                }
+            }
+            for i in 0..kk {
+                diff[i] += row[i] - y[i];
+                diff_truth[i] += truth[j * kk + i] as f64 - y[i];
+                e2rows += (row[i] - y[i]).powi(2);
+                c2rows += (truth[j * kk + i] as f64 - y[i]).powi(2);
+                t2rows += (truth[j * kk + i] as f64).powi(2);
+            }
+        }
+        let relit_truth = view.relight(&vec![1.0; m]);
+        let n2: f64 = relit_truth.iter().map(|v| v * v).sum();
+        println!(
+            "polytope ({iters} iterations, {:.2} s): relight of fit - nearest nonneg {:.4}, of truth - it {:.4}; rows: fit - it {:.4}, truth - it {:.4}",
+            tp.elapsed().as_secs_f64(),
+            (diff.iter().map(|v| v * v).sum::<f64>() / n2).sqrt(),
+            (diff_truth.iter().map(|v| v * v).sum::<f64>() / n2).sqrt(),
+            (e2rows / t2rows).sqrt(),
+            (c2rows / t2rows).sqrt(),
+        );
+    }
+    // ROWERR=1: where T's error lies: the rows by their share of the squared error, with the
+    // truth's nonzeros and energy in them.
+    if helmholtz_bench::env_flag("ROWERR") {
+        let kk = k as usize;
+        let mut rows: Vec<(f64, f64, usize, usize)> = (0..m)
+            .map(|j| {
+                let tr = &truth[j * kk..(j + 1) * kk];
+                let es = &est[j * kk..(j + 1) * kk];
+                let e2: f64 = tr
+                    .iter()
+                    .zip(es)
+                    .map(|(a, b)| (*a as f64 - *b as f64).powi(2))
+                    .sum();
+                let n2: f64 = tr.iter().map(|a| (*a as f64).powi(2)).sum();
+                (e2, n2, tr.iter().filter(|v| **v != 0.0).count(), j)
+            })
+            .collect();
+        let total_e2: f64 = rows.iter().map(|r| r.0).sum();
+        let total_n2: f64 = rows.iter().map(|r| r.1).sum();
+        rows.sort_by(|a, b| b.0.total_cmp(&a.0));
+        let mut acc = 0.0;
+        for (i, r) in rows.iter().take(12).enumerate() {
+            acc += r.0;
+            println!(
+                "row {} (x {} y {}): error share {:.3} (cum {:.3}), rel err {:.3}, energy share {:.2e}, truth nnz {}",
+                r.3,
+                r.3 % c as usize,
+                r.3 / c as usize,
+                r.0 / total_e2,
+                acc / total_e2,
+                (r.0 / r.1.max(1e-300)).sqrt(),
+                r.1 / total_n2,
+                r.2
+            );
+            let _ = i;
         }
     }
     // PRUNE=e1,e2,...: each row's smallest stored coefficients dropped while their energy stays
