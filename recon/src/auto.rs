@@ -659,7 +659,7 @@ struct Running<'a> {
 /// estimate above it is contradicted by the data: the Bernoulli moments on noise-free buckets
 /// of a peaky scene (shapes, 32x32, full sampling: sigma 1.40 +- 0.56, where the best fit's
 /// held-out residuals had an RMS of 0.008) made `auto` take a ten times heavier weight for a
-/// noise that was not there, 61 dB against 84.
+/// noise that was not there, 61 dB against 82.
 fn band_sigma(sigma: f64, residuals: &[f64]) -> f64 {
     let n = residuals.len();
     if n == 0 || sigma <= 0.0 {
@@ -908,7 +908,7 @@ impl<'a> Running<'a> {
         // is flat near its minimum and a refined point wins by the held-out rows' sampling
         // alone (measured: 24.9 dB against 25.3 dB at the grid point, 32x32 photo, 64 rows
         // held out).
-        // (Under noise the estimate of which the held-out residuals leave room for.)
+        // (Noise the held-out residuals contradict counts as none here.)
         if below <= 0.0 || !above.is_finite() || self.sigma <= 0.0 || self.band_sigma() < self.sigma
         {
             return Ok(());
