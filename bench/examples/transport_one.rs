@@ -16,7 +16,8 @@
 //! `ROWERR=1` lists the rows carrying most of T's error; `POLYTOPE=n` measures every row's
 //! distance to the nearest nonnegative row the measured pairs cannot tell from it (n Dykstra
 //! iterations) and the full relight of those distances; `SECOND=params` reconstructs the session
-//! again with other params and compares the two T.
+//! again with other params and compares the two T (both without `projector_binning`; POLYTOPE on
+//! Hadamard sessions).
 
 use std::time::Instant;
 
@@ -149,7 +150,10 @@ fn main() -> anyhow::Result<()> {
     let est: Vec<f32> = (0..m).flat_map(|j| t.row(j)).collect();
     // SECOND=params: the session reconstructed again with other params; the full relight of
     // the difference between the two T, against the first's true relight error.
-    if let Ok(second) = std::env::var("SECOND") {
+    // (Both compare against the scene's own relight: the session's grid, not a binned one.)
+    if let Ok(second) = std::env::var("SECOND")
+        && b == 1
+    {
         let config2 = TransportConfig::parse(&serde_json::from_str(&second)?)?;
         let model2 = plan_transport(&spec, grid, count, &config2, &mut source, &control)?;
         let part2 = solve_transport_blocks(
@@ -445,7 +449,10 @@ fn main() -> anyhow::Result<()> {
     // POLYTOPE=n: every row's nearest nonnegative row that the measured pairs cannot tell from
     // it (Dykstra, n iterations, from the zero-filled part), and the full relight of the
     // difference against the true relight error.
-    if let Ok(iters) = std::env::var("POLYTOPE") {
+    if let Ok(iters) = std::env::var("POLYTOPE")
+        && hadamard
+        && b == 1
+    {
         use helmholtz_recon::linop::LinearOperator;
         let iters: usize = iters.parse()?;
         let op = helmholtz_recon::ops::HadamardOperator::from_spec(&spec, count)?;
@@ -465,13 +472,14 @@ fn main() -> anyhow::Result<()> {
             let mut x = vec![0.0; kk];
             op.adjoint(&d, &mut x);
             let (mut pp, mut q, mut y) = (vec![0.0; kk], vec![0.0; kk], vec![0.0; kk]);
+            let mut yq = vec![0.0; kk];
             for _ in 0..iters {
                 for i in 0..kk {
                     let z = x[i] + pp[i];
                     y[i] = z.max(0.0);
                     pp[i] = z - y[i];
+                    yq[i] = y[i] + q[i];
                 }
-                let yq: Vec<f64> = y.iter().zip(&q).map(|(a, b)| a + b).collect();
                 op.apply(&yq, &mut r);
                 r.iter_mut().zip(&d).for_each(|(a, b)| *a = b - *a);
                 op.adjoint(&r, &mut back);
@@ -521,7 +529,7 @@ fn main() -> anyhow::Result<()> {
         let total_n2: f64 = rows.iter().map(|r| r.1).sum();
         rows.sort_by(|a, b| b.0.total_cmp(&a.0));
         let mut acc = 0.0;
-        for (i, r) in rows.iter().take(12).enumerate() {
+        for r in rows.iter().take(12) {
             acc += r.0;
             println!(
                 "row {} (x {} y {}): error share {:.3} (cum {:.3}), rel err {:.3}, energy share {:.2e}, truth nnz {}",
@@ -534,7 +542,6 @@ fn main() -> anyhow::Result<()> {
                 r.1 / total_n2,
                 r.2
             );
-            let _ = i;
         }
     }
     // PRUNE=e1,e2,...: each row's smallest stored coefficients dropped while their energy stays
