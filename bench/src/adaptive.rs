@@ -147,7 +147,7 @@ pub struct OracleRow {
 }
 
 /// Indices of the `kp` largest `|c_n|` (ties: lower index first).
-fn best_k(c: &[f64], kp: usize) -> Vec<u32> {
+pub fn best_k(c: &[f64], kp: usize) -> Vec<u32> {
     let mut order: Vec<u32> = (0..c.len() as u32).collect();
     order.sort_by(|&a, &b| {
         c[b as usize]
@@ -161,7 +161,7 @@ fn best_k(c: &[f64], kp: usize) -> Vec<u32> {
 
 /// The planner's rule with perfect prediction: from the root, repeatedly take the largest `|c_n|`
 /// (ties: coarser level, then lower index) among the indices whose parent is taken.
-fn tree_greedy(c: &[f64], width: u32, basis: Basis, kp: usize) -> Vec<u32> {
+pub fn tree_greedy(c: &[f64], width: u32, basis: Basis, kp: usize) -> Vec<u32> {
     #[derive(PartialEq)]
     struct Key(f64, u32, u32);
     impl Eq for Key {}
@@ -197,8 +197,68 @@ fn tree_greedy(c: &[f64], width: u32, basis: Basis, kp: usize) -> Vec<u32> {
     taken
 }
 
+/// The best quadtree a rig measuring **one frame per Haar coefficient** could show, fed the true
+/// coefficients. A single 0/1 frame (a detail's `P+`) gives `y+`; `y- = S_B - y+` needs the
+/// light `S_B` on the detail's block, which is known once every coarser block containing it has
+/// all three details measured (then its four quadrant sums follow from its sum and its three
+/// details). So the unit of choice is a block split (its three details, three frames), and a
+/// block may be split once its parent is: from the root (index 0, shown as all on and all off),
+/// repeatedly split the open block whose three details hold the most energy (ties: the larger
+/// block, then the lower index), the last split taking only its largest details if the budget
+/// ends inside it. Returns `kp` indices (index 0 first).
+pub fn haar_block_greedy(c: &[f64], width: u32, kp: usize) -> Vec<u32> {
+    #[derive(PartialEq)]
+    struct Key(f64, u32, [u32; 3], u32, u32);
+    impl Eq for Key {}
+    impl PartialOrd for Key {
+        fn partial_cmp(&self, other: &Self) -> Option<std::cmp::Ordering> {
+            Some(self.cmp(other))
+        }
+    }
+    impl Ord for Key {
+        fn cmp(&self, o: &Self) -> std::cmp::Ordering {
+            self.0
+                .total_cmp(&o.0)
+                .then(self.1.cmp(&o.1))
+                .then(o.2[0].cmp(&self.2[0]))
+        }
+    }
+    let w = width;
+    // Block of side 2^sc at block position (pr, pc): its x, y and diagonal details.
+    let block = |sc: u32, pr: u32, pc: u32| {
+        let h = w >> sc;
+        let d = [pr * w + h + pc, (h + pr) * w + pc, (h + pr) * w + h + pc];
+        let e: f64 = d.iter().map(|&n| c[n as usize] * c[n as usize]).sum();
+        Key(e, sc, d, pr, pc)
+    };
+    let mut taken = vec![0u32];
+    let m = w.trailing_zeros();
+    let mut heap = std::collections::BinaryHeap::new();
+    if m >= 1 {
+        heap.push(block(m, 0, 0));
+    }
+    while taken.len() < kp {
+        let Some(Key(_, sc, mut d, pr, pc)) = heap.pop() else {
+            break;
+        };
+        d.sort_by(|&a, &b| c[b as usize].abs().total_cmp(&c[a as usize].abs()));
+        for n in d {
+            if taken.len() < kp {
+                taken.push(n);
+            }
+        }
+        if sc >= 2 {
+            for (dr, dc) in [(0, 0), (0, 1), (1, 0), (1, 1)] {
+                heap.push(block(sc - 1, 2 * pr + dr, 2 * pc + dc));
+            }
+        }
+    }
+    taken.truncate(kp.min(c.len()));
+    taken
+}
+
 /// Share of the energy without the mean in `selected`.
-fn capture(c: &[f64], selected: &[u32]) -> f64 {
+pub fn capture(c: &[f64], selected: &[u32]) -> f64 {
     let total: f64 = c[1..].iter().map(|v| v * v).sum();
     let got: f64 = selected
         .iter()
@@ -209,7 +269,7 @@ fn capture(c: &[f64], selected: &[u32]) -> f64 {
 }
 
 /// The image of the coefficients `selected` (zero elsewhere): the zero-filled inverse.
-fn zero_filled(c: &[f64], selected: &[u32], width: usize, haar: bool) -> Vec<f32> {
+pub fn zero_filled(c: &[f64], selected: &[u32], width: usize, haar: bool) -> Vec<f32> {
     let mut kept = vec![0.0; c.len()];
     for &n in selected {
         kept[n as usize] = c[n as usize];
@@ -226,7 +286,7 @@ fn zero_filled(c: &[f64], selected: &[u32], width: usize, haar: bool) -> Vec<f32
 }
 
 /// The scene's transport, row-major, values in [0, 1].
-fn scene(name: &str, size: u32) -> anyhow::Result<Vec<f32>> {
+pub fn scene(name: &str, size: u32) -> anyhow::Result<Vec<f32>> {
     if name == "relief" {
         // The demo relief seen by a detector up and to the left: shading and cast shadows.
         let d = helmholtz_sim::scene::unit_vector([-0.4, -0.3, 1.0]);
@@ -247,8 +307,8 @@ fn read_noise(sigma: f64, seed: u64, frame: u64) -> f64 {
 
 /// The orthonormal coefficients of the scene in the family's basis (by index) and the gain and
 /// support sum of each index's split pair.
-struct Exact {
-    coefficients: Vec<f64>,
+pub struct Exact {
+    pub coefficients: Vec<f64>,
     /// Summed-area table of t, `(W + 1)^2`.
     integral: Vec<f64>,
     total: f64,
@@ -257,7 +317,7 @@ struct Exact {
 }
 
 impl Exact {
-    fn new(truth: &[f64], width: usize, haar: bool) -> Exact {
+    pub fn new(truth: &[f64], width: usize, haar: bool) -> Exact {
         let k = width * width;
         let mut coefficients = vec![0.0; k];
         if haar {
@@ -286,7 +346,7 @@ impl Exact {
     }
 
     /// `(y+, y-)` without noise for basis index `n`.
-    fn pair(&self, n: u32) -> (f64, f64) {
+    pub fn pair(&self, n: u32) -> (f64, f64) {
         let w = self.width;
         let (gain, support) = if self.haar {
             let f = HaarFunction::new(w as u32, n);
@@ -418,7 +478,7 @@ fn run_adaptive(
     })
 }
 
-fn reconstruct(
+pub fn reconstruct(
     spec: &PatternSpec,
     values: &[f64],
     method: &str,

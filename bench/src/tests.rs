@@ -97,3 +97,62 @@ fn env_flags_are_off_when_unset_empty_or_zero() {
         assert_eq!(crate::flag_is_on(Some(value)), on, "{value:?}");
     }
 }
+
+#[test]
+fn the_single_frame_haar_oracle_splits_blocks_only_below_split_blocks_and_finds_the_energy() {
+    use helmholtz_proto::HaarFunction;
+    use helmholtz_recon::linop::LinearOperator as _;
+    use helmholtz_recon::transforms::wavelet::Wavelet2d;
+    // A 16x16 scene dark but for one bright pixel at (13, 2): its energy lies in the details of
+    // the blocks containing it, one block per scale.
+    let w = 16u32;
+    let k = (w * w) as usize;
+    let mut t = vec![0.0; k];
+    t[2 * w as usize + 13] = 1.0;
+    let mut c = vec![0.0; k];
+    Wavelet2d::haar(w as usize, w as usize).apply(&t, &mut c);
+    let block_of = |n: u32| {
+        let f = HaarFunction::new(w, n);
+        (f.scale, f.x0, f.y0)
+    };
+    // The whole basis in the order of the rule: every index once, index 0 first, and each
+    // detail only after all three details of the block containing its block (the parent block).
+    let all = adaptive::haar_block_greedy(&c, w, k);
+    assert_eq!(all.len(), k);
+    assert_eq!(all[0], 0);
+    let mut seen = std::collections::HashSet::new();
+    let mut details_taken: std::collections::HashMap<(u32, u32, u32), usize> = Default::default();
+    for &n in &all {
+        assert!(seen.insert(n), "index {n} twice");
+        if n == 0 {
+            continue;
+        }
+        let (s, x0, y0) = block_of(n);
+        if s < w.trailing_zeros() {
+            let side = 1u32 << (s + 1);
+            let parent = (s + 1, x0 / side * side, y0 / side * side);
+            assert_eq!(
+                details_taken.get(&parent).copied().unwrap_or(0),
+                3,
+                "index {n} (block {:?}) before its parent block {parent:?} was split",
+                (s, x0, y0)
+            );
+        }
+        *details_taken.entry((s, x0, y0)).or_default() += 1;
+    }
+    // With 1 + 3 * 4 coefficients (four splits: one block per scale down to the 2x2 one) the
+    // rule splits exactly the blocks containing the pixel, so it holds all the scene's energy.
+    let chosen = adaptive::haar_block_greedy(&c, w, 13);
+    assert_eq!(chosen.len(), 13);
+    for &n in &chosen[1..] {
+        let (s, x0, y0) = block_of(n);
+        let side = 1u32 << s;
+        assert!(
+            (x0..x0 + side).contains(&13) && (y0..y0 + side).contains(&2),
+            "index {n}: block {:?} does not hold the pixel",
+            (s, x0, y0)
+        );
+    }
+    let kept: f64 = chosen.iter().map(|&n| c[n as usize].powi(2)).sum();
+    assert!((kept - 1.0).abs() < 1e-12, "energy kept {kept}");
+}

@@ -1,0 +1,125 @@
+//! What one 0/1 frame per coefficient would give adaptive acquisition (issue 24), against split
+//! pairs (two frames per coefficient, today's `adaptive_haar` / `adaptive_hadamard`) and the
+//! fixed families, at the same frame count, noise-free.
+//!
+//! `cargo run --release -p helmholtz-bench --example single_frame -- SIZE SCENE[,SCENE..] [RATIO,..]`
+//!
+//! A split pair measures `y+` and `y-`; `y+ + y-` is the light on the function's support. Where
+//! that light is already known, one frame (`P+`) measures the coefficient: `y- = S - y+`.
+//! - Walsh-Hadamard: every support is the whole grid, whose light (and the dark level) index 0's
+//!   pair (all on, all off) measures; so `F` frames measure `F - 1` coefficients
+//!   (`2 y+ - y_on - y_off = <w, t>`, the dark level cancelling as in a pair). Noise-free, such a
+//!   session has exactly the values of a split-pair session of `F - 1` pairs, so the planner's
+//!   single-frame session is run as that one (`planner 1f`, its zero-filled image `direct` and
+//!   `auto` on it).
+//! - Haar: a detail's support is a block, whose light is known once every coarser block
+//!   containing it has its three details measured, so the unit of choice is a block split (three
+//!   frames, three coefficients; [`haar_block_greedy`]). The planner has no such rule today: its
+//!   session of `F - 1` pairs (`planner 1f`) takes details whose block light is not known, so for
+//!   Haar that column is optimistic; the oracle columns say what the block rule costs (`tree` is
+//!   the planner's rule fed the truth, `block` the block-split rule fed the truth).
+//!
+//! Columns (PSNR in dB against the scene, raw): `best` = the `k'` largest true coefficients,
+//! zero-filled (`k' = F / 2` for pairs, `F - 1` for single frames); `tree` / `block` as above;
+//! `planner` = the planner's session, `direct` and `auto`; `fixed` = `auto` on Bernoulli 1/2 and
+//! on Russian-doll Hadamard split pairs at the same `F` frames (the better of the two).
+
+use std::sync::Arc;
+
+use helmholtz_bench::adaptive::{
+    Exact, best_k, haar_block_greedy, probe_session, reconstruct, scene, tree_greedy, zero_filled,
+};
+use helmholtz_proto::{Family, HadamardOrdering, PatternSpec};
+use helmholtz_recon::adaptive::Basis;
+use helmholtz_recon::metrics;
+use helmholtz_sim::simulate::{NoiseModel, simulate};
+
+fn main() -> anyhow::Result<()> {
+    let a: Vec<String> = std::env::args().collect();
+    anyhow::ensure!(
+        a.len() >= 3,
+        "usage: single_frame SIZE SCENE[,SCENE..] [RATIO,..]"
+    );
+    let size: u32 = a[1].parse()?;
+    let scenes: Vec<&str> = a[2].split(',').collect();
+    let ratios: Vec<f64> = a
+        .get(3)
+        .map(|r| r.split(',').map(|v| v.parse()).collect::<Result<_, _>>())
+        .transpose()?
+        .unwrap_or_else(|| vec![0.01, 0.02, 0.05, 0.10, 0.25]);
+    let k = (size * size) as u64;
+    println!(
+        "| scene | basis | frames | % of k | best 2f | best 1f | tree 2f | tree 1f | block 1f | best auto 1f | planner 2f direct | auto | planner 1f direct | auto | fixed auto | 1f auto - fixed |"
+    );
+    println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+    for name in &scenes {
+        let truth32 = scene(name, size)?;
+        let truth: Vec<f64> = truth32.iter().map(|&v| v as f64).collect();
+        for &ratio in &ratios {
+            let frames = ((ratio * k as f64).round() as u64).max(4) & !1;
+            let mut fixed = f64::NEG_INFINITY;
+            for family in [
+                Family::Bernoulli { fill: 0.5 },
+                Family::Hadamard {
+                    ordering: HadamardOrdering::RussianDoll,
+                },
+            ] {
+                let spec = PatternSpec::new(family, size, size, frames, 1)?;
+                let values = simulate(&spec, &[&truth32], &NoiseModel::default(), None).values;
+                fixed = fixed.max(reconstruct(&spec, &values, "auto", &truth32).0);
+            }
+            for haar in [true, false] {
+                let exact = Exact::new(&truth, size as usize, haar);
+                let c = &exact.coefficients;
+                let basis = if haar { Basis::Haar } else { Basis::Hadamard };
+                let (k2, k1) = ((frames / 2) as usize, (frames - 1).min(k) as usize);
+                let psnr =
+                    |sel: &[u32]| metrics::psnr(&zero_filled(c, sel, size as usize, haar), &truth32);
+                let best1 = best_k(c, k1);
+                let block = if haar {
+                    format!("{:.2}", psnr(&haar_block_greedy(c, size, k1)))
+                } else {
+                    "-".into()
+                };
+                // `auto` on the single-frame oracle's coefficients (as the pairs they equal).
+                let spec = PatternSpec::new(Family::adaptive(haar, 0, 0.0, None), size, size, 2 * k1 as u64, 0)?
+                    .with_indices(Arc::from(best1.clone()))?;
+                let values: Vec<f64> = best1
+                    .iter()
+                    .flat_map(|&n| {
+                        let (p, m) = exact.pair(n);
+                        [p, m]
+                    })
+                    .collect();
+                let best_auto1 = reconstruct(&spec, &values, "auto", &truth32).0;
+                let session = |pairs: u64| -> anyhow::Result<(f64, f64)> {
+                    let r = (2 * pairs) as f64 / k as f64;
+                    let (spec, values, truth) = probe_session(
+                        name,
+                        size,
+                        r,
+                        false,
+                        Family::adaptive(haar, 0, 0.0, None),
+                    )?;
+                    Ok((
+                        reconstruct(&spec, &values, "direct", &truth).0,
+                        reconstruct(&spec, &values, "auto", &truth).0,
+                    ))
+                };
+                let (d2, a2) = session(k2 as u64)?;
+                let (d1, a1) = session(k1 as u64)?;
+                println!(
+                    "| {name} | {} | {frames} | {:.0} % | {:.2} | {:.2} | {:.2} | {:.2} | {block} | {best_auto1:.2} | {d2:.2} | {a2:.2} | {d1:.2} | {a1:.2} | {fixed:.2} | {:+.2} |",
+                    if haar { "haar" } else { "wh" },
+                    100.0 * ratio,
+                    psnr(&best_k(c, k2)),
+                    psnr(&best1),
+                    psnr(&tree_greedy(c, size, basis, k2)),
+                    psnr(&tree_greedy(c, size, basis, k1)),
+                    a1 - fixed,
+                );
+            }
+        }
+    }
+    Ok(())
+}
