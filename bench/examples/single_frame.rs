@@ -21,8 +21,12 @@
 //!
 //! Columns (PSNR in dB against the scene, raw): `best` = the `k'` largest true coefficients,
 //! zero-filled (`k' = F / 2` for pairs, `F - 1` for single frames); `tree` / `block` as above;
-//! `planner` = the planner's session, `direct` and `auto`; `fixed` = `auto` on Bernoulli 1/2 and
-//! on Russian-doll Hadamard split pairs at the same `F` frames (the better of the two).
+//! `best auto 1f` = `auto` on the single-frame best `k'`; `planner` = the planner's session,
+//! `direct` and `auto`; `block planner` = [`block_planner`], a prototype of a single-frame Haar
+//! planner (Haar only), at the pairs' and at the single frames' budget; `fixed` = `auto` on
+//! Bernoulli 1/2 and on Russian-doll Hadamard split pairs at the same `F` frames (the better of
+//! the two); the last two columns `auto` of `planner 1f` and of `block planner 1f` less `fixed`.
+//! Figures and what they say: `docs/benchmark-notes.md`, "One frame per coefficient".
 
 use std::sync::Arc;
 
@@ -30,9 +34,93 @@ use helmholtz_bench::adaptive::{
     Exact, best_k, haar_block_greedy, probe_session, reconstruct, scene, tree_greedy, zero_filled,
 };
 use helmholtz_proto::{Family, HadamardOrdering, PatternSpec};
-use helmholtz_recon::adaptive::Basis;
+use helmholtz_recon::adaptive::{Basis, Predictor, auto_batch_pairs};
 use helmholtz_recon::metrics;
 use helmholtz_sim::simulate::{NoiseModel, simulate};
+
+/// A prototype single-frame Haar planner (not the service's): the service's loop (batches of
+/// `batch` coefficients, two outstanding), its prediction ([`Predictor`], bicubic from the block
+/// averages) and persistence (`beta`), but choosing **block splits**: a block is open once its
+/// parent block's three details are all issued (its light is then known when its frames are
+/// decoded), scored by the sum of its three details' scores, and split whole (three frames).
+/// Noise-free values (the truth's coefficients). Returns the indices in order.
+fn block_planner(c: &[f64], width: u32, kp: usize, batch: usize, beta: f64) -> Vec<u32> {
+    let k = c.len();
+    let w = width;
+    let m = w.trailing_zeros();
+    let details = |sc: u32, pr: u32, pc: u32| {
+        let h = w >> sc;
+        [pr * w + h + pc, (h + pr) * w + pc, (h + pr) * w + h + pc]
+    };
+    let parent = |n: u32| Basis::Haar.parent(w, n);
+    let mut predictor = Predictor::new(Basis::Haar, w);
+    let mut values = vec![0.0; k];
+    let mut pred = vec![0.0; k];
+    let mut score = vec![0.0; k];
+    let mut order: Vec<u32> = vec![0];
+    // Open blocks (sc, pr, pc) not yet split.
+    let mut open: Vec<(u32, u32, u32)> = if m >= 1 { vec![(m, 0, 0)] } else { vec![] };
+    let mut outstanding: std::collections::VecDeque<(usize, usize)> = Default::default();
+    outstanding.push_back((0, 1));
+    let mut observed = 0usize;
+    loop {
+        while outstanding.len() < 2 && order.len() < kp && !open.is_empty() {
+            let start = order.len();
+            let size = batch.min(kp - order.len());
+            // Rank the open blocks by their details' summed score (ties: coarser, lower index).
+            let block_score = |&(sc, pr, pc): &(u32, u32, u32)| -> f64 {
+                details(sc, pr, pc).iter().map(|&n| score[n as usize]).sum()
+            };
+            while order.len() - start < size && !open.is_empty() {
+                let (best, _) = open
+                    .iter()
+                    .enumerate()
+                    .max_by(|(_, a), (_, b)| {
+                        block_score(a)
+                            .total_cmp(&block_score(b))
+                            .then(a.0.cmp(&b.0))
+                            .then(details(b.0, b.1, b.2)[0].cmp(&details(a.0, a.1, a.2)[0]))
+                    })
+                    .unwrap();
+                let (sc, pr, pc) = open.swap_remove(best);
+                let mut d = details(sc, pr, pc);
+                d.sort_by(|&a, &b| {
+                    score[b as usize]
+                        .total_cmp(&score[a as usize])
+                        .then(a.cmp(&b))
+                });
+                for n in d {
+                    if order.len() < kp {
+                        order.push(n);
+                    }
+                }
+                if sc >= 2 {
+                    for (dr, dc) in [(0, 0), (0, 1), (1, 0), (1, 1)] {
+                        open.push((sc - 1, 2 * pr + dr, 2 * pc + dc));
+                    }
+                }
+            }
+            outstanding.push_back((start, order.len()));
+        }
+        let Some((a, b)) = outstanding.pop_front() else {
+            break;
+        };
+        for &n in &order[a..b] {
+            values[n as usize] = c[n as usize];
+        }
+        observed = b;
+        predictor.predict(&values, &mut pred);
+        for n in 1..k as u32 {
+            let mut size = pred[n as usize].abs();
+            if let Some(q) = parent(n).filter(|&q| q != 0) {
+                size = size.max(beta * values[q as usize].abs());
+            }
+            score[n as usize] = size;
+        }
+    }
+    order.truncate(observed);
+    order
+}
 
 fn main() -> anyhow::Result<()> {
     let a: Vec<String> = std::env::args().collect();
@@ -49,9 +137,11 @@ fn main() -> anyhow::Result<()> {
         .unwrap_or_else(|| vec![0.01, 0.02, 0.05, 0.10, 0.25]);
     let k = (size * size) as u64;
     println!(
-        "| scene | basis | frames | % of k | best 2f | best 1f | tree 2f | tree 1f | block 1f | best auto 1f | planner 2f direct | auto | planner 1f direct | auto | fixed auto | 1f auto - fixed |"
+        "| scene | basis | frames | % of k | best 2f | best 1f | tree 2f | tree 1f | block 1f | best auto 1f | planner 2f direct | auto | planner 1f direct | auto | block planner 2f direct | auto | block planner 1f direct | auto | fixed auto | 1f auto - fixed | block 1f auto - fixed |"
     );
-    println!("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|");
+    println!(
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
+    );
     for name in &scenes {
         let truth32 = scene(name, size)?;
         let truth: Vec<f64> = truth32.iter().map(|&v| v as f64).collect();
@@ -73,8 +163,9 @@ fn main() -> anyhow::Result<()> {
                 let c = &exact.coefficients;
                 let basis = if haar { Basis::Haar } else { Basis::Hadamard };
                 let (k2, k1) = ((frames / 2) as usize, (frames - 1).min(k) as usize);
-                let psnr =
-                    |sel: &[u32]| metrics::psnr(&zero_filled(c, sel, size as usize, haar), &truth32);
+                let psnr = |sel: &[u32]| {
+                    metrics::psnr(&zero_filled(c, sel, size as usize, haar), &truth32)
+                };
                 let best1 = best_k(c, k1);
                 let block = if haar {
                     format!("{:.2}", psnr(&haar_block_greedy(c, size, k1)))
@@ -82,8 +173,14 @@ fn main() -> anyhow::Result<()> {
                     "-".into()
                 };
                 // `auto` on the single-frame oracle's coefficients (as the pairs they equal).
-                let spec = PatternSpec::new(Family::adaptive(haar, 0, 0.0, None), size, size, 2 * k1 as u64, 0)?
-                    .with_indices(Arc::from(best1.clone()))?;
+                let spec = PatternSpec::new(
+                    Family::adaptive(haar, 0, 0.0, None),
+                    size,
+                    size,
+                    2 * k1 as u64,
+                    0,
+                )?
+                .with_indices(Arc::from(best1.clone()))?;
                 let values: Vec<f64> = best1
                     .iter()
                     .flat_map(|&n| {
@@ -94,13 +191,8 @@ fn main() -> anyhow::Result<()> {
                 let best_auto1 = reconstruct(&spec, &values, "auto", &truth32).0;
                 let session = |pairs: u64| -> anyhow::Result<(f64, f64)> {
                     let r = (2 * pairs) as f64 / k as f64;
-                    let (spec, values, truth) = probe_session(
-                        name,
-                        size,
-                        r,
-                        false,
-                        Family::adaptive(haar, 0, 0.0, None),
-                    )?;
+                    let (spec, values, truth) =
+                        probe_session(name, size, r, false, Family::adaptive(haar, 0, 0.0, None))?;
                     Ok((
                         reconstruct(&spec, &values, "direct", &truth).0,
                         reconstruct(&spec, &values, "auto", &truth).0,
@@ -108,8 +200,36 @@ fn main() -> anyhow::Result<()> {
                 };
                 let (d2, a2) = session(k2 as u64)?;
                 let (d1, a1) = session(k1 as u64)?;
+                let block_session = |kp: usize| -> anyhow::Result<(String, f64)> {
+                    if !haar {
+                        return Ok(("-".into(), f64::NAN));
+                    }
+                    let batch = auto_batch_pairs(k, 1, kp as u64) as usize;
+                    let sel = block_planner(c, size, kp, batch, 0.5);
+                    let spec = PatternSpec::new(
+                        Family::adaptive(true, 0, 0.0, None),
+                        size,
+                        size,
+                        2 * sel.len() as u64,
+                        0,
+                    )?
+                    .with_indices(Arc::from(sel.clone()))?;
+                    let values: Vec<f64> = sel
+                        .iter()
+                        .flat_map(|&n| {
+                            let (p, m) = exact.pair(n);
+                            [p, m]
+                        })
+                        .collect();
+                    Ok((
+                        format!("{:.2}", psnr(&sel)),
+                        reconstruct(&spec, &values, "auto", &truth32).0,
+                    ))
+                };
+                let (bd, ba) = block_session(k1)?;
+                let (bd2, ba2) = block_session(k2)?;
                 println!(
-                    "| {name} | {} | {frames} | {:.0} % | {:.2} | {:.2} | {:.2} | {:.2} | {block} | {best_auto1:.2} | {d2:.2} | {a2:.2} | {d1:.2} | {a1:.2} | {fixed:.2} | {:+.2} |",
+                    "| {name} | {} | {frames} | {:.0} % | {:.2} | {:.2} | {:.2} | {:.2} | {block} | {best_auto1:.2} | {d2:.2} | {a2:.2} | {d1:.2} | {a1:.2} | {bd2} | {ba2:.2} | {bd} | {ba:.2} | {fixed:.2} | {:+.2} | {:+.2} |",
                     if haar { "haar" } else { "wh" },
                     100.0 * ratio,
                     psnr(&best_k(c, k2)),
@@ -117,6 +237,7 @@ fn main() -> anyhow::Result<()> {
                     psnr(&tree_greedy(c, size, basis, k2)),
                     psnr(&tree_greedy(c, size, basis, k1)),
                     a1 - fixed,
+                    ba - fixed,
                 );
             }
         }
