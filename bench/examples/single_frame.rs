@@ -27,6 +27,13 @@
 //! Bernoulli 1/2 and on Russian-doll Hadamard split pairs at the same `F` frames (the better of
 //! the two); the last two columns `auto` of `planner 1f` and of `block planner 1f` less `fixed`.
 //! Figures and what they say: `docs/benchmark-notes.md`, "One frame per coefficient".
+//!
+//! Switches: `ONLY_BLOCK=1` runs the block planner alone (the other columns print NaN);
+//! `BLOCK_RULE=sq|parent` ranks its blocks by their details' squared scores, or by the larger of
+//! their predicted energy and `BLOCK_BETA^2` times the measured parent block's (default: the
+//! summed scores); `BLOCK_BETA=b` its persistence (0.5); `FILL_PROBE=1` prints, for the block
+//! planner's sessions, `auto`'s fill-in energy `||auto - direct||^2` and `auto`'s squared error,
+//! both over the zero-filled image's `E_U`, and the report's `fill_in`.
 
 use std::sync::Arc;
 
@@ -54,9 +61,9 @@ fn block_planner(c: &[f64], width: u32, kp: usize, batch: usize, beta: f64) -> V
     };
     let parent = |n: u32| Basis::Haar.parent(w, n);
     let mut predictor = Predictor::new(Basis::Haar, w);
-    let mut values = vec![0.0; k];
-    let mut pred = vec![0.0; k];
-    let mut score = vec![0.0; k];
+    let mut values = vec![0.0f64; k];
+    let mut pred = vec![0.0f64; k];
+    let mut score = vec![0.0f64; k];
     let mut order: Vec<u32> = vec![0];
     // Open blocks (sc, pr, pc) not yet split.
     let mut open: Vec<(u32, u32, u32)> = if m >= 1 { vec![(m, 0, 0)] } else { vec![] };
@@ -68,8 +75,28 @@ fn block_planner(c: &[f64], width: u32, kp: usize, batch: usize, beta: f64) -> V
             let start = order.len();
             let size = batch.min(kp - order.len());
             // Rank the open blocks by their details' summed score (ties: coarser, lower index).
+            let rule = std::env::var("BLOCK_RULE").unwrap_or_default();
             let block_score = |&(sc, pr, pc): &(u32, u32, u32)| -> f64 {
-                details(sc, pr, pc).iter().map(|&n| score[n as usize]).sum()
+                let d = details(sc, pr, pc);
+                match rule.as_str() {
+                    // Predicted energy, or the measured parent block's energy times beta^2.
+                    "parent" => {
+                        let own: f64 = d.iter().map(|&n| pred[n as usize].powi(2)).sum();
+                        let inherited = if sc < m {
+                            details(sc + 1, pr / 2, pc / 2)
+                                .iter()
+                                .map(|&n| values[n as usize].powi(2))
+                                .sum::<f64>()
+                                * beta
+                                * beta
+                        } else {
+                            0.0
+                        };
+                        own.max(inherited)
+                    }
+                    "sq" => d.iter().map(|&n| score[n as usize].powi(2)).sum(),
+                    _ => d.iter().map(|&n| score[n as usize]).sum(),
+                }
             };
             while order.len() - start < size && !open.is_empty() {
                 let (best, _) = open
@@ -136,6 +163,8 @@ fn main() -> anyhow::Result<()> {
         .transpose()?
         .unwrap_or_else(|| vec![0.01, 0.02, 0.05, 0.10, 0.25]);
     let k = (size * size) as u64;
+    // Probe of the block planner's rule alone (BLOCK_RULE, BLOCK_BETA): skip the other sessions.
+    let only_block = helmholtz_bench::env_flag("ONLY_BLOCK");
     println!(
         "| scene | basis | frames | % of k | best 2f | best 1f | tree 2f | tree 1f | block 1f | best auto 1f | planner 2f direct | auto | planner 1f direct | auto | block planner 2f direct | auto | block planner 1f direct | auto | fixed auto | 1f auto - fixed | block 1f auto - fixed |"
     );
@@ -156,7 +185,9 @@ fn main() -> anyhow::Result<()> {
             ] {
                 let spec = PatternSpec::new(family, size, size, frames, 1)?;
                 let values = simulate(&spec, &[&truth32], &NoiseModel::default(), None).values;
-                fixed = fixed.max(reconstruct(&spec, &values, "auto", &truth32).0);
+                if !only_block {
+                    fixed = fixed.max(reconstruct(&spec, &values, "auto", &truth32).0);
+                }
             }
             for haar in [true, false] {
                 let exact = Exact::new(&truth, size as usize, haar);
@@ -188,7 +219,11 @@ fn main() -> anyhow::Result<()> {
                         [p, m]
                     })
                     .collect();
-                let best_auto1 = reconstruct(&spec, &values, "auto", &truth32).0;
+                let best_auto1 = if only_block {
+                    f64::NAN
+                } else {
+                    reconstruct(&spec, &values, "auto", &truth32).0
+                };
                 let session = |pairs: u64| -> anyhow::Result<(f64, f64)> {
                     let r = (2 * pairs) as f64 / k as f64;
                     let (spec, values, truth) =
@@ -198,14 +233,26 @@ fn main() -> anyhow::Result<()> {
                         reconstruct(&spec, &values, "auto", &truth).0,
                     ))
                 };
-                let (d2, a2) = session(k2 as u64)?;
-                let (d1, a1) = session(k1 as u64)?;
+                let (d2, a2) = if only_block {
+                    (f64::NAN, f64::NAN)
+                } else {
+                    session(k2 as u64)?
+                };
+                let (d1, a1) = if only_block {
+                    (f64::NAN, f64::NAN)
+                } else {
+                    session(k1 as u64)?
+                };
                 let block_session = |kp: usize| -> anyhow::Result<(String, f64)> {
                     if !haar {
                         return Ok(("-".into(), f64::NAN));
                     }
                     let batch = auto_batch_pairs(k, 1, kp as u64) as usize;
-                    let sel = block_planner(c, size, kp, batch, 0.5);
+                    let beta = std::env::var("BLOCK_BETA")
+                        .ok()
+                        .map(|b| b.parse().expect("BLOCK_BETA"))
+                        .unwrap_or(0.5);
+                    let sel = block_planner(c, size, kp, batch, beta);
                     let spec = PatternSpec::new(
                         Family::adaptive(true, 0, 0.0, None),
                         size,
@@ -221,13 +268,61 @@ fn main() -> anyhow::Result<()> {
                             [p, m]
                         })
                         .collect();
+                    if helmholtz_bench::env_flag("FILL_PROBE") {
+                        // auto's fill-in `u = auto - direct` against the energy the zero-filled
+                        // image misses, `E_U = ||direct - truth||^2`.
+                        let problem = helmholtz_recon::Problem {
+                            spec: &spec,
+                            channels: 1,
+                            rows: values.len() as u64,
+                        };
+                        let config =
+                            helmholtz_recon::MethodConfig::parse("auto", &serde_json::Value::Null)?;
+                        let r = helmholtz_recon::reconstruct(
+                            &problem,
+                            &config,
+                            &mut helmholtz_recon::SliceSource::new(&values, 1, 4096),
+                            &helmholtz_recon::Control::new(),
+                        )?;
+                        let auto_img = &r.images[0].data;
+                        let direct = zero_filled(c, &sel, size as usize, true);
+                        let sq = |a: &[f32], b: &[f32]| -> f64 {
+                            a.iter()
+                                .zip(b)
+                                .map(|(x, y)| (*x as f64 - *y as f64).powi(2))
+                                .sum()
+                        };
+                        let (u2, eu, ea) = (
+                            sq(auto_img, &direct),
+                            sq(&direct, &truth32),
+                            sq(auto_img, &truth32),
+                        );
+                        eprintln!(
+                            "FILL {name} {:.0}% kp {kp}: ||u||^2/E_U {:.3}  auto err/E_U {:.3}  fill_in {}",
+                            100.0 * ratio,
+                            u2 / eu,
+                            ea / eu,
+                            r.report
+                                .details
+                                .get("auto")
+                                .and_then(|a| a.as_array())
+                                .and_then(|a| a.last())
+                                .and_then(|a| a.get("fill_in"))
+                                .map(|f| f.to_string())
+                                .unwrap_or_default()
+                        );
+                    }
                     Ok((
                         format!("{:.2}", psnr(&sel)),
                         reconstruct(&spec, &values, "auto", &truth32).0,
                     ))
                 };
                 let (bd, ba) = block_session(k1)?;
-                let (bd2, ba2) = block_session(k2)?;
+                let (bd2, ba2) = if only_block {
+                    ("-".into(), f64::NAN)
+                } else {
+                    block_session(k2)?
+                };
                 println!(
                     "| {name} | {} | {frames} | {:.0} % | {:.2} | {:.2} | {:.2} | {:.2} | {block} | {best_auto1:.2} | {d2:.2} | {a2:.2} | {d1:.2} | {a1:.2} | {bd2} | {ba2:.2} | {bd} | {ba:.2} | {fixed:.2} | {:+.2} | {:+.2} |",
                     if haar { "haar" } else { "wh" },
