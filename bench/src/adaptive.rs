@@ -6,7 +6,9 @@
 //! - `adaptive_haar` and `adaptive_hadamard`: a simulated rig runs the session through the
 //!   planner (`helmholtz_recon::adaptive`, automatic batches, two outstanding), then the session is
 //!   reconstructed by `direct` (the zero-filled inverse: the adaptive scheme's own image) and by
-//!   `auto` on the same data;
+//!   `auto` on the same data; and `adaptive_haar` with single frames (`frames: "single"`,
+//!   PATTERNS.md "Single frames": one frame a basis function but the first, the planner
+//!   splitting whole blocks), the same way;
 //! - `bernoulli` (fill 1/2) and `hadamard` in the Russian-doll ordering at the same frame count,
 //!   reconstructed by `auto` (the service's best non-adaptive answer).
 //!
@@ -44,7 +46,9 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use anyhow::Context as _;
-use helmholtz_proto::{ErrorEstimate, Family, HaarFunction, HadamardOrdering, PatternSpec};
+use helmholtz_proto::{
+    AdaptiveFrames, ErrorEstimate, Family, HaarFunction, HadamardOrdering, PatternSpec,
+};
 use helmholtz_recon::adaptive::{Basis, Planner, StopReason};
 use helmholtz_recon::fwht::fwht;
 use helmholtz_recon::linop::LinearOperator;
@@ -417,12 +421,17 @@ fn run_adaptive(
         let Some(batch) = queue.pop_front() else {
             break;
         };
-        let mut batch_values = Vec::with_capacity(2 * batch.indices.len());
-        for (j, &n) in batch.indices.iter().enumerate() {
-            let frame = 2 * (batch.first_pair + j as u64);
+        // Two frames an index, or with single frames one (its P+) but index 0's two.
+        let mut batch_values = Vec::with_capacity(batch.rows as usize);
+        let mut frame = batch.first_row;
+        for &n in &batch.indices {
             let (plus, minus) = exact.pair(n);
             batch_values.push(plus + read_noise(sigma, 7, frame));
-            batch_values.push(minus + read_noise(sigma, 7, frame + 1));
+            frame += 1;
+            if !planner.single_frames() || n == 0 {
+                batch_values.push(minus + read_noise(sigma, 7, frame));
+                frame += 1;
+            }
         }
         planner.observe(&batch_values)?;
         values.extend_from_slice(&batch_values);
@@ -450,7 +459,9 @@ fn run_adaptive(
         batches: stats.batches,
         decision_mean_ms: stats.total.as_secs_f64() * 1e3 / stats.batches.max(1) as f64,
         decision_max_ms: stats.max.as_secs_f64() * 1e3,
-        batch_display_ms: 2.0 * planner.batch_pairs() as f64 * 0.05,
+        batch_display_ms: if planner.single_frames() { 1.0 } else { 2.0 }
+            * planner.batch_pairs() as f64
+            * 0.05,
         memory_bytes: planner.memory_bytes(),
         estimated_error: planner.estimated_error(),
         prediction_estimate: replayed.estimated_error(),
@@ -578,15 +589,21 @@ pub fn run(opts: &Options) -> anyhow::Result<Vec<Row>> {
                     for family in [
                         Family::adaptive(true, 0, 0.0, opts.persistence),
                         Family::adaptive(false, 0, 0.0, opts.persistence),
+                        Family::adaptive(true, 0, 0.0, opts.persistence)
+                            .with_frames(AdaptiveFrames::Single),
                     ] {
-                        let label = family.name();
+                        let single = family.adaptive_frames() == Some(AdaptiveFrames::Single);
+                        let label = if single { HAAR_SINGLE } else { family.name() };
                         let haar = matches!(family, Family::AdaptiveHaar { .. });
                         let s = run_adaptive(family, &truth, size, frames, sigma)?;
                         let basis_name = if haar { "haar" } else { "hadamard" };
                         let exact = if haar { &exact_haar } else { &exact_wh };
                         let c = &exact.coefficients;
                         let planner_capture = capture(c, &s.indices);
-                        if noisy {
+                        if single {
+                            // The oracle tables are the split pairs' (the single-frame ones:
+                            // `examples/single_frame.rs`).
+                        } else if noisy {
                             if let Some(o) = oracles.iter_mut().find(|o| {
                                 o.scene == *name
                                     && o.size == size
@@ -727,14 +744,20 @@ fn best_of(rows: &[Row], r: &Row, which: &[(&str, &str)]) -> f64 {
         .fold(f64::NEG_INFINITY, f64::max)
 }
 
-const ADAPTIVE: [(&str, &str); 6] = [
+const ADAPTIVE: [(&str, &str); 9] = [
     ("adaptive_haar", "direct"),
     ("adaptive_haar", "auto"),
     ("adaptive_haar", "predicted"),
     ("adaptive_hadamard", "direct"),
     ("adaptive_hadamard", "auto"),
     ("adaptive_hadamard", "predicted"),
+    (HAAR_SINGLE, "direct"),
+    (HAAR_SINGLE, "auto"),
+    (HAAR_SINGLE, "predicted"),
 ];
+
+/// The rows' family label of `adaptive_haar` with single frames.
+const HAAR_SINGLE: &str = "adaptive_haar_single";
 const FIXED: [(&str, &str); 2] = [("bernoulli", "auto"), ("hadamard_rd", "auto")];
 
 fn markdown(rows: &[Row], oracles: &[OracleRow], opts: &Options, machine: &str) -> String {
@@ -744,7 +767,8 @@ fn markdown(rows: &[Row], oracles: &[OracleRow], opts: &Options, machine: &str) 
         md,
         "Generated by `cargo run --release -p helmholtz-bench -- --preset adaptive --out docs` \
          (module docs of `bench/src/adaptive.rs` for the set-up). Frames are counted the same way \
-         for every family (a split pair is 2 frames). PSNR in dB against the scene (raw, no \
+         for every family (a split pair is 2 frames; `haar 1f` = adaptive_haar with single \
+         frames, one a basis function but the first). PSNR in dB against the scene (raw, no \
          fitting). `haar`/`wh` = adaptive_haar / adaptive_hadamard; `dir` = `direct` (the \
          zero-filled inverse, the adaptive scheme's own image), `auto` = `auto` on the same data, \
          `pred` = the planner's prediction-filled image (`Planner::predicted_image`: unmeasured \
@@ -766,9 +790,12 @@ fn markdown(rows: &[Row], oracles: &[OracleRow], opts: &Options, machine: &str) 
             );
             let _ = writeln!(
                 md,
-                "| scene | frames | % of k | haar dir | haar auto | haar pred | wh dir | wh auto | wh pred | bern auto | rd auto | best adaptive - best fixed |"
+                "| scene | frames | % of k | haar dir | haar auto | haar pred | wh dir | wh auto | wh pred | haar 1f dir | haar 1f auto | bern auto | rd auto | best adaptive - best fixed |"
             );
-            let _ = writeln!(md, "|---|---|---|---|---|---|---|---|---|---|---|---|");
+            let _ = writeln!(
+                md,
+                "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
+            );
             for r in rows.iter().filter(|r| {
                 r.size == size
                     && r.noisy == noisy
@@ -782,7 +809,7 @@ fn markdown(rows: &[Row], oracles: &[OracleRow], opts: &Options, machine: &str) 
                 };
                 let _ = writeln!(
                     md,
-                    "| {} | {} | {:.0} % | {} | {} | {} | {} | {} | {} | {} | {} | {:+.2} |",
+                    "| {} | {} | {:.0} % | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {:+.2} |",
                     r.scene,
                     r.frames,
                     100.0 * r.ratio,
@@ -792,6 +819,8 @@ fn markdown(rows: &[Row], oracles: &[OracleRow], opts: &Options, machine: &str) 
                     cell("adaptive_hadamard", "direct"),
                     cell("adaptive_hadamard", "auto"),
                     cell("adaptive_hadamard", "predicted"),
+                    cell(HAAR_SINGLE, "direct"),
+                    cell(HAAR_SINGLE, "auto"),
                     cell("bernoulli", "auto"),
                     cell("hadamard_rd", "auto"),
                     best_of(rows, r, &ADAPTIVE) - best_of(rows, r, &FIXED)

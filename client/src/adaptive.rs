@@ -332,10 +332,7 @@ impl Rig {
                 self.session_id
             ),
             None => {
-                let end = self
-                    .batches
-                    .last()
-                    .map_or(0, |l| l.first_row + 2 * l.indices.len() as u64);
+                let end = self.batches.last().map_or(0, |l| self.batch_end(l));
                 anyhow::ensure!(
                     b.number == self.batches.len() as u64
                         && b.first_row == end
@@ -370,11 +367,23 @@ impl Rig {
         self.channels as usize * self.format.bytes()
     }
 
+    /// The frame after `batch`'s last: two frames an index, or with single frames one but
+    /// index 0's two (PATTERNS.md, "Single frames").
+    fn batch_end(&self, batch: &v1::AdaptiveBatch) -> u64 {
+        let first = self
+            .declared
+            .adaptive_indices_in(batch.first_row)
+            .expect("adaptive");
+        self.declared
+            .adaptive_rows(first + batch.indices.len() as u64)
+            .expect("adaptive")
+    }
+
     /// The first issued batch not yet measured.
     fn next_to_measure(&self) -> Option<v1::AdaptiveBatch> {
         self.batches
             .iter()
-            .find(|b| b.first_row + 2 * b.indices.len() as u64 > self.measured)
+            .find(|b| self.batch_end(b) > self.measured)
             .cloned()
     }
 
@@ -394,7 +403,7 @@ impl Rig {
                 .map_err(|e| anyhow::anyhow!("resolving the session's spec: {e}"))?;
             self.resolved = Some(spec);
         }
-        let rows = batch.first_row..batch.first_row + 2 * batch.indices.len() as u64;
+        let rows = batch.first_row..self.batch_end(batch);
         let spec = self.resolved.as_ref().expect("resolved above");
         let values = measure(&BatchToMeasure {
             number: batch.number,

@@ -26,5 +26,6 @@ pub mod v1 {
 }
 
 pub use patterns::{
-    ErrorEstimate, Family, HaarFunction, HadamardOrdering, PatternGenerator, PatternSpec, SpecError,
+    AdaptiveFrames, ErrorEstimate, Family, HaarFunction, HadamardOrdering, PatternGenerator,
+    PatternSpec, SpecError,
 };

@@ -88,7 +88,7 @@ ADAPTIVE = ("adaptive_haar", "adaptive_hadamard")
 def canonical_adaptive(raw: dict) -> dict:
     """An adaptive spec (PATTERNS.md, "Adaptive families"), canonicalised."""
     allowed = {"family", "width", "height", "count", "seed", "batch", "target_error",
-               "persistence", "error_estimate"}
+               "persistence", "error_estimate", "frames"}
     for key in raw:
         if key not in allowed:
             raise SpecError(key, "unknown field")
@@ -100,6 +100,7 @@ def canonical_adaptive(raw: dict) -> dict:
     target = raw.get("target_error", 0.0)
     beta = raw.get("persistence", 0.5 if raw["family"] == "adaptive_haar" else 0.0)
     estimate = raw.get("error_estimate", "measured")
+    frames = raw.get("frames", "pairs")
     for key, v, top in (("width", width, 2**32), ("height", height, 2**32),
                         ("count", count, 2**64), ("seed", seed, 2**64), ("batch", batch, 2**32)):
         if not _is_uint(v) or v >= top:
@@ -111,7 +112,15 @@ def canonical_adaptive(raw: dict) -> dict:
     k = width * height
     if k > MAX_PIXELS:
         raise SpecError("width", "too many pixels")
-    if not 1 <= count <= MAX_COUNT or count % 2 or count > 2 * k:
+    if frames not in ("pairs", "single"):
+        raise SpecError("frames", "pairs or single")
+    if frames == "single":
+        # PATTERNS.md, "Single frames": index 0 takes two frames, every other index one.
+        if raw["family"] != "adaptive_haar":
+            raise SpecError("frames", "single frames are for adaptive_haar only")
+        if not 2 <= count <= k + 1:
+            raise SpecError("count", "single frames: 2 ..= width * height + 1")
+    elif not 1 <= count <= MAX_COUNT or count % 2 or count > 2 * k:
         raise SpecError("count", "must be even and at most 2 * width * height")
     if batch > k:
         raise SpecError("batch", "at most width * height")
@@ -123,9 +132,12 @@ def canonical_adaptive(raw: dict) -> dict:
         raise SpecError("persistence", "a finite number >= 0")
     if estimate not in ("prediction", "measured"):
         raise SpecError("error_estimate", "prediction or measured")
-    return {"family": raw["family"], "batch": batch, "target_error": float(target),
-            "persistence": float(beta), "error_estimate": estimate, "width": width,
-            "height": height, "count": count, "seed": seed}
+    out = {"family": raw["family"], "batch": batch, "target_error": float(target),
+           "persistence": float(beta), "error_estimate": estimate}
+    if frames == "single":  # stated only when single: older specs keep their canonical form
+        out["frames"] = "single"
+    out.update({"width": width, "height": height, "count": count, "seed": seed})
+    return out
 
 
 def canonical_spec(raw: dict) -> dict:
@@ -407,10 +419,38 @@ def basis_sign(spec: dict, n: int, x: int, y: int) -> int:
     return 1 if (popcount(u & y) + popcount(v & x)) % 2 == 0 else -1
 
 
-def adaptive(spec: dict, i: int, indices: list[int]) -> list[bool]:
-    n, want = indices[i // 2], (1 if i % 2 == 0 else -1)
-    w = spec["width"]
+def single_frames(spec: dict) -> bool:
+    """True for frames: "single" (PATTERNS.md, "Single frames")."""
+    return spec.get("frames", "pairs") == "single"
+
+
+def adaptive_frame(spec: dict, i: int) -> tuple[int, bool]:
+    """(position r in the index sequence, positive) of frame i. Split pairs: frames 2r, 2r + 1
+    show index r's P+, P-. Single frames: frames 0, 1 show index 0's P+, P-; frame r + 1
+    (r >= 1) shows index r's P+."""
+    if not single_frames(spec):
+        return i // 2, i % 2 == 0
+    if i < 2:
+        return 0, i == 0
+    return i - 1, True
+
+
+def adaptive_frame_count(spec: dict, j: int) -> int:
+    """Frames of the first j indices: 2j (pairs); R(0) = 0, R(j) = j + 1 (single)."""
+    if not single_frames(spec):
+        return 2 * j
+    return j + 1 if j else 0
+
+
+def basis_pattern(spec: dict, n: int, positive: bool) -> list[bool]:
+    """P+ (pixel on <=> w_n = +1) or P- (pixel on <=> w_n = -1) of basis function n."""
+    w, want = spec["width"], (1 if positive else -1)
     return [basis_sign(spec, n, x, y) == want for y in range(w) for x in range(w)]
+
+
+def adaptive(spec: dict, i: int, indices: list[int]) -> list[bool]:
+    r, positive = adaptive_frame(spec, i)
+    return basis_pattern(spec, indices[r], positive)
 
 
 def gain(spec: dict, n: int) -> float:
@@ -521,14 +561,47 @@ def predict(spec: dict, v: list[float]) -> list[float]:
     return p
 
 
+def total_order(f: float) -> int:
+    """An integer that orders binary64 values as IEEE 754 totalOrder does."""
+    b = struct.unpack("<q", struct.pack("<d", f))[0]
+    return b if b >= 0 else b ^ 0x7FFF_FFFF_FFFF_FFFF
+
+
+def block_details(w: int, block: tuple[int, int, int]) -> tuple[int, int, int]:
+    """The x, y and xy details of block (s, pr, pc) (PATTERNS.md, "Single frames")."""
+    s, pr, pc = block
+    h = w >> s
+    return pr * w + h + pc, (h + pr) * w + pc, (h + pr) * w + h + pc
+
+
+def block_of(w: int, n: int) -> tuple[tuple[int, int, int], int]:
+    """The block of detail n != 0 and which of its details n is (0 = x, 1 = y, 2 = xy)."""
+    s = haar_scale(w, n)
+    h = w >> s
+    r, c = divmod(n, w)
+    kind = 2 if (r >= h and c >= h) else (1 if r >= h else 0)
+    return (s, r % h, c % h), kind
+
+
+def block_children(block: tuple[int, int, int]) -> list[tuple[int, int, int]]:
+    """Top-left, top-right, bottom-left, bottom-right (none for s = 1)."""
+    s, pr, pc = block
+    if s < 2:
+        return []
+    return [(s - 1, 2 * pr + dr, 2 * pc + dc) for dr, dc in ((0, 0), (0, 1), (1, 0), (1, 1))]
+
+
 class AdaptivePlanner:
-    """The planner of PATTERNS.md, "The planner", written from the text."""
+    """The planner of PATTERNS.md, "The planner" (and "Single frames"), written from the text."""
 
     def __init__(self, spec: dict, channels: int):
         self.spec, self.c = canonical_spec(spec), channels
         w = self.spec["width"]
         self.k = w * w
-        self.budget = min(self.spec["count"] // 2, self.k)
+        self.single = single_frames(self.spec)
+        # The budget in indices: count / 2 split pairs, or count - 1 single-frame indices.
+        per = self.spec["count"] - 1 if self.single else self.spec["count"] // 2
+        self.budget = min(per, self.k)
         batch = self.spec["batch"]
         self.batch = batch if batch else max(16, -(-self.k * channels // 1024),
                                              -(-self.budget // 128))
@@ -554,6 +627,49 @@ class AdaptivePlanner:
         self.squares = [[0.0] * (m + 1) for _ in range(channels)]
         self.dof = [0] * (m + 1)
         self.observed = [False] * self.k
+        # Single frames: the blocks not yet split, the block being split and how many of its
+        # details were issued; per channel the dark level, each block's pair sum Q and each
+        # decoded detail's y+ - y-; the (y+, y-) each index decoded to (for the self-checks).
+        self.open = [(m, 0, 0)] if self.single and m >= 1 else []
+        self.current, self.current_issued = None, 3
+        self.dark = [0.0] * channels
+        self.block_sum = {}
+        self.diff = {}
+        self.derived = {}
+
+    def frames_of(self, first: int, n: int) -> int:
+        """Frame values (per channel) of the n indices from position `first` on."""
+        return adaptive_frame_count(self.spec, first + n) - adaptive_frame_count(self.spec, first)
+
+    def values_needed(self) -> int:
+        """Values (frames x channels) of the oldest outstanding batch."""
+        first, n = self.outstanding[0]
+        return self.frames_of(first, n) * self.c
+
+    def block_score(self, block) -> float:
+        x, y, xy = block_details(self.spec["width"], block)
+        return (self.score[x] + self.score[y]) + self.score[xy]
+
+    def select_single(self, size: int) -> list[int]:
+        """PATTERNS.md, "Single frames", "Selection"."""
+        w = self.spec["width"]
+        chosen = []
+        while len(chosen) < size:
+            if not self.order and not chosen:
+                chosen.append(0)
+            elif self.current is not None and self.current_issued < 3:
+                chosen.append(block_details(w, self.current)[self.current_issued])
+                self.current_issued += 1
+            elif self.open:
+                best = max(self.open, key=lambda b: (total_order(self.block_score(b)), b[0],
+                                                     -block_details(w, b)[0]))
+                self.open.remove(best)
+                self.open += block_children(best)
+                self.current, self.current_issued = best, 1
+                chosen.append(block_details(w, best)[0])
+            else:
+                break
+        return chosen
 
     def poll(self):
         if len(self.outstanding) >= 2 or self.stopped or len(self.order) >= self.budget:
@@ -567,29 +683,86 @@ class AdaptivePlanner:
             par = parent(self.spec, n)
             eligible = par is None or self.issued[par]
             return (0 if eligible else 1, -self.score[n], -level(self.spec, n), n)
-        chosen = sorted((n for n in range(self.k) if not self.issued[n]), key=key)[:size]
+        if self.single:
+            chosen = self.select_single(size)
+            if not chosen:
+                return None
+        else:
+            chosen = sorted((n for n in range(self.k) if not self.issued[n]), key=key)[:size]
         for n in chosen:
+            assert not self.issued[n]
             self.issued[n] = True
         first = len(self.order)
         self.order += chosen
         self.outstanding.append((first, len(chosen)))
         return chosen
 
+    def decode_single(self, first: int, pairs: int, frames: list[float]) -> list[list[tuple]]:
+        """(y+, y-) per index and channel from single frames (PATTERNS.md, "Single frames",
+        "Values"), in the order of the indices: a block's children get their pair sums as
+        soon as its xy detail is decoded."""
+        c, w = self.c, self.spec["width"]
+        out = []
+        for j in range(first, first + pairs):
+            n = self.order[j]
+            at = self.frames_of(first, j - first)  # the index's first frame in this batch
+            ys = []
+            if n == 0:
+                root = (self.m, 0, 0)
+                self.block_sum[root] = [0.0] * c
+                for ch in range(c):
+                    yp, ym = frames[at * c + ch], frames[(at + 1) * c + ch]
+                    self.dark[ch] = ym
+                    self.block_sum[root][ch] = yp + ym
+                    ys.append((yp, ym))
+            else:
+                block, kind = block_of(w, n)
+                q = self.block_sum[block]  # known: the parent's xy came first
+                for ch in range(c):
+                    yp = frames[at * c + ch]
+                    ym = q[ch] - yp
+                    ys.append((yp, ym))
+                self.diff[n] = [yp - ym for yp, ym in ys]
+                if kind == 2:
+                    x, y, _ = block_details(w, block)
+                    for child, (sx, sy, sxy) in zip(block_children(block),
+                                                    ((1, 1, 1), (-1, 1, -1), (1, -1, -1),
+                                                     (-1, -1, 1))):
+                        sums = []
+                        for ch in range(c):
+                            two_dark = 2.0 * self.dark[ch]
+                            big = q[ch] - two_dark
+                            dx, dy, dxy = self.diff[x][ch], self.diff[y][ch], self.diff[n][ch]
+                            acc = big + dx if sx > 0 else big - dx
+                            acc = acc + dy if sy > 0 else acc - dy
+                            acc = acc + dxy if sxy > 0 else acc - dxy
+                            sums.append((acc * 0.25) + two_dark)
+                        self.block_sum[child] = sums
+            self.derived[n] = ys
+            out.append(ys)
+        return out
+
     def observe(self, frames: list[float]) -> None:
-        first, pairs = self.outstanding.pop(0)
+        first, pairs = self.outstanding[0]
         c = self.c
-        assert len(frames) == 2 * pairs * c and all(math.isfinite(f) for f in frames)
+        assert len(frames) == self.values_needed() and all(math.isfinite(f) for f in frames)
+        self.outstanding.pop(0)
+        if self.single:
+            ys = self.decode_single(first, pairs, frames)
+        else:
+            ys = [[(frames[2 * j * c + ch], frames[(2 * j + 1) * c + ch]) for ch in range(c)]
+                  for j in range(pairs)]
         for j in range(pairs):
             n = self.order[first + j]
             for ch in range(c):
-                val = (frames[2 * j * c + ch] - frames[(2 * j + 1) * c + ch]) / gain(self.spec, n)
+                val = (ys[j][ch][0] - ys[j][ch][1]) / gain(self.spec, n)
                 self.v[ch][n] = val
                 self.energy[ch] += val * val
             if self.measured:
                 g, sz = self.group[n], self.size[n]
                 cnt = self.group_count.get(g, 0)
                 for ch in range(c):
-                    t = frames[2 * j * c + ch] + frames[(2 * j + 1) * c + ch]
+                    t = ys[j][ch][0] + ys[j][ch][1]
                     old = self.group_mean[ch].get(g, 0.0)
                     new = old + (t - old) / (cnt + 1.0)
                     self.group_mean[ch][g] = new
@@ -717,7 +890,8 @@ def replay(spec: dict, channels: int, frames: list[float]) -> list[int]:
             queue.append(b)
         if not queue:
             break
-        need = 2 * len(queue.pop(0)) * channels
+        queue.pop(0)
+        need = planner.values_needed()  # 2 p C (pairs); (p + 1) C or p C (single frames)
         if len(frames) - at < need:
             break
         planner.observe(frames[at:at + need])
@@ -728,27 +902,56 @@ def replay(spec: dict, channels: int, frames: list[float]) -> list[int]:
 def simulate_adaptive(spec: dict, scenes: list[list[int]], dark: int, noise: int = 0) -> list[float]:
     """A simulated rig: shows what the planner asks, returns every frame value (integers, so
     the JSON is exact), each with an integer read noise uniform in [-noise, noise] from a fixed
-    linear congruential sequence."""
+    linear congruential sequence (one draw per frame value, frames in order, channels inner).
+
+    Single frames: noise-free, every decoded (y+, y-) must be exactly the light of P+ and of
+    the P- the rig never showed, plus the dark level (checked here)."""
     c = len(scenes)
     planner, queue, frames = AdaptivePlanner(spec, c), [], []
     state = 12345
+
+    def light(pat: list[bool], t: list[int]) -> int:
+        return sum(tv for on, tv in zip(pat, t) if on)
     while True:
         while (b := planner.poll()) is not None:
             queue.append(b)
         if not queue:
             break
         batch, values = queue.pop(0), []
-        for n in batch:
-            for sign in (1, -1):
-                pat = adaptive(planner.spec, 0 if sign == 1 else 1, [n])
-                for t in scenes:
-                    state = (state * 6364136223846793005 + 1442695040888963407) % 2**64
-                    jitter = (state >> 33) % (2 * noise + 1) - noise if noise else 0
-                    values.append(float(dark + jitter
-                                        + sum(tv for on, tv in zip(pat, t) if on)))
+        first, n_batch = planner.outstanding[0]
+        assert planner.order[first:first + n_batch] == batch
+        start = adaptive_frame_count(planner.spec, first)
+        for i in range(start, start + planner.frames_of(first, n_batch)):
+            r, positive = adaptive_frame(planner.spec, i)
+            pat = basis_pattern(planner.spec, planner.order[r], positive)
+            for t in scenes:
+                state = (state * 6364136223846793005 + 1442695040888963407) % 2**64
+                jitter = (state >> 33) % (2 * noise + 1) - noise if noise else 0
+                values.append(float(dark + jitter + light(pat, t)))
         planner.observe(values)
+        if planner.single and noise == 0:
+            for n in batch:
+                want = [(float(dark + light(basis_pattern(planner.spec, n, True), t)),
+                         float(dark + light(basis_pattern(planner.spec, n, False), t)))
+                        for t in scenes]
+                assert planner.derived[n] == want, (n, planner.derived[n], want)
         frames += values
+    if planner.single:
+        check_single_order(planner.spec, planner.order)
     return frames
+
+
+def check_single_order(spec: dict, order: list[int]) -> None:
+    """A single-frame sequence is index 0, then whole block splits (x, y, xy in a row, the last
+    one possibly cut by the budget), each block split after its parent block."""
+    w = spec["width"]
+    assert order[:1] == [0] and len(set(order)) == len(order)
+    split = {(log2(w), 0, 0)} if w > 1 else set()  # blocks whose parent block was split
+    for at in range(1, len(order), 3):
+        block, kind = block_of(w, order[at])
+        assert kind == 0 and block in split, (at, order[at])
+        assert order[at:at + 3] == list(block_details(w, block))[:len(order) - at]
+        split.update(block_children(block))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -778,6 +981,13 @@ class Generator:
         if f in ADAPTIVE:
             return pack(adaptive(self.spec, i, self.indices))
         raise ValueError("speckle has grey levels, not bits")
+
+    def frames(self) -> int | None:
+        """An adaptive spec's frames for its indices: 2j split pairs, or j + 1 single frames
+        (0 for none); None for the other families (their count is the spec's)."""
+        if self.spec["family"] not in ADAPTIVE:
+            return None
+        return adaptive_frame_count(self.spec, len(self.indices))
 
     def levels(self, i: int) -> list[int]:
         assert self.spec["family"] == "speckle"
@@ -843,7 +1053,9 @@ def vector(name: str, raw: dict, indices: list[int], runs: list[tuple[int, int]]
             row, n, pos = hadamard_frame(spec, i, g.table)
             e.update({"row": row, "natural": n, "positive": pos})
         if fam in ADAPTIVE:
-            e.update({"pair": i // 2, "basis_index": basis[i // 2], "positive": i % 2 == 0})
+            assert i < g.frames()
+            r, positive = adaptive_frame(spec, i)  # pairs: (i / 2, i even)
+            e.update({"pair": r, "basis_index": basis[r], "positive": positive})
         if fam == "speckle":
             e["levels"] = g.levels(i)
         else:
@@ -852,6 +1064,32 @@ def vector(name: str, raw: dict, indices: list[int], runs: list[tuple[int, int]]
     out["patterns"] = pats
     out["runs"] = [{"start": s, "count": n, "sha256": g.run_sha256(s, n)} for s, n in runs]
     return out
+
+
+def replay_scene(w: int, shift: int) -> list[int]:
+    """An edge, a bright square and a ramp, in integers (exact JSON)."""
+    return [(3 * x + (40 if (x - shift) ** 2 + (y - 9) ** 2 < 20 else 0)
+             + (25 if y > 12 else 0)) for y in range(w) for x in range(w)]
+
+
+def replay_vector(fam: str, w: int, c: int, count: int, batch: int, target: float, dark: int,
+                  beta, estimate, noise: int, single: bool = False) -> dict:
+    """One simulated session, replayed: persistence None = the family's default (what a
+    declaration without it gets); error estimate None = the default (measured); noise = the
+    rig's integer read noise."""
+    raw = {"family": fam, "width": w, "height": w, "count": count, "batch": batch,
+           "target_error": target}
+    if beta is not None:
+        raw["persistence"] = beta
+    if estimate is not None:
+        raw["error_estimate"] = estimate
+    if single:
+        raw["frames"] = "single"
+    scenes = [replay_scene(w, 6 + 4 * i) for i in range(c)]
+    frames = simulate_adaptive(raw, scenes, dark, noise)
+    order = replay(raw, c, frames)
+    return {"spec": canonical_spec(raw), "channels": c, "dark": dark, "noise": noise,
+            "frames": [int(f) for f in frames], "indices": order}
 
 
 def build() -> dict:
@@ -960,6 +1198,17 @@ def build() -> dict:
                               [0, 1, 198, 199], [(0, 200)],
                               "100 of the 200 budgeted pairs shown",
                               basis=[(n * 37 + 11) % 1024 for n in range(100)]))
+    # Single frames: the index sequence of a simulated session (index 0, then block splits).
+    raw = {"family": "adaptive_haar", "frames": "single", "width": 16, "height": 16,
+           "count": 257}
+    order = replay(raw, 1, simulate_adaptive(raw, [replay_scene(16, 6)], 7))
+    assert sorted(order) == list(range(256))
+    assert Generator(raw, order).frames() == 257
+    vectors.append(vector("adaptive_haar 16x16 single frames", raw, [0, 1, 2, 3, 4, 255, 256],
+                          [(0, 257)],
+                          "frames 0, 1: basis_indices[0]'s P+ and P-; frame r + 1: the P+ of "
+                          "basis_indices[r] (pair = r); a complete set in k + 1 frames",
+                          basis=order))
 
     # speckle ------------------------------------------------------------------------------
     vectors.append(vector("speckle 10x7 grain 3 seed 99",
@@ -1010,22 +1259,29 @@ def build() -> dict:
                 (32, 1, 1024, 16, 0.12, 50, None, None, 60),
                 (32, 2, 1024, 16, 0.12, 50, None, "prediction", 60),
                 (32, 2, 1024, 16, 0.12, 50, None, None, 60)):
-            def scene(shift: int) -> list[int]:
-                # An edge, a bright square and a ramp, in integers (exact JSON).
-                return [(3 * x + (40 if (x - shift) ** 2 + (y - 9) ** 2 < 20 else 0)
-                         + (25 if y > 12 else 0)) for y in range(w) for x in range(w)]
-            raw = {"family": fam, "width": w, "height": w, "count": count, "batch": batch,
-                   "target_error": target}
-            if beta is not None:
-                raw["persistence"] = beta
-            if estimate is not None:
-                raw["error_estimate"] = estimate
-            scenes = [scene(6 + 4 * i) for i in range(c)]
-            frames = simulate_adaptive(raw, scenes, dark, noise)
-            order = replay(raw, c, frames)
-            adaptive_replays.append({"spec": canonical_spec(raw), "channels": c,
-                                     "dark": dark, "noise": noise,
-                                     "frames": [int(f) for f in frames], "indices": order})
+            adaptive_replays.append(replay_vector(fam, w, c, count, batch, target, dark, beta,
+                                                  estimate, noise))
+    # Single frames (adaptive_haar only): index 0 as frames 0 and 1, every other index one
+    # frame; count - 1 indices, odd counts allowed, 8x8 with count 65 a complete set.
+    stopped_early = 0
+    for w, c, count, batch, target, dark, beta, estimate, noise in (
+            (16, 1, 161, 0, 0.0, 7, None, None, 0), (16, 2, 150, 12, 0.0, 0, None, None, 0),
+            (8, 1, 65, 0, 0.0, 3, None, None, 0), (32, 1, 300, 16, 0.0, 5, None, None, 0),
+            (32, 1, 800, 16, 0.12, 50, None, None, 60),
+            (32, 2, 700, 0, 0.0, 50, 1.0, "prediction", 60),
+            # stopped by target_error: measured noise-free, prediction with read noise (with
+            # single frames the measured estimate's noise part reads 0, so read noise counts as
+            # prediction miss and the 32x32 session above never gets below 0.12)
+            (16, 1, 257, 16, 0.05, 1, None, None, 0),
+            (32, 1, 800, 16, 0.04, 50, None, "prediction", 60)):
+        r = replay_vector("adaptive_haar", w, c, count, batch, target, dark, beta, estimate,
+                          noise, single=True)
+        assert len(r["frames"]) == adaptive_frame_count(r["spec"], len(r["indices"])) * c
+        if count == w * w + 1 and target == 0:
+            assert sorted(r["indices"]) == list(range(w * w))
+        stopped_early += len(r["indices"]) < count - 1
+        adaptive_replays.append(r)
+    assert stopped_early == 2, stopped_early  # the last two
 
     return {
         "format": "helmholtz-pattern-vectors/1",
@@ -1044,10 +1300,15 @@ def build() -> dict:
             "orderings.natural": "natural index u * W + v of each row of the ordering",
             "basis_indices": "adaptive families: the basis index of each split pair (frames "
                              "2r, 2r + 1 show basis_indices[r])",
+            "basis_indices.single": "frames: single: frames 0 and 1 show the P+ and P- of "
+                                    "basis_indices[0] (= 0), frame r + 1 (r >= 1) the P+ of "
+                                    "basis_indices[r]; a pattern's pair is that r",
             "adaptive_replays": "adaptive sessions of a simulated rig: the frames (integers, "
                                 "frame-major, channels inner; the scene's light plus the dark "
                                 "level plus an integer read noise in [-noise, noise]) replay "
-                                "through the planner to the issued indices",
+                                "through the planner to the issued indices; with frames: "
+                                "single, index 0 as frames 0 and 1 and every other index as "
+                                "one frame (its P+)",
         },
         "random_words": random_words,
         "fills": fills,

@@ -179,6 +179,9 @@ pub fn reconstruct(
     source: &mut dyn BucketSource,
     control: &Control,
 ) -> Result<Reconstruction, ReconError> {
+    if problem.spec.adaptive_single() {
+        return reconstruct_single_frames(problem, config, source, control);
+    }
     config.check(problem)?;
     match config {
         MethodConfig::Gi | MethodConfig::Dgi | MethodConfig::Ngi => {
@@ -221,6 +224,72 @@ pub fn reconstruct(
         | MethodConfig::Lsq { .. }
         | MethodConfig::Auto { .. } => compressive::run(problem, config, source, control),
     }
+}
+
+/// The warning every reconstruction of a single-frame session carries.
+pub const SINGLE_FRAMES_WARNING: &str = "single frames carry no noise estimate of their own (each y- is computed from the others, so the pair sums the noise is read from are exact): this image treats the frames as noise-free; on a rig whose fine details do not stand clear of its read noise it can be far off (30 dB read noise on the benchmark: far below the flat image), and split pairs are the better choice";
+
+/// A single-frame adaptive session (PATTERNS.md, "Single frames") is the split-pair session of
+/// the same indices, each `y-` following from its block's light: every method runs on those
+/// pairs ([`adaptive::single_frames_as_pairs`], [`adaptive::pair_spec`]). Its rows are few (at
+/// most `k + 1` frames of bucket channels), so they are read whole.
+fn reconstruct_single_frames(
+    problem: &Problem,
+    config: &MethodConfig,
+    source: &mut dyn BucketSource,
+    control: &Control,
+) -> Result<Reconstruction, ReconError> {
+    let c = problem.channels.max(1);
+    let mut frames = Vec::with_capacity(problem.rows as usize * c);
+    while let Some(block) = source.next_block()? {
+        if block.first_row != (frames.len() / c) as u64 {
+            return Err(ReconError::BadRows(format!(
+                "a block starts at row {}, after {} rows",
+                block.first_row,
+                frames.len() / c
+            )));
+        }
+        frames.extend_from_slice(&block.values);
+    }
+    if frames.len() != problem.rows as usize * c {
+        return Err(ReconError::BadRows(format!(
+            "{} values for {} rows of {c} channels",
+            frames.len(),
+            problem.rows
+        )));
+    }
+    let pairs = adaptive::single_frames_as_pairs(problem.spec, c, &frames);
+    let spec = adaptive::pair_spec(problem.spec);
+    let pair_problem = Problem {
+        spec: &spec,
+        channels: problem.channels,
+        rows: (pairs.len() / c) as u64,
+    };
+    let mut r = reconstruct(
+        &pair_problem,
+        config,
+        &mut SliceSource::new(&pairs, c, 4096),
+        control,
+    )?;
+    r.report.details.insert(
+        "single_frames".into(),
+        serde_json::json!({
+            "frames": problem.rows,
+            "pairs": pair_problem.rows / 2,
+            "basis": "one frame an index but index 0's two: each y- is its block's light less y+ (PATTERNS.md, \"Single frames\"), and the method ran on the split pairs that gives",
+        }),
+    );
+    // Pair sums that are exact by construction measure no noise: every estimate of it the
+    // method made from them reads 0, and under read noise its image can be far off.
+    let warnings = r
+        .report
+        .details
+        .entry("warnings")
+        .or_insert_with(|| serde_json::Value::Array(Vec::new()));
+    if let Some(list) = warnings.as_array_mut() {
+        list.push(SINGLE_FRAMES_WARNING.into());
+    }
+    Ok(r)
 }
 
 #[cfg(test)]

@@ -56,6 +56,10 @@ struct Haar {
     /// `(y+ - y-) / 2^s`, channel after channel (`channels * k`).
     coefficients: Vec<f64>,
     positive: Vec<f64>,
+    /// Single frames (PATTERNS.md, "Single frames"): each `y-` from its block's light. `None`
+    /// for split pairs, and once a frame arrived before its index was resolved (its block's
+    /// light, and so every finer one, is then unknown: the image stays as it was).
+    single: Option<crate::adaptive::SingleFrameDecoder>,
 }
 
 /// DGI sums (module docs of [`crate::correlate`], "Formulas").
@@ -112,6 +116,9 @@ impl Preview {
             Family::AdaptiveHaar { .. } => State::Haar(Haar {
                 coefficients: vec![0.0; channels * k],
                 positive: vec![0.0; channels],
+                single: spec
+                    .adaptive_single()
+                    .then(|| crate::adaptive::SingleFrameDecoder::new(spec.width(), channels)),
             }),
             Family::Hadamard { .. } | Family::AdaptiveHadamard { .. } => {
                 State::Hadamard(Hadamard {
@@ -259,6 +266,30 @@ impl Preview {
                     for (ch, (&yp, &ym)) in s.positive.iter().zip(c).enumerate() {
                         s.d[ch * k + n] = yp - ym;
                     }
+                }
+            }
+            State::Haar(s) if self.spec.adaptive_single() => {
+                let Some(n) = self.generator.adaptive_index(i) else {
+                    s.single = None; // not resolved yet: counted, and nothing after it shown
+                    return;
+                };
+                let Some(decoder) = &mut s.single else {
+                    return;
+                };
+                let frames: Vec<f64> = if n == 0 {
+                    if i == 0 {
+                        s.positive.copy_from_slice(c);
+                        return;
+                    }
+                    s.positive.iter().chain(c).copied().collect()
+                } else {
+                    c.to_vec()
+                };
+                let mut pairs = Vec::with_capacity(self.channels);
+                decoder.decode(n, &frames, &mut pairs);
+                let gain = HaarFunction::new(self.spec.width(), n).side() as f64;
+                for (ch, (yp, ym)) in pairs.into_iter().enumerate() {
+                    s.coefficients[ch * k + n as usize] = (yp - ym) / gain;
                 }
             }
             State::Haar(s) => {

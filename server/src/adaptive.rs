@@ -23,6 +23,8 @@ const READ_CHUNKS: u32 = 8;
 /// One session's planner and the rows it has not observed yet.
 pub struct Acquisition {
     session_id: String,
+    /// The session's declaration (how many frames a batch takes).
+    spec: helmholtz_proto::PatternSpec,
     channels: usize,
     format: SampleFormat,
     /// `None` only while an observation runs on a blocking thread.
@@ -68,6 +70,7 @@ impl Acquisition {
             Planner::new(&session.spec, channels).map_err(|e| planner_error(&session.id, e))?;
         let mut acquisition = Acquisition {
             session_id: session.id.clone(),
+            spec: session.spec.clone(),
             channels,
             format: session.sample_format(),
             planner: Some(planner),
@@ -110,7 +113,7 @@ impl Acquisition {
 
     /// Rows of every batch issued so far.
     pub fn issued_rows(&self) -> u64 {
-        2 * self.planner().issued_pairs()
+        self.planner().issued_rows()
     }
 
     /// Why the acquisition is over: the planner's stopping rule holds and every issued batch is
@@ -158,7 +161,12 @@ impl Acquisition {
                 }
                 None => {
                     store
-                        .issue_batch(&self.session_id, Some(lease), &batch)
+                        .issue_batch(
+                            &self.session_id,
+                            Some(lease),
+                            &batch,
+                            batch.end_row(&self.spec),
+                        )
                         .await?;
                     metrics::counter!("helmholtz_adaptive_batches_total").increment(1);
                     issued.push(batch.clone());
@@ -197,12 +205,13 @@ impl Acquisition {
                 self.pending.extend(self.format.decode_f64(&data));
                 self.cursor = start + count;
                 while let Some(batch) = self.outstanding.front() {
-                    if batch.end_row() > self.cursor {
+                    let batch_end = batch.end_row(&self.spec);
+                    if batch_end > self.cursor {
                         break;
                     }
-                    let end = (batch.end_row() - self.pending_from) as usize * self.channels;
+                    let end = (batch_end - self.pending_from) as usize * self.channels;
                     let frames: Vec<f64> = self.pending.drain(..end).collect();
-                    self.pending_from = batch.end_row();
+                    self.pending_from = batch_end;
                     self.outstanding.pop_front();
                     self.observe(frames).await?;
                     self.issue(store, lease, stored, issued).await?;
@@ -229,7 +238,7 @@ impl Acquisition {
 fn issued_batch(b: Batch) -> IssuedBatch {
     IssuedBatch {
         number: b.number,
-        first_row: 2 * b.first_pair,
+        first_row: b.first_row,
         indices: b.indices,
     }
 }

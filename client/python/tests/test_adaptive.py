@@ -3,7 +3,9 @@ server: a simulated rig runs adaptive sessions to their end and the stored sessi
 to the scene; the index sequence is what the server stores (``adaptive.json``) and what the
 independent reference planner (proto/tools/patterns_ref.py) replays from the stored values; a
 rig whose stream is cut, and one that restarts, resume with the indices of an uninterrupted
-run; bad values are refused with nothing stored; refusals of the server are ``AcquireError``."""
+run; bad values are refused with nothing stored; refusals of the server are ``AcquireError``.
+Single-frame sessions (``frames="single"``, PATTERNS.md "Single frames") run, resume and
+reconstruct the same way with one frame per index."""
 
 from __future__ import annotations
 
@@ -50,14 +52,15 @@ class Rig:
     """A noiseless bucket rig: bucket = sum(pattern * scene) + a dark level, per channel. It
     keeps every frame it was shown."""
 
-    def __init__(self, *scenes: np.ndarray, dark: float = DARK):
+    def __init__(self, *scenes: np.ndarray, dark: float = DARK, pairs: bool = True):
         self.t = np.stack([s.reshape(-1) for s in scenes], axis=1)  # (k, channels)
         self.dark = dark
+        self.pairs = pairs  # split pairs: an even number of frames per batch
         self.shown: list[np.ndarray] = []
 
     def __call__(self, patterns: np.ndarray) -> np.ndarray:
         assert patterns.dtype == np.float32 and patterns.ndim == 3
-        assert patterns.shape[0] % 2 == 0 and patterns.shape[0] > 0
+        assert patterns.shape[0] > 0 and (patterns.shape[0] % 2 == 0 or not self.pairs)
         self.shown.append(patterns.copy())
         return patterns.reshape(len(patterns), -1).astype(np.float64) @ self.t + self.dark
 
@@ -88,8 +91,13 @@ def check_stored(client: hz.Client, sid: str, report: hz.AdaptiveReport, channel
     assert stored["indices"] == report.indices
     assert [b["number"] for b in stored["batches"]] == list(range(report.batches))
     assert sum(len(b["indices"]) for b in stored["batches"]) == len(report.indices)
-    assert stored["issued_rows"] == 2 * len(report.indices)
     session = client.session(sid)
+    spec = session.spec
+    assert stored["issued_rows"] == spec.adaptive_rows(len(report.indices))
+    before = 0
+    for b in stored["batches"]:  # each batch starts at R(indices before it)
+        assert b["first_row"] == spec.adaptive_rows(before), b
+        before += len(b["indices"])
     values = client.measurements(sid)
     assert values.shape == (report.rows, channels)
     replayed = REF.replay(session.spec.to_dict(), channels, values.reshape(-1).tolist())
@@ -186,6 +194,126 @@ def test_a_camera_session(client, session_id) -> None:  # type: ignore[no-untype
     relit = client.relight(rec, np.ones((2, 2)))  # T^T 1: the whole camera as the light
     want = T.sum(axis=0).reshape(8, 8)
     assert np.abs(relit - want).max() < 1e-4 * want.max(), np.abs(relit - want).max()
+
+
+def single_frame_order_holds(spec: hz.PatternSpec, indices: list[int]) -> None:
+    """PATTERNS.md "Single frames", Selection: index 0 first, then whole block splits (a
+    block's x, y, xy details in a row), each block split after its parent block."""
+    w = spec.width
+    m = w.bit_length() - 1
+    assert indices[0] == 0
+    rest = indices[1:]
+    split = {(m, 0, 0)}  # the root may be split at once
+    done: set[tuple[int, int, int]] = set()
+    for at in range(0, len(rest), 3):
+        x = rest[at]
+        r, c = divmod(x, w)
+        s = m - (max(r, c).bit_length() - 1)
+        h = w >> s
+        assert c >= h and r < h, f"block splits open with their x detail, got {x}"
+        block = (s, r % h, c % h)
+        pr, pc = block[1], block[2]
+        details = [pr * w + h + pc, (h + pr) * w + pc, (h + pr) * w + h + pc]
+        assert rest[at : at + 3] == details[: len(rest) - at], (block, rest[at : at + 3])
+        assert block in split and block not in done, f"block {block} split before its parent"
+        done.add(block)
+        if s >= 2:
+            split |= {(s - 1, 2 * pr + dr, 2 * pc + dc) for dr in (0, 1) for dc in (0, 1)}
+
+
+def test_a_single_frame_session_runs_its_budget_in_about_half_the_frames(client, session_id) -> None:  # type: ignore[no-untyped-def]
+    # Needs the server's single-frame support (PATTERNS.md "Single frames").
+    truth = scene(16)
+    spec = hz.PatternSpec.adaptive_haar(16, frames="single", batch=16)
+    assert spec.count == 257, "the whole basis: index 0's pair and 255 single frames"
+    session = create(client, session_id, spec)
+    assert session.spec == spec and session.expected_rows == 257
+    rig = Rig(truth, pairs=False)
+    report = client.acquire(session, rig)
+    assert (report.reason, report.rows, report.batches) == ("budget", 257, 16), report
+    assert sorted(report.indices) == list(range(256)), "every basis function once"
+    single_frame_order_holds(spec, report.indices)
+    assert report.reconnects == 0 and report.measure_calls == 16
+    assert report.frames_measured == 257 and report.rows_sent == 257
+    assert report.rows_written == 257 and report.rows_matched == 0
+    # The first batch is index 0's pair and 15 single frames; the others 16 single frames.
+    assert [len(f) for f in rig.shown] == [17] + [16] * 15
+    assert rig.shown[0][0].all() and not rig.shown[0][1].any()
+    assert np.array_equal(rig.frames, hz.patterns(spec, indices=report.indices))
+    s = client.session(session_id)
+    assert (s.state, s.committed_rows) == ("finished", 257)
+    check_stored(client, session_id, report)
+    # Noise-free, the frames give the values of split pairs: the whole basis inverts.
+    image = reconstruct(client, session_id, "direct")
+    error = relative_error(image, truth)
+    assert error < 1e-5, f"direct on the whole basis from single frames, error {error}"
+
+
+def test_a_single_frame_session_with_an_odd_budget_and_two_channels(client, session_id) -> None:  # type: ignore[no-untyped-def]
+    # 32x32, 301 frames: index 0's pair and 299 single frames (an odd budget), batches sized
+    # by the server; two channels.
+    spec = hz.PatternSpec.adaptive_haar(32, 301, frames="single")
+    scenes = (scene(32), scene(32, shift=0.25))
+    rig = Rig(*scenes, pairs=False)
+    report = client.acquire(create(client, session_id, spec, channels=2), rig)
+    assert (report.reason, report.rows, len(report.indices)) == ("budget", 301, 300), report
+    assert len(rig.shown[0]) == len(rig.shown[1]) + 1, "the first batch holds index 0's pair"
+    single_frame_order_holds(spec, report.indices)
+    assert np.array_equal(rig.frames, hz.patterns(spec, indices=report.indices))
+    check_stored(client, session_id, report, channels=2)
+
+
+def test_a_single_frame_session_resumes_after_a_cut_stream_and_a_restarted_rig(client, server, session_id) -> None:  # type: ignore[no-untyped-def]
+    # The resume arithmetic with one frame per index: batch b of 16 indices starts at row
+    # 16 b + 1 (b >= 1), the first one holds 17 rows.
+    truth = scene(32)
+    spec = hz.PatternSpec.adaptive_haar(32, 193, batch=16, frames="single")
+    straight = client.acquire(create(client, f"{session_id}-straight", spec), Rig(truth, pairs=False))
+    assert (straight.rows, len(straight.indices), straight.batches) == (193, 192, 12)
+
+    proxy = CuttingProxy(server.address.split("://", 1)[1])
+    try:
+        with hz.Client(proxy.address, server.token) as via_proxy:
+            session = create(via_proxy, f"{session_id}-cut", spec)
+            rig = Rig(truth, pairs=False)
+
+            def cutting(patterns: np.ndarray) -> np.ndarray:
+                if len(rig.shown) == 3 and proxy.cuts == 0:
+                    assert proxy.cut_all() > 0
+                return rig(patterns)
+
+            cut = via_proxy.acquire(session, cutting)
+    finally:
+        proxy.close()
+    assert cut.reconnects >= 1, cut
+    assert (cut.indices, cut.rows, cut.reason) == (straight.indices, 193, "budget")
+    check_stored(client, f"{session_id}-cut", cut)
+
+    sid = f"{session_id}-restart"
+    session = create(client, sid, spec)
+    calls = []
+
+    def failing(patterns: np.ndarray) -> np.ndarray:
+        calls.append(len(patterns))
+        if len(calls) > 3:
+            raise RuntimeError("the rig's lamp failed")
+        return Rig(truth, pairs=False)(patterns)
+
+    with pytest.raises(RuntimeError, match="lamp failed"):
+        client.acquire(session, failing)
+    assert calls[:3] == [17, 16, 16]
+    s = client.session(sid)
+    assert s.state == "open" and s.committed_rows == 17 + 2 * 16
+    rig = Rig(truth, pairs=False)
+    again = client.acquire(sid, rig)
+    assert again.indices == straight.indices and again.rows == 193
+    assert again.frames_measured == 193 - 49 and again.measure_calls == 9, again
+    assert np.array_equal(rig.frames, hz.patterns(spec, indices=again.indices)[49:])
+    check_stored(client, sid, again)
+    # Bad rows of a single-frame batch are refused naming its frame count.
+    other = create(client, f"{session_id}-short", spec)
+    with pytest.raises(ValueError, match=r"holds 16 rows; 17 frames \(16 single-frame indices\)"):
+        client.acquire(other, lambda p: Rig(truth, pairs=False)(p)[:-1])
 
 
 def test_a_cut_stream_and_a_restarted_rig_resume_with_the_indices_of_an_uninterrupted_run(client, server, session_id) -> None:  # type: ignore[no-untyped-def]

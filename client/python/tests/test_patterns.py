@@ -18,6 +18,7 @@ from helmholtz.patterns import (
     ordering_table,
     random_words,
 )
+from helmholtz._proto.v1 import acquisition_pb2 as pb
 from helmholtz.spec import ADAPTIVE_FAMILIES, HAAR_PERSISTENCE, SpecError, fill_quantum
 
 from conftest import REPO_ROOT
@@ -42,12 +43,17 @@ def test_adaptive_patterns_and_runs(vector: dict) -> None:
     indices = vector["basis_indices"]
     gen = PatternGenerator(spec, indices)
     assert gen.words_per_pattern == vector["words_per_pattern"]
-    assert gen.frames == 2 * len(indices)
+    assert gen.frames == spec.adaptive_rows(len(indices))
     every = adaptive_patterns(spec, indices)
-    assert every.shape == (2 * len(indices), spec.height, spec.width)
+    assert every.shape == (gen.frames, spec.height, spec.width)
     for p in vector["patterns"]:
         i = p["index"]
-        assert (p["pair"], p["basis_index"], p["positive"]) == (i // 2, indices[i // 2], i % 2 == 0)
+        if spec.single_frames:  # frames 0, 1: index 0's pair; frame r + 1: the r-th index's P+
+            position, positive = max(i - 1, 0), i != 1
+        else:
+            position, positive = i // 2, i % 2 == 0
+        # "pair" is the position in the index sequence (for single frames too).
+        assert (p["pair"], p["basis_index"], p["positive"]) == (position, indices[position], positive)
         assert gen.packed_bits(i, i + 1)[0].astype("<u8").tobytes().hex() == p["bits_hex"], i
         bits = np.unpackbits(
             np.frombuffer(bytes.fromhex(p["bits_hex"]), np.uint8), bitorder="little"
@@ -96,8 +102,10 @@ def test_adaptive_replay_frames_are_the_patterns_on_the_vectors_scene(replay: di
         for i in range(c)
     ]
     frames = np.asarray(replay["frames"], dtype=np.int64).reshape(-1, c)
-    indices = replay["indices"][: len(frames) // 2]
-    pats = adaptive_patterns(spec, indices, dtype=np.int64).reshape(len(frames), -1)
+    indices = replay["indices"][: spec.adaptive_indices_in(len(frames))]
+    pats = adaptive_patterns(spec, indices, dtype=np.int64)
+    assert len(pats) == len(frames) == spec.adaptive_rows(len(indices))
+    pats = pats.reshape(len(frames), -1)
     sums = np.stack([pats @ t.reshape(-1) for t in scenes], axis=1)
     dark = frames - sums - replay["dark"]
     assert (np.abs(dark) <= replay["noise"]).all(), "the dark level and the rig's noise alone"
@@ -119,6 +127,97 @@ def test_adaptive_specs_need_their_indices() -> None:
     assert hz.patterns(spec, indices=[5, 0]).shape == (4, 4, 4)
     with pytest.raises(IndexError):
         hz.patterns(spec, 0, 6, indices=[5, 0])
+
+
+SINGLE_4X4 = [0, 1, 4, 5, 2, 8, 10, 3, 9, 11, 6, 12, 14, 7, 13, 15]
+"""A whole single-frame session on 4 x 4 in block order (PATTERNS.md "Single frames"): index 0,
+the root block's details x, y, xy (1, 4, 5), then the four quadrant blocks' (2, 8, 10), (3, 9,
+11), (6, 12, 14), (7, 13, 15)."""
+
+
+def test_single_frame_patterns_are_index_0s_pair_then_one_p_plus_per_index() -> None:
+    spec = hz.PatternSpec.adaptive_haar(4, frames="single")
+    assert (spec.frames, spec.count, spec.single_frames) == ("single", 17, True)
+    frames = adaptive_patterns(spec, [0, 1, 4, 5])
+    assert frames.shape == (5, 4, 4) and frames.dtype == np.float32
+    assert frames[0].all() and not frames[1].any(), "index 0: all on, then all off"
+    plus = adaptive_patterns(hz.PatternSpec.adaptive_haar(4), [1, 4, 5])[0::2]
+    assert np.array_equal(frames[2:], plus), "then the P+ of indices 1, 4, 5 alone"
+    assert frames[2].astype(int).tolist() == [[1, 1, 0, 0]] * 4
+    assert frames[3].astype(int).tolist() == [[1, 1, 1, 1]] * 2 + [[0, 0, 0, 0]] * 2
+    assert frames[4].astype(int).tolist() == [[1, 1, 0, 0]] * 2 + [[0, 0, 1, 1]] * 2
+    # A later batch (no index 0) is one frame per index.
+    assert np.array_equal(adaptive_patterns(spec, [2, 8, 10]), adaptive_patterns(spec, SINGLE_4X4)[5:8])
+    # The frame layout R(j): R(0) = 0, R(j) = j + 1; a batch starting at the j-th index
+    # starts at frame R(j).
+    assert [spec.adaptive_rows(j) for j in range(5)] == [0, 2, 3, 4, 5]
+    assert [spec.adaptive_indices_in(r) for r in range(6)] == [0, 0, 1, 2, 3, 4]
+    assert spec.adaptive_budget == 16
+    pairs = hz.PatternSpec.adaptive_haar(4)
+    assert ([pairs.adaptive_rows(j) for j in range(3)], pairs.adaptive_budget) == ([0, 2, 4], 16)
+    with pytest.raises(ValueError, match="adaptive"):
+        hz.PatternSpec.hadamard(4, 4).adaptive_rows(1)
+
+    # The generator over a session's whole sequence: 17 frames, packed bits alike.
+    gen = PatternGenerator(spec, SINGLE_4X4)
+    assert gen.frames == 17
+    every = gen.values()
+    assert np.array_equal(every, hz.patterns(spec, indices=SINGLE_4X4))
+    assert np.array_equal(every, adaptive_patterns(spec, SINGLE_4X4))
+    assert np.array_equal(every[:5], frames)
+    for i in range(17):
+        assert np.array_equal(hz.pattern(spec, i, indices=SINGLE_4X4), every[i])
+    bits = np.unpackbits(gen.packed_bits().astype("<u8").view(np.uint8), axis=1, bitorder="little")
+    assert np.array_equal(bits[:, :16], every.reshape(17, 16))
+    assert PatternGenerator(spec, []).frames == 0
+    assert hz.patterns(spec, indices=[0]).shape == (2, 4, 4)
+    with pytest.raises(IndexError):
+        hz.patterns(spec, 0, 6, indices=[0, 1, 4, 5])
+
+    # The budget counts indices (count - 1), a session starts with index 0, and only there.
+    with pytest.raises(ValueError, match="single-frame indices"):
+        hz.patterns(spec.with_count(4), indices=[0, 1, 4, 5])
+    assert hz.patterns(spec.with_count(5), indices=[0, 1, 4, 5]).shape == (5, 4, 4)
+    with pytest.raises(ValueError, match="starts with index 0"):
+        hz.patterns(spec, indices=[1, 4, 5])
+    with pytest.raises(ValueError, match="index 0 at position 2"):
+        adaptive_patterns(spec, [1, 4, 0])
+
+
+def test_single_frames_give_the_split_pair_values_noise_free() -> None:
+    # PATTERNS.md "Single frames", Values: y- = Q(B) - y+ with the blocks' pair sums Q derived
+    # from index 0's pair and each split block's details: on a noiseless rig the values of
+    # the split-pair session of the same indices, from 17 frames instead of 32.
+    spec = hz.PatternSpec.adaptive_haar(4, frames="single")
+    scene = np.random.default_rng(3).random(16)
+    dark = 0.25
+    y = adaptive_patterns(spec, SINGLE_4X4).reshape(17, 16).astype(np.float64) @ scene + dark
+    pairs = adaptive_patterns(hz.PatternSpec.adaptive_haar(4), SINGLE_4X4).reshape(32, 16)
+    want = pairs.astype(np.float64) @ scene + dark
+    w, dark_frame = 4, y[1]
+    q = {(2, 0, 0): y[0] + y[1]}  # Q(root)
+    got = [(y[0], y[1])]
+    frame = 2
+    for s, pr, pc in [(2, 0, 0), (1, 0, 0), (1, 0, 1), (1, 1, 0), (1, 1, 1)]:
+        h = w >> s
+        details = (pr * w + h + pc, (h + pr) * w + pc, (h + pr) * w + h + pc)
+        assert [SINGLE_4X4[frame - 1 + j] for j in range(3)] == list(details)
+        d = []
+        for _ in details:
+            plus = y[frame]
+            minus = q[(s, pr, pc)] - plus
+            got.append((plus, minus))
+            d.append(plus - minus)
+            frame += 1
+        if s >= 2:
+            light = q[(s, pr, pc)] - 2.0 * dark_frame
+            dx, dy, dxy = d
+            for (dr, dc), sign in zip(((0, 0), (0, 1), (1, 0), (1, 1)), ((1, 1, 1), (-1, 1, -1), (1, -1, -1), (-1, -1, 1))):
+                q[(s - 1, 2 * pr + dr, 2 * pc + dc)] = (
+                    (((light + sign[0] * dx) + sign[1] * dy) + sign[2] * dxy) * 0.25
+                ) + 2.0 * dark_frame
+    assert frame == 17
+    assert np.allclose(np.asarray(got).reshape(-1), want, rtol=0, atol=1e-12)
 
 
 def test_random_words() -> None:
@@ -210,11 +309,103 @@ def test_specs_are_validated_naming_the_field() -> None:
         (dict(family="adaptive_haar", width=8, height=8, count=8, error_estimate="oracle"), "error_estimate"),
         (dict(family="adaptive_hadamard", width=8, height=8, count=8, ordering="natural"), "ordering"),
         (dict(family="hadamard", width=8, height=8, count=8, batch=4), "batch"),
+        # frames (PATTERNS.md "Single frames"): adaptive_haar only, pairs or single; a
+        # single-frame budget is 2 ..= k + 1 frames.
+        (dict(family="adaptive_hadamard", width=8, height=8, count=8, frames="single"), "frames"),
+        (dict(family="adaptive_hadamard", width=12, height=12, count=8, frames="single"), "frames"),
+        (dict(family="adaptive_haar", width=8, height=8, count=8, frames="triple"), "frames"),
+        (dict(family="adaptive_haar", width=8, height=8, count=8, frames="Single"), "frames"),
+        (dict(family="adaptive_haar", width=8, height=8, count=8, frames=None), "frames"),
+        (dict(family="adaptive_haar", width=8, height=8, count=8, frames=2), "frames"),
+        (dict(family="hadamard", width=8, height=8, count=8, frames="single"), "frames"),
+        (dict(family="adaptive_haar", width=8, height=8, count=1, frames="single"), "count"),
+        (dict(family="adaptive_haar", width=8, height=8, count=66, frames="single"), "count"),
+        (dict(family="adaptive_haar", width=8, height=8, count=7, frames="pairs"), "count"),
+        (dict(family="adaptive_haar", width=8, height=8, count=65, frames="pairs"), "count"),
+        (dict(family="adaptive_haar", width=12, height=12, count=9, frames="single"), "width"),
+        (dict(family="adaptive_haar", width=8, height=8, count=9, frames="single", batch=65), "batch"),
     ]
     for raw, field in cases:
         with pytest.raises(hz.SpecError) as e:
             hz.PatternSpec.from_dict(raw)
         assert e.value.field == field, (raw, e.value)
+    # The constructors: adaptive_hadamard refuses single frames, naming the field.
+    with pytest.raises(hz.SpecError) as e:
+        hz.PatternSpec.adaptive_hadamard(8, 64, frames="single")
+    assert e.value.field == "frames" and "adaptive_haar" in str(e.value)
+    with pytest.raises(hz.SpecError) as e:
+        hz.PatternSpec.adaptive_haar(8, 66, frames="single")
+    assert e.value.field == "count" and "2..=65" in str(e.value)
+    with pytest.raises(hz.SpecError) as e:
+        hz.PatternSpec("adaptive_hadamard", 8, 8, 9, frames="single").canonical()
+    assert e.value.field == "frames"
+
+
+def test_single_frame_specs_json_form() -> None:
+    spec = hz.PatternSpec.adaptive_haar(128, 3277, frames="single")
+    # PATTERNS.md's canonical key order: frames after error_estimate, stated only when single.
+    assert list(spec.to_dict()) == [
+        "family", "batch", "target_error", "persistence", "error_estimate", "frames",
+        "width", "height", "count", "seed",
+    ]
+    assert spec.to_dict()["frames"] == "single"
+    assert json.dumps(spec.to_dict(), separators=(",", ":")) == (
+        '{"family":"adaptive_haar","batch":0,"target_error":0.0,"persistence":0.5,'
+        '"error_estimate":"measured","frames":"single","width":128,"height":128,"count":3277,"seed":0}'
+    )
+    assert hz.PatternSpec.from_dict(spec.to_dict()) == spec
+    assert hz.PatternSpec.from_dict(json.loads(json.dumps(spec.to_dict()))) == spec
+    # Odd and even budgets, 2 ..= k + 1 (the whole basis by default).
+    assert hz.PatternSpec.adaptive_haar(8, frames="single").count == 65
+    for count in (2, 3, 64, 65):
+        assert hz.PatternSpec.adaptive_haar(8, count, frames="single").count == count
+    # Pairs (explicit or left out) is the old canonical form, without frames.
+    pairs = hz.PatternSpec.from_dict(
+        {"family": "adaptive_haar", "width": 8, "height": 8, "count": 64, "frames": "pairs"}
+    )
+    assert pairs.frames is None and not pairs.single_frames
+    assert pairs == hz.PatternSpec.adaptive_haar(8, 64) == hz.PatternSpec.adaptive_haar(8, 64, frames="pairs")
+    assert "frames" not in pairs.to_dict()
+    hadamard = hz.PatternSpec.adaptive_hadamard(8, 64, frames="pairs")
+    assert hadamard.frames is None and "frames" not in hadamard.to_dict()
+    # The server's session JSON (GET /v1/sessions/{id}) parses back.
+    view = {
+        "id": "s", "rig": "", "patterns": spec.to_dict(), "channels": ["bucket"],
+        "committed_rows": 0, "expected_rows": 3277, "state": "open",
+    }
+    assert hz.Session.from_view(view).spec == spec
+
+
+def test_single_frame_specs_protobuf_form() -> None:
+    spec = hz.PatternSpec.adaptive_haar(16, 101, batch=8, target_error=0.02, frames="single")
+    msg = spec.to_proto()
+    assert msg.adaptive.frames == pb.ADAPTIVE_FRAMES_SINGLE
+    assert hz.PatternSpec.from_proto(msg) == spec
+    again = pb.PatternSpec()
+    again.ParseFromString(msg.SerializeToString())
+    assert hz.PatternSpec.from_proto(again) == spec
+    # Pairs: unset (0) on the wire, as before the field; PAIRS and unset both read as pairs.
+    pairs = hz.PatternSpec.adaptive_haar(16, 100)
+    assert pairs.to_proto().adaptive.frames == pb.ADAPTIVE_FRAMES_UNSPECIFIED
+    explicit = pairs.to_proto()
+    explicit.adaptive.frames = pb.ADAPTIVE_FRAMES_PAIRS
+    assert hz.PatternSpec.from_proto(explicit) == pairs == hz.PatternSpec.from_proto(pairs.to_proto())
+    # Refusals name the field.
+    unknown = spec.to_proto()
+    unknown.adaptive.frames = 7
+    with pytest.raises(SpecError) as e:
+        hz.PatternSpec.from_proto(unknown)
+    assert e.value.field == "frames"
+    walsh = hz.PatternSpec.adaptive_hadamard(16, 100).to_proto()
+    walsh.adaptive.frames = pb.ADAPTIVE_FRAMES_SINGLE
+    with pytest.raises(SpecError) as e:
+        hz.PatternSpec.from_proto(walsh)
+    assert e.value.field == "frames"
+    odd_pairs = spec.to_proto()
+    odd_pairs.adaptive.frames = pb.ADAPTIVE_FRAMES_PAIRS
+    with pytest.raises(SpecError) as e:
+        hz.PatternSpec.from_proto(odd_pairs)  # 101 frames are not whole pairs
+    assert e.value.field == "count"
 
 
 def test_protobuf_form_round_trips() -> None:
@@ -228,6 +419,8 @@ def test_protobuf_form_round_trips() -> None:
         hz.PatternSpec.adaptive_hadamard(16),
         hz.PatternSpec.adaptive_hadamard(16, persistence=1.5),
         hz.PatternSpec.adaptive_hadamard(16, target_error=0.1, error_estimate="prediction"),
+        hz.PatternSpec.adaptive_haar(16, 257, frames="single"),
+        hz.PatternSpec.adaptive_haar(16, 30, batch=4, persistence=0.0, frames="single"),
     ]:
         assert hz.PatternSpec.from_proto(spec.to_proto()) == spec
     # proto3 zeros (and no params at all) are the adaptive defaults; an explicit persistence
@@ -274,3 +467,17 @@ def test_the_server_canonicalises_adaptive_specs_as_this_package_does(client, se
         "error_estimate": "measured", "width": 8, "height": 8, "count": 40, "seed": 0,
     }
     assert client.session(s.id).spec == spec.canonical()
+
+
+def test_the_server_canonicalises_single_frame_specs_as_this_package_does(client, session_id) -> None:  # type: ignore[no-untyped-def]
+    # Needs the server's single-frame support (PATTERNS.md "Single frames").
+    spec = hz.PatternSpec.adaptive_haar(8, 41, target_error=0.05, frames="single")
+    s = client.create_session(session_id, spec, channels=["bucket"])
+    assert s.created is True and s.spec.single_frames
+    assert s.spec == spec  # gRPC: AdaptiveParams.frames
+    assert s.expected_rows == 41
+    view = client.session(session_id)  # REST: the canonical JSON states "frames": "single"
+    assert view.spec == spec and view.spec.to_dict()["frames"] == "single"
+    # A pairs spec keeps its old canonical form (no frames key) on the server too.
+    pairs = client.create_session(f"{session_id}-pairs", hz.PatternSpec.adaptive_haar(8, 40), channels=["bucket"])
+    assert pairs.spec.frames is None and "frames" not in client.session(pairs.id).spec.to_dict()

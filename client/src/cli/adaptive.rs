@@ -26,6 +26,15 @@ pub enum AdaptiveArg {
     Hadamard,
 }
 
+/// How an adaptive session shows its basis functions (`--frames`, the spec's `frames`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub enum FramesArg {
+    /// Every basis function a split pair (two frames).
+    Pairs,
+    /// adaptive_haar: one frame a basis function but the first.
+    Single,
+}
+
 /// What an adaptive session's `--target-error` compares with (the spec's `error_estimate`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
 pub enum ErrorEstimateArg {
@@ -46,7 +55,15 @@ pub fn adaptive_spec(
     count: Option<u64>,
     seed: u64,
 ) -> anyhow::Result<PatternSpec> {
-    let count = count.unwrap_or(2 * width as u64 * height as u64);
+    // The whole basis: two frames an index, or with single frames one but index 0's two.
+    let pixels = width as u64 * height as u64;
+    let count = count.unwrap_or(
+        if family.adaptive_frames() == Some(helmholtz_proto::AdaptiveFrames::Single) {
+            pixels + 1
+        } else {
+            2 * pixels
+        },
+    );
     PatternSpec::new(family, width, height, count, seed).map_err(|e| {
         let flag = match e.field {
             "batch" => "adaptive-batch",

@@ -18,7 +18,8 @@ use crate::upload::{self, NewSession, SampleFormat};
 
 use super::Outcome;
 use super::adaptive::{
-    AdaptiveArg, AdaptiveRun, ErrorEstimateArg, adaptive_spec, measure_batch, simulate_adaptive,
+    AdaptiveArg, AdaptiveRun, ErrorEstimateArg, FramesArg, adaptive_spec, measure_batch,
+    simulate_adaptive,
 };
 use super::args::{
     FrameFormatArg, PatternArgs, ResultArgs, TransferArgs, parse_metadata, parse_params, spec_json,
@@ -142,6 +143,14 @@ pub struct SimulateArgs {
     /// predicted energy alone, several times low noise-free and blind to noise).
     #[arg(long, value_enum, default_value_t = ErrorEstimateArg::Measured)]
     pub error_estimate: ErrorEstimateArg,
+    /// --adaptive haar: `single` shows every basis function but the first as one frame, its
+    /// positive half, the negative half following from the light on its block, which the
+    /// server keeps known by splitting whole blocks (the spec's `frames`, proto/PATTERNS.md,
+    /// "Single frames"): about half the frames of `pairs` for the same coefficients, each with
+    /// about 2.5x the read noise of a pair's; --count is then the frame budget up to
+    /// width x height + 1 [default: that].
+    #[arg(long, value_enum, default_value_t = FramesArg::Pairs)]
+    pub frames: FramesArg,
     /// Detector channel names, comma separated (each sees the same scene, see --channel-gains).
     /// Image scenes only (lambert names its channels by --detectors / --colour).
     #[arg(long, value_delimiter = ',', default_value = "bucket")]
@@ -293,6 +302,10 @@ pub(super) async fn simulate_cmd(
             .with_error_estimate(match a.error_estimate {
                 ErrorEstimateArg::Measured => helmholtz_proto::ErrorEstimate::Measured,
                 ErrorEstimateArg::Prediction => helmholtz_proto::ErrorEstimate::Prediction,
+            })
+            .with_frames(match a.frames {
+                FramesArg::Pairs => helmholtz_proto::AdaptiveFrames::Pairs,
+                FramesArg::Single => helmholtz_proto::AdaptiveFrames::Single,
             });
             adaptive_spec(family, p.width, p.height, p.count, p.seed)?
         }

@@ -1,6 +1,6 @@
 //! Conversions between the gRPC `PatternSpec` message and the validated [`PatternSpec`].
 
-use super::{ErrorEstimate, Family, HadamardOrdering, PatternSpec, SpecError};
+use super::{AdaptiveFrames, ErrorEstimate, Family, HadamardOrdering, PatternSpec, SpecError};
 use crate::v1;
 
 /// Why a protobuf spec could not be accepted.
@@ -45,11 +45,15 @@ impl TryFrom<&v1::PatternSpec> for PatternSpec {
                 Family::Speckle { grain }
             }
             Ok(f @ (v1::PatternFamily::AdaptiveHaar | v1::PatternFamily::AdaptiveHadamard)) => {
-                let (batch, target_error, persistence, estimate) = match &m.params {
-                    Some(Params::Adaptive(p)) => {
-                        (p.batch, p.target_error, p.persistence, p.error_estimate)
-                    }
-                    None => (0, 0.0, None, 0),
+                let (batch, target_error, persistence, estimate, frames) = match &m.params {
+                    Some(Params::Adaptive(p)) => (
+                        p.batch,
+                        p.target_error,
+                        p.persistence,
+                        p.error_estimate,
+                        p.frames,
+                    ),
+                    None => (0, 0.0, None, 0, 0),
                     Some(_) => return Err(params_mismatch("an adaptive family")),
                 };
                 let error_estimate = match v1::AdaptiveErrorEstimate::try_from(estimate) {
@@ -67,6 +71,20 @@ impl TryFrom<&v1::PatternSpec> for PatternSpec {
                         });
                     }
                 };
+                let frames = match v1::AdaptiveFrames::try_from(frames) {
+                    Ok(v1::AdaptiveFrames::Single) => AdaptiveFrames::Single,
+                    Ok(v1::AdaptiveFrames::Pairs | v1::AdaptiveFrames::Unspecified) => {
+                        AdaptiveFrames::Pairs
+                    }
+                    Err(_) => {
+                        return Err(SpecError {
+                            field: "frames",
+                            message: format!(
+                                "unknown AdaptiveFrames {frames}: 1 (pairs) or 2 (single)"
+                            ),
+                        });
+                    }
+                };
                 Family::adaptive(
                     f == v1::PatternFamily::AdaptiveHaar,
                     batch,
@@ -74,6 +92,7 @@ impl TryFrom<&v1::PatternSpec> for PatternSpec {
                     persistence,
                 )
                 .with_error_estimate(error_estimate)
+                .with_frames(frames)
             }
             Ok(v1::PatternFamily::Unspecified) | Err(_) => {
                 return Err(SpecError {
@@ -148,6 +167,7 @@ impl From<&PatternSpec> for v1::PatternSpec {
                 target_error,
                 persistence,
                 error_estimate,
+                frames,
             } => (
                 v1::PatternFamily::AdaptiveHaar,
                 Params::Adaptive(v1::AdaptiveParams {
@@ -155,6 +175,7 @@ impl From<&PatternSpec> for v1::PatternSpec {
                     target_error,
                     persistence: Some(persistence),
                     error_estimate: proto_estimate(error_estimate) as i32,
+                    frames: proto_frames(frames) as i32,
                 }),
             ),
             Family::AdaptiveHadamard {
@@ -162,6 +183,7 @@ impl From<&PatternSpec> for v1::PatternSpec {
                 target_error,
                 persistence,
                 error_estimate,
+                frames,
             } => (
                 v1::PatternFamily::AdaptiveHadamard,
                 Params::Adaptive(v1::AdaptiveParams {
@@ -169,6 +191,7 @@ impl From<&PatternSpec> for v1::PatternSpec {
                     target_error,
                     persistence: Some(persistence),
                     error_estimate: proto_estimate(error_estimate) as i32,
+                    frames: proto_frames(frames) as i32,
                 }),
             ),
         };
@@ -180,6 +203,14 @@ impl From<&PatternSpec> for v1::PatternSpec {
             seed: s.seed(),
             params: Some(params),
         }
+    }
+}
+
+/// Pairs as unset (0): the form of every spec declared before the field existed.
+fn proto_frames(f: AdaptiveFrames) -> v1::AdaptiveFrames {
+    match f {
+        AdaptiveFrames::Pairs => v1::AdaptiveFrames::Unspecified,
+        AdaptiveFrames::Single => v1::AdaptiveFrames::Single,
     }
 }
 
@@ -202,12 +233,14 @@ mod tests {
                 target_error: 0.02,
                 persistence: 0.25,
                 error_estimate: ErrorEstimate::Measured,
+                frames: AdaptiveFrames::Pairs,
             },
             Family::AdaptiveHadamard {
                 batch: 0,
                 target_error: 0.0,
                 persistence: 0.0,
                 error_estimate: ErrorEstimate::Prediction,
+                frames: AdaptiveFrames::Pairs,
             },
         ] {
             let spec = PatternSpec::new(family, 16, 16, 100, 3).unwrap();
@@ -231,6 +264,7 @@ mod tests {
                 target_error: 0.0,
                 persistence: crate::patterns::HADAMARD_PERSISTENCE,
                 error_estimate: ErrorEstimate::Measured,
+                frames: AdaptiveFrames::Pairs,
             }
         );
         let haar = |persistence| v1::PatternSpec {
@@ -240,6 +274,7 @@ mod tests {
                 target_error: 0.0,
                 persistence,
                 error_estimate: 0,
+                frames: 0,
             })),
             ..m
         };

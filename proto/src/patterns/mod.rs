@@ -14,8 +14,8 @@ pub use adaptive::HaarFunction;
 pub use convert::ProtoSpecError;
 pub use hadamard::{HadamardOrdering, HadamardPlan};
 pub use spec::{
-    ErrorEstimate, FILL_BITS, Family, HAAR_PERSISTENCE, HADAMARD_PERSISTENCE, MAX_COUNT,
-    MAX_PIXELS, MAX_SIDE, PatternSpec, SpecError, fill_quantum,
+    AdaptiveFrames, ErrorEstimate, FILL_BITS, Family, HAAR_PERSISTENCE, HADAMARD_PERSISTENCE,
+    MAX_COUNT, MAX_PIXELS, MAX_SIDE, PatternSpec, SpecError, fill_quantum,
 };
 
 use rng::stream_word;
@@ -61,6 +61,8 @@ enum Kind {
     /// Pair `r` shows basis function `indices[r]` (None: an unresolved spec, no frames).
     Adaptive {
         haar: bool,
+        /// Single frames (PATTERNS.md, "Single frames"): frame `f >= 2` shows index `f - 1`.
+        single: bool,
         indices: Option<std::sync::Arc<[u32]>>,
     },
 }
@@ -93,6 +95,7 @@ impl PatternGenerator {
             },
             Family::AdaptiveHaar { .. } | Family::AdaptiveHadamard { .. } => Kind::Adaptive {
                 haar: matches!(spec.family(), Family::AdaptiveHaar { .. }),
+                single: spec.adaptive_single(),
                 indices: spec.adaptive_indices().map(Into::into),
             },
             Family::Speckle { grain } => {
@@ -127,6 +130,7 @@ impl PatternGenerator {
             Kind::Hadamard { plan } => plan.natural_index(row),
             Kind::Adaptive {
                 haar: false,
+                single: false,
                 indices: Some(indices),
             } => *indices.get(row as usize)? as u64,
             _ => return None,
@@ -138,13 +142,17 @@ impl PatternGenerator {
         })
     }
 
-    /// For a resolved adaptive spec: the basis index frame `frame` shows (half of a split pair).
+    /// For a resolved adaptive spec: the basis index frame `frame` shows (half of a split pair,
+    /// or with single frames its `P+` but for index 0).
     pub fn adaptive_index(&self, frame: u64) -> Option<u32> {
         match &self.kind {
             Kind::Adaptive {
                 indices: Some(indices),
+                single,
                 ..
-            } => indices.get((frame / 2) as usize).copied(),
+            } => indices
+                .get(adaptive_frame(*single, frame).0 as usize)
+                .copied(),
             _ => None,
         }
     }
@@ -227,7 +235,11 @@ impl PatternGenerator {
                     }
                 }
             }
-            Kind::Adaptive { haar, indices } => {
+            Kind::Adaptive {
+                haar,
+                single,
+                indices,
+            } => {
                 let Some(indices) = indices else {
                     panic!(
                         "{} frame {i}: the spec is not resolved (no pattern indices yet; \
@@ -235,15 +247,17 @@ impl PatternGenerator {
                         self.spec.family().name()
                     );
                 };
-                let Some(&n) = indices.get((i / 2) as usize) else {
+                let (position, positive) = adaptive_frame(*single, i);
+                let Some(&n) = indices.get(position as usize) else {
                     panic!(
-                        "{} frame {i} does not exist: the session showed {} split pairs",
+                        "{} frame {i} does not exist: the session showed {} {}",
                         self.spec.family().name(),
-                        indices.len()
+                        indices.len(),
+                        if *single { "indices" } else { "split pairs" }
                     );
                 };
                 let w = self.spec.width();
-                let want = if i.is_multiple_of(2) { 1 } else { -1 };
+                let want = if positive { 1 } else { -1 };
                 out.fill(0);
                 if *haar {
                     let f = HaarFunction::new(w, n);
@@ -304,6 +318,19 @@ impl PatternGenerator {
 #[inline]
 pub fn speckle_level(word: u64) -> f32 {
     (word >> 40) as f32 * (1.0 / (1u64 << 24) as f32)
+}
+
+/// Which index of an adaptive session's sequence frame `frame` shows, and whether it is the
+/// index's `P+`: split pairs `(frame / 2, frame even)`; single frames (PATTERNS.md, "Single
+/// frames") index 0's pair in frames 0 and 1, then `(frame - 1, true)`.
+pub fn adaptive_frame(single: bool, frame: u64) -> (u64, bool) {
+    if !single {
+        (frame / 2, frame.is_multiple_of(2))
+    } else if frame < 2 {
+        (0, frame == 0)
+    } else {
+        (frame - 1, true)
+    }
 }
 
 #[cfg(test)]

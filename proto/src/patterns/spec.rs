@@ -61,6 +61,10 @@ pub enum Family {
         /// parameter existed: [`ErrorEstimate::Prediction`] (the rule it was planned with).
         #[serde(default)]
         error_estimate: ErrorEstimate,
+        /// How many frames show an index (PATTERNS.md, "Single frames"); absent: pairs (also
+        /// every session stored before the parameter existed), and not written when pairs.
+        #[serde(default, skip_serializing_if = "AdaptiveFrames::is_pairs")]
+        frames: AdaptiveFrames,
     },
     /// Adaptive scan of the 2D Walsh-Hadamard basis (natural index, as the hadamard family).
     AdaptiveHadamard {
@@ -74,7 +78,36 @@ pub enum Family {
         /// As for `adaptive_haar`.
         #[serde(default)]
         error_estimate: ErrorEstimate,
+        /// Only [`AdaptiveFrames::Pairs`] (single frames need Haar's blocks).
+        #[serde(default, skip_serializing_if = "AdaptiveFrames::is_pairs")]
+        frames: AdaptiveFrames,
     },
+}
+
+/// How an adaptive session shows its basis functions (`proto/PATTERNS.md`, "Single frames").
+#[cfg_attr(feature = "openapi", derive(utoipa::ToSchema))]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum AdaptiveFrames {
+    /// Every index a split pair, `P+` then `P-`: two frames.
+    #[default]
+    Pairs,
+    /// `adaptive_haar` only: index 0 as its pair (all on, all off), every other index its `P+`
+    /// alone, `y-` following from the light on its block, which the planner keeps known by
+    /// splitting whole blocks.
+    Single,
+}
+
+impl AdaptiveFrames {
+    pub fn name(self) -> &'static str {
+        match self {
+            AdaptiveFrames::Pairs => "pairs",
+            AdaptiveFrames::Single => "single",
+        }
+    }
+    pub fn is_pairs(&self) -> bool {
+        *self == AdaptiveFrames::Pairs
+    }
 }
 
 /// How an adaptive planner estimates the relative error of its zero-filled image, the number its
@@ -159,6 +192,7 @@ impl Family {
                 target_error,
                 persistence: persistence.unwrap_or(HAAR_PERSISTENCE),
                 error_estimate: ErrorEstimate::default(),
+                frames: AdaptiveFrames::Pairs,
             }
         } else {
             Family::AdaptiveHadamard {
@@ -166,7 +200,29 @@ impl Family {
                 target_error,
                 persistence: persistence.unwrap_or(HADAMARD_PERSISTENCE),
                 error_estimate: ErrorEstimate::default(),
+                frames: AdaptiveFrames::Pairs,
             }
+        }
+    }
+
+    /// This adaptive family showing its indices as `how` (other families unchanged; the spec's
+    /// validation refuses single frames on `adaptive_hadamard`).
+    pub fn with_frames(mut self, how: AdaptiveFrames) -> Family {
+        if let Family::AdaptiveHaar { frames, .. } | Family::AdaptiveHadamard { frames, .. } =
+            &mut self
+        {
+            *frames = how;
+        }
+        self
+    }
+
+    /// How an adaptive family shows its indices.
+    pub fn adaptive_frames(&self) -> Option<AdaptiveFrames> {
+        match *self {
+            Family::AdaptiveHaar { frames, .. } | Family::AdaptiveHadamard { frames, .. } => {
+                Some(frames)
+            }
+            _ => None,
         }
     }
 
@@ -405,15 +461,25 @@ impl PatternSpec {
                 batch,
                 target_error,
                 persistence,
+                frames,
                 ..
             }
             | Family::AdaptiveHadamard {
                 batch,
                 target_error,
                 persistence,
+                frames,
                 ..
             } => {
                 let name = family.name();
+                if frames == AdaptiveFrames::Single
+                    && matches!(family, Family::AdaptiveHadamard { .. })
+                {
+                    return Err(err(
+                        "frames",
+                        "single frames are for adaptive_haar (a Walsh-Hadamard session shows pairs)",
+                    ));
+                }
                 if !width.is_power_of_two() {
                     return Err(err(
                         "width",
@@ -428,7 +494,17 @@ impl PatternSpec {
                         ),
                     ));
                 }
-                if !count.is_multiple_of(2) || count > 2 * pixels {
+                if frames == AdaptiveFrames::Single {
+                    if !(2..=pixels + 1).contains(&count) {
+                        return Err(err(
+                            "count",
+                            format!(
+                                "{name} with single frames shows index 0 as two frames and every other index as one: a budget of 2..={} frames (width * height + 1), got {count}",
+                                pixels + 1
+                            ),
+                        ));
+                    }
+                } else if !count.is_multiple_of(2) || count > 2 * pixels {
                     return Err(err(
                         "count",
                         format!(
@@ -516,7 +592,9 @@ impl PatternSpec {
             self.seed,
         )?;
         if let Some(indices) = &self.indices {
-            let keep = indices.len().min((count / 2) as usize);
+            let keep = indices
+                .len()
+                .min(spec.adaptive_budget().unwrap_or(0) as usize);
             spec.indices = Some(if keep == indices.len() {
                 indices.clone()
             } else {
@@ -532,9 +610,53 @@ impl PatternSpec {
     }
 
     /// The basis indices of a resolved adaptive spec: pair `r` (frames `2r`, `2r + 1`) shows
-    /// basis function `indices[r]`. `None` for an unresolved or non-adaptive spec.
+    /// basis function `indices[r]` (single frames: [`PatternSpec::adaptive_rows`]). `None` for
+    /// an unresolved or non-adaptive spec.
     pub fn adaptive_indices(&self) -> Option<&[u32]> {
         self.indices.as_deref()
+    }
+
+    /// True for an adaptive spec showing single frames (PATTERNS.md, "Single frames").
+    pub fn adaptive_single(&self) -> bool {
+        self.family.adaptive_frames() == Some(AdaptiveFrames::Single)
+    }
+
+    /// The most indices an adaptive spec's budget shows: `count / 2` pairs, or with single
+    /// frames `count - 1` (index 0 takes two frames). `None` for other families.
+    pub fn adaptive_budget(&self) -> Option<u64> {
+        self.is_adaptive().then(|| {
+            if self.adaptive_single() {
+                self.count - 1
+            } else {
+                self.count / 2
+            }
+        })
+    }
+
+    /// Frames the first `indices` indices of an adaptive session take: `2 indices`, or with
+    /// single frames `indices + 1` (and 0 for none). `None` for other families.
+    pub fn adaptive_rows(&self, indices: u64) -> Option<u64> {
+        self.is_adaptive().then(|| {
+            if !self.adaptive_single() {
+                2 * indices
+            } else if indices == 0 {
+                0
+            } else {
+                indices + 1
+            }
+        })
+    }
+
+    /// Indices whose frames are all within the first `rows` frames (the inverse of
+    /// [`PatternSpec::adaptive_rows`], rounding down). `None` for other families.
+    pub fn adaptive_indices_in(&self, rows: u64) -> Option<u64> {
+        self.is_adaptive().then(|| {
+            if !self.adaptive_single() {
+                rows / 2
+            } else {
+                rows.saturating_sub(1)
+            }
+        })
     }
 
     /// The adaptive spec resolved with the indices the session showed, in order. Errors on a
@@ -551,15 +673,26 @@ impl PatternSpec {
                 ),
             ));
         }
-        let pairs = self.count / 2;
+        let pairs = self.adaptive_budget().expect("adaptive");
         if indices.len() as u64 > pairs {
             return Err(err(
                 "indices",
                 format!(
-                    "{} indices, but a budget of {} frames holds {pairs} split pairs",
+                    "{} indices, but a budget of {} frames holds {pairs} {}",
                     indices.len(),
-                    self.count
+                    self.count,
+                    if self.adaptive_single() {
+                        "single-frame indices"
+                    } else {
+                        "split pairs"
+                    }
                 ),
+            ));
+        }
+        if self.adaptive_single() && indices.first().is_some_and(|&n| n != 0) {
+            return Err(err(
+                "indices",
+                "a single-frame session starts with index 0 (its pair measures the light and the dark level)",
             ));
         }
         let k = self.pixels();
@@ -747,6 +880,7 @@ mod tests {
                 target_error: 0.05,
                 persistence: HAAR_PERSISTENCE,
                 error_estimate: ErrorEstimate::Measured,
+                frames: AdaptiveFrames::Pairs,
             }
         );
         assert!(s.is_adaptive() && s.adaptive_indices().is_none());
@@ -858,5 +992,88 @@ mod tests {
         )
         .unwrap_err();
         assert_eq!(e.field, "scans");
+    }
+
+    #[test]
+    fn single_frame_specs_state_frames_count_their_frames_and_refuse_what_they_cannot_show() {
+        let json =
+            r#"{"family":"adaptive_haar","width":8,"height":8,"count":65,"frames":"single"}"#;
+        let s: PatternSpec = serde_json::from_str(json).unwrap();
+        assert!(s.adaptive_single());
+        assert_eq!(
+            s.to_json(),
+            r#"{"family":"adaptive_haar","batch":0,"target_error":0.0,"persistence":0.5,"error_estimate":"measured","frames":"single","width":8,"height":8,"count":65,"seed":0}"#
+        );
+        let back: PatternSpec = serde_json::from_str(&s.to_json()).unwrap();
+        assert_eq!(back, s);
+        assert!(back.adaptive_single());
+        // Pairs, stated or not, keep the canonical form every spec had before the field.
+        let pairs: PatternSpec = serde_json::from_str(
+            r#"{"family":"adaptive_haar","width":8,"height":8,"count":64,"frames":"pairs"}"#,
+        )
+        .unwrap();
+        assert!(!pairs.to_json().contains("frames"));
+        assert!(!pairs.adaptive_single());
+        // Index 0 takes two frames, every other index one: k + 1 frames show all k.
+        assert_eq!(s.adaptive_budget(), Some(64));
+        assert_eq!(pairs.adaptive_budget(), Some(32));
+        assert_eq!(
+            (0..4)
+                .map(|j| s.adaptive_rows(j).unwrap())
+                .collect::<Vec<_>>(),
+            [0, 2, 3, 4]
+        );
+        assert_eq!(
+            (0..5)
+                .map(|r| s.adaptive_indices_in(r).unwrap())
+                .collect::<Vec<_>>(),
+            [0, 0, 1, 2, 3]
+        );
+        assert_eq!(pairs.adaptive_rows(3), Some(6));
+        let family = |count: u64, haar: bool| {
+            PatternSpec::new(
+                Family::adaptive(haar, 0, 0.0, None).with_frames(AdaptiveFrames::Single),
+                8,
+                8,
+                count,
+                0,
+            )
+        };
+        assert!(family(2, true).is_ok() && family(33, true).is_ok());
+        assert_eq!(family(1, true).unwrap_err().field, "count");
+        assert_eq!(family(66, true).unwrap_err().field, "count");
+        assert_eq!(family(64, false).unwrap_err().field, "frames");
+        // A resolved single-frame spec starts at index 0 and holds at most count - 1 indices.
+        let r = s.with_indices(Arc::from(vec![0u32, 1, 8, 9])).unwrap();
+        assert_eq!(r.adaptive_indices(), Some(&[0u32, 1, 8, 9][..]));
+        assert_eq!(
+            s.with_indices(Arc::from(vec![1u32, 0])).unwrap_err().field,
+            "indices"
+        );
+        let small = family(3, true).unwrap();
+        assert_eq!(
+            small
+                .with_indices(Arc::from(vec![0u32, 1, 8]))
+                .unwrap_err()
+                .field,
+            "indices"
+        );
+        assert_eq!(
+            r.with_count(3).unwrap().adaptive_indices(),
+            Some(&[0u32, 1][..])
+        );
+        // Protobuf: single survives the round trip, pairs travel as unset.
+        let m = crate::v1::PatternSpec::from(&s);
+        assert_eq!(PatternSpec::try_from(&m).unwrap(), s);
+        match m.params {
+            Some(crate::v1::pattern_spec::Params::Adaptive(p)) => {
+                assert_eq!(p.frames, crate::v1::AdaptiveFrames::Single as i32)
+            }
+            other => panic!("{other:?}"),
+        }
+        match crate::v1::PatternSpec::from(&pairs).params {
+            Some(crate::v1::pattern_spec::Params::Adaptive(p)) => assert_eq!(p.frames, 0),
+            other => panic!("{other:?}"),
+        }
     }
 }

@@ -639,3 +639,43 @@ fn adaptive_frames_past_the_indices_do_not_exist() {
     let mut w = vec![0u64; 1];
     let _ = g.fill_bits(4, &mut w);
 }
+
+#[test]
+fn single_frame_sessions_show_index_zero_as_its_pair_then_one_positive_frame_an_index() {
+    use std::sync::Arc;
+    let spec = PatternSpec::new(
+        Family::adaptive(true, 0, 0.0, None).with_frames(crate::AdaptiveFrames::Single),
+        4,
+        4,
+        17,
+        0,
+    )
+    .unwrap()
+    .with_indices(Arc::from(vec![0u32, 1, 4, 5]))
+    .unwrap();
+    let pairs = PatternSpec::new(Family::adaptive(true, 0, 0.0, None), 4, 4, 32, 0)
+        .unwrap()
+        .with_indices(Arc::from(vec![0u32, 1, 4, 5]))
+        .unwrap();
+    let single = PatternGenerator::new(&spec);
+    let paired = PatternGenerator::new(&pairs);
+    let bits = |g: &PatternGenerator, i: u64| {
+        let mut v = vec![0f32; 16];
+        g.fill_values(i, &mut v);
+        v
+    };
+    // Frames 0 and 1: index 0's pair (all on, all off); frame r + 1: the P+ of index r.
+    assert_eq!(bits(&single, 0), vec![1.0; 16]);
+    assert_eq!(bits(&single, 1), vec![0.0; 16]);
+    for (frame, pair_frame) in [(2u64, 2u64), (3, 4), (4, 6)] {
+        assert_eq!(
+            bits(&single, frame),
+            bits(&paired, pair_frame),
+            "frame {frame}"
+        );
+    }
+    assert_eq!(
+        (0..5).map(|f| single.adaptive_index(f)).collect::<Vec<_>>(),
+        [Some(0), Some(0), Some(1), Some(4), Some(5)]
+    );
+}

@@ -86,13 +86,18 @@ pub const LOOKAHEAD: usize = 2;
 /// values, 512 MiB of f64).
 pub const MAX_VALUES: usize = 1 << 26;
 
-/// One batch of split pairs to show: pair `first_pair + j` (frames `2 (first_pair + j)` and
-/// `2 (first_pair + j) + 1`) shows basis function `indices[j]`.
+/// One batch to show: index `first_pair + j` of the sequence shows basis function
+/// `indices[j]`: as a split pair (frames `2 (first_pair + j)` and `2 (first_pair + j) + 1`), or
+/// with single frames (PATTERNS.md, "Single frames") as one frame but for index 0's two.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct Batch {
     /// 0 for the first batch of the session.
     pub number: u64,
+    /// The sequence position of the batch's first index.
     pub first_pair: u64,
+    /// The batch's first frame, and how many frames it shows.
+    pub first_row: u64,
+    pub rows: u64,
     pub indices: Vec<u32>,
 }
 
@@ -126,12 +131,13 @@ pub enum AdaptiveError {
     #[error("no batch is outstanding: values arrived before a batch was issued for them")]
     NothingOutstanding,
     #[error(
-        "batch {batch} has {pairs} split pairs: expected 2 x {pairs} frames x {channels} channels \
-         = {expected} values, got {got}"
+        "batch {batch} shows {pairs} basis functions in {rows} frames: expected {rows} frames x \
+         {channels} channels = {expected} values, got {got}"
     )]
     WrongLength {
         batch: u64,
         pairs: usize,
+        rows: u64,
         channels: usize,
         expected: usize,
         got: usize,
@@ -160,7 +166,11 @@ pub fn batch_pairs(spec: &PatternSpec, channels: usize) -> Option<u64> {
     Some(if batch > 0 {
         batch as u64
     } else {
-        auto_batch_pairs(spec.pixels() as u64, channels as u64, spec.count() / 2)
+        auto_batch_pairs(
+            spec.pixels() as u64,
+            channels as u64,
+            spec.adaptive_budget().expect("adaptive"),
+        )
     })
 }
 
@@ -209,6 +219,177 @@ pub struct Planner {
     pending: Duration,
     /// The state of the `measured` error estimate (`None`: the spec's estimate is `prediction`).
     measured: Option<estimate::Measured>,
+    /// Single frames (PATTERNS.md, "Single frames"): the blocks and their light.
+    single: Option<SingleFrames>,
+}
+
+/// A Haar block `(s, pr, pc)`: the `2^s x 2^s` square at row `pr`, column `pc` of its band.
+type Block = (u32, u32, u32);
+
+/// The state single frames add to a Haar planner: which blocks may be split, the block being
+/// issued, and per channel the decoding of each frame's `y-` from its block's light
+/// ([`SingleFrames::decode`]).
+#[derive(Debug)]
+struct SingleFrames {
+    width: u32,
+    /// Blocks not yet split whose parent is.
+    open: Vec<Block>,
+    /// The block being issued and how many of its details are.
+    current: Option<([u32; 3], usize)>,
+    decoder: SingleFrameDecoder,
+}
+
+/// Turns the frames of a single-frame session into the split pairs they stand for: per channel
+/// the dark level, every block's pair sum `Q` (by the index of its `x` detail) and every
+/// decoded detail's `y+ - y-` (PATTERNS.md, "Single frames", "Values").
+#[derive(Clone, Debug)]
+pub struct SingleFrameDecoder {
+    width: u32,
+    channels: usize,
+    dark: Vec<f64>,
+    /// `q[ch k + x]`: the pair sum of the block whose x detail is `x`.
+    q: Vec<f64>,
+    /// `d[ch k + n]`: `y+ - y-` of detail `n`.
+    d: Vec<f64>,
+}
+
+/// The three details of block `(s, pr, pc)` on a `w x w` grid: `x`, `y`, `xy`.
+fn block_details(w: u32, (s, pr, pc): Block) -> [u32; 3] {
+    let h = w >> s;
+    [pr * w + h + pc, (h + pr) * w + pc, (h + pr) * w + h + pc]
+}
+
+/// The block of Haar detail `n != 0` and which of its details `n` is (0 `x`, 1 `y`, 2 `xy`).
+fn block_of(w: u32, n: u32) -> (Block, usize) {
+    let f = helmholtz_proto::HaarFunction::new(w, n);
+    let block = (f.scale, f.y0 >> f.scale, f.x0 >> f.scale);
+    let which = match (f.split_x, f.split_y) {
+        (true, false) => 0,
+        (false, true) => 1,
+        _ => 2,
+    };
+    (block, which)
+}
+
+impl SingleFrameDecoder {
+    pub fn new(width: u32, channels: usize) -> SingleFrameDecoder {
+        let k = width as usize * width as usize;
+        SingleFrameDecoder {
+            width,
+            channels,
+            dark: vec![0.0; channels],
+            q: vec![0.0; channels * k],
+            d: vec![0.0; channels * k],
+        }
+    }
+
+    /// Frames each index takes: 2 for index 0 (all on, all off), 1 for the others.
+    pub fn frames_of(n: u32) -> usize {
+        if n == 0 { 2 } else { 1 }
+    }
+
+    /// Index `n`'s frames (`frames_of(n)` frames x channels, row-major) as the split pair they
+    /// stand for, per channel `(y+, y-)`. The sequence's order must be kept: index 0 first, and
+    /// a detail after every detail of the coarser blocks containing it.
+    pub fn decode(&mut self, n: u32, frames: &[f64], out: &mut Vec<(f64, f64)>) {
+        let (w, c) = (self.width, self.channels);
+        let k = w as usize * w as usize;
+        out.clear();
+        if n == 0 {
+            for ch in 0..c {
+                let (yp, ym) = (frames[ch], frames[c + ch]);
+                self.dark[ch] = ym;
+                if k > 1 {
+                    self.q[ch * k + 1] = yp + ym;
+                }
+                out.push((yp, ym));
+            }
+            return;
+        }
+        let (block, which) = block_of(w, n);
+        let [x, y, xy] = block_details(w, block);
+        for (ch, &yp) in frames[..c].iter().enumerate() {
+            let ym = self.q[ch * k + x as usize] - yp;
+            self.d[ch * k + n as usize] = yp - ym;
+            out.push((yp, ym));
+        }
+        let (s, pr, pc) = block;
+        if which == 2 && s >= 2 {
+            let children = [(0u32, 0u32), (0, 1), (1, 0), (1, 1)];
+            for ch in 0..c {
+                let base = ch * k;
+                let two_dark = 2.0 * self.dark[ch];
+                let l = self.q[base + x as usize] - two_dark;
+                let (dx, dy, dxy) = (
+                    self.d[base + x as usize],
+                    self.d[base + y as usize],
+                    self.d[base + xy as usize],
+                );
+                let sums = [
+                    (((l + dx) + dy) + dxy) * 0.25 + two_dark,
+                    (((l - dx) + dy) - dxy) * 0.25 + two_dark,
+                    (((l + dx) - dy) - dxy) * 0.25 + two_dark,
+                    (((l - dx) - dy) + dxy) * 0.25 + two_dark,
+                ];
+                for ((dr, dc), q) in children.iter().zip(sums) {
+                    let [cx, _, _] = block_details(w, (s - 1, 2 * pr + dr, 2 * pc + dc));
+                    self.q[base + cx as usize] = q;
+                }
+            }
+        }
+    }
+
+    pub fn memory_bytes(&self) -> usize {
+        8 * (self.dark.len() + self.q.len() + self.d.len())
+    }
+}
+
+/// A resolved single-frame session's first `rows` frames (`channels` per frame) as the split
+/// pairs they stand for: `2` frames an index, `y+` then `y-`, for every index whose frames are
+/// all in `rows` (PATTERNS.md, "Single frames"). Every method reconstructs a single-frame session
+/// from these, with [`pair_spec`].
+pub fn single_frames_as_pairs(spec: &PatternSpec, channels: usize, frames: &[f64]) -> Vec<f64> {
+    let indices = spec.adaptive_indices().unwrap_or(&[]);
+    let rows = (frames.len() / channels.max(1)) as u64;
+    let whole = (spec.adaptive_indices_in(rows).unwrap_or(0) as usize).min(indices.len());
+    let mut decoder = SingleFrameDecoder::new(spec.width(), channels);
+    let mut out = Vec::with_capacity(2 * whole * channels);
+    let mut pair = Vec::with_capacity(channels);
+    let mut at = 0usize;
+    for &n in &indices[..whole] {
+        let take = SingleFrameDecoder::frames_of(n) * channels;
+        decoder.decode(n, &frames[at..at + take], &mut pair);
+        at += take;
+        out.extend(pair.iter().map(|p| p.0));
+        out.extend(pair.iter().map(|p| p.1));
+    }
+    out
+}
+
+/// The split-pair spec a resolved single-frame spec stands for: the same declaration with
+/// `frames: pairs` and a budget of `2 (count - 1)` frames, resolved with the same indices (what
+/// [`single_frames_as_pairs`] returns the frames of). Other specs are returned as they are.
+pub fn pair_spec(spec: &PatternSpec) -> PatternSpec {
+    if !spec.adaptive_single() {
+        return spec.clone();
+    }
+    let budget = spec.adaptive_budget().expect("adaptive");
+    let pairs = PatternSpec::new(
+        spec.family()
+            .clone()
+            .with_frames(helmholtz_proto::AdaptiveFrames::Pairs),
+        spec.width(),
+        spec.height(),
+        2 * budget,
+        spec.seed(),
+    )
+    .expect("a single-frame budget of count - 1 indices is a valid pair budget");
+    match spec.adaptive_indices() {
+        Some(indices) => pairs
+            .with_indices(indices.into())
+            .expect("the same indices fit the same budget"),
+        None => pairs,
+    }
 }
 
 impl Planner {
@@ -239,7 +420,7 @@ impl Planner {
             basis,
             width,
             channels,
-            budget: (spec.count() / 2).min(k as u64),
+            budget: spec.adaptive_budget().expect("adaptive").min(k as u64),
             batch: batch_pairs(spec, channels).expect("adaptive"),
             target_error,
             persistence: spec.family().adaptive_persistence().expect("adaptive"),
@@ -265,7 +446,36 @@ impl Planner {
                 }
                 _ => None,
             },
+            single: spec.adaptive_single().then(|| SingleFrames {
+                width,
+                open: if width > 1 {
+                    vec![(width.trailing_zeros(), 0, 0)]
+                } else {
+                    Vec::new()
+                },
+                current: None,
+                decoder: SingleFrameDecoder::new(width, channels),
+            }),
         })
+    }
+
+    /// True when the session shows single frames (PATTERNS.md, "Single frames").
+    pub fn single_frames(&self) -> bool {
+        self.single.is_some()
+    }
+
+    /// Frames the first `indices` indices of the sequence take.
+    fn rows_of(&self, indices: u64) -> u64 {
+        match (&self.single, indices) {
+            (None, j) => 2 * j,
+            (Some(_), 0) => 0,
+            (Some(_), j) => j + 1,
+        }
+    }
+
+    /// Frames of every batch issued so far.
+    pub fn issued_rows(&self) -> u64 {
+        self.rows_of(self.order.len() as u64)
     }
 
     pub fn basis(&self) -> Basis {
@@ -294,14 +504,24 @@ impl Planner {
         }
         let start = Instant::now();
         let size = self.batch.min(self.budget - issued) as usize;
-        let indices = self.select(size);
+        let indices = if self.single.is_some() {
+            self.select_blocks(size)
+        } else {
+            self.select(size)
+        };
+        if indices.is_empty() {
+            return None;
+        }
         for &n in &indices {
             self.issued[n as usize] = true;
         }
         self.order.extend_from_slice(&indices);
+        let first_row = self.rows_of(issued);
         let batch = Batch {
             number: self.batches,
             first_pair: issued,
+            first_row,
+            rows: self.rows_of(issued + indices.len() as u64) - first_row,
             indices,
         };
         self.outstanding
@@ -312,6 +532,53 @@ impl Planner {
         self.stats.total += took;
         self.stats.max = self.stats.max.max(took);
         Some(batch)
+    }
+
+    /// Single frames: up to `size` indices by whole block splits (PATTERNS.md, "Single frames",
+    /// "Selection"): index 0 first, then the current block's next detail, else the open block
+    /// with the largest summed score becomes the current one (its children open).
+    fn select_blocks(&mut self, size: usize) -> Vec<u32> {
+        let single = self.single.as_mut().expect("single frames");
+        let w = single.width;
+        let mut out = Vec::with_capacity(size);
+        while out.len() < size {
+            if self.order.is_empty() && out.is_empty() {
+                out.push(0);
+                continue;
+            }
+            if let Some((details, next)) = &mut single.current
+                && *next < 3
+            {
+                out.push(details[*next]);
+                *next += 1;
+                continue;
+            }
+            let score = &self.score;
+            let block_score = |b: Block| {
+                let [x, y, xy] = block_details(w, b);
+                (score[x as usize] + score[y as usize]) + score[xy as usize]
+            };
+            let Some((at, _)) = single.open.iter().enumerate().max_by(|p, q| {
+                let (a, b) = (*p.1, *q.1);
+                block_score(a)
+                    .total_cmp(&block_score(b))
+                    .then(a.0.cmp(&b.0))
+                    .then(block_details(w, b)[0].cmp(&block_details(w, a)[0]))
+            }) else {
+                break;
+            };
+            let block = single.open.swap_remove(at);
+            let (s, pr, pc) = block;
+            if s >= 2 {
+                for (dr, dc) in [(0, 0), (0, 1), (1, 0), (1, 1)] {
+                    single.open.push((s - 1, 2 * pr + dr, 2 * pc + dc));
+                }
+            }
+            let details = block_details(w, block);
+            out.push(details[0]);
+            single.current = Some((details, 1));
+        }
+        out
     }
 
     /// The `size` best indices not yet issued, in rank order.
@@ -338,7 +605,8 @@ impl Planner {
         candidates
     }
 
-    /// Values of the oldest outstanding batch, whole: `2 * indices.len()` frames x channels,
+    /// Values of the oldest outstanding batch, whole: its frames ([`Batch::rows`]: `2 *
+    /// indices.len()`, or with single frames one an index but two for index 0) x channels,
     /// row-major (frame 0 channel 0, frame 0 channel 1, ...). Nothing is kept if they are refused.
     pub fn observe(&mut self, frames: &[f64]) -> Result<(), AdaptiveError> {
         let &(number, first_pair, pairs) = self
@@ -346,11 +614,14 @@ impl Planner {
             .front()
             .ok_or(AdaptiveError::NothingOutstanding)?;
         let c = self.channels;
-        let expected = 2 * pairs * c;
+        let first_row = self.rows_of(first_pair);
+        let rows = self.rows_of(first_pair + pairs as u64) - first_row;
+        let expected = rows as usize * c;
         if frames.len() != expected {
             return Err(AdaptiveError::WrongLength {
                 batch: number,
                 pairs,
+                rows,
                 channels: c,
                 expected,
                 got: frames.len(),
@@ -359,7 +630,7 @@ impl Planner {
         if let Some(p) = frames.iter().position(|v| !v.is_finite()) {
             return Err(AdaptiveError::NonFinite {
                 batch: number,
-                frame: 2 * first_pair + (p / c) as u64,
+                frame: first_row + (p / c) as u64,
                 channel: p % c,
                 value: frames[p],
             });
@@ -367,18 +638,30 @@ impl Planner {
         let start = Instant::now();
         self.outstanding.pop_front();
         let k = self.issued.len();
+        let mut pair: Vec<(f64, f64)> = Vec::with_capacity(c);
+        let mut at = 0usize;
         for j in 0..pairs {
             let n = self.order[first_pair as usize + j];
+            match &mut self.single {
+                Some(single) => {
+                    let take = SingleFrameDecoder::frames_of(n) * c;
+                    single.decoder.decode(n, &frames[at..at + take], &mut pair);
+                    at += take;
+                }
+                None => {
+                    pair.clear();
+                    pair.extend((0..c).map(|ch| (frames[at + ch], frames[at + c + ch])));
+                    at += 2 * c;
+                }
+            }
             let gain = self.basis.gain(self.width, n);
-            for ch in 0..c {
-                let v = (frames[2 * j * c + ch] - frames[(2 * j + 1) * c + ch]) / gain;
+            for (ch, &(yp, ym)) in pair.iter().enumerate() {
+                let v = (yp - ym) / gain;
                 self.values[ch * k + n as usize] = v;
                 self.energy[ch] += v * v;
             }
             if let Some(measured) = &mut self.measured {
-                measured.observe(n, |ch| {
-                    frames[2 * j * c + ch] + frames[(2 * j + 1) * c + ch]
-                });
+                measured.observe(n, |ch| pair[ch].0 + pair[ch].1);
             }
         }
         self.observed += pairs as u64;
@@ -517,6 +800,10 @@ impl Planner {
             + 4 * self.order.capacity()
             + self.predictor.memory_bytes()
             + self.measured.as_ref().map_or(0, |m| m.memory_bytes())
+            + self
+                .single
+                .as_ref()
+                .map_or(0, |s| s.decoder.memory_bytes() + 12 * s.open.capacity())
     }
 
     /// The noise of one pair difference `y+ - y-` of channel `channel` (a standard deviation in
@@ -548,7 +835,7 @@ pub fn replay(
         let Some(batch) = queue.pop_front() else {
             break;
         };
-        let need = 2 * batch.indices.len() * channels;
+        let need = batch.rows as usize * channels;
         if frames.len() - at < need {
             break;
         }

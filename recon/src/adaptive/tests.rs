@@ -54,7 +54,14 @@ fn run_noisy(
             .unwrap();
         let generator = PatternGenerator::new(&resolved);
         let mut values = Vec::new();
-        for frame in 2 * batch.first_pair..2 * (batch.first_pair + batch.indices.len() as u64) {
+        assert_eq!(
+            batch.first_row,
+            planner.issued_rows() - batch.rows - {
+                // Batches issued after this one (at most one) lie beyond it.
+                queue.iter().map(|b: &Batch| b.rows).sum::<u64>()
+            }
+        );
+        for frame in batch.first_row..batch.first_row + batch.rows {
             generator.fill_values(frame, &mut pattern);
             for image in images {
                 let s: f64 = pattern.iter().zip(image).map(|(&p, &t)| p as f64 * t).sum();
@@ -361,8 +368,8 @@ fn the_contract_vectors_replay_to_their_indices() {
     let text = include_str!("../../../proto/tests/pattern_vectors.json");
     let v: serde_json::Value = serde_json::from_str(text).unwrap();
     let replays = v["adaptive_replays"].as_array().unwrap();
-    assert_eq!(replays.len(), 22);
-    let (mut stopped_early, mut persistent, mut noisy) = (0, 0, 0);
+    assert_eq!(replays.len(), 30);
+    let (mut stopped_early, mut persistent, mut noisy, mut single) = (0, 0, 0, 0);
     for r in replays {
         let spec: PatternSpec = serde_json::from_value(r["spec"].clone()).unwrap();
         let channels = r["channels"].as_u64().unwrap() as usize;
@@ -387,9 +394,17 @@ fn the_contract_vectors_replay_to_their_indices() {
             stopped_early += 1;
         }
         // The measured estimate sees the rig's read noise (uniform in [-a, a]: a pair
-        // difference's standard deviation is a sqrt(2/3)).
+        // difference's standard deviation is a sqrt(2/3)); single frames' pair sums are the
+        // blocks' light, exact but for rounding, and show none.
         let a = r["noise"].as_f64().unwrap();
-        if let Some((sigma, _)) = planner.pair_noise(0) {
+        if spec.adaptive_single() {
+            single += 1;
+            assert!(
+                planner.pair_noise(0).is_none_or(|(sigma, _)| sigma < 1e-9),
+                "{}: single frames show no pair noise",
+                spec.to_json()
+            );
+        } else if let Some((sigma, _)) = planner.pair_noise(0) {
             let want = a * (2.0f64 / 3.0).sqrt();
             assert!(
                 (sigma - want).abs() <= 0.25 * want.max(1e-9),
@@ -401,10 +416,14 @@ fn the_contract_vectors_replay_to_their_indices() {
             }
         }
     }
-    assert_eq!(stopped_early, 8, "the target-error sessions stop early");
-    assert_eq!(noisy, 4, "noisy sessions with the measured estimate");
+    assert_eq!(stopped_early, 10, "the target-error sessions stop early");
     assert_eq!(
-        persistent, 7,
+        noisy, 4,
+        "noisy split-pair sessions with the measured estimate"
+    );
+    assert_eq!(single, 8, "single-frame sessions");
+    assert_eq!(
+        persistent, 15,
         "sessions planned with a parent's persistence"
     );
 }
@@ -414,7 +433,7 @@ mod reconstruction {
     use crate::preview::Preview;
     use crate::{Control, MethodConfig, Problem, ReconError, SliceSource, reconstruct};
 
-    fn reconstruction(
+    pub(super) fn reconstruction(
         spec: &PatternSpec,
         frames: &[f64],
         method: &str,
@@ -711,5 +730,135 @@ fn the_prediction_filled_image_smooths_what_was_not_measured() {
             x.iter().zip(&small).all(|(a, b)| (a - b).abs() < 1e-12),
             "{haar}"
         );
+    }
+}
+
+mod single_frames {
+    use super::*;
+    use crate::preview::Preview;
+    use helmholtz_proto::AdaptiveFrames;
+
+    fn single(width: u32, count: u64, batch: u32) -> PatternSpec {
+        let family = Family::adaptive(true, batch, 0.0, None).with_frames(AdaptiveFrames::Single);
+        PatternSpec::new(family, width, width, count, 0).unwrap()
+    }
+
+    fn solve(spec: &PatternSpec, frames: &[f64], method: &str) -> Vec<f32> {
+        super::reconstruction::reconstruction(spec, frames, method)
+            .unwrap_or_else(|e| panic!("{method}: {e}"))
+            .images[0]
+            .data
+            .clone()
+    }
+
+    /// The sequence is index 0 and then whole block splits (x, y, xy in a row), each block after
+    /// its parent block; a batch's frames are one an index but index 0's two; the values the
+    /// planner decodes from single frames are the split pairs' (the true coefficients, dark
+    /// level and all); replay gives the same sequence.
+    #[test]
+    fn single_frames_split_whole_blocks_after_their_parents_and_decode_to_the_pairs() {
+        let w = 16u32;
+        let images = [scene(16, 0.0), scene(16, 0.25)];
+        let s = single(w, 120, 0);
+        let (planner, frames) = run(&s, &images, 3.5);
+        assert!(planner.single_frames());
+        assert_eq!(planner.finished(), Some(StopReason::Budget));
+        let order = planner.indices().to_vec();
+        assert_eq!(order.len(), 119);
+        assert_eq!(frames.len(), 2 * 120);
+        assert_eq!(planner.issued_rows(), 120);
+        assert_eq!(order[0], 0);
+        let mut split = std::collections::HashSet::from([(w.trailing_zeros() + 1, 0, 0)]);
+        for chunk in order[1..].chunks(3) {
+            let (block, which) = block_of(w, chunk[0]);
+            assert_eq!(which, 0, "a block starts with its x detail: {chunk:?}");
+            assert_eq!(&block_details(w, block)[..chunk.len()], chunk);
+            let (s, pr, pc) = block;
+            let parent = (s + 1, pr / 2, pc / 2);
+            assert!(
+                split.contains(&parent) || s == w.trailing_zeros(),
+                "block {block:?} before its parent {parent:?}"
+            );
+            if chunk.len() == 3 {
+                split.insert(block);
+            }
+        }
+        // The decoded coefficients are the scene's, as a split pair would measure them.
+        let full = PatternSpec::new(Family::adaptive(true, 0, 0.0, None), w, w, 512, 0).unwrap();
+        let (pairs_planner, _) = run(&full, &images, 3.5);
+        let truth = pairs_planner.coefficients(1);
+        for &n in &order {
+            let (got, want) = (planner.coefficients(1)[n as usize], truth[n as usize]);
+            assert!((got - want).abs() < 1e-9, "index {n}: {got} against {want}");
+        }
+        let (replayed, indices) = replay(&s, 2, &frames).unwrap();
+        assert_eq!(indices, order);
+        assert_eq!(replayed.estimated_error(), planner.estimated_error());
+        // Values for a batch of the wrong length are refused, naming the frame count.
+        let mut p = Planner::new(&s, 2).unwrap();
+        let b = p.poll().unwrap();
+        assert_eq!((b.first_row, b.rows), (0, b.indices.len() as u64 + 1));
+        let e = p.observe(&frames[..2 * b.indices.len()]).unwrap_err();
+        assert!(
+            e.to_string().contains(&format!("in {} frames", b.rows)),
+            "{e}"
+        );
+        let second = p.poll().unwrap();
+        assert_eq!(second.first_row, b.rows);
+        assert_eq!(second.rows, second.indices.len() as u64);
+    }
+
+    /// k + 1 frames show every coefficient: `direct` and `auto` give the scene back. A partial
+    /// session reconstructs, by every method, as the split-pair session of the same indices;
+    /// the preview equals `direct` frame for frame.
+    #[test]
+    fn every_method_reconstructs_a_single_frame_session_as_its_split_pairs() {
+        let w = 16u32;
+        let image = scene(16, 0.1);
+        let full = single(w, 257, 0);
+        let (planner, frames) = run(&full, std::slice::from_ref(&image), 2.0);
+        let mut seen = planner.indices().to_vec();
+        seen.sort_unstable();
+        assert_eq!(seen, (0..256).collect::<Vec<_>>());
+        let resolved = full.with_indices(planner.indices().into()).unwrap();
+        for method in ["direct", "auto"] {
+            let t = solve(&resolved, &frames, method);
+            let err = t
+                .iter()
+                .zip(&image)
+                .map(|(a, b)| (*a as f64 - b).abs())
+                .fold(0.0, f64::max);
+            assert!(err < 1e-5, "{method}: {err}");
+        }
+
+        let part = single(w, 61, 0);
+        let (planner, frames) = run(&part, std::slice::from_ref(&image), 2.0);
+        let resolved = part.with_indices(planner.indices().into()).unwrap();
+        let pairs = single_frames_as_pairs(&resolved, 1, &frames);
+        assert_eq!(pairs.len(), 2 * 60);
+        let paired = pair_spec(&resolved);
+        assert!(!paired.adaptive_single());
+        assert_eq!(paired.adaptive_indices(), resolved.adaptive_indices());
+        for method in ["direct", "zero_filled", "auto", "tv", "cs", "lsq", "dgi"] {
+            let a = solve(&resolved, &frames, method);
+            let b = solve(&paired, &pairs, method);
+            assert_eq!(a, b, "{method}");
+            assert!(a.iter().all(|v| v.is_finite()), "{method}");
+            // It says that the frames carry no noise estimate of their own.
+            let r = super::reconstruction::reconstruction(&resolved, &frames, method).unwrap();
+            let warnings = r.report.details["warnings"].to_string();
+            assert!(warnings.contains("no noise estimate"), "{method}: {warnings}");
+            assert_eq!(r.report.details["single_frames"]["pairs"], 60, "{method}");
+        }
+        let direct = solve(&resolved, &frames, "direct");
+        let want = synthesis(true, w, planner.coefficients(0));
+        for (a, b) in direct.iter().zip(&want) {
+            assert!((*a as f64 - b).abs() < 1e-5, "{a} {b}");
+        }
+        let mut preview = Preview::new(&resolved, 1);
+        for row in frames.chunks(1) {
+            preview.push_rows(row);
+        }
+        assert_eq!(preview.image(0).data, direct);
     }
 }

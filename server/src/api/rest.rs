@@ -634,7 +634,7 @@ async fn adaptive_json(
     let indices: Vec<u32> = batches.iter().flat_map(|b| b.indices.clone()).collect();
     let body = serde_json::json!({
         "session_id": session.id,
-        "issued_rows": 2 * indices.len() as u64,
+        "issued_rows": session.spec.adaptive_rows(indices.len() as u64),
         "indices": indices,
         "batches": batches
             .iter()

@@ -10,20 +10,23 @@ use helmholtz_proto::PatternSpec;
 use super::{SessionRow, StoreError, StoreRow, WriterLease};
 
 /// One issued batch: frames `first_row + 2j`, `first_row + 2j + 1` show the split pair of basis
-/// function `indices[j]`.
+/// function `indices[j]`; with single frames (PATTERNS.md, "Single frames") frame `first_row + j`
+/// shows index `j`'s `P+`, but for index 0's two frames.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct IssuedBatch {
     /// 0, 1, ... in issue order.
     pub number: u64,
-    /// The batch's first frame: the previous batch's end (even).
+    /// The batch's first frame: the previous batch's end.
     pub first_row: u64,
     pub indices: Vec<u32>,
 }
 
 impl IssuedBatch {
-    /// The frame after the batch's last.
-    pub fn end_row(&self) -> u64 {
-        self.first_row + 2 * self.indices.len() as u64
+    /// The frame after the batch's last, in a session of `spec`.
+    pub fn end_row(&self, spec: &PatternSpec) -> u64 {
+        let first = spec.adaptive_indices_in(self.first_row).unwrap_or(0);
+        spec.adaptive_rows(first + self.indices.len() as u64)
+            .unwrap_or(self.first_row)
     }
 }
 
@@ -90,7 +93,7 @@ pub(crate) fn batch_from_row(row: &impl StoreRow) -> Result<IssuedBatch, StoreEr
 #[async_trait]
 pub trait Batches: Send + Sync {
     /// Stores `batch` as the next of the adaptive session `session_id` and raises its issued
-    /// rows to the batch's end, in one transaction (with a `lease`, only while the lease is still
+    /// rows to the batch's end `end_row` ([`IssuedBatch::end_row`]), in one transaction (with a `lease`, only while the lease is still
     /// this writer's). Storing a batch equal to one stored at its number changes nothing;
     /// one that does not continue the stored batches is [`StoreError::Corrupt`]. Returns the
     /// issued rows.
@@ -99,6 +102,7 @@ pub trait Batches: Send + Sync {
         session_id: &str,
         lease: Option<&WriterLease>,
         batch: &IssuedBatch,
+        end_row: u64,
     ) -> Result<u64, StoreError>;
 
     /// The session's batches in issue order (empty for other families).
@@ -129,7 +133,10 @@ pub trait Batches: Send + Sync {
         if indices.is_empty() {
             return Ok((session.spec.clone(), 0));
         }
-        let rows = 2 * indices.len() as u64;
+        let rows = session
+            .spec
+            .adaptive_rows(indices.len() as u64)
+            .expect("adaptive");
         let spec = session.spec.with_indices(Arc::from(indices)).map_err(|e| {
             StoreError::Corrupt(format!("session {}: stored indices: {e}", session.id))
         })?;

@@ -1109,6 +1109,7 @@ async fn adaptive_batches_bound_the_rows_and_resolve_the_spec(s: Store) {
             target_error: 0.0,
             persistence: 0.5,
             error_estimate: ErrorEstimate::Measured,
+            frames: helmholtz_proto::AdaptiveFrames::Pairs,
         },
         4,
         4,
@@ -1137,15 +1138,15 @@ async fn adaptive_batches_bound_the_rows_and_resolve_the_spec(s: Store) {
         first_row: 0,
         indices: vec![0, 5],
     };
-    assert_eq!(s.issue_batch("ad", None, &b0).await.unwrap(), 4);
+    assert_eq!(s.issue_batch("ad", None, &b0, 4).await.unwrap(), 4);
     // Issuing the same batch again changes nothing; another one at its number is refused.
-    assert_eq!(s.issue_batch("ad", None, &b0).await.unwrap(), 4);
+    assert_eq!(s.issue_batch("ad", None, &b0, 4).await.unwrap(), 4);
     let other = IssuedBatch {
         indices: vec![0, 6],
         ..b0.clone()
     };
     assert!(matches!(
-        s.issue_batch("ad", None, &other).await,
+        s.issue_batch("ad", None, &other, 4).await,
         Err(StoreError::Corrupt(_))
     ));
     // A batch must continue the stored ones.
@@ -1154,13 +1155,13 @@ async fn adaptive_batches_bound_the_rows_and_resolve_the_spec(s: Store) {
         first_row: 4,
         indices: vec![1],
     };
-    assert!(s.issue_batch("ad", None, &skipping).await.is_err());
+    assert!(s.issue_batch("ad", None, &skipping, 6).await.is_err());
     let b1 = IssuedBatch {
         number: 1,
         first_row: 4,
         indices: vec![3],
     };
-    assert_eq!(s.issue_batch("ad", None, &b1).await.unwrap(), 6);
+    assert_eq!(s.issue_batch("ad", None, &b1, 6).await.unwrap(), 6);
     assert_eq!(s.batches("ad").await.unwrap(), vec![b0, b1]);
     let e = s.append_rows("ad", 0, 2, &rows(0, 7)).await.unwrap_err();
     assert!(
@@ -1193,7 +1194,8 @@ async fn adaptive_batches_bound_the_rows_and_resolve_the_spec(s: Store) {
                 number: 0,
                 first_row: 0,
                 indices: vec![1]
-            }
+            },
+            2
         )
         .await,
         Err(StoreError::NotAdaptive(_))

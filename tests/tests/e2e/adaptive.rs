@@ -77,6 +77,34 @@ async fn run(server: &str, id: &str, spec: &PatternSpec, transport: &[f32]) -> A
         .unwrap()
 }
 
+/// [`run`] through a proxy that drops every connection while the rig measures batch `batch`.
+async fn run_with_a_cut(
+    server: &ServerProcess,
+    id: &str,
+    spec: &PatternSpec,
+    transport: &[f32],
+    batch: u64,
+) -> AdaptiveReport {
+    let proxy = FaultyProxy::start(format!("127.0.0.1:{}", server.port))
+        .await
+        .unwrap();
+    let via_proxy = server.url_with(&server.token).replace(
+        &format!("127.0.0.1:{}", server.port),
+        &proxy.addr.to_string(),
+    );
+    let session = create(&via_proxy, id, spec, transport).await;
+    let mut cut = false;
+    acquire_adaptive(&via_proxy, &session, &options(), |b| {
+        if b.number == batch && !cut {
+            cut = true;
+            assert!(proxy.cut_all() > 0);
+        }
+        Ok(measure(b, transport))
+    })
+    .await
+    .unwrap()
+}
+
 async fn get_json(server: &ServerProcess, path: &str) -> (u16, Value) {
     let r = helmholtz_tests::http_client()
         .get(server.url(path))
@@ -90,15 +118,20 @@ async fn get_json(server: &ServerProcess, path: &str) -> (u16, Value) {
 
 /// The stored issued indices (`adaptive.json`) and values (`measurements.npy`) of `id`.
 async fn stored(server: &ServerProcess, id: &str) -> (Vec<u32>, Vec<f64>) {
+    let (status, session) = get_json(server, &format!("/v1/sessions/{id}")).await;
+    assert_eq!(status, 200, "{session}");
+    let declared: PatternSpec = serde_json::from_value(session["patterns"].clone()).unwrap();
     let (status, body) = get_json(server, &format!("/v1/sessions/{id}/adaptive.json")).await;
     assert_eq!(status, 200, "{body}");
     let indices: Vec<u32> = serde_json::from_value(body["indices"].clone()).unwrap();
     let batches = body["batches"].as_array().unwrap();
-    let mut next = 0;
+    let (mut next, mut issued) = (0, 0);
     for (n, b) in batches.iter().enumerate() {
         assert_eq!(b["number"], n as u64);
         assert_eq!(b["first_row"], next);
-        next += 2 * b["indices"].as_array().unwrap().len() as u64;
+        // Two frames an index, or with single frames one but index 0's two.
+        issued += b["indices"].as_array().unwrap().len() as u64;
+        next = declared.adaptive_rows(issued).unwrap();
     }
     assert_eq!(body["issued_rows"], next);
     let bytes = helmholtz_tests::http_client()
@@ -195,6 +228,103 @@ async fn an_adaptive_session_completes_and_direct_gives_the_scene() {
     }
 }
 
+/// Single frames (PATTERNS.md, "Single frames"): the whole Haar basis in k + 1 frames, batch by
+/// batch (index 0's two frames, then one an index); `direct` gives the scene; the stored
+/// values replay to the stored indices, which are whole block splits; a rig whose stream is cut
+/// resumes to the same indices and values; a partial session's image is the split-pair
+/// session's of the same indices.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_single_frame_session_measures_the_basis_in_half_the_frames_and_replays() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = ServerProcess::start(dir.path(), 0, &[]).unwrap();
+    let url = server.base_url.clone();
+    let truth = scene(16);
+    let whole = spec(
+        r#"{"family": "adaptive_haar", "width": 16, "height": 16, "count": 257, "batch": 16, "frames": "single"}"#,
+    );
+    assert!(whole.adaptive_single());
+    let report = run(&url, "single-whole", &whole, &truth).await;
+    assert_eq!(report.reason, "budget", "{report:?}");
+    assert_eq!(report.rows, 257);
+    let mut sorted = report.indices.clone();
+    sorted.sort_unstable();
+    assert_eq!(
+        sorted,
+        (0..256).collect::<Vec<u32>>(),
+        "every basis function once"
+    );
+    let (_, session) = get_json(&server, "/v1/sessions/single-whole").await;
+    assert_eq!(session["state"], "finished", "{session}");
+    assert_eq!(session["committed_rows"], 257);
+    assert_eq!(session["patterns"]["frames"], "single", "{session}");
+    let image = reconstruct(&server, "single-whole", "direct").await;
+    let error = relative_error(&image, &truth);
+    assert!(
+        error < 1e-5,
+        "direct on the whole basis in single frames: {error}"
+    );
+
+    // A partial session: the planner's choice, replayed from the stored values.
+    let part = spec(
+        r#"{"family": "adaptive_haar", "width": 32, "height": 32, "count": 301, "frames": "single"}"#,
+    );
+    let truth32 = scene(32);
+    let first = run(&url, "single-part", &part, &truth32).await;
+    assert_eq!(first.rows, 301);
+    let (indices, values) = stored(&server, "single-part").await;
+    assert_eq!(indices, first.indices);
+    assert_eq!(indices.len(), 300);
+    assert_eq!(values.len(), 301);
+    let (_, replayed) = helmholtz_recon::adaptive::replay(&part, 1, &values).unwrap();
+    assert_eq!(replayed, indices, "replay of the stored single frames");
+    let resolved = part.with_indices(indices.clone().into()).unwrap();
+    let pairs = helmholtz_recon::adaptive::single_frames_as_pairs(&resolved, 1, &values);
+    let paired = helmholtz_recon::adaptive::pair_spec(&resolved);
+    for method in ["direct", "auto"] {
+        let served = reconstruct(&server, "single-part", method).await;
+        let problem = helmholtz_recon::Problem {
+            spec: &paired,
+            channels: 1,
+            rows: (pairs.len()) as u64,
+        };
+        let local = helmholtz_recon::reconstruct(
+            &problem,
+            &helmholtz_recon::MethodConfig::parse(method, &Value::Null).unwrap(),
+            &mut helmholtz_recon::SliceSource::new(&pairs, 1, 4096),
+            &helmholtz_recon::Control::new(),
+        )
+        .unwrap();
+        let local: Vec<f64> = local.images[0].data.iter().map(|&v| v as f64).collect();
+        assert_eq!(
+            served, local,
+            "{method}: the split-pair session of the same indices"
+        );
+    }
+
+    // The network drops every connection while the rig measures batch 2: the same session.
+    let again = run_with_a_cut(&server, "single-cut", &part, &truth32, 2).await;
+    assert!(again.reconnects >= 1, "{again:?}");
+    assert_eq!(again.indices, first.indices);
+    let (_, cut_values) = stored(&server, "single-cut").await;
+    assert_eq!(cut_values, values);
+
+    // Single frames are for adaptive_haar: a Walsh-Hadamard declaration is refused, naming it.
+    let r = helmholtz_tests::http_client()
+        .post(server.url("/v1/sessions"))
+        .bearer_auth(&server.token)
+        .header("content-type", "application/json")
+        .body(
+            r#"{"id": "single-wh", "patterns": {"family": "adaptive_hadamard", "width": 16, "height": 16, "count": 257, "frames": "single"}, "channels": ["bucket"]}"#,
+        )
+        .send()
+        .await
+        .unwrap();
+    let status = r.status().as_u16();
+    let body = r.text().await.unwrap();
+    assert_eq!(status, 400, "{body}");
+    assert!(body.contains("frames"), "{body}");
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_stored_sequence_replays_and_a_second_run_issues_it_again() {
     let dir = tempfile::tempdir().unwrap();
@@ -245,24 +375,7 @@ async fn a_rig_that_loses_its_stream_resumes_with_the_indices_of_an_uninterrupte
     let straight = run(&server.base_url, "straight", &spec, &truth).await;
 
     // The network drops every connection while the rig measures batch 3.
-    let proxy = FaultyProxy::start(format!("127.0.0.1:{}", server.port))
-        .await
-        .unwrap();
-    let via_proxy = server.url_with(&server.token).replace(
-        &format!("127.0.0.1:{}", server.port),
-        &proxy.addr.to_string(),
-    );
-    let session = create(&via_proxy, "cut", &spec, &truth).await;
-    let mut cut = false;
-    let report = acquire_adaptive(&via_proxy, &session, &options(), |b| {
-        if b.number == 3 && !cut {
-            cut = true;
-            assert!(proxy.cut_all() > 0);
-        }
-        Ok(measure(b, &truth))
-    })
-    .await
-    .unwrap();
+    let report = run_with_a_cut(&server, "cut", &spec, &truth, 3).await;
     assert!(report.reconnects >= 1, "{report:?}");
     assert_eq!(report.indices, straight.indices);
     assert_eq!(report.rows, straight.rows);

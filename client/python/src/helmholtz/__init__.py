@@ -55,12 +55,13 @@ from .patterns import (
     speckle_levels,
 )
 from .retry import Backoff, RetryPolicy
-from .spec import ADAPTIVE_FAMILIES, FAMILIES, ORDERINGS, PatternSpec, SpecError
+from .spec import ADAPTIVE_FAMILIES, ADAPTIVE_FRAMES, FAMILIES, ORDERINGS, PatternSpec, SpecError
 
 __version__ = "0.1.0"
 
 __all__ = [
     "ADAPTIVE_FAMILIES",
+    "ADAPTIVE_FRAMES",
     "AcquireError",
     "AdaptiveReport",
     "ApiError",

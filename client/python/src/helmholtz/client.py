@@ -239,11 +239,12 @@ class AdaptiveReport:
     Attributes:
         session_id: the session.
         writer_id: the writer id every stream of the acquisition carried.
-        rows: rows (frames) the finished session holds: ``2 * len(indices)`` unless the
-            session was finished by hand mid-batch.
+        rows: rows (frames) the finished session holds: ``2 * len(indices)`` (single frames:
+            ``len(indices) + 1``) unless the session was finished by hand mid-batch.
         indices: every basis index the server issued, in order (pair ``r``, frames ``2r`` and
-            ``2r + 1``, shows basis function ``indices[r]``); the session's whole sequence,
-            also when this call resumed a session another run started.
+            ``2r + 1``, shows basis function ``indices[r]``; single frames: frames 0 and 1
+            show index 0, frame ``r + 1`` the P+ of ``indices[r]``); the session's whole
+            sequence, also when this call resumed a session another run started.
         batches: batches issued (the server's count, as above).
         reason: why the server stopped: ``"budget"`` (the frame budget is spent),
             ``"target_error"`` (the estimated error reached the spec's target) or
@@ -673,9 +674,15 @@ class Client:
         end from the rig's side, over the bidirectional gRPC stream ``Acquire``.
 
         The server chooses the patterns: it sends batches of basis indices, and for each batch
-        this calls ``measure(patterns)`` with the batch's split pairs as an ndarray
-        ``(2 * pairs, side, side)`` of ``dtype`` (0.0 / 1.0; frame ``2j`` is P+ of the batch's
-        ``j``-th index, ``2j + 1`` its P-; :func:`helmholtz.adaptive_patterns`). ``measure``
+        this calls ``measure(patterns)`` with the batch's frames as an ndarray ``(frames,
+        side, side)`` of ``dtype`` (0.0 / 1.0; :func:`helmholtz.adaptive_patterns`). With split
+        pairs (the default) a batch of ``p`` indices is ``2 p`` frames: frame ``2j`` is P+ of
+        the batch's ``j``-th index, ``2j + 1`` its P-. With single frames (``adaptive_haar``
+        with ``frames="single"``, PATTERNS.md "Single frames") every index is its P+ alone,
+        but index 0, which opens the session as its pair: the first batch is ``p + 1`` frames
+        (frame 0 all on, frame 1 all off, frame ``j + 1`` the P+ of its ``j``-th index, ``j >=
+        1``), every later batch ``p`` (frame ``j`` the P+ of its ``j``-th index). Each batch
+        starts at the row the server gives (``AdaptiveBatch.first_row``). ``measure``
         shows them in order and returns one row per frame: ``(frames, channels)`` bucket
         values (``(frames,)`` for one channel), or a camera session's ``(frames, height,
         width)``. The rows are checked (shape, finite values, as :meth:`upload`) and streamed
@@ -1321,6 +1328,9 @@ class _Acquisition:
         self.session: Optional[Session] = None
         #: Every batch issued, by number: (first_row, indices).
         self.batches: list[tuple[int, list[int]]] = []
+        #: The frames (rows) of each batch in `batches`: two per index, or with single frames
+        #: one per index plus one for index 0's pair.
+        self.batch_rows: list[int] = []
         self.seen: set[int] = set()
         #: Rows 0..measured are measured (or stored by the server already).
         self.measured = 0
@@ -1340,28 +1350,41 @@ class _Acquisition:
                     f"{self.operation}: the server sent batch {b.number} again with other indices"
                 )
             return
-        end = self.batches[-1][0] + 2 * len(self.batches[-1][1]) if self.batches else 0
+        assert self.session is not None
+        spec = self.session.spec
+        # The server's first_row is authoritative; the rig's layout must agree with it (else
+        # the rows of the batch would land on other frames).
+        before = sum(len(ix) for _, ix in self.batches)
+        end = self.batches[-1][0] + self.batch_rows[-1] if self.batches else 0
         if b.number != len(self.batches) or b.first_row != end or not indices:
             raise HelmholtzError(
                 f"{self.operation}: the server sent batch {b.number} at row {b.first_row}; the "
                 f"rig expected batch {len(self.batches)} at row {end}"
             )
-        assert self.session is not None
-        k = self.session.spec.pixels
-        for n in indices:
+        k = spec.pixels
+        for r, n in enumerate(indices):
             if not 0 <= n < k or n in self.seen:
                 raise HelmholtzError(
                     f"{self.operation}: batch {b.number} holds basis index {n}, out of range "
                     f"0..{k} or already shown"
                 )
+            if spec.single_frames and (n == 0) != (before + r == 0):
+                raise HelmholtzError(
+                    f"{self.operation}: batch {b.number} holds basis index {n} at position "
+                    f"{before + r} of a single-frame session, which shows index 0 first (and "
+                    "only there)"
+                )
             self.seen.add(n)
         self.batches.append((b.first_row, indices))
+        self.batch_rows.append(
+            spec.adaptive_rows(before + len(indices)) - spec.adaptive_rows(before)
+        )
 
     def _next_to_measure(self) -> Optional[int]:
         """The first issued batch with rows not yet measured (nor stored by the server)."""
         done = max(self.measured, self.committed)
-        for number, (first, indices) in enumerate(self.batches):
-            if first + 2 * len(indices) > done:
+        for number, (first, _) in enumerate(self.batches):
+            if first + self.batch_rows[number] > done:
                 return number
         return None
 
@@ -1369,8 +1392,9 @@ class _Acquisition:
         """Shows batch `number` through the rig and keeps its new rows (checked)."""
         assert self.session is not None
         first, indices = self.batches[number]
-        frames = 2 * len(indices)
+        frames = self.batch_rows[number]
         patterns = adaptive_patterns(self.session.spec, indices, dtype=self.dtype)
+        assert patterns.shape[0] == frames
         values = self.measure(patterns)
         self.report.measure_calls += 1
         self.report.frames_measured += frames
@@ -1380,9 +1404,10 @@ class _Acquisition:
         except ValueError as e:
             raise ValueError(f"{where}: {e}") from None
         if rows.shape[0] != frames:
+            what = "single-frame indices" if self.session.spec.single_frames else "split pairs"
             raise ValueError(
-                f"{where} holds {rows.shape[0]} rows; {frames} frames ({len(indices)} split "
-                "pairs) were shown: one row per frame"
+                f"{where} holds {rows.shape[0]} rows; {frames} frames ({len(indices)} {what}) "
+                "were shown: one row per frame"
             )
         keep = max(self.measured, self.committed, first) - first
         if keep < frames:

@@ -28,6 +28,11 @@ array([[1, 1, 0, 0],
        [1, 1, 0, 0],
        [1, 1, 0, 0]])
 
+With single frames (``PatternSpec.adaptive_haar(side, frames="single")``, PATTERNS.md "Single
+frames") the sequence starts with index 0: frame 0 is its P+ (all on), frame 1 its P- (all
+off, the dark level), and frame ``r + 1`` (``r >= 1``) the P+ of ``indices[r]`` alone; the first
+``j >= 1`` indices take ``j + 1`` frames.
+
 This module was ported from the pure-Python reference ``proto/tools/patterns_ref.py`` and
 vectorised: Bernoulli uses the bit-sliced form (one OR/AND per fill digit over all words at
 once), Hadamard computes the Walsh signs from popcounts, speckle draws one random word per cell.
@@ -138,8 +143,8 @@ IndexList = Union[Sequence[int], np.ndarray]
 
 def _check_indices(spec: PatternSpec, indices: IndexList, *, session: bool = True) -> np.ndarray:
     """The basis indices of an adaptive spec as int64, each in ``0..k``; a ``session``'s
-    sequence is checked as the server resolves a spec (also none twice, at most
-    ``count / 2``)."""
+    sequence is checked as the server resolves a spec (also none twice, at most the budget's
+    ``count / 2`` pairs, or with single frames ``count - 1`` indices starting with index 0)."""
     if not spec.adaptive:
         raise ValueError(f"only the adaptive families take basis indices, not {spec.family}")
     arr = np.asarray(indices)
@@ -147,9 +152,16 @@ def _check_indices(spec: PatternSpec, indices: IndexList, *, session: bool = Tru
         raise ValueError(f"basis indices must be a 1-D sequence of integers, got {arr.dtype} {arr.shape}")
     arr = arr.astype(np.int64)
     k = spec.pixels
-    if session and arr.size > spec.count // 2:
+    if session and arr.size > spec.adaptive_budget:
+        what = "single-frame indices" if spec.single_frames else "split pairs"
         raise ValueError(
-            f"{arr.size} indices, but a budget of {spec.count} frames holds {spec.count // 2} split pairs"
+            f"{arr.size} indices, but a budget of {spec.count} frames holds "
+            f"{spec.adaptive_budget} {what}"
+        )
+    if session and spec.single_frames and arr.size and arr[0] != 0:
+        raise ValueError(
+            f"a single-frame session starts with index 0 (its pair measures the light and the "
+            f"dark level), got {int(arr[0])} first"
         )
     bad = (arr < 0) | (arr >= k)
     if bad.any():
@@ -221,22 +233,71 @@ def basis_gains(spec: PatternSpec, indices: IndexList) -> np.ndarray:
     return np.ldexp(1.0, s)
 
 
+def _opens_session(spec: PatternSpec, indices: np.ndarray) -> bool:
+    """Single frames: whether ``indices`` open the session (start with index 0, shown as its
+    pair); index 0 anywhere else is refused. Always False for split pairs."""
+    if not spec.single_frames:
+        return False
+    later = indices[1:] == 0
+    if later.any():
+        r = 1 + int(np.argmax(later))
+        raise ValueError(
+            f"index 0 at position {r}: a single-frame session shows index 0 first (as its pair)"
+        )
+    return bool(indices.size) and int(indices[0]) == 0
+
+
+def _frame_count(spec: PatternSpec, n: int, opens: bool) -> int:
+    """Frames of ``n`` indices: ``2 n`` split pairs; single frames ``n``, plus one for index
+    0's pair when they open the session."""
+    if not spec.single_frames:
+        return 2 * n
+    return n + 1 if opens and n else n
+
+
+def _frame_positions(spec: PatternSpec, i: np.ndarray, opens: bool) -> tuple[np.ndarray, np.ndarray]:
+    """For frame numbers ``i`` (counted from the first of the indices): the position of the
+    index each frame shows and whether it is the P+ (True) or the P- frame.
+
+    Split pairs: frame ``2j`` is the P+ of index ``j``, ``2j + 1`` its P-. Single frames
+    (PATTERNS.md "Single frames"): frames 0 and 1 of a session's first indices show index 0's
+    P+ and P-, frame ``r + 1`` the P+ of index ``r``; indices that do not open the session show
+    frame ``r`` the P+ of index ``r``."""
+    if not spec.single_frames:
+        return i // 2, i % 2 == 0
+    if opens:
+        return np.maximum(i - 1, 0), i != 1
+    return i, np.ones(i.shape, dtype=bool)
+
+
 def adaptive_patterns(
     spec: PatternSpec, indices: IndexList, dtype: "np.typing.DTypeLike" = np.float32
 ) -> np.ndarray:
-    """The split pairs of basis ``indices`` of an adaptive spec, what a projector shows for one
-    batch of an adaptive session: ``(2 * len(indices), side, side)`` of ``dtype`` (float32 by
-    default), frame ``2j`` the P+ of ``indices[j]`` (on where ``w = +1``), frame ``2j + 1`` its
-    P- (on where ``w = -1``). Bit-exact with the server (PATTERNS.md, adaptive families).
+    """The frames of basis ``indices`` of an adaptive spec, what a projector shows for one
+    batch of an adaptive session, as ``(frames, side, side)`` of ``dtype`` (float32 by
+    default). Bit-exact with the server (PATTERNS.md, adaptive families).
+
+    Split pairs: ``2 * len(indices)`` frames, frame ``2j`` the P+ of ``indices[j]`` (on where
+    ``w = +1``), frame ``2j + 1`` its P- (on where ``w = -1``).
+
+    Single frames (``spec.frames == "single"``, PATTERNS.md "Single frames"): one frame per
+    index, its P+, except index 0 (the first index of the session, so the first of its first
+    batch), which shows its pair: all on, then all off (the dark level). The first batch
+    ``[0, n1, n2, ...]`` gives ``len(indices) + 1`` frames (all on, all off, P+ of ``n1``, ...),
+    every later batch ``len(indices)``.
 
     Raises:
-        ValueError: not an adaptive spec, or an index out of ``0..side*side``.
+        ValueError: not an adaptive spec, an index out of ``0..side*side``, or (single frames)
+            index 0 anywhere but first.
     """
-    w = basis_functions(spec, indices)
-    out = np.empty((2 * w.shape[0],) + w.shape[1:], dtype=dtype)
-    out[0::2] = w == 1
-    out[1::2] = w == -1
-    return out
+    spec = spec.canonical()
+    n = _check_indices(spec, indices, session=False)
+    opens = _opens_session(spec, n)
+    i = np.arange(_frame_count(spec, n.size, opens), dtype=np.int64)
+    pos, positive = _frame_positions(spec, i, opens)
+    w = basis_functions(spec, n)[pos]
+    want = np.where(positive, 1, -1).astype(np.int8)
+    return (w == want[:, None, None]).astype(dtype)
 
 
 class PatternGenerator:
@@ -245,7 +306,8 @@ class PatternGenerator:
 
     An adaptive spec needs its session's basis ``indices`` (one per split pair, in order, as
     ``GET /v1/sessions/{id}/adaptive.json`` or :attr:`helmholtz.AdaptiveReport.indices` give
-    them): it then has ``2 * len(indices)`` frames."""
+    them): it then has ``2 * len(indices)`` frames, or with single frames ``len(indices) + 1``
+    (frame 0 all on, frame 1 all off, frame ``r + 1`` the P+ of ``indices[r]``)."""
 
     def __init__(self, spec: PatternSpec, indices: Optional[IndexList] = None):
         self.spec = spec.canonical()
@@ -263,14 +325,16 @@ class PatternGenerator:
                     "give indices= (or use adaptive_patterns)"
                 )
             self.indices = _check_indices(s, indices)
+            _opens_session(s, self.indices)  # index 0 first, and only there
         elif indices is not None:
             raise ValueError(f"only the adaptive families take basis indices, not {s.family}")
 
     @property
     def frames(self) -> int:
-        """Frames this generator gives: the spec's count, or two per index of an adaptive spec."""
+        """Frames this generator gives: the spec's count, or for an adaptive spec the frames of
+        its indices (two per index; single frames ``len(indices) + 1``)."""
         if self.indices is not None:
-            return 2 * int(self.indices.size)
+            return self.spec.adaptive_rows(int(self.indices.size))
         return self.spec.count
 
     def _check_range(self, start: int, stop: Optional[int]) -> tuple[int, int]:
@@ -313,8 +377,10 @@ class PatternGenerator:
             bits = np.unpackbits(words.astype("<u8").view(np.uint8), axis=1, bitorder="little")
             return bits[:, : self.k].astype(bool).reshape(-1, h, w)
         if self.indices is not None:
-            signs = basis_functions(s, self.indices[i // 2])
-            want = np.where(i % 2 == 0, 1, -1).astype(np.int8)
+            # A session's sequence: with single frames it opens with index 0 (checked).
+            pos, positive = _frame_positions(s, i, opens=True)
+            signs = basis_functions(s, self.indices[pos])
+            want = np.where(positive, 1, -1).astype(np.int8)
             return signs == want[:, None, None]
         raise ValueError("speckle patterns have grey levels, not bits")
 
@@ -407,7 +473,8 @@ def patterns(
     """Frames ``start..stop`` (default: all ``spec.count``) of ``spec`` as an ndarray
     ``(n, height, width)``, ready for a projector: 0.0 / 1.0 for the binary families,
     ``L / 2^24`` for speckle. Bit-exact with the server's generator (PATTERNS.md). An adaptive
-    spec needs its session's basis ``indices`` (then it has ``2 * len(indices)`` frames).
+    spec needs its session's basis ``indices`` (then it has ``2 * len(indices)`` frames, or
+    with single frames ``len(indices) + 1``).
 
     Raises:
         SpecError: the spec is invalid.

@@ -9,7 +9,9 @@ The adaptive families (``adaptive_haar``, ``adaptive_hadamard``) declare a basis
 power-of-two grid, a frame budget (``count``) and a stopping rule (``batch``, ``target_error``);
 which basis function each split pair shows is chosen by the server during the session (gRPC
 ``Acquire``, :meth:`helmholtz.Client.acquire`), so their patterns need those indices
-(:func:`helmholtz.adaptive_patterns`).
+(:func:`helmholtz.adaptive_patterns`). ``adaptive_haar`` may also show its indices as single
+frames (``frames="single"``, PATTERNS.md "Single frames"): index 0 as its pair, every other
+index its P+ alone.
 """
 
 from __future__ import annotations
@@ -26,6 +28,8 @@ __all__ = [
     "SpecError",
     "FAMILIES",
     "ADAPTIVE_FAMILIES",
+    "ADAPTIVE_FRAMES",
+    "ERROR_ESTIMATES",
     "HAAR_PERSISTENCE",
     "HADAMARD_PERSISTENCE",
     "ORDERINGS",
@@ -56,6 +60,15 @@ _ESTIMATE_TO_PB = {
 }
 _PB_TO_ESTIMATE = {v: k for k, v in _ESTIMATE_TO_PB.items()}
 _PB_TO_ESTIMATE[pb.ADAPTIVE_ERROR_ESTIMATE_UNSPECIFIED] = "measured"
+#: How an adaptive session shows its indices (PATTERNS.md, "Single frames"): ``pairs`` (the
+#: default, every index a split pair P+, P-) or ``single`` (adaptive_haar only: index 0 as its
+#: pair, every other index its P+ alone).
+ADAPTIVE_FRAMES = ("pairs", "single")
+_PB_TO_FRAMES = {
+    pb.ADAPTIVE_FRAMES_UNSPECIFIED: "pairs",
+    pb.ADAPTIVE_FRAMES_PAIRS: "pairs",
+    pb.ADAPTIVE_FRAMES_SINGLE: "single",
+}
 ORDERINGS = ("natural", "sequency", "zigzag", "russian_doll", "cake_cutting")
 
 _FAMILY_TO_PB = {
@@ -118,13 +131,15 @@ class PatternSpec:
         family: one of :data:`FAMILIES`.
         width, height: the projector grid (pixels).
         count: patterns (frames) in the session; for Hadamard even, at most ``2 * width * height``;
-            for the adaptive families the frame budget (even, at most ``2 * width * height``).
+            for the adaptive families the frame budget (even, at most ``2 * width * height``;
+            with single frames ``2 ..= width * height + 1``, odd or even).
         seed: random stream of bernoulli and speckle (ignored by the others).
         block, scans: raster block side and declared repeats of the scan.
         fill: bernoulli on-probability in (0, 1), quantised to a multiple of 2^-16.
         ordering: hadamard row ordering (one of :data:`ORDERINGS`).
         grain: speckle cell side.
-        batch: adaptive families: split pairs per batch, 0 = sized by the server.
+        batch: adaptive families: split pairs (single frames: indices) per batch, 0 = sized by
+            the server.
         target_error: adaptive families: stop once the server's estimated relative error is
             below this, 0.0 = spend the whole budget.
         persistence: adaptive families: how much a measured detail pulls its finer children
@@ -133,6 +148,10 @@ class PatternSpec:
         error_estimate: adaptive families: what ``target_error`` compares with, one of
             :data:`ERROR_ESTIMATES`; ``None`` = ``measured`` (the prediction plus the measured
             prediction miss and noise, PATTERNS.md "Error estimate").
+        frames: adaptive_haar: ``"single"`` shows index 0 as its pair (all on, all off) and
+            every other index as its P+ alone, one frame (PATTERNS.md "Single frames");
+            ``None`` = pairs (every index a split pair, two frames). A canonical spec holds
+            ``None`` for pairs (``"pairs"`` is accepted and canonicalised to ``None``).
     """
 
     family: str
@@ -149,6 +168,7 @@ class PatternSpec:
     target_error: Optional[float] = None
     persistence: Optional[float] = None
     error_estimate: Optional[str] = None
+    frames: Optional[str] = None
 
     # -- constructors ---------------------------------------------------------------------
     @classmethod
@@ -192,15 +212,21 @@ class PatternSpec:
         target_error: float = 0.0,
         persistence: Optional[float] = None,
         error_estimate: Optional[str] = None,
+        frames: Optional[str] = None,
     ) -> "PatternSpec":
         """An adaptive session over the 2D Haar basis (Mallat layout) of a ``side x side`` grid
         (a power of two). ``count`` is the frame budget, two frames per split pair (default:
         the whole basis, ``2 * side * side``); ``batch`` split pairs per batch (0: the server
         sizes them); ``target_error`` > 0 stops early once the estimated error is below it;
         ``persistence`` weighs a measured detail in its children's ranking (default 0.5);
-        ``error_estimate`` is what ``target_error`` compares with (default ``measured``)."""
+        ``error_estimate`` is what ``target_error`` compares with (default ``measured``).
+
+        ``frames="single"`` shows one frame per index (PATTERNS.md "Single frames"): index 0
+        as its pair (all on, all off: the light and the dark level), every other index its P+
+        alone; ``count`` is then ``2 ..= side * side + 1`` (``count - 1`` indices; default the
+        whole basis, ``side * side + 1``). ``None`` or ``"pairs"``: split pairs."""
         if count is None:
-            count = 2 * side * side
+            count = side * side + 1 if frames == "single" else 2 * side * side
         return cls(
             "adaptive_haar",
             side,
@@ -210,6 +236,7 @@ class PatternSpec:
             target_error=target_error,
             persistence=persistence,
             error_estimate=error_estimate,
+            frames=frames,
         ).canonical()
 
     @classmethod
@@ -222,9 +249,11 @@ class PatternSpec:
         target_error: float = 0.0,
         persistence: Optional[float] = None,
         error_estimate: Optional[str] = None,
+        frames: Optional[str] = None,
     ) -> "PatternSpec":
         """As :meth:`adaptive_haar`, over the Walsh-Hadamard basis (natural index);
-        ``persistence`` defaults to 0."""
+        ``persistence`` defaults to 0. Always split pairs: ``frames="single"`` is refused
+        (:class:`SpecError` on ``frames``; single frames need Haar's blocks)."""
         if count is None:
             count = 2 * side * side
         return cls(
@@ -236,6 +265,7 @@ class PatternSpec:
             target_error=target_error,
             persistence=persistence,
             error_estimate=error_estimate,
+            frames=frames,
         ).canonical()
 
     # -- properties -----------------------------------------------------------------------
@@ -260,6 +290,50 @@ class PatternSpec:
         function of each split pair during the session (:meth:`helmholtz.Client.acquire`)."""
         return self.family in ADAPTIVE_FAMILIES
 
+    @property
+    def single_frames(self) -> bool:
+        """True for an adaptive spec showing single frames (``frames="single"``, PATTERNS.md
+        "Single frames"): index 0 as its pair, every other index its P+ alone."""
+        return self.adaptive and self.frames == "single"
+
+    @property
+    def adaptive_budget(self) -> int:
+        """The most basis indices an adaptive spec's budget shows: ``count // 2`` split pairs,
+        or with single frames ``count - 1`` (index 0 takes two frames).
+
+        Raises:
+            ValueError: not an adaptive spec.
+        """
+        self._need_adaptive()
+        return self.count - 1 if self.single_frames else self.count // 2
+
+    def adaptive_rows(self, indices: int) -> int:
+        """Frames (rows) the first ``indices`` basis indices of an adaptive session take:
+        ``2 * indices``, or with single frames ``R(j) = j + 1`` (``R(0) = 0``). A batch whose
+        first index is the session's ``j``-th starts at row ``adaptive_rows(j)``.
+
+        Raises:
+            ValueError: not an adaptive spec.
+        """
+        self._need_adaptive()
+        if not self.single_frames:
+            return 2 * indices
+        return indices + 1 if indices > 0 else 0
+
+    def adaptive_indices_in(self, rows: int) -> int:
+        """Basis indices whose frames all lie within the first ``rows`` frames (the inverse of
+        :meth:`adaptive_rows`, rounding down).
+
+        Raises:
+            ValueError: not an adaptive spec.
+        """
+        self._need_adaptive()
+        return max(rows - 1, 0) if self.single_frames else rows // 2
+
+    def _need_adaptive(self) -> None:
+        if not self.adaptive:
+            raise ValueError(f"a {self.family} spec has no adaptive frame layout")
+
     # -- validation -----------------------------------------------------------------------
     def canonical(self) -> "PatternSpec":
         """This spec validated and canonicalised (defaults filled in, fill quantised).
@@ -282,7 +356,7 @@ class PatternSpec:
         adaptive = family in ADAPTIVE_FAMILIES
         allowed = {"family", "width", "height", "count", "seed"}
         if adaptive:
-            allowed |= {"batch", "target_error", "persistence", "error_estimate"}
+            allowed |= {"batch", "target_error", "persistence", "error_estimate", "frames"}
         else:
             allowed.add(_PARAMS[family])
         if family == "raster":
@@ -372,6 +446,7 @@ class PatternSpec:
             "target_error",
             "persistence",
             "error_estimate",
+            "frames",
         ):
             value = getattr(spec, name)
             if value is not None:
@@ -404,6 +479,9 @@ class PatternSpec:
             msg.adaptive.target_error = float(s.target_error or 0.0)
             msg.adaptive.persistence = float(s.persistence)
             msg.adaptive.error_estimate = _ESTIMATE_TO_PB[s.error_estimate]
+            if s.frames == "single":
+                # Pairs stay unset (0 = pairs): the message of every pairs spec is unchanged.
+                msg.adaptive.frames = pb.ADAPTIVE_FRAMES_SINGLE
         else:
             msg.speckle.grain = s.grain or 1
         return msg
@@ -444,6 +522,10 @@ class PatternSpec:
                     "error_estimate", f"unknown AdaptiveErrorEstimate {msg.adaptive.error_estimate}"
                 )
             raw["error_estimate"] = estimate
+            frames = _PB_TO_FRAMES.get(msg.adaptive.frames)
+            if frames is None:
+                raise SpecError("frames", f"unknown AdaptiveFrames {msg.adaptive.frames}")
+            raw["frames"] = frames
         return cls.from_dict(raw)
 
     def with_count(self, count: int) -> "PatternSpec":
@@ -454,8 +536,17 @@ class PatternSpec:
 def _adaptive_params(
     family: str, raw: Mapping[str, Any], width: int, height: int, count: int
 ) -> dict[str, Any]:
-    """``batch``, ``target_error``, ``persistence`` and ``error_estimate`` of an adaptive spec, checked with its grid and budget
-    (PATTERNS.md, adaptive families: the checks and their order are the server's)."""
+    """``batch``, ``target_error``, ``persistence``, ``error_estimate`` and ``frames`` of an
+    adaptive spec, checked with its grid and budget (PATTERNS.md, adaptive families: the checks
+    and their order are the server's). ``frames`` is ``"single"`` or None (pairs)."""
+    frames = raw.get("frames", "pairs")
+    if not isinstance(frames, str) or frames not in ADAPTIVE_FRAMES:
+        raise SpecError("frames", f"unknown frames {frames!r}; one of {', '.join(ADAPTIVE_FRAMES)}")
+    single = frames == "single"
+    if single and family != "adaptive_haar":
+        raise SpecError(
+            "frames", "single frames are for adaptive_haar (a Walsh-Hadamard session shows pairs)"
+        )
     if width & (width - 1):
         raise SpecError("width", f"{family} needs a power of two, got {width}")
     if height != width:
@@ -463,7 +554,14 @@ def _adaptive_params(
             "height", f"{family} needs a square image (height = width = {width}), got {height}"
         )
     k = width * height
-    if count % 2 or count > 2 * k:
+    if single:
+        if not 2 <= count <= k + 1:
+            raise SpecError(
+                "count",
+                f"{family} with single frames shows index 0 as two frames and every other index "
+                f"as one: a budget of 2..={k + 1} frames (width * height + 1), got {count}",
+            )
+    elif count % 2 or count > 2 * k:
         raise SpecError(
             "count",
             f"{family} frames come in P+/P- pairs: an even budget up to 2 * width * height = "
@@ -482,7 +580,13 @@ def _adaptive_params(
         raise SpecError(
             "error_estimate", f"unknown error estimate {estimate!r}; one of {', '.join(ERROR_ESTIMATES)}"
         )
-    return {"batch": batch, "target_error": target, "persistence": beta, "error_estimate": estimate}
+    return {
+        "batch": batch,
+        "target_error": target,
+        "persistence": beta,
+        "error_estimate": estimate,
+        "frames": "single" if single else None,
+    }
 
 
 def _non_negative(raw: Mapping[str, Any], key: str, default: float, zero: str) -> float:

@@ -15,6 +15,7 @@ impl Batches for Postgres {
         session_id: &str,
         lease: Option<&WriterLease>,
         batch: &IssuedBatch,
+        end_row: u64,
     ) -> Result<u64, StoreError> {
         // The session's row lock serialises its batches and appends across every node.
         let mut tx = begin(&self.pool).await?;
@@ -58,7 +59,7 @@ impl Batches for Postgres {
         .bind(indices_blob(&batch.indices))
         .execute(&mut *tx)
         .await?;
-        let end = batch.end_row();
+        let end = end_row;
         sqlx::query("UPDATE sessions SET issued_rows = $2 WHERE id = $1")
             .bind(session_id)
             .bind(end as i64)

@@ -15,6 +15,7 @@ impl Batches for Sqlite {
         session_id: &str,
         lease: Option<&WriterLease>,
         batch: &IssuedBatch,
+        end_row: u64,
     ) -> Result<u64, StoreError> {
         // BEGIN IMMEDIATE: the checks and the insert under the write lock, like an append.
         let mut tx = self.pool.begin_with("BEGIN IMMEDIATE").await?;
@@ -58,7 +59,7 @@ impl Batches for Sqlite {
         .bind(now_ms())
         .execute(&mut *tx)
         .await?;
-        let end = batch.end_row();
+        let end = end_row;
         sqlx::query("UPDATE sessions SET issued_rows = $2 WHERE id = $1")
             .bind(session_id)
             .bind(end as i64)

@@ -26,6 +26,12 @@ class HadamardOrdering(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     HADAMARD_ORDERING_RUSSIAN_DOLL: _ClassVar[HadamardOrdering]
     HADAMARD_ORDERING_CAKE_CUTTING: _ClassVar[HadamardOrdering]
 
+class AdaptiveFrames(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    ADAPTIVE_FRAMES_UNSPECIFIED: _ClassVar[AdaptiveFrames]
+    ADAPTIVE_FRAMES_PAIRS: _ClassVar[AdaptiveFrames]
+    ADAPTIVE_FRAMES_SINGLE: _ClassVar[AdaptiveFrames]
+
 class AdaptiveErrorEstimate(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     __slots__ = ()
     ADAPTIVE_ERROR_ESTIMATE_UNSPECIFIED: _ClassVar[AdaptiveErrorEstimate]
@@ -64,6 +70,9 @@ HADAMARD_ORDERING_SEQUENCY: HadamardOrdering
 HADAMARD_ORDERING_ZIGZAG: HadamardOrdering
 HADAMARD_ORDERING_RUSSIAN_DOLL: HadamardOrdering
 HADAMARD_ORDERING_CAKE_CUTTING: HadamardOrdering
+ADAPTIVE_FRAMES_UNSPECIFIED: AdaptiveFrames
+ADAPTIVE_FRAMES_PAIRS: AdaptiveFrames
+ADAPTIVE_FRAMES_SINGLE: AdaptiveFrames
 ADAPTIVE_ERROR_ESTIMATE_UNSPECIFIED: AdaptiveErrorEstimate
 ADAPTIVE_ERROR_ESTIMATE_PREDICTION: AdaptiveErrorEstimate
 ADAPTIVE_ERROR_ESTIMATE_MEASURED: AdaptiveErrorEstimate
@@ -106,16 +115,18 @@ class SpeckleParams(_message.Message):
     def __init__(self, grain: _Optional[int] = ...) -> None: ...
 
 class AdaptiveParams(_message.Message):
-    __slots__ = ("batch", "target_error", "persistence", "error_estimate")
+    __slots__ = ("batch", "target_error", "persistence", "error_estimate", "frames")
     BATCH_FIELD_NUMBER: _ClassVar[int]
     TARGET_ERROR_FIELD_NUMBER: _ClassVar[int]
     PERSISTENCE_FIELD_NUMBER: _ClassVar[int]
     ERROR_ESTIMATE_FIELD_NUMBER: _ClassVar[int]
+    FRAMES_FIELD_NUMBER: _ClassVar[int]
     batch: int
     target_error: float
     persistence: float
     error_estimate: AdaptiveErrorEstimate
-    def __init__(self, batch: _Optional[int] = ..., target_error: _Optional[float] = ..., persistence: _Optional[float] = ..., error_estimate: _Optional[_Union[AdaptiveErrorEstimate, str]] = ...) -> None: ...
+    frames: AdaptiveFrames
+    def __init__(self, batch: _Optional[int] = ..., target_error: _Optional[float] = ..., persistence: _Optional[float] = ..., error_estimate: _Optional[_Union[AdaptiveErrorEstimate, str]] = ..., frames: _Optional[_Union[AdaptiveFrames, str]] = ...) -> None: ...
 
 class PatternSpec(_message.Message):
     __slots__ = ("family", "width", "height", "count", "seed", "raster", "bernoulli", "hadamard", "speckle", "adaptive")
