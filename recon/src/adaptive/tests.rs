@@ -847,7 +847,10 @@ mod single_frames {
             // It says that the frames carry no noise estimate of their own.
             let r = super::reconstruction::reconstruction(&resolved, &frames, method).unwrap();
             let warnings = r.report.details["warnings"].to_string();
-            assert!(warnings.contains("no noise estimate"), "{method}: {warnings}");
+            assert!(
+                warnings.contains("no noise estimate"),
+                "{method}: {warnings}"
+            );
             assert_eq!(r.report.details["single_frames"]["pairs"], 60, "{method}");
         }
         let direct = solve(&resolved, &frames, "direct");
