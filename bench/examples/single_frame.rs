@@ -29,9 +29,12 @@
 //! Figures and what they say: `docs/benchmark-notes.md`, "One frame per coefficient".
 //!
 //! Switches: `ONLY_BLOCK=1` runs the block planner alone (the other columns print NaN);
-//! `BLOCK_RULE=sq|parent` ranks its blocks by their details' squared scores, or by the larger of
-//! their predicted energy and `BLOCK_BETA^2` times the measured parent block's (default: the
-//! summed scores); `BLOCK_BETA=b` its persistence (0.5); `FILL_PROBE=1` prints, for the block
+//! `BLOCK_RULE=sq|parent|fit` ranks its blocks by their details' squared scores, by the larger
+//! of their predicted energy and `BLOCK_BETA^2` times the measured parent block's, or by a
+//! per-scale non-negative least-squares fit of the measured blocks' energies on their features
+//! ([`fit_scales`]: the predicted energy `o`, the parent block's measured energy `p`, the mean
+//! energy of the measured neighbours at the same scale `n`, and a constant; `FIT_FEATURES`
+//! chooses among `opn`, default all) (default: the summed scores); `BLOCK_BETA=b` its persistence (0.5); `FILL_PROBE=1` prints, for the block
 //! planner's sessions, `auto`'s fill-in energy `||auto - direct||^2` and `auto`'s squared error,
 //! both over the zero-filled image's `E_U`, and the report's `fill_in`.
 
@@ -70,6 +73,12 @@ fn block_planner(c: &[f64], width: u32, kp: usize, batch: usize, beta: f64) -> V
     let mut outstanding: std::collections::VecDeque<(usize, usize)> = Default::default();
     outstanding.push_back((0, 1));
     let mut observed = 0usize;
+    // measured[sc][block]: the block of side 2^sc has its details observed.
+    let mut measured: Vec<Vec<bool>> = (0..=m)
+        .map(|sc| vec![false; ((w >> sc) as usize).pow(2)])
+        .collect();
+    let mut seen = vec![false; k];
+    let mut fits: Vec<[f64; 4]> = vec![[1.0, 0.0, 0.0, 0.0]; m as usize + 1];
     loop {
         while outstanding.len() < 2 && order.len() < kp && !open.is_empty() {
             let start = order.len();
@@ -95,6 +104,12 @@ fn block_planner(c: &[f64], width: u32, kp: usize, batch: usize, beta: f64) -> V
                         own.max(inherited)
                     }
                     "sq" => d.iter().map(|&n| score[n as usize].powi(2)).sum(),
+                    // The per-scale regression of measured block energies on their features.
+                    "fit" => {
+                        let f = block_features(&values, &pred, &measured, w, sc, pr, pc);
+                        let coef = &fits[sc as usize];
+                        coef[0] * f[0] + coef[1] * f[1] + coef[2] * f[2] + coef[3]
+                    }
                     _ => d.iter().map(|&n| score[n as usize]).sum(),
                 }
             };
@@ -134,9 +149,20 @@ fn block_planner(c: &[f64], width: u32, kp: usize, batch: usize, beta: f64) -> V
         };
         for &n in &order[a..b] {
             values[n as usize] = c[n as usize];
+            seen[n as usize] = true;
         }
         observed = b;
         predictor.predict(&values, &mut pred);
+        for sc in 1..=m {
+            let h = w >> sc;
+            for pr in 0..h {
+                for pc in 0..h {
+                    let d = details(sc, pr, pc);
+                    measured[sc as usize][(pr * h + pc) as usize] = seen[d[2] as usize];
+                }
+            }
+        }
+        fits = fit_scales(&values, &pred, &measured, w);
         for n in 1..k as u32 {
             let mut size = pred[n as usize].abs();
             if let Some(q) = parent(n).filter(|&q| q != 0) {
@@ -147,6 +173,144 @@ fn block_planner(c: &[f64], width: u32, kp: usize, batch: usize, beta: f64) -> V
     }
     order.truncate(observed);
     order
+}
+
+/// Features of block `(sc, pr, pc)` (side `2^sc`): its three details' predicted energy, its
+/// parent block's measured detail energy, and the mean detail energy of its measured neighbours
+/// at the same scale (8-neighbourhood; 0 if none).
+fn block_features(
+    values: &[f64],
+    pred: &[f64],
+    measured: &[Vec<bool>],
+    w: u32,
+    sc: u32,
+    pr: u32,
+    pc: u32,
+) -> [f64; 3] {
+    let m = w.trailing_zeros();
+    let details = |sc: u32, pr: u32, pc: u32| {
+        let h = w >> sc;
+        [pr * w + h + pc, (h + pr) * w + pc, (h + pr) * w + h + pc]
+    };
+    let energy = |v: &[f64], d: [u32; 3]| d.iter().map(|&n| v[n as usize].powi(2)).sum::<f64>();
+    let own = energy(pred, details(sc, pr, pc));
+    let parent = if sc < m {
+        energy(values, details(sc + 1, pr / 2, pc / 2))
+    } else {
+        0.0
+    };
+    let h = (w >> sc) as i64;
+    let (mut sum, mut count) = (0.0, 0usize);
+    for dr in -1i64..=1 {
+        for dc in -1i64..=1 {
+            let (r, c) = (pr as i64 + dr, pc as i64 + dc);
+            if (dr, dc) == (0, 0) || r < 0 || c < 0 || r >= h || c >= h {
+                continue;
+            }
+            if measured[sc as usize][(r * h + c) as usize] {
+                sum += energy(values, details(sc, r as u32, c as u32));
+                count += 1;
+            }
+        }
+    }
+    let nbr = if count > 0 { sum / count as f64 } else { 0.0 };
+    [own, parent, nbr]
+}
+
+/// Per scale, the non-negative least-squares fit `E ~ a own + b parent + c nbr + mu` over the
+/// measured blocks (at least 8; else the next coarser scale's fit with `mu / 4`).
+#[allow(clippy::needless_range_loop)] // a 4x4 normal-equation solve reads best by index
+fn fit_scales(values: &[f64], pred: &[f64], measured: &[Vec<bool>], w: u32) -> Vec<[f64; 4]> {
+    let m = w.trailing_zeros();
+    let mode = std::env::var("FIT_FEATURES").unwrap_or_else(|_| "opn".into());
+    let mut fits = vec![[1.0, 0.0, 0.0, 0.0]; m as usize + 1];
+    for sc in (1..=m).rev() {
+        let h = w >> sc;
+        let mut rows: Vec<([f64; 3], f64)> = Vec::new();
+        for pr in 0..h {
+            for pc in 0..h {
+                if !measured[sc as usize][(pr * h + pc) as usize] {
+                    continue;
+                }
+                let f = block_features(values, pred, measured, w, sc, pr, pc);
+                let d = [pr * w + h + pc, (h + pr) * w + pc, (h + pr) * w + h + pc];
+                let e: f64 = d.iter().map(|&n| values[n as usize].powi(2)).sum();
+                rows.push((f, e));
+            }
+        }
+        if rows.len() < 8 {
+            if (sc as usize) < m as usize {
+                let mut f = fits[sc as usize + 1];
+                f[3] /= 4.0;
+                fits[sc as usize] = f;
+            }
+            continue;
+        }
+        // Enumerate the feature subsets (intercept always), keep the best non-negative one.
+        let allowed = [mode.contains('o'), mode.contains('p'), mode.contains('n')];
+        let mut best = (f64::INFINITY, [0.0; 4]);
+        for mask in 0u32..8 {
+            if (0..3).any(|j| mask & (1 << j) != 0 && !allowed[j]) {
+                continue;
+            }
+            let cols: Vec<usize> = (0..3).filter(|j| mask & (1 << j) != 0).collect();
+            let q = cols.len() + 1;
+            let x = |r: &([f64; 3], f64), i: usize| if i < cols.len() { r.0[cols[i]] } else { 1.0 };
+            let mut g = vec![vec![0.0; q + 1]; q];
+            for r in &rows {
+                for i in 0..q {
+                    for j in 0..q {
+                        g[i][j] += x(r, i) * x(r, j);
+                    }
+                    g[i][q] += x(r, i) * r.1;
+                }
+            }
+            // Gaussian elimination with a small ridge.
+            for i in 0..q {
+                g[i][i] += 1e-12 * (1.0 + g[i][i]);
+            }
+            let mut ok = true;
+            for i in 0..q {
+                let piv = g[i][i];
+                if piv.abs() < 1e-300 {
+                    ok = false;
+                    break;
+                }
+                for j in 0..q {
+                    if j != i {
+                        let f = g[j][i] / piv;
+                        for c in i..=q {
+                            g[j][c] -= f * g[i][c];
+                        }
+                    }
+                }
+            }
+            if !ok {
+                continue;
+            }
+            let beta: Vec<f64> = (0..q).map(|i| g[i][q] / g[i][i]).collect();
+            if beta.iter().any(|&b| b < 0.0) {
+                continue;
+            }
+            let res: f64 = rows
+                .iter()
+                .map(|r| {
+                    let p: f64 = (0..q).map(|i| beta[i] * x(r, i)).sum();
+                    (r.1 - p).powi(2)
+                })
+                .sum();
+            if res < best.0 {
+                let mut c = [0.0; 4];
+                for (i, &j) in cols.iter().enumerate() {
+                    c[j] = beta[i];
+                }
+                c[3] = beta[q - 1];
+                best = (res, c);
+            }
+        }
+        fits[sc as usize] = best.1;
+    }
+    fits
 }
 
 fn main() -> anyhow::Result<()> {

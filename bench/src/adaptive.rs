@@ -495,12 +495,23 @@ pub fn reconstruct(
     method: &str,
     truth: &[f32],
 ) -> (f64, f64, f64, Option<String>) {
+    reconstruct_with(spec, values, method, &serde_json::Value::Null, truth)
+}
+
+/// [`reconstruct`] with `params`.
+pub fn reconstruct_with(
+    spec: &PatternSpec,
+    values: &[f64],
+    method: &str,
+    params: &serde_json::Value,
+    truth: &[f32],
+) -> (f64, f64, f64, Option<String>) {
     let problem = Problem {
         spec,
         channels: 1,
         rows: values.len() as u64,
     };
-    let config = MethodConfig::parse(method, &serde_json::Value::Null).expect("known method");
+    let config = MethodConfig::parse(method, params).expect("known method");
     let started = Instant::now();
     let r = recon::reconstruct(
         &problem,
@@ -559,6 +570,14 @@ pub fn run(opts: &Options) -> anyhow::Result<Vec<Row>> {
                                 metrics::ssim(image, &truth32, size as usize, size as usize),
                                 0.0,
                                 None,
+                            ),
+                            // `auto` told the rig's read noise (`read_noise`, the drawn sigma).
+                            None if method == AUTO_DECLARED => reconstruct_with(
+                                spec,
+                                values,
+                                "auto",
+                                &serde_json::json!({ "read_noise": sigma }),
+                                &truth32,
                             ),
                             None => reconstruct(spec, values, method, &truth32),
                         };
@@ -674,6 +693,9 @@ pub fn run(opts: &Options) -> anyhow::Result<Vec<Row>> {
                             None,
                         );
                         push(label, "auto", &s.spec, &s.frames, None, None);
+                        if single && noisy {
+                            push(label, AUTO_DECLARED, &s.spec, &s.frames, None, None);
+                        }
                         push(
                             label,
                             "predicted",
@@ -744,7 +766,9 @@ fn best_of(rows: &[Row], r: &Row, which: &[(&str, &str)]) -> f64 {
         .fold(f64::NEG_INFINITY, f64::max)
 }
 
-const ADAPTIVE: [(&str, &str); 9] = [
+/// The method label of `auto` with the drawn read noise declared (`read_noise`).
+const AUTO_DECLARED: &str = "auto_read_noise";
+const ADAPTIVE: [(&str, &str); 10] = [
     ("adaptive_haar", "direct"),
     ("adaptive_haar", "auto"),
     ("adaptive_haar", "predicted"),
@@ -754,6 +778,7 @@ const ADAPTIVE: [(&str, &str); 9] = [
     (HAAR_SINGLE, "direct"),
     (HAAR_SINGLE, "auto"),
     (HAAR_SINGLE, "predicted"),
+    (HAAR_SINGLE, AUTO_DECLARED),
 ];
 
 /// The rows' family label of `adaptive_haar` with single frames.
@@ -773,6 +798,8 @@ fn markdown(rows: &[Row], oracles: &[OracleRow], opts: &Options, machine: &str) 
          zero-filled inverse, the adaptive scheme's own image), `auto` = `auto` on the same data, \
          `pred` = the planner's prediction-filled image (`Planner::predicted_image`: unmeasured \
          coefficients set to their bicubic prediction; not a service method yet); \
+         `read_noise` = `auto` told the drawn read noise (single frames have no estimate of \
+         their own; noisy tables only); \
          `bern`, `rd` = `auto` on Bernoulli 1/2 and Russian-doll Hadamard at the same frame \
          count. Noise: none, or read noise at 30 dB of a half-lit pattern's bucket.\n"
     );
@@ -790,11 +817,11 @@ fn markdown(rows: &[Row], oracles: &[OracleRow], opts: &Options, machine: &str) 
             );
             let _ = writeln!(
                 md,
-                "| scene | frames | % of k | haar dir | haar auto | haar pred | wh dir | wh auto | wh pred | haar 1f dir | haar 1f auto | bern auto | rd auto | best adaptive - best fixed |"
+                "| scene | frames | % of k | haar dir | haar auto | haar pred | wh dir | wh auto | wh pred | haar 1f dir | haar 1f auto | haar 1f auto, read_noise | bern auto | rd auto | best adaptive - best fixed |"
             );
             let _ = writeln!(
                 md,
-                "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
+                "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"
             );
             for r in rows.iter().filter(|r| {
                 r.size == size
@@ -809,7 +836,7 @@ fn markdown(rows: &[Row], oracles: &[OracleRow], opts: &Options, machine: &str) 
                 };
                 let _ = writeln!(
                     md,
-                    "| {} | {} | {:.0} % | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {:+.2} |",
+                    "| {} | {} | {:.0} % | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {:+.2} |",
                     r.scene,
                     r.frames,
                     100.0 * r.ratio,
@@ -821,6 +848,7 @@ fn markdown(rows: &[Row], oracles: &[OracleRow], opts: &Options, machine: &str) 
                     cell("adaptive_hadamard", "predicted"),
                     cell(HAAR_SINGLE, "direct"),
                     cell(HAAR_SINGLE, "auto"),
+                    cell(HAAR_SINGLE, AUTO_DECLARED),
                     cell("bernoulli", "auto"),
                     cell("hadamard_rd", "auto"),
                     best_of(rows, r, &ADAPTIVE) - best_of(rows, r, &FIXED)

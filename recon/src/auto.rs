@@ -2676,6 +2676,68 @@ mod tests {
         assert!(estimated < 1.5 * actual && estimated > 0.2 * actual);
     }
 
+    /// A declared read noise (`read_noise`, per frame in bucket units) is the noise `auto`
+    /// weighs by, in the data's units (Hadamard pairs: `sqrt(2) sigma / sqrt(k)`; Bernoulli
+    /// buckets: `sigma`), with the session's own estimate kept beside it; declared right, the
+    /// image is that of the session's own (accurate) estimate, within 0.3 dB. Exact inverses
+    /// of complete sets take it for their error estimate.
+    #[test]
+    fn a_declared_read_noise_is_the_noise_auto_weighs_by() {
+        use helmholtz_sim::simulate::{NoiseModel, apply_noise};
+        let n = 64u32;
+        let truth = scene("camera", n);
+        let k = (n * n) as f64;
+        for (spec, datum) in [
+            (
+                russian_doll(n, 2 * 1024),
+                std::f64::consts::SQRT_2 / k.sqrt(),
+            ),
+            (bernoulli(n, 1024), 1.0),
+        ] {
+            let clean = buckets(&spec, &truth);
+            let rms = (clean.iter().map(|v| v * v).sum::<f64>() / clean.len() as f64).sqrt();
+            let noise = NoiseModel {
+                snr_db: Some(30.0),
+                seed: 11,
+                ..NoiseModel::default()
+            };
+            let (noisy, _) = apply_noise(&clean, 1, &noise);
+            let sigma = rms / 10f64.powf(1.5);
+            let own = auto(&spec, &noisy, json!({}));
+            let told = auto(&spec, &noisy, json!({ "read_noise": sigma }));
+            let used = told.report.details["auto"][0]["noise_estimate"].clone();
+            assert!(
+                (used["sigma"].as_f64().unwrap() / (sigma * datum) - 1.0).abs() < 1e-12,
+                "{used}"
+            );
+            assert_eq!(used["standard_error"], json!(0.0));
+            let declared = &told.report.details["noise_declared"];
+            assert_eq!(declared["read_noise"], json!(sigma));
+            assert_eq!(
+                declared["session_estimate"][0],
+                own.report.details["auto"][0]["noise_estimate"]
+            );
+            let (po, pt) = (
+                metrics::psnr(&own.images[0].data, &truth),
+                metrics::psnr(&told.images[0].data, &truth),
+            );
+            println!(
+                "{:?}: own estimate {po:.2} dB, declared {pt:.2} dB",
+                spec.family()
+            );
+            assert!((pt - po).abs() < 0.3, "{pt} against {po}");
+        }
+        // A complete set: the exact inverse, its error estimate from the declared noise.
+        let spec = russian_doll(n, 2 * 4096);
+        let clean = buckets(&spec, &truth);
+        let told = auto(&spec, &clean, json!({ "read_noise": 2.0 }));
+        let choice = &told.report.details["auto"][0];
+        assert_eq!(choice["model"], "direct");
+        let pixel = choice["noise_declared"]["pixel_sigma"].as_f64().unwrap();
+        assert!((pixel - 2.0 * std::f64::consts::SQRT_2 / k.sqrt()).abs() < 1e-12);
+        assert_eq!(choice["error_estimate"]["rms_error"], json!(pixel));
+    }
+
     /// Issue 20's target on one of its hard cases: 10 % of the 128x128 photo's Hadamard pairs
     /// at 30 dB of the total bucket power, `auto` within 0.5 dB of TV at the weight the ground
     /// truth likes best (a sweep no user can run). Before the solvers fell back to the warm

@@ -55,10 +55,14 @@ enum PlannedOp {
 }
 
 impl<'a> Planned<'a> {
+    /// `declared`: a read noise per frame the request declares (`auto`'s `read_noise`, bucket
+    /// units); it replaces the session's own estimate in `noise` and `row_noise`, which
+    /// `details.noise_declared` keeps beside it.
     pub fn load(
         problem: &Problem<'a>,
         source: &mut dyn BucketSource,
         control: &Control,
+        declared: Option<crate::method::ReadNoise>,
     ) -> Result<Self, ReconError> {
         let spec = problem.spec;
         let channels = problem.channels;
@@ -93,22 +97,51 @@ impl<'a> Planned<'a> {
                 // The pair sums light supports of every size: no one noise level for the held-out
                 // comparisons; per support, they give every row's ([`auto::RowNoise`]).
                 let w = spec.width();
-                let (support, gains): (Vec<u64>, Vec<f64>) =
+                let (support, mut gains): (Vec<u64>, Vec<f64>) =
                     indices.iter().map(|&n| noise::haar_support(w, n)).unzip();
+                // Pairs decoded from single frames: row r's y+ - y- has the variance f_r sigma^2,
+                // not 2 sigma^2; its datum's noise is that of a pair of gain g_r sqrt(2 / f_r).
+                let single = declared.is_some_and(|d| d.single_frames);
+                if single {
+                    let f = crate::adaptive::single_frame_pair_variances(w, &indices);
+                    for (g, f) in gains.iter_mut().zip(f) {
+                        *g *= (2.0 / f).sqrt();
+                    }
+                }
+                let declared = declared.map(|d| d.sigma);
                 let basis = crate::adaptive::Basis::Haar;
                 let levels: Vec<u32> = indices.iter().map(|&n| basis.level(w, n)).collect();
+                let mut own = Vec::with_capacity(channels);
                 for (ch, slot) in row_noise.iter_mut().enumerate() {
                     let sums: Vec<f64> = (0..indices.len())
                         .map(|j| used[2 * j * channels + ch] + used[(2 * j + 1) * channels + ch])
                         .collect();
-                    *slot =
-                        noise::from_support_groups(&sums, &support).map(|noise| auto::RowNoise {
+                    let estimate = noise::from_support_groups(&sums, &support);
+                    own.push(json!(estimate));
+                    *slot = declared
+                        .map(noise::SupportNoise::declared)
+                        .or(estimate)
+                        .map(|noise| auto::RowNoise {
                             gains: gains.clone(),
                             levels: levels.clone(),
                             noise,
                             measured: None,
                             min_factor: auto::MIN_GROUP_FACTOR,
                         });
+                }
+                if let Some(sigma) = declared {
+                    details.insert(
+                        "noise_declared".into(),
+                        json!({
+                            "read_noise": sigma,
+                            "pair_variance": if single {
+                                json!("per pair, from the single frames it was decoded from")
+                            } else {
+                                json!(2.0 * sigma * sigma)
+                            },
+                            "session_estimate": own,
+                        }),
+                    );
                 }
                 (PlannedOp::Haar(op), data, vec![None; channels])
             }
@@ -127,10 +160,22 @@ impl<'a> Planned<'a> {
                     .map(|ch| op.split_pairs_channel(used, channels, ch))
                     .collect();
                 let scale = 1.0 / (spec.pixels() as f64).sqrt();
-                let noise: Vec<Option<noise::NoiseEstimate>> = pairs
+                let mut noise: Vec<Option<noise::NoiseEstimate>> = pairs
                     .iter()
                     .map(|p| noise::from_pair_sums(&p.sums, scale, &p.data))
                     .collect();
+                if let Some(sigma) = declared.map(|d| d.sigma) {
+                    // A pair difference has the variance of two frames; the datum is it / sqrt(k).
+                    let datum = std::f64::consts::SQRT_2 * sigma * scale;
+                    details.insert(
+                        "noise_declared".into(),
+                        json!({"read_noise": sigma, "datum_sigma": datum, "session_estimate": noise}),
+                    );
+                    noise = pairs
+                        .iter()
+                        .map(|p| Some(noise::NoiseEstimate::declared(datum, &p.data)))
+                        .collect();
+                }
                 // Every pair lights half the grid, so the pair sums' noise estimate
                 // (drift-free) is every row's, for the consistency step
                 // ([`auto::Consistency`]). The data are fitted as measured: denoising them
@@ -162,12 +207,22 @@ impl<'a> Planned<'a> {
                         ops::try_measurement_operator(spec, problem.rows).map_err(unsolvable)?,
                     )
                 };
-                let noise = match (family, &op) {
+                let mut noise: Vec<Option<NoiseEstimate>> = match (family, &op) {
                     (Family::Bernoulli { .. }, PlannedOp::Bernoulli(a)) => {
                         data.iter().map(|b| noise::from_random_rows(a, b)).collect()
                     }
                     _ => vec![None; channels],
                 };
+                if let Some(sigma) = declared.map(|d| d.sigma) {
+                    details.insert(
+                        "noise_declared".into(),
+                        json!({"read_noise": sigma, "datum_sigma": sigma, "session_estimate": noise}),
+                    );
+                    noise = data
+                        .iter()
+                        .map(|b| Some(NoiseEstimate::declared(sigma, b)))
+                        .collect();
+                }
                 (op, data, noise)
             }
         };
@@ -328,7 +383,11 @@ pub fn run(
     let channels = problem.channels;
     let size = (spec.width() as usize, spec.height() as usize);
     let fit: Fit = config.fit().expect("an iterative method");
-    let planned = Planned::load(problem, source, control)?;
+    let declared = match config {
+        MethodConfig::Auto { read_noise, .. } => *read_noise,
+        _ => None,
+    };
+    let planned = Planned::load(problem, source, control, declared)?;
     let offset = fit.fits_offset(spec.family());
     // `auto` judges its choices on the held-out rows: where the session's own noise estimate
     // says the noise is most of what the buckets vary by, a tenth of the rows cannot tell
@@ -377,6 +436,7 @@ pub fn run(
                     models,
                     max_iter,
                     fit,
+                    ..
                 },
                 Ok(split),
                 Some((train, test)),

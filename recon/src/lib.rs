@@ -200,18 +200,35 @@ pub fn reconstruct(
             r.report.method = config.name().into();
             r.report.params = config.params_json();
             let noise = r.report.details.get("noise_estimate").cloned();
+            let declared = match config {
+                MethodConfig::Auto {
+                    read_noise: Some(d),
+                    ..
+                } => Some((d.sigma, declared_pixel_sigma(problem.spec, *d))),
+                _ => None,
+            };
             let choices = r
                 .images
                 .iter()
                 .enumerate()
                 .map(|(ch, image)| {
                     let estimate = noise.as_ref().map(|n| n[ch].clone()).unwrap_or_default();
-                    serde_json::json!({
+                    let mut choice = serde_json::json!({
                         "model": "direct",
                         "reason": auto::EXACT_REASON,
                         "noise_estimate": estimate,
-                        "error_estimate": auto::exact_error_estimate(&image.data, estimate["sigma"].as_f64()),
-                    })
+                    });
+                    let sigma = match declared {
+                        Some((read_noise, pixel)) => {
+                            choice["noise_declared"] =
+                                serde_json::json!({"read_noise": read_noise, "pixel_sigma": pixel});
+                            Some(pixel)
+                        }
+                        None => estimate["sigma"].as_f64(),
+                    };
+                    choice["error_estimate"] =
+                        serde_json::json!(auto::exact_error_estimate(&image.data, sigma));
+                    choice
                 })
                 .collect();
             r.report
@@ -226,8 +243,37 @@ pub fn reconstruct(
     }
 }
 
-/// The warning every reconstruction of a single-frame session carries.
-pub const SINGLE_FRAMES_WARNING: &str = "single frames carry no noise estimate of their own (each y- is computed from the others, so the pair sums the noise is read from are exact): this image treats the frames as noise-free; on a rig whose fine details do not stand clear of its read noise it can be far off (30 dB read noise on the benchmark: far below the flat image), and split pairs are the better choice";
+/// The RMS noise per pixel of a complete orthonormal set's exact inverse under a declared read
+/// noise: the mean noise variance of its data (Hadamard: `2 sigma^2 / k`; `adaptive_haar`:
+/// `2 sigma^2 / g_n^2`, or the single frames' [`adaptive::single_frame_pair_variances`] over
+/// `g_n^2`; raster: `sigma^2`).
+fn declared_pixel_sigma(spec: &helmholtz_proto::PatternSpec, d: method::ReadNoise) -> f64 {
+    use helmholtz_proto::Family;
+    let k = spec.pixels() as f64;
+    let variance = match spec.family() {
+        Family::AdaptiveHaar { .. } => {
+            let indices = spec.adaptive_indices().unwrap_or(&[]);
+            let w = spec.width();
+            let factors = match d.single_frames {
+                true => adaptive::single_frame_pair_variances(w, indices),
+                false => vec![2.0; indices.len()],
+            };
+            let sum: f64 = indices
+                .iter()
+                .zip(&factors)
+                .map(|(&n, f)| f / noise::haar_support(w, n).1.powi(2))
+                .sum();
+            sum / (indices.len().max(1) as f64)
+        }
+        Family::Raster { .. } => 1.0,
+        _ => 2.0 / k,
+    };
+    d.sigma * variance.sqrt()
+}
+
+/// The warning a reconstruction of a single-frame session carries unless it declares the read
+/// noise (`auto`'s `read_noise`).
+pub const SINGLE_FRAMES_WARNING: &str = "single frames carry no noise estimate of their own (each y- is computed from the others, so the pair sums the noise is read from are exact): this image treats the frames as noise-free; on a rig whose fine details do not stand clear of its read noise it can be far off (30 dB read noise on the benchmark: far below the flat image). Declare the detector's read noise (auto's params.read_noise, the spread of dark frames in bucket units), or use split pairs";
 
 /// A single-frame adaptive session (PATTERNS.md, "Single frames") is the split-pair session of
 /// the same indices, each `y-` following from its block's light: every method runs on those
@@ -265,9 +311,34 @@ fn reconstruct_single_frames(
         channels: problem.channels,
         rows: (pairs.len() / c) as u64,
     };
+    // A declared read noise is the frames'; the pairs carry it as the decoding combines them.
+    let config = match config {
+        MethodConfig::Auto {
+            models,
+            max_iter,
+            fit,
+            read_noise: Some(d),
+        } => MethodConfig::Auto {
+            models: models.clone(),
+            max_iter: *max_iter,
+            fit: *fit,
+            read_noise: Some(method::ReadNoise {
+                single_frames: true,
+                ..*d
+            }),
+        },
+        other => other.clone(),
+    };
+    let declared = matches!(
+        config,
+        MethodConfig::Auto {
+            read_noise: Some(_),
+            ..
+        }
+    );
     let mut r = reconstruct(
         &pair_problem,
-        config,
+        &config,
         &mut SliceSource::new(&pairs, c, 4096),
         control,
     )?;
@@ -281,6 +352,9 @@ fn reconstruct_single_frames(
     );
     // Pair sums that are exact by construction measure no noise: every estimate of it the
     // method made from them reads 0, and under read noise its image can be far off.
+    if declared {
+        return Ok(r);
+    }
     let warnings = r
         .report
         .details

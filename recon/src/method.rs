@@ -46,7 +46,24 @@ pub enum MethodConfig {
         models: Vec<Model>,
         max_iter: usize,
         fit: Fit,
+        /// The detector's read noise as the user declares it: the standard deviation of one
+        /// frame's value in bucket units (e.g. the spread of dark frames), constant for every
+        /// frame. Where given, it replaces the noise the session's own data would give
+        /// (`details.noise_declared` reports both); a single-frame session has no estimate of
+        /// its own and needs it on a noisy rig.
+        read_noise: Option<ReadNoise>,
     },
+}
+
+/// A read noise the request declares (`auto`'s `read_noise`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ReadNoise {
+    /// Standard deviation of one frame's value, bucket units.
+    pub sigma: f64,
+    /// The split pairs `auto` runs on were decoded from single frames (set by
+    /// [`crate::reconstruct`], not by the request): each pair's noise then follows
+    /// [`crate::adaptive::single_frame_pair_variances`] instead of two frames'.
+    pub single_frames: bool,
 }
 
 /// A regulariser `auto` can choose.
@@ -407,11 +424,39 @@ impl MethodConfig {
                 max_iter: p.iterations(200)?,
                 fit: p.fit()?,
             },
-            "auto" => MethodConfig::Auto {
-                models: p.models()?,
-                max_iter: p.iterations(300)?,
-                fit: p.fit()?,
-            },
+            "auto" => {
+                let models = p.models()?;
+                let max_iter = p.iterations(300)?;
+                let read_noise = match p.map.get("read_noise") {
+                    None | Some(Value::Null) => {
+                        p.map.remove("read_noise");
+                        None
+                    }
+                    Some(_) => Some(ReadNoise {
+                        sigma: p.number(
+                            "read_noise",
+                            0.0,
+                            |v| v >= 0.0,
+                            "the standard deviation of one frame's noise in bucket units, >= 0",
+                        )?,
+                        single_frames: false,
+                    }),
+                };
+                let fit = p.fit()?;
+                if read_noise.is_some() && fit.noise != Noise::Gaussian {
+                    return Err(bad(
+                        "read_noise",
+                        "applies only with \"noise\": \"gaussian\" (a constant noise per frame)"
+                            .into(),
+                    ));
+                }
+                MethodConfig::Auto {
+                    models,
+                    max_iter,
+                    fit,
+                    read_noise,
+                }
+            }
             other => {
                 return Err(ParamError {
                     field: "method".into(),
@@ -454,9 +499,16 @@ impl MethodConfig {
             } => json!({"lambda": lambda, "max_iter": max_iter}),
             MethodConfig::Lsq { mu, max_iter, .. } => json!({"mu": mu, "max_iter": max_iter}),
             MethodConfig::Auto {
-                models, max_iter, ..
+                models,
+                max_iter,
+                read_noise,
+                ..
             } => {
-                json!({"models": models.iter().map(|m| m.name()).collect::<Vec<_>>(), "max_iter": max_iter})
+                let mut v = json!({"models": models.iter().map(|m| m.name()).collect::<Vec<_>>(), "max_iter": max_iter});
+                if let Some(r) = read_noise {
+                    v["read_noise"] = json!(r.sigma);
+                }
+                v
             }
             MethodConfig::Levels { level: Some(level) } => json!({ "level": level }),
             _ => Value::Object(Default::default()),
@@ -819,11 +871,45 @@ mod tests {
                     holdout: None,
                     noise: Noise::Poisson { photon: 3.5 },
                     offset: None
-                }
+                },
+                read_noise: None,
             }
+        );
+        let declared = MethodConfig::parse("auto", &json!({"read_noise": 0.25})).unwrap();
+        assert!(matches!(
+            declared,
+            MethodConfig::Auto {
+                read_noise: Some(ReadNoise {
+                    sigma: 0.25,
+                    single_frames: false
+                }),
+                ..
+            }
+        ));
+        for (params, field) in [
+            (json!({"read_noise": -1.0}), "params.read_noise"),
+            (json!({"read_noise": "low"}), "params.read_noise"),
+            (
+                json!({"read_noise": 1.0, "noise": "poisson"}),
+                "params.read_noise",
+            ),
+        ] {
+            assert_eq!(
+                MethodConfig::parse("auto", &params).unwrap_err().field,
+                field,
+                "{params}"
+            );
+        }
+        assert_eq!(
+            MethodConfig::parse("tv", &json!({"read_noise": 1.0}))
+                .unwrap_err()
+                .field,
+            "params.read_noise",
+            "only auto reads a declared noise"
         );
         for m in [
             auto,
+            declared,
             MethodConfig::Levels { level: Some(3) },
             MethodConfig::parse("lsq", &json!({"holdout": 0.2})).unwrap(),
         ] {

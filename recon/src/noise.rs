@@ -60,6 +60,36 @@ impl NoiseEstimate {
     }
 }
 
+impl NoiseEstimate {
+    /// A noise the user declares (`auto`'s `read_noise`), in the data's units: exact as far as
+    /// the estimate goes (standard error 0).
+    pub fn declared(sigma: f64, data: &[f64]) -> NoiseEstimate {
+        NoiseEstimate {
+            sigma,
+            standard_error: 0.0,
+            data_spread: spread(data),
+            source: DECLARED,
+            rows: data.len(),
+        }
+    }
+}
+
+/// The `source` of a declared noise.
+pub const DECLARED: &str = "declared by the request (read_noise)";
+
+impl SupportNoise {
+    /// A declared read noise `sigma` per frame: a split pair's `y+ - y-` has the variance
+    /// `2 sigma^2`, known exactly (degrees of freedom as good as unlimited).
+    pub fn declared(sigma: f64) -> SupportNoise {
+        SupportNoise {
+            pair_variance: 2.0 * sigma * sigma,
+            dof: 1 << 40,
+            groups: 0,
+            source: DECLARED,
+        }
+    }
+}
+
 /// `1 / Phi^-1(3/4)`: the median absolute value of a standard normal times this is 1.
 const MAD_TO_SIGMA: f64 = 1.482_602_218_505_602;
 

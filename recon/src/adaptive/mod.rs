@@ -344,6 +344,49 @@ impl SingleFrameDecoder {
     }
 }
 
+/// The variance of each decoded single frame's `y+ - y-` per unit read-noise variance of a
+/// frame, for the indices of a single-frame session in their order (a split pair's: 2). Index
+/// 0 is all on less all off (2). A detail of block `B` is `2 y+ - S_B`: `4 + var(S_B)`, its
+/// frame independent of what came before. The block sums follow the decoder
+/// ([`SingleFrameDecoder::decode`]): the grid's `S = y_on + y_off` (variance 2, covariance 1
+/// with the dark frame `y_off`); a child's `S_c = a S_B + (s_x y_x + s_y y_y + s_xy y_xy) / 2 +
+/// 3/2 y_off` with `a = (1 - s_x - s_y - s_xy) / 4` (`-1/2` for the top-left child, `1/2` for
+/// the others), so `var(S_c) = a^2 var(S_B) + 3/4 + 9/4 + 3 a cov(S_B, y_off)` and
+/// `cov(S_c, y_off) = a cov(S_B, y_off) + 3/2`. Deep blocks reach about 10 (measured:
+/// `a_decoded_single_frame_carries_the_read_noise_these_variances_say`): the light of a block
+/// is decoded, not measured, so its noise adds to every detail below it.
+pub fn single_frame_pair_variances(width: u32, indices: &[u32]) -> Vec<f64> {
+    let k = width as usize * width as usize;
+    // (var, cov with the dark frame) of the block sum, keyed by the block's x detail.
+    let mut sums = vec![(0.0f64, 0.0f64); k.max(2)];
+    let mut out = Vec::with_capacity(indices.len());
+    for &n in indices {
+        if n == 0 {
+            if k > 1 {
+                sums[1] = (2.0, 1.0);
+            }
+            out.push(2.0);
+            continue;
+        }
+        let (block, which) = block_of(width, n);
+        let [x, _, _] = block_details(width, block);
+        let (v, c) = sums[x as usize];
+        out.push(4.0 + v);
+        let (s, pr, pc) = block;
+        if which == 2 && s >= 2 {
+            for (i, (dr, dc)) in [(0u32, 0u32), (0, 1), (1, 0), (1, 1)]
+                .into_iter()
+                .enumerate()
+            {
+                let a = if i == 0 { -0.5 } else { 0.5 };
+                let [cx, _, _] = block_details(width, (s - 1, 2 * pr + dr, 2 * pc + dc));
+                sums[cx as usize] = (a * a * v + 3.0 + 3.0 * a * c, a * c + 1.5);
+            }
+        }
+    }
+    out
+}
+
 /// A resolved single-frame session's first `rows` frames (`channels` per frame) as the split
 /// pairs they stand for: `2` frames an index, `y+` then `y-`, for every index whose frames are
 /// all in `rows` (PATTERNS.md, "Single frames"). Every method reconstructs a single-frame session

@@ -149,11 +149,18 @@ async fn stored(server: &ServerProcess, id: &str) -> (Vec<u32>, Vec<f64>) {
 
 /// Requests `method` on `id` and waits for its dual image (NPY, one channel).
 async fn reconstruct(server: &ServerProcess, id: &str, method: &str) -> Vec<f64> {
+    reconstruct_with(server, id, &serde_json::json!({ "method": method }))
+        .await
+        .1
+}
+
+/// A reconstruction of `body` (`method`, `params`) run to `done`: its record and its image.
+async fn reconstruct_with(server: &ServerProcess, id: &str, body: &Value) -> (Value, Vec<f64>) {
+    let method = body["method"].as_str().unwrap_or_default().to_string();
     let r = helmholtz_tests::http_client()
         .post(server.url(&format!("/v1/sessions/{id}/reconstructions")))
         .bearer_auth(&server.token)
-        .header("content-type", "application/json")
-        .body(format!(r#"{{"method": "{method}"}}"#))
+        .json(body)
         .send()
         .await
         .unwrap();
@@ -162,10 +169,10 @@ async fn reconstruct(server: &ServerProcess, id: &str, method: &str) -> Vec<f64>
     assert_eq!(status, 202, "{method} on {id}: {body}");
     let rid = body["id"].as_i64().unwrap();
     let deadline = std::time::Instant::now() + Duration::from_secs(60);
-    loop {
+    let record = loop {
         let (_, r) = get_json(server, &format!("/v1/reconstructions/{rid}")).await;
         match r["state"].as_str().unwrap_or("") {
-            "done" => break,
+            "done" => break r,
             "failed" | "cancelled" => panic!("{method} on {id}: {r}"),
             _ => {}
         }
@@ -174,7 +181,7 @@ async fn reconstruct(server: &ServerProcess, id: &str, method: &str) -> Vec<f64>
             "{method} on {id}: {r}"
         );
         tokio::time::sleep(Duration::from_millis(50)).await;
-    }
+    };
     let bytes = helmholtz_tests::http_client()
         .get(server.url(&format!("/v1/reconstructions/{rid}/dual.npy")))
         .bearer_auth(&server.token)
@@ -184,7 +191,7 @@ async fn reconstruct(server: &ServerProcess, id: &str, method: &str) -> Vec<f64>
         .bytes()
         .await
         .unwrap();
-    parse_npy(&bytes).unwrap().1
+    (record, parse_npy(&bytes).unwrap().1)
 }
 
 fn relative_error(image: &[f64], truth: &[f32]) -> f64 {
@@ -300,6 +307,40 @@ async fn a_single_frame_session_measures_the_basis_in_half_the_frames_and_replay
             "{method}: the split-pair session of the same indices"
         );
     }
+
+    // Every reconstruction of it warns that it has no noise estimate of its own, unless
+    // `auto` is told the rig's read noise; a bad one is refused naming the field.
+    let (record, _) = reconstruct_with(
+        &server,
+        "single-part",
+        &serde_json::json!({"method": "auto"}),
+    )
+    .await;
+    let warnings = record["report"]["details"]["warnings"].to_string();
+    assert!(warnings.contains("read_noise"), "{warnings}");
+    let (record, image) = reconstruct_with(
+        &server,
+        "single-part",
+        &serde_json::json!({"method": "auto", "params": {"read_noise": 0.5}}),
+    )
+    .await;
+    let details = &record["report"]["details"];
+    assert_eq!(details["noise_declared"]["read_noise"], 0.5, "{details}");
+    assert!(details.get("warnings").is_none(), "{details}");
+    assert!(image.iter().all(|v| v.is_finite()));
+    let r = helmholtz_tests::http_client()
+        .post(server.url("/v1/sessions/single-part/reconstructions"))
+        .bearer_auth(&server.token)
+        .json(&serde_json::json!({"method": "auto", "params": {"read_noise": -1}}))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status().as_u16(), 400);
+    let problem: Value = r.json().await.unwrap();
+    assert!(
+        problem.to_string().contains("params.read_noise"),
+        "{problem}"
+    );
 
     // The network drops every connection while the rig measures batch 2: the same session.
     let again = run_with_a_cut(&server, "single-cut", &part, &truth32, 2).await;
