@@ -17,6 +17,22 @@ fn run(spec: &PatternSpec, images: &[Vec<f64>], dark: f64) -> (Planner, Vec<f64>
     run_noisy(spec, images, dark, 0.0)
 }
 
+/// Standard normal values, a fixed stream from `seed`: the Box-Muller transform of a linear
+/// congruential sequence.
+fn gaussians(seed: u64) -> impl FnMut() -> f64 {
+    let mut state = seed;
+    let mut uniform = move || {
+        state = state
+            .wrapping_mul(6_364_136_223_846_793_005)
+            .wrapping_add(1_442_695_040_888_963_407);
+        ((state >> 11) as f64 + 0.5) / (1u64 << 53) as f64
+    };
+    move || {
+        let (u, v) = (uniform(), uniform());
+        (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
+    }
+}
+
 /// [`run`] with Gaussian read noise of standard deviation `sigma` on every frame value (a fixed
 /// stream: the Box-Muller transform of a linear congruential sequence).
 fn run_noisy(
@@ -25,17 +41,7 @@ fn run_noisy(
     dark: f64,
     sigma: f64,
 ) -> (Planner, Vec<f64>) {
-    let mut state = 0x9e37_79b9_7f4a_7c15u64;
-    let mut uniform = move || {
-        state = state
-            .wrapping_mul(6_364_136_223_846_793_005)
-            .wrapping_add(1_442_695_040_888_963_407);
-        ((state >> 11) as f64 + 0.5) / (1u64 << 53) as f64
-    };
-    let mut gauss = move || {
-        let (u, v) = (uniform(), uniform());
-        (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
-    };
+    let mut gauss = gaussians(0x9e37_79b9_7f4a_7c15);
     let c = images.len();
     let k = spec.pixels();
     let mut planner = Planner::new(spec, c).unwrap();
@@ -888,17 +894,7 @@ mod single_frames {
             .with_indices(Arc::from(order.clone()))
             .unwrap();
         let trials = 4000usize;
-        let mut state = 0x2545_f491_4f6c_dd1du64;
-        let mut uniform = move || {
-            state = state
-                .wrapping_mul(6_364_136_223_846_793_005)
-                .wrapping_add(1_442_695_040_888_963_407);
-            ((state >> 11) as f64 + 0.5) / (1u64 << 53) as f64
-        };
-        let mut gauss = move || {
-            let (u, v) = (uniform(), uniform());
-            (-2.0 * u.ln()).sqrt() * (std::f64::consts::TAU * v).cos()
-        };
+        let mut gauss = gaussians(0x2545_f491_4f6c_dd1d);
         // `trials` channels of pure noise, sigma = 1.
         let frames: Vec<f64> = (0..(k + 1) as usize * trials).map(|_| gauss()).collect();
         let pairs = single_frames_as_pairs(&resolved, trials, &frames);
