@@ -312,30 +312,16 @@ fn reconstruct_single_frames(
         rows: (pairs.len() / c) as u64,
     };
     // A declared read noise is the frames'; the pairs carry it as the decoding combines them.
-    let config = match config {
-        MethodConfig::Auto {
-            models,
-            max_iter,
-            fit,
-            read_noise: Some(d),
-        } => MethodConfig::Auto {
-            models: models.clone(),
-            max_iter: *max_iter,
-            fit: *fit,
-            read_noise: Some(method::ReadNoise {
-                single_frames: true,
-                ..*d
-            }),
-        },
-        other => other.clone(),
-    };
-    let declared = matches!(
-        config,
-        MethodConfig::Auto {
-            read_noise: Some(_),
-            ..
-        }
-    );
+    let mut config = config.clone();
+    let mut declared = false;
+    if let MethodConfig::Auto {
+        read_noise: Some(d),
+        ..
+    } = &mut config
+    {
+        d.single_frames = true;
+        declared = true;
+    }
     let mut r = reconstruct(
         &pair_problem,
         &config,
