@@ -1805,10 +1805,22 @@ fn exact_support_at(
 /// over a tile of neighbouring camera pixels), and the model supplies only the finer
 /// coefficients. The rows are then Haar coefficients, whatever transform the model was
 /// fitted in.
+///
+/// The model's finer coefficients are held to the same test at [`FINE_THRESHOLD_SHARE`] of its
+/// thresholds (`fine_test`, model version 6): a finer Haar coefficient is kept only where it
+/// stands out of that share of the rows' noise (in its row, or in the mean over a tile of
+/// neighbours). Without it the rows kept every coefficient of the model's image above the f32
+/// resolution, more than a complete set at the same noise keeps. A finer Haar function sums to
+/// zero, so dropping one never moves a row's total light. Noise-free the threshold is the rows'
+/// f32 resolution, as before.
 struct CoarseExact {
     /// Mallat-layout indices of the measured coefficients (the first is the DC).
     positions: Vec<usize>,
+    /// Per Mallat index: measured (one of `positions`).
+    is_coarse: Vec<bool>,
     haar: Box<dyn crate::transforms::Transform>,
+    /// The finer coefficients held to the complete set's noise test (version 6 on).
+    fine_test: bool,
 }
 
 impl CoarseExact {
@@ -1820,11 +1832,16 @@ impl CoarseExact {
         }
         let b = complete_binning(op, plan.grid)? as usize;
         let (w, h) = plan.size();
+        let positions: Vec<usize> = (0..h / b)
+            .flat_map(|y| (0..w / b).map(move |x| y * w + x))
+            .collect();
+        let mut is_coarse = vec![false; w * h];
+        positions.iter().for_each(|&i| is_coarse[i] = true);
         Some(CoarseExact {
-            positions: (0..h / b)
-                .flat_map(|y| (0..w / b).map(move |x| y * w + x))
-                .collect(),
+            positions,
+            is_coarse,
             haar: TransformKind::Haar.build(w, h),
+            fine_test: true,
         })
     }
 
@@ -1833,7 +1850,8 @@ impl CoarseExact {
     /// measured ones from the data, kept where they stand out of their rows' noise `sigmas`
     /// (in a row, or in a tile of the camera pixels `pixels` of a camera `width` wide) and
     /// zero elsewhere; the DC always (it is free in every fit). The finer ones below the row's
-    /// f32 resolution (rounding of a transform of a sparse image) are zero. Beyond the rows it
+    /// f32 resolution (rounding of a transform of a sparse image) are zero, and with
+    /// `fine_test` those the same noise test would not keep. Beyond the rows it
     /// holds the measured coefficients (`9 k / b^2` bytes a row) and two images.
     fn apply(
         &self,
@@ -1875,6 +1893,17 @@ impl CoarseExact {
                 row[i] = if kept[j] || j == 0 { c[j] } else { 0.0 };
             }
         }
+        if self.fine_test {
+            let half: Vec<f64> = sigmas.iter().map(|s| s * FINE_THRESHOLD_SHARE).collect();
+            let fine = exact_support_at(rows, &half, (k, k), pixels, width);
+            for (row, kept) in rows.chunks_exact_mut(k).zip(fine.chunks_exact(k)) {
+                for ((v, &kept), &coarse) in row.iter_mut().zip(kept).zip(&self.is_coarse) {
+                    if !kept && !coarse {
+                        *v = 0.0;
+                    }
+                }
+            }
+        }
     }
 
     /// Images `t` of Haar rows `u`.
@@ -1885,6 +1914,19 @@ impl CoarseExact {
         }
     }
 }
+
+/// The share of a complete set's keep thresholds ([`exact_support_at`]) a model's finer
+/// coefficients are held to where the coarse ones are taken as measured ([`CoarseExact`]).
+/// Measured with `bench/examples/transport_one hadamard 32 CAM RATIO NOISE` (Russian-doll
+/// subsets; relief, Cornell and glossy scenes; 37.5-75 % of the pairs; 0.1-3 % frame noise;
+/// 2026-12-02, docs/benchmark-notes.md): at the full thresholds (1) the relief from 75 % at
+/// 3 % noise relit 11 % worse than with every coefficient kept (0.0131 against 0.0118, full
+/// light; 21.6 nonzeros per row against 27.2, where the complete set keeps 30.4); at the
+/// noise of one coefficient (0.27 = `1 / sqrt(2 ln 1024)`) the Cornell box from 75 % at 0.1 %
+/// stored 381.8 per row against the complete set's 373.2; at 0.5 every session measured stores
+/// no more than its complete set and relights within 5 % of keeping everything (most of them
+/// the same or better).
+const FINE_THRESHOLD_SHARE: f64 = 0.5;
 
 fn free_coefficients(kind: TransformKind) -> usize {
     usize::from(kind != TransformKind::Identity)
@@ -2412,14 +2454,17 @@ fn solve_with(
     let dense = model.dense.then(|| batch::Dense::new(&shared));
     shared.dense = dense.as_ref();
     let coarse_exact = match &plan.raw {
-        Raw::Hadamard(op) if model.coarse_exact => Some(
-            CoarseExact::new(plan, op).ok_or_else(|| {
+        Raw::Hadamard(op) if model.coarse_exact => {
+            let mut step = CoarseExact::new(plan, op).ok_or_else(|| {
                 ReconError::Unsolvable(
                     "the stored transport model takes coarse Haar coefficients as measured, and this session's pairs do not measure them"
                         .into(),
                 )
-            })?,
-        ),
+            })?;
+            // A model planned before version 6 keeps the finer coefficients it kept then.
+            step.fine_test = model.version >= 6;
+            Some(step)
+        }
         _ if model.coarse_exact => {
             return Err(ReconError::Unsolvable(
                 "the stored transport model takes coarse Haar coefficients as measured, which only Hadamard pairs do"

@@ -87,7 +87,8 @@ pub struct TransportModel {
     #[serde(default = "one")]
     pub binning: u32,
     /// The Haar coefficients the subset measures completely are taken from the data and kept
-    /// by the noise test of a complete set (`CoarseExact` in the module; version 2).
+    /// by the noise test of a complete set (`CoarseExact` in the module; version 2); from
+    /// version 6 the model's finer coefficients are held to the same test.
     #[serde(default)]
     pub coarse_exact: bool,
     /// The rows are solved by coordinate descent on `A Psi^T` held densely (random patterns;
@@ -109,9 +110,10 @@ fn one() -> u32 {
 
 impl TransportModel {
     /// 2: `coarse_exact`; 3: `dense`; 4: `prune`; 5: the refit on the operator by CGLS
-    /// (`batch::refit_rows`). An older model is solved as it was planned; an older build
-    /// refuses a newer model.
-    pub const VERSION: u32 = 5;
+    /// (`batch::refit_rows`); 6: with `coarse_exact`, the model's finer coefficients held to
+    /// the complete set's noise test (`CoarseExact` in the module). An older model is solved as
+    /// it was planned; an older build refuses a newer model.
+    pub const VERSION: u32 = 6;
 
     pub fn camera_grid(&self) -> CameraGrid {
         CameraGrid {
