@@ -1819,7 +1819,8 @@ struct CoarseExact {
     /// Per Mallat index: measured (one of `positions`).
     is_coarse: Vec<bool>,
     haar: Box<dyn crate::transforms::Transform>,
-    /// The finer coefficients held to the complete set's noise test (version 6 on).
+    /// The finer coefficients held to the complete set's noise test at
+    /// [`FINE_THRESHOLD_SHARE`] of its thresholds (version 6 on).
     fine_test: bool,
 }
 
@@ -1894,8 +1895,8 @@ impl CoarseExact {
             }
         }
         if self.fine_test {
-            let half: Vec<f64> = sigmas.iter().map(|s| s * FINE_THRESHOLD_SHARE).collect();
-            let fine = exact_support_at(rows, &half, (k, k), pixels, width);
+            let scaled: Vec<f64> = sigmas.iter().map(|s| s * FINE_THRESHOLD_SHARE).collect();
+            let fine = exact_support_at(rows, &scaled, (k, k), pixels, width);
             for (row, kept) in rows.chunks_exact_mut(k).zip(fine.chunks_exact(k)) {
                 for ((v, &kept), &coarse) in row.iter_mut().zip(kept).zip(&self.is_coarse) {
                     if !kept && !coarse {

@@ -2595,7 +2595,8 @@ fn a_noisy_hadamard_subset_stores_no_more_than_the_complete_set_and_keeps_its_li
     // noise: the chosen model takes the coarse Haar coefficients as measured ([`CoarseExact`])
     // and supplies the finer ones. Before model version 6 it kept every finer coefficient of
     // the model's image above the f32 resolution, more per row than the complete set at the
-    // same noise keeps; now they are held to the complete set's noise test. The stored T must
+    // same noise keeps; now they are held to the complete set's noise test at
+    // [`FINE_THRESHOLD_SHARE`] of its thresholds. The stored T must
     // be no larger than the complete set's, relight no worse than the same model replayed as
     // version 5, and keep every row's total light (finer Haar functions sum to zero).
     let (camera, complete, _) = complete_and_quarter_bernoulli_48();
