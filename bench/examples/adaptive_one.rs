@@ -1,7 +1,11 @@
 //! One simulated adaptive session, reconstructed by the given methods: PSNR, time and (with
 //! `ONE_REPORT=1`) each report. A probe for the numerics on adaptive data (the bench runs grids).
 //!
-//! `cargo run --release -p helmholtz-bench --example adaptive_one -- haar|hadamard 128 0.05 relief none|noisy [PERSISTENCE] [direct,auto,...]`
+//! `cargo run --release -p helmholtz-bench --example adaptive_one -- haar|haar1f|hadamard 128 0.05 relief none|noisy|DB [PERSISTENCE] [direct,auto,...]`
+//!
+//! `haar1f` shows the Haar indices as single frames (`frames: "single"`). The noise is read noise
+//! on every frame: `noisy` is the bench's 30 dB below a half-lit bucket, `DB` (a number) that many
+//! dB below it. Method `auto_read_noise` is `auto` told the drawn sigma (`read_noise`).
 //!
 //! `ONE_ALPHA=1` (with `direct,auto`, noise-free) also prints the PSNR of `direct + alpha u` for
 //! `u = auto - direct`, the fill-in of the coefficients no pair measured, and the oracle `alpha`.
@@ -11,33 +15,40 @@
 
 use std::time::Instant;
 
-use helmholtz_proto::Family;
+use helmholtz_proto::{AdaptiveFrames, Family};
 use helmholtz_recon::{self as recon, Control, MethodConfig, Problem, SliceSource, metrics};
 
 fn main() {
     let a: Vec<String> = std::env::args().collect();
     let arg = |i: usize, d: &str| a.get(i).cloned().unwrap_or_else(|| d.to_string());
-    let haar = match arg(1, "haar").as_str() {
-        "haar" => true,
-        "hadamard" => false,
-        other => panic!("basis {other:?}: haar or hadamard"),
+    let (haar, single) = match arg(1, "haar").as_str() {
+        "haar" => (true, false),
+        "haar1f" => (true, true),
+        "hadamard" => (false, false),
+        other => panic!("basis {other:?}: haar, haar1f or hadamard"),
     };
     let size: u32 = arg(2, "128").parse().expect("size");
     let ratio: f64 = arg(3, "0.05").parse().expect("ratio");
     let scene = arg(4, "relief");
-    let noisy = match arg(5, "none").as_str() {
-        "none" => false,
-        "noisy" => true,
-        other => panic!("noise {other:?}: none or noisy"),
+    let snr_db = match arg(5, "none").as_str() {
+        "none" => None,
+        "noisy" => Some(30.0),
+        db => Some(
+            db.parse::<f64>()
+                .unwrap_or_else(|_| panic!("noise {db:?}: none, noisy or a number of dB")),
+        ),
     };
     let persistence = a
         .get(6)
         .filter(|p| !p.is_empty() && *p != "default")
         .map(|p| p.parse::<f64>().expect("persistence"));
     let methods = arg(7, "direct,auto");
-    let family = Family::adaptive(haar, 0, 0.0, persistence);
-    let (spec, frames, truth) =
-        helmholtz_bench::adaptive::probe_session(&scene, size, ratio, noisy, family)
+    let mut family = Family::adaptive(haar, 0, 0.0, persistence);
+    if single {
+        family = family.with_frames(AdaptiveFrames::Single);
+    }
+    let (spec, frames, truth, sigma) =
+        helmholtz_bench::adaptive::probe_session_at(&scene, size, ratio, snr_db, family)
             .expect("session");
     {
         let (planner, _) = recon::adaptive::replay(&spec, 1, &frames).expect("the session replays");
@@ -55,7 +66,13 @@ fn main() {
     };
     let mut images: Vec<(String, Vec<f32>)> = Vec::new();
     for method in methods.split(',') {
-        let config = MethodConfig::parse(method, &serde_json::Value::Null).expect("method");
+        let config = match method {
+            "auto_read_noise" => {
+                MethodConfig::parse("auto", &serde_json::json!({ "read_noise": sigma }))
+            }
+            m => MethodConfig::parse(m, &serde_json::Value::Null),
+        }
+        .expect("method");
         let started = Instant::now();
         let r = recon::reconstruct(
             &problem,

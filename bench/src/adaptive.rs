@@ -387,17 +387,29 @@ pub fn probe_session(
     noisy: bool,
     family: Family,
 ) -> anyhow::Result<(PatternSpec, Vec<f64>, Vec<f32>)> {
+    let (spec, frames, truth, _) =
+        probe_session_at(scene_name, size, ratio, noisy.then_some(30.0), family)?;
+    Ok((spec, frames, truth))
+}
+
+/// [`probe_session`] with the read noise `snr_db` below a half-lit bucket (`None`: noise-free):
+/// `sigma = 10^(-snr_db / 20) (sum t) / 2` on every frame. Also returns that `sigma`.
+pub fn probe_session_at(
+    scene_name: &str,
+    size: u32,
+    ratio: f64,
+    snr_db: Option<f64>,
+    family: Family,
+) -> anyhow::Result<(PatternSpec, Vec<f64>, Vec<f32>, f64)> {
     let truth32 = scene(scene_name, size)?;
     let truth: Vec<f64> = truth32.iter().map(|&v| v as f64).collect();
     let k = (size * size) as u64;
     let frames = ((ratio * k as f64).round() as u64).max(2) & !1;
-    let sigma = if noisy {
-        10f64.powf(-30.0 / 20.0) * truth.iter().sum::<f64>() / 2.0
-    } else {
-        0.0
-    };
+    let sigma = snr_db.map_or(0.0, |db| {
+        10f64.powf(-db / 20.0) * truth.iter().sum::<f64>() / 2.0
+    });
     let s = run_adaptive(family, &truth, size, frames, sigma)?;
-    Ok((s.spec, s.frames, truth32))
+    Ok((s.spec, s.frames, truth32, sigma))
 }
 
 /// A simulated rig through the planner: the service's loop (poll until none, observe the oldest).
