@@ -392,8 +392,14 @@ pub fn probe_session(
     Ok((spec, frames, truth))
 }
 
+/// The read noise `snr_db` below a half-lit bucket of the scene `truth`:
+/// `10^(-snr_db / 20) (sum t) / 2`, the same on every frame.
+pub fn read_noise_sigma(truth: &[f64], snr_db: f64) -> f64 {
+    10f64.powf(-snr_db / 20.0) * truth.iter().sum::<f64>() / 2.0
+}
+
 /// [`probe_session`] with the read noise `snr_db` below a half-lit bucket (`None`: noise-free):
-/// `sigma = 10^(-snr_db / 20) (sum t) / 2` on every frame. Also returns that `sigma`.
+/// ([`read_noise_sigma`]). Also returns that `sigma`.
 pub fn probe_session_at(
     scene_name: &str,
     size: u32,
@@ -405,9 +411,7 @@ pub fn probe_session_at(
     let truth: Vec<f64> = truth32.iter().map(|&v| v as f64).collect();
     let k = (size * size) as u64;
     let frames = ((ratio * k as f64).round() as u64).max(2) & !1;
-    let sigma = snr_db.map_or(0.0, |db| {
-        10f64.powf(-db / 20.0) * truth.iter().sum::<f64>() / 2.0
-    });
+    let sigma = snr_db.map_or(0.0, |db| read_noise_sigma(&truth, db));
     let s = run_adaptive(family, &truth, size, frames, sigma)?;
     Ok((s.spec, s.frames, truth32, sigma))
 }
@@ -564,7 +568,7 @@ pub fn run(opts: &Options) -> anyhow::Result<Vec<Row>> {
             let exact_wh = Exact::new(&truth, size as usize, false);
             for noisy in [false, true] {
                 let sigma = if noisy {
-                    10f64.powf(-30.0 / 20.0) * truth.iter().sum::<f64>() / 2.0
+                    read_noise_sigma(&truth, 30.0)
                 } else {
                     0.0
                 };
