@@ -3177,6 +3177,33 @@ mod tests {
     }
 
     #[test]
+    fn the_served_contrast_keeps_the_mean_and_the_search_finds_the_least_score() {
+        use super::{golden_min, mean, scaled_keeping_mean};
+        // Nothing clipped: the affine map about the mean, exactly.
+        let t = [0.2, 0.4, 0.6, 0.8];
+        let s = scaled_keeping_mean(&t, 0.5);
+        for (a, b) in s.iter().zip([0.35, 0.45, 0.55, 0.65]) {
+            assert!((a - b).abs() < 1e-15, "{s:?}");
+        }
+        // Clipped: the mean kept to rounding, nothing below 0, the order of the pixels kept.
+        let t = [0.0, 0.0, 0.05, 0.1, 0.9, 0.0, 0.02, 0.6];
+        let s = scaled_keeping_mean(&t, 3.0);
+        assert!(
+            (mean(&s) - mean(&t)).abs() < 1e-12,
+            "{} {}",
+            mean(&s),
+            mean(&t)
+        );
+        assert!(s.iter().all(|&v| v >= 0.0));
+        assert!(s[4] > s[7] && s[7] > s[3] && s[3] >= s[2], "{s:?}");
+        // The search: an interior minimum to the bracket's width, and a minimum at an end.
+        let (x, v) = golden_min(1.0, 3.0, 30, &|g| ((g - 1.7f64).powi(2), g));
+        assert!((x - 1.7).abs() < 1e-5 && v == x, "{x}");
+        let (x, _) = golden_min(1.0, 3.0, 10, &|g| (g, ()));
+        assert_eq!(x, 1.0);
+    }
+
+    #[test]
     fn a_contrast_gain_on_a_dark_scene_keeps_the_mean_the_rows_measured() {
         use helmholtz_sim::simulate::{NoiseModel, apply_noise};
         // USAF (bright bars on black, mean 0.13), 64x64 from 10 % Bernoulli rows at 30 dB of
