@@ -1791,11 +1791,8 @@ impl Debias {
 /// Where nothing is clipped (`g <= 1` on a non-negative image) it is `m + g (t - m)`.
 fn scaled_keeping_mean(t: &[f64], g: f64) -> Vec<f64> {
     let m = mean(t);
-    let at = |c: f64| {
-        t.iter()
-            .map(|v| (m + c + g * (v - m)).max(0.0))
-            .collect::<Vec<_>>()
-    };
+    let value = |c: f64, v: f64| (m + c + g * (v - m)).max(0.0);
+    let at = |c: f64| t.iter().map(|&v| value(c, v)).collect::<Vec<_>>();
     let plain = at(0.0);
     if m <= 0.0 || mean(&plain) <= m {
         return plain;
@@ -1805,12 +1802,7 @@ fn scaled_keeping_mean(t: &[f64], g: f64) -> Vec<f64> {
     let (mut lo, mut hi) = (-m - g * spread, 0.0);
     for _ in 0..BISECTIONS {
         let c = 0.5 * (lo + hi);
-        let above = t
-            .iter()
-            .map(|v| (m + c + g * (v - m)).max(0.0))
-            .sum::<f64>()
-            > m * t.len() as f64;
-        if above {
+        if t.iter().map(|&v| value(c, v)).sum::<f64>() > m * t.len() as f64 {
             hi = c;
         } else {
             lo = c;
