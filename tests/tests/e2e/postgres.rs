@@ -663,10 +663,13 @@ async fn two_api_nodes_and_three_workers_lose_nothing_when_nodes_are_killed() {
     let c = ServerProcess::start_on_postgres(&db, &token, &api_args).unwrap();
 
     // T in shards: requested on the new node; as soon as a worker holds a shard (not the last
-    // one), SIGKILL its process and start another.
+    // one), SIGKILL its process and start another. A shard takes tens of milliseconds, so the
+    // worker may finish it between the look and the kill: then the shard was not lost to the
+    // kill, and the next running shard is taken instead (the kill waits for the process to
+    // exit, so the shard's state read after it is final for that worker).
     let job = request(&c, "cam", TRANSPORT).await;
     let deadline = Instant::now() + Duration::from_secs(120);
-    let (victim, shard) = loop {
+    let (killed_pid, shard) = 'kill: loop {
         let holders = db.strings(&format!(
             "SELECT worker_id || ' ' || shard FROM transport_shards WHERE reconstruction_id = {job} \
              AND state = 'running' AND shard < 15 ORDER BY shard"
@@ -674,18 +677,33 @@ async fn two_api_nodes_and_three_workers_lose_nothing_when_nodes_are_killed() {
         if let Some(w) = holders.first() {
             let (worker, shard) = w.split_once(' ').unwrap();
             let pid: u32 = worker.split('-').next().unwrap().parse().unwrap();
+            let shard = shard.parse::<i64>().unwrap();
             let victim = workers
                 .iter()
                 .position(|p| p.pid() == pid)
                 .expect("a worker of ours");
-            break (victim, shard.parse::<i64>().unwrap());
+            workers[victim].kill();
+            workers.push(WorkerProcess::start(&db, 1, &worker_args).unwrap());
+            let after = db.strings(&format!(
+                "SELECT state || ' ' || worker_id FROM transport_shards WHERE reconstruction_id = {job} \
+                 AND shard = {shard}"
+            ));
+            let held = after
+                .first()
+                .is_some_and(|s| s.starts_with("running ") && s.ends_with(worker));
+            if held {
+                break 'kill (pid, shard);
+            }
+            println!(
+                "shard {shard} was finished by worker {worker} before its kill landed: {after:?}"
+            );
         }
-        assert!(Instant::now() < deadline, "no shard ever ran");
+        assert!(
+            Instant::now() < deadline,
+            "no shard was ever killed mid-solve"
+        );
         tokio::time::sleep(Duration::from_millis(10)).await;
     };
-    let killed_pid = workers[victim].pid();
-    workers[victim].kill();
-    workers.push(WorkerProcess::start(&db, 1, &worker_args).unwrap());
 
     // Every rig finishes; those of node B went on through node A.
     let mut failed_over = 0;
