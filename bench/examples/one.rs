@@ -4,6 +4,9 @@
 //! `cargo run --release -p helmholtz-bench --example one -- hadamard 128 0.1 camera tv '{"max_iter":100}' [repeat] [none|snr30|poisson]`
 //!
 //! The scene is a built-in name or a PNG path. `ONE_REPORT=1` prints the report's details.
+//! `ONE_RISK=1` (random families) prints the image's mean squared prediction error on 20,000
+//! fresh noise-free rows of the same family (another seed): what held-out rows estimate, less
+//! their noise.
 //! `ONE_GROUPS=1` (Hadamard split pairs) prints, per scale order `jx + jy` of the measured
 //! coefficients, the data's energy, the noise drawn, and the image's residual and error there;
 //! with `ONE_JS_SIGMA=s` (or `report`: `auto`'s noise estimate, two standard errors high) also
@@ -116,6 +119,26 @@ fn main() {
                 Some(n["sigma"].as_f64()? + 2.0 * n["standard_error"].as_f64()?)
             });
             groups(&spec, &sim.values, img, &truth, reported);
+        }
+        if helmholtz_bench::env_flag("ONE_RISK") {
+            // The image's prediction error on fresh rows of the same family (another seed),
+            // noise-free: what held-out rows estimate, plus their noise.
+            let fresh = helmholtz_proto::PatternSpec::new(spec.family().clone(), n, n, 20_000, 7)
+                .expect("ONE_RISK needs a random family (bernoulli, speckle)");
+            let image: Vec<f32> = img.to_vec();
+            let quiet = Noise::None.model();
+            let a = simulate::simulate(&fresh, &[&truth], &quiet, None).values;
+            let b = simulate::simulate(&fresh, &[&image], &quiet, None).values;
+            let risk = a
+                .iter()
+                .zip(&b)
+                .map(|(x, y)| (x - y) * (x - y))
+                .sum::<f64>()
+                / a.len() as f64;
+            println!(
+                "fresh-row risk {risk:.3} (mean squared noise-free prediction error over {} rows)",
+                a.len()
+            );
         }
         if helmholtz_bench::env_flag("ONE_REPORT") {
             let mut v = serde_json::to_value(&r.report.details).unwrap_or_default();

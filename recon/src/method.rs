@@ -52,6 +52,10 @@ pub enum MethodConfig {
         /// (`details.noise_declared` reports both); a single-frame session has no estimate of
         /// its own and needs it on a noisy rig.
         read_noise: Option<ReadNoise>,
+        /// Folds of all the rows on which the race's weight is checked where random-pattern
+        /// rows show noise ([`crate::auto::cross_validate`]); 0 skips the check (faster, the
+        /// race's single held-out set alone chooses).
+        folds: usize,
     },
 }
 
@@ -450,11 +454,18 @@ impl MethodConfig {
                             .into(),
                     ));
                 }
+                let folds = p.number(
+                    "folds",
+                    crate::auto::FOLDS as f64,
+                    |v| v == 0.0 || (v.fract() == 0.0 && (2.0..=20.0).contains(&v)),
+                    "0 (no check) or an integer in 2..=20",
+                )? as usize;
                 MethodConfig::Auto {
                     models,
                     max_iter,
                     fit,
                     read_noise,
+                    folds,
                 }
             }
             other => {
@@ -502,9 +513,10 @@ impl MethodConfig {
                 models,
                 max_iter,
                 read_noise,
+                folds,
                 ..
             } => {
-                let mut v = json!({"models": models.iter().map(|m| m.name()).collect::<Vec<_>>(), "max_iter": max_iter});
+                let mut v = json!({"models": models.iter().map(|m| m.name()).collect::<Vec<_>>(), "max_iter": max_iter, "folds": folds});
                 if let Some(r) = read_noise {
                     v["read_noise"] = json!(r.sigma);
                 }
@@ -873,6 +885,7 @@ mod tests {
                     offset: None
                 },
                 read_noise: None,
+                folds: crate::auto::FOLDS,
             }
         );
         let declared = MethodConfig::parse("auto", &json!({"read_noise": 0.25})).unwrap();
@@ -893,6 +906,10 @@ mod tests {
                 json!({"read_noise": 1.0, "noise": "poisson"}),
                 "params.read_noise",
             ),
+            (json!({"folds": 1}), "params.folds"),
+            (json!({"folds": 2.5}), "params.folds"),
+            (json!({"folds": 21}), "params.folds"),
+            (json!({"folds": "five"}), "params.folds"),
         ] {
             assert_eq!(
                 MethodConfig::parse("auto", &params).unwrap_err().field,
@@ -907,9 +924,16 @@ mod tests {
             "params.read_noise",
             "only auto reads a declared noise"
         );
+        let unchecked = MethodConfig::parse("auto", &json!({"folds": 0})).unwrap();
+        assert!(matches!(unchecked, MethodConfig::Auto { folds: 0, .. }));
+        assert!(matches!(
+            MethodConfig::parse("auto", &json!({"folds": 10})).unwrap(),
+            MethodConfig::Auto { folds: 10, .. }
+        ));
         for m in [
             auto,
             declared,
+            unchecked,
             MethodConfig::Levels { level: Some(3) },
             MethodConfig::parse("lsq", &json!({"holdout": 0.2})).unwrap(),
         ] {
