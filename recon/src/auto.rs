@@ -3553,23 +3553,33 @@ mod tests {
         assert_eq!((best, z, chosen), (0.3, 0.0, 0.3));
     }
 
+    /// A built-in scene at 64x64 and its buckets from 10 % Bernoulli(1/2) rows (410, seed 1, as
+    /// `bench/examples/one bernoulli 64 0.1`) with `noise` applied.
+    fn noisy_bernoulli(
+        name: &str,
+        noise: &helmholtz_sim::simulate::NoiseModel,
+    ) -> (Vec<f32>, PatternSpec, Vec<f64>) {
+        let n = 64u32;
+        let truth = scene(name, n);
+        let spec = PatternSpec::new(Family::Bernoulli { fill: 0.5 }, n, n, 410, 1).unwrap();
+        let (noisy, _) = helmholtz_sim::simulate::apply_noise(&buckets(&spec, &truth), 1, noise);
+        (truth, spec, noisy)
+    }
+
     #[test]
     fn on_noisy_bernoulli_rows_the_folds_choose_a_weight_the_race_could_not() {
-        use helmholtz_sim::simulate::{NoiseModel, apply_noise};
+        use helmholtz_sim::simulate::NoiseModel;
         // The smooth scene, 64x64, from 10 % Bernoulli rows at 1e4 photons per pattern (the
         // bench's draw, `bench/examples/one bernoulli 64 0.1 smooth auto null 1 poisson`):
         // the race's held-out scores choose 0.3 `lambda_max`; summed over five folds of all
         // the rows, 0.4 predicts the rows it was not fitted on better, by 2.9 standard errors,
         // and the image is closer to the truth (10.00 -> 11.89 dB on the bench).
-        let n = 64u32;
-        let truth = scene("smooth", n);
-        let spec = PatternSpec::new(Family::Bernoulli { fill: 0.5 }, n, n, 410, 1).unwrap();
         let noise = NoiseModel {
             photons: Some(1e4),
             seed: 17,
             ..NoiseModel::default()
         };
-        let (noisy, _) = apply_noise(&buckets(&spec, &truth), 1, &noise);
+        let (truth, spec, noisy) = noisy_bernoulli("smooth", &noise);
         let with = auto(&spec, &noisy, json!({}));
         let without = auto(&spec, &noisy, json!({"folds": 0}));
         let folds = &with.report.details["auto"][0]["folds"];
@@ -3608,22 +3618,19 @@ mod tests {
 
     #[test]
     fn a_contrast_gain_on_a_dark_scene_keeps_the_mean_the_rows_measured() {
-        use helmholtz_sim::simulate::{NoiseModel, apply_noise};
+        use helmholtz_sim::simulate::NoiseModel;
         // USAF (bright bars on black, mean 0.13), 64x64 from 10 % Bernoulli rows at 30 dB of
         // the total bucket power: the heavy weight shrinks the contrast and the held-out rows
         // ask for a gain of 1.64, which takes the black background below 0. Clipped there
         // alone, the served mean rose by 5.6 % (0.1406 against the truth's 0.1331; 11 % on the
         // bench's draw, `bench/examples/one bernoulli 64 0.1 usaf auto null 1 snr30`); shifted
         // back to the fit's mean it is 0.1335.
-        let n = 64u32;
-        let truth = scene("usaf", n);
-        let spec = PatternSpec::new(Family::Bernoulli { fill: 0.5 }, n, n, 410, 1).unwrap();
         let noise = NoiseModel {
             snr_db: Some(30.0),
             seed: 3,
             ..NoiseModel::default()
         };
-        let (noisy, _) = apply_noise(&buckets(&spec, &truth), 1, &noise);
+        let (truth, spec, noisy) = noisy_bernoulli("usaf", &noise);
         // The race's weight as it chose it: the folds ([`super::cross_validate`]) take a
         // lighter one here (0.17 for the race's 0.3 `lambda_max`, 1.3 standard errors), which
         // shrinks less and needs no gain (12.03 dB against 11.81).
