@@ -1217,8 +1217,8 @@ pub struct FoldCheck {
     /// difference of the two (row by row: `sum_i (r_race,i^2 - r_best,i^2)` over its standard
     /// error).
     pub significance: f64,
-    /// The weight `auto` goes on with: the least sum's where it is more than
-    /// [`FOLD_SIGNIFICANCE`] standard errors below the race's, else the race's.
+    /// The weight `auto` goes on with: the least sum's where it is heavier than the race's, or
+    /// lighter and more than [`FOLD_SIGNIFICANCE`] standard errors below it; else the race's.
     pub chosen: f64,
     /// Iterations of all the folds' solves, and of the held-out fit solved again at `chosen`
     /// when it moved.
@@ -1275,7 +1275,8 @@ fn fold_choice(race: f64, tried: &[(f64, Vec<f64>)]) -> (f64, f64, f64) {
 /// scored by the squared residuals of the rows that fold left out, summed: every row scores
 /// once, so the sum's noise is that of all the rows, not of one held-out share. While the
 /// least sum is at the lightest or heaviest weight tried, up to [`FOLD_EXTEND`] more steps go
-/// that way (not past `lambda_max`). The solves of a weight run in parallel.
+/// that way (not past `lambda_max`). The solves of a round (its weights times the folds) run
+/// in parallel; then [`fold_choice`] decides.
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn cross_validate(
     model: Model,
