@@ -1455,16 +1455,17 @@ pub fn run(
     // Only where the held-out rows confirm the noise the session shows ([`band_sigma`]): on
     // noise-free rows of a peaky scene the Bernoulli moments can read a noise that is not
     // there, and the race's single held-out set then separates the weights well.
-    let confirmed = sigma > 0.0 && {
+    let confirmed = || {
         let q = scorer.predict(&held_out_fit.1);
         let residuals: Vec<f64> = job.b_test.iter().zip(&q).map(|(b, q)| b - q).collect();
         band_sigma(sigma, &residuals) >= sigma
     };
-    let fold_check = match job.folds.is_empty() || fraction >= 1.0 || !confirmed {
-        true => None,
-        false => {
+    let check_folds = !job.folds.is_empty() && fraction < 1.0 && sigma > 0.0 && confirmed();
+    let fold_check = match check_folds {
+        false => None,
+        true => {
             let at = lo + (hi - lo) / stages;
-            let check = cross_validate(
+            let mut check = cross_validate(
                 model,
                 (w, h),
                 &job.folds,
@@ -1475,7 +1476,6 @@ pub fn run(
                 at,
                 control,
             )?;
-            let mut check = check;
             if check.chosen != fraction {
                 let opts = SolveOptions {
                     max_iter: FOLD_MAX_ITER,
