@@ -1335,27 +1335,12 @@ pub(crate) fn cross_validate(
             .collect::<Result<Vec<Vec<f64>>, ReconError>>()?;
         Ok(sse.chunks(folds.len()).map(|c| c.concat()).collect())
     };
-    let mut tried: Vec<(f64, Vec<f64>)> = Vec::new();
-    let first: Vec<f64> = [race / FOLD_STEP, race, (race * FOLD_STEP).min(1.0)]
-        .into_iter()
-        .filter(|&f| f <= 1.0)
-        .fold(Vec::new(), |mut v, f| {
-            if v.last() != Some(&f) {
-                v.push(f);
-            }
-            v
-        });
-    tried.extend(first.iter().copied().zip(sums(&first)?));
+    // The race's weight is below 1 here (a flat winner is not checked), so the three differ.
+    let first = [race / FOLD_STEP, race, (race * FOLD_STEP).min(1.0)];
+    let mut tried: Vec<(f64, Vec<f64>)> = first.into_iter().zip(sums(&first)?).collect();
     let total = |r: &[f64]| r.iter().sum::<f64>();
-    let least = |tried: &[(f64, Vec<f64>)]| {
-        tried
-            .iter()
-            .min_by(|a, b| total(&a.1).total_cmp(&total(&b.1)))
-            .map(|p| p.0)
-            .expect("weights tried")
-    };
     for _ in 0..FOLD_EXTEND {
-        let best = least(&tried);
+        let best = fold_choice(race, &tried).0;
         let (lightest, heaviest) = (tried[0].0, tried[tried.len() - 1].0);
         let next = if best == lightest {
             lightest / FOLD_STEP
