@@ -275,6 +275,34 @@ async fn single_process_t(
     (db.transport(job), done)
 }
 
+/// Sends `signal` (`STOP`, `CONT`) to a process.
+fn signal(pid: u32, signal: &str) {
+    let status = std::process::Command::new("kill")
+        .args([&format!("-{signal}"), &pid.to_string()])
+        .status()
+        .expect("running kill");
+    assert!(status.success(), "kill -{signal} {pid}");
+}
+
+/// Polls `sql` (a count) until it is `want`, at most `within`.
+async fn wait_count(db: &TestDatabase, sql: &str, want: i64, within: Duration) {
+    let deadline = Instant::now() + within;
+    loop {
+        if db.scalar(sql) == want {
+            return;
+        }
+        assert!(Instant::now() < deadline, "never {want}: {sql}");
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+}
+
+/// Two worker processes solve one transport job's shards, and the T they assemble is the
+/// single-process T bit for bit. The turns are made certain: once the job's holder has stored
+/// its shards it is paused (SIGSTOP) with at most the shard it is solving, so the other process
+/// must take the rest (it is woken by the shards' notification, or by its poll); the holder goes
+/// on (SIGCONT) when nothing is left for the other and assembles T. Without the pause the
+/// holder can solve all six small shards before the other process is scheduled (seen on a
+/// loaded CI machine).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_transport_in_shards_on_two_worker_processes_is_the_single_process_t() {
     let db = TestDatabase::create();
@@ -286,18 +314,42 @@ async fn a_transport_in_shards_on_two_worker_processes_is_the_single_process_t()
     let a = WorkerProcess::start(&db, 1, &shards).unwrap();
     let b = WorkerProcess::start(&db, 1, &shards).unwrap();
     let job = request(&api, "cam", TRANSPORT).await;
+    wait_count(
+        &db,
+        &format!("SELECT LEAST(COUNT(*), 1) FROM transport_shards WHERE reconstruction_id = {job}"),
+        1,
+        Duration::from_secs(120),
+    )
+    .await;
+    let holder = db
+        .strings(&format!("SELECT worker_id FROM jobs WHERE id = {job}"))
+        .pop()
+        .expect("the job's holder");
+    let held = match holder.starts_with(&format!("{}-", a.pid())) {
+        true => a.pid(),
+        false => b.pid(),
+    };
+    assert!(holder.starts_with(&format!("{held}-")), "{holder}");
+    signal(held, "STOP");
+    // Nothing queued, and nothing running but the holder's own shard.
+    let left = format!(
+        "SELECT COUNT(*) FROM transport_shards WHERE reconstruction_id = {job} \
+         AND (state = 'queued' OR (state = 'running' AND worker_id NOT LIKE '{held}-%'))"
+    );
+    wait_count(&db, &left, 0, Duration::from_secs(120)).await;
+    signal(held, "CONT");
     let done = wait_state(&api, job, &["done", "failed"], Duration::from_secs(300)).await;
     assert_eq!(done["state"], "done", "{done}");
     let (count, workers, _) = shard_figures(&db, job);
     assert_eq!(count, 6, "{done}");
     // Both processes took shards (the worker ids on the shard rows start with the pid).
+    let timeline = db.strings(&format!(
+        "SELECT shard || ' ' || worker_id || ' ' || started_ms || ' ' || finished_ms \
+         FROM transport_shards WHERE reconstruction_id = {job} ORDER BY shard"
+    ));
     assert_eq!(
-        workers,
-        2,
-        "shards by one process only: {:?}",
-        db.strings(&format!(
-            "SELECT worker_id FROM transport_shards WHERE reconstruction_id = {job}"
-        ))
+        workers, 2,
+        "shards by one process only (shard, worker, started, finished ms): {timeline:#?}"
     );
     let pids: Vec<String> = [a.pid(), b.pid()].iter().map(|p| p.to_string()).collect();
     for w in db.strings(&format!(
