@@ -25,7 +25,11 @@
 //!    On random-pattern (Bernoulli) rows where the session shows noise, the winner's weight is
 //!    then checked on folds of all the rows ([`cross_validate`]: every row scores once, where
 //!    one held-out set cannot tell neighbouring weights apart), and its held-out fit solved
-//!    again at the weight the folds choose.
+//!    again at the weight the folds choose. On orthonormal rows (Hadamard split pairs) whose
+//!    pair sums show noise, the held-out pairs are the last measured, the finest and noisiest;
+//!    there the winner's weight is checked by Stein's unbiased risk estimate on all the rows
+//!    ([`sure_check`]), and `auto` goes on at the geometric midpoint of the race's weight and
+//!    the least risk's.
 //! 3. The resolution the rows support: when there are fewer rows than pixels, the winning model
 //!    is also fitted on 2x2- (then 4x4-, ...) binned images (`A U`, [`ops::Binned`]) at the
 //!    winning `f`, started from the winner's block means (a cold start does not converge
@@ -244,6 +248,9 @@ pub struct Channel<'a> {
     /// Random-pattern rows under noise: folds of all the rows ([`FOLDS`] by default), on
     /// which the race's weight is checked ([`cross_validate`]); empty otherwise.
     pub folds: Vec<Fold<'a>>,
+    /// Orthonormal rows under noise: check the race's weight by Stein's unbiased risk estimate
+    /// ([`sure_check`]).
+    pub sure: bool,
 }
 
 /// An ordered session split where it was measured: the first rows, and the rest.
@@ -1376,6 +1383,159 @@ pub(crate) fn cross_validate(
     })
 }
 
+/// How many steps [`sure_check`] goes on past the race's weight while its least risk is at
+/// the lightest or heaviest weight tried.
+const SURE_EXTEND: usize = 4;
+/// The perturbation of [`sure_check`]'s divergence, in noise standard deviations.
+const SURE_EPSILON: f64 = 0.1;
+
+/// Stein's unbiased risk estimate of the race's weight on orthonormal rows, as reported
+/// ([`sure_check`]).
+#[derive(Clone, Debug, Serialize)]
+pub struct SureCheck {
+    /// The weights tried (fractions of `lambda_max`), increasing.
+    pub fractions: Vec<f64>,
+    /// Per weight: the estimated squared error of the fit's prediction of all the rows
+    /// (`||A (t_hat - t)||^2`, the image's error on the measured coefficients), relative to the
+    /// noise's `m sigma^2`.
+    pub risks: Vec<f64>,
+    /// Per weight: the divergence `sum_i d(A t_hat)_i / d b_i` (Monte-Carlo, one probe), the
+    /// fit's degrees of freedom.
+    pub divergences: Vec<f64>,
+    /// The noise standard deviation used (the pair sums').
+    pub sigma: f64,
+    /// The race's weight and the one with the least risk.
+    pub race: f64,
+    pub best: f64,
+    /// The weight `auto` goes on with: the geometric midpoint of the race's and the least
+    /// risk's.
+    pub chosen: f64,
+    /// Iterations of all the solves, and of the held-out fit solved again at `chosen`.
+    pub iterations: usize,
+    pub seconds: f64,
+}
+
+/// The race's weight checked by Stein's unbiased risk estimate on orthonormal rows (Hadamard
+/// split pairs) under noise (issue 20). The race's held-out rows are the last measured pairs,
+/// the finest and noisiest, and cannot separate neighbouring weights (the moon from 10 %
+/// Russian-doll pairs at 1e4 photons: held-out 0.967 / 0.970 at 0.2 / 0.3 `lambda_max`,
+/// 28.61 / 27.86 dB). With white noise of known `sigma` (the pair sums give it), every row
+/// scores: for the fit `t_hat(b)` on all `m` rows,
+/// `SURE = ||A t_hat - b||^2 - m sigma^2 + 2 sigma^2 div`, `div = sum_i d(A t_hat)_i / d b_i`,
+/// is an unbiased estimate of `||A (t_hat - t)||^2`, the image's error on the measured
+/// coefficients (Stein 1981; the divergence by one Monte-Carlo probe, Ramani, Blu and Unser
+/// 2008: the fit again on `b + eps delta`, `delta` of random signs,
+/// `div = delta . A (t_hat_eps - t_hat) / eps`, both solves from the race's image for the same [`FOLD_MAX_ITER`]
+/// iterations, so the divergence is that of the solver as run). It does not see the
+/// coefficients no row measured, which the weight also fills in; the race's held-out pairs,
+/// the finest measured, are the nearest to them. So `auto` takes the geometric midpoint of the
+/// two weights. Weights `f / FOLD_STEP`, `f`, `f FOLD_STEP`, then up to [`SURE_EXTEND`] more
+/// steps while the least risk is at an end (not past `lambda_max`); the solves of a round run
+/// in parallel.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn sure_check(
+    model: Model,
+    grid: (usize, usize),
+    (op, b): (&dyn LinearOperator, &[f64]),
+    sigma: f64,
+    warm: &[f64],
+    race: f64,
+    lipschitz: f64,
+    progress: f64,
+    control: &Control,
+) -> Result<SureCheck, ReconError> {
+    use rayon::prelude::*;
+    use std::sync::atomic::{AtomicUsize, Ordering};
+    let started = Instant::now();
+    let iterations = AtomicUsize::new(0);
+    let m = b.len();
+    let eps = SURE_EPSILON * sigma;
+    // Random signs, deterministic in the row index (a reconstruction replays bit for bit).
+    let delta: Vec<f64> = (0..m)
+        .map(|i| match holdout::key(i as u64 ^ 0x5eed) < 0.5 {
+            true => -1.0,
+            false => 1.0,
+        })
+        .collect();
+    let perturbed: Vec<f64> = b.iter().zip(&delta).map(|(b, d)| b + eps * d).collect();
+    // Per weight: (risk relative to m sigma^2, divergence).
+    let risks = |fractions: &[f64]| -> Result<Vec<(f64, f64)>, ReconError> {
+        let jobs: Vec<(usize, bool)> = (0..fractions.len())
+            .flat_map(|w| [(w, false), (w, true)])
+            .collect();
+        let predictions = jobs
+            .par_iter()
+            .map(|&(w, shifted)| {
+                // A fixed number of iterations (tol 0): both solves follow the same path.
+                let opts = SolveOptions {
+                    max_iter: FOLD_MAX_ITER,
+                    tol: 0.0,
+                    lambda: Lambda::Relative(fractions[w]),
+                    warm_start: Some(warm.to_vec()),
+                    lipschitz: Some(lipschitz),
+                    progress: (progress, progress),
+                    // Warm-started at heavy weights the plain prox stalls on its start.
+                    accelerated_prox: true,
+                    ..SolveOptions::default()
+                };
+                let data = if shifted { &perturbed } else { b };
+                let s = fit_model(model, grid, op, data, Noise::Gaussian, &opts, control)?;
+                iterations.fetch_add(s.report.iterations, Ordering::Relaxed);
+                Ok(super::fit::predict(op, &s.t))
+            })
+            .collect::<Result<Vec<Vec<f64>>, ReconError>>()?;
+        Ok(predictions
+            .chunks(2)
+            .map(|p| {
+                let rss: f64 = p[0].iter().zip(b).map(|(p, b)| (p - b) * (p - b)).sum();
+                let div = delta
+                    .iter()
+                    .zip(p[1].iter().zip(&p[0]))
+                    .map(|(d, (a, c))| d * (a - c))
+                    .sum::<f64>()
+                    / eps;
+                let noise = m as f64 * sigma * sigma;
+                ((rss - noise + 2.0 * sigma * sigma * div) / noise, div)
+            })
+            .collect())
+    };
+    let first = [race / FOLD_STEP, race, (race * FOLD_STEP).min(1.0)];
+    let mut tried: Vec<(f64, (f64, f64))> = first.into_iter().zip(risks(&first)?).collect();
+    let least = |tried: &[(f64, (f64, f64))]| {
+        tried
+            .iter()
+            .min_by(|a, b| a.1.0.total_cmp(&b.1.0))
+            .map(|p| p.0)
+            .expect("weights tried")
+    };
+    for _ in 0..SURE_EXTEND {
+        let best = least(&tried);
+        let (lightest, heaviest) = (tried[0].0, tried[tried.len() - 1].0);
+        let next = if best == lightest {
+            lightest / FOLD_STEP
+        } else if best == heaviest && heaviest < 1.0 {
+            (heaviest * FOLD_STEP).min(1.0)
+        } else {
+            break;
+        };
+        let r = risks(&[next])?.pop().expect("one weight");
+        tried.push((next, r));
+        tried.sort_by(|a, b| a.0.total_cmp(&b.0));
+    }
+    let best = least(&tried);
+    Ok(SureCheck {
+        fractions: tried.iter().map(|p| p.0).collect(),
+        risks: tried.iter().map(|p| p.1.0).collect(),
+        divergences: tried.iter().map(|p| p.1.1).collect(),
+        sigma,
+        race,
+        best,
+        chosen: (race * best).sqrt(),
+        iterations: iterations.into_inner(),
+        seconds: started.elapsed().as_secs_f64(),
+    })
+}
+
 /// Runs `auto` on one channel (see the module docs).
 pub fn run(
     job: &Channel,
@@ -1440,12 +1600,13 @@ pub fn run(
     // Only where the held-out rows confirm the noise the session shows ([`band_sigma`]): on
     // noise-free rows of a peaky scene the Bernoulli moments can read a noise that is not
     // there, and the race's single held-out set then separates the weights well.
-    let confirmed = || {
-        let q = scorer.predict(&held_out_fit.1);
+    let confirmed = |t: &[f64]| {
+        let q = scorer.predict(t);
         let residuals: Vec<f64> = job.b_test.iter().zip(&q).map(|(b, q)| b - q).collect();
         band_sigma(sigma, &residuals) >= sigma
     };
-    let check_folds = !job.folds.is_empty() && fraction < 1.0 && sigma > 0.0 && confirmed();
+    let check_folds =
+        !job.folds.is_empty() && fraction < 1.0 && sigma > 0.0 && confirmed(&held_out_fit.1);
     let fold_check = match check_folds {
         false => None,
         true => {
@@ -1488,6 +1649,56 @@ pub fn run(
         }
     };
     let folds_seconds = start.elapsed().as_secs_f64() - race_seconds;
+    // Orthonormal rows under noise: the race's weight checked by Stein's unbiased risk
+    // estimate on all the rows ([`sure_check`]), where the held-out pairs confirm the noise.
+    let check_sure = job.sure
+        && matches!(job.design, Design::Orthonormal { .. })
+        && !job.offset
+        && fraction < 1.0
+        && sigma > 0.0
+        && confirmed(&held_out_fit.1);
+    let sure = match (check_sure, job.noise) {
+        (true, Some(noise)) => {
+            let at = lo + (hi - lo) / stages;
+            let mut check = sure_check(
+                model,
+                (w, h),
+                (full_fit.as_ref(), &b_fit),
+                noise.sigma,
+                &held_out_fit.1,
+                fraction,
+                solve::step_constant(full_fit.as_ref(), None, true)?,
+                at,
+                control,
+            )?;
+            if check.chosen != fraction {
+                let opts = SolveOptions {
+                    max_iter: FOLD_MAX_ITER,
+                    tol: PATH_TOL,
+                    lambda: Lambda::Relative(check.chosen),
+                    warm_start: Some(held_out_fit.1.clone()),
+                    lipschitz: Some(lipschitz),
+                    progress: (at, at),
+                    ..SolveOptions::default()
+                };
+                let s = fit_model(
+                    model,
+                    (w, h),
+                    train_fit.as_ref(),
+                    &b_train_fit,
+                    Noise::Gaussian,
+                    &opts,
+                    control,
+                )?;
+                check.iterations += s.report.iterations;
+                held_out_fit = (score(&job.b_test, &scorer.predict(&s.t)), s.t, s.dual);
+                fraction = check.chosen;
+            }
+            Some(check)
+        }
+        _ => None,
+    };
+    let sure_seconds = start.elapsed().as_secs_f64() - race_seconds - folds_seconds;
 
     // The resolution the rows support (only a question when there are fewer rows than pixels).
     let mut chosen = (
@@ -1556,7 +1767,8 @@ pub fn run(
         }
     }
     let (factor, chosen_held_out, warm, lambda_train) = chosen;
-    let resolution_seconds = start.elapsed().as_secs_f64() - race_seconds - folds_seconds;
+    let resolution_seconds =
+        start.elapsed().as_secs_f64() - race_seconds - folds_seconds - sure_seconds;
     let binned_full = Binned::new(full_fit.as_ref(), w, h, factor);
     let binned_raw = Binned::new(job.full, w, h, factor);
     let binned_test = Binned::new(job.test, w, h, factor);
@@ -1789,6 +2001,7 @@ pub fn run(
         .flat_map(|c| c.path.iter().map(|p| p.iterations))
         .sum::<usize>()
         + fold_check.as_ref().map_or(0, |c| c.iterations)
+        + sure.as_ref().map_or(0, |c| c.iterations)
         + solution.report.iterations;
     let report = json!({
         "model": model.name(),
@@ -1819,9 +2032,10 @@ pub fn run(
         "warnings": warnings,
         "candidates": candidates,
         "folds": fold_check,
+        "sure": sure,
         "refit": solution.report,
         "seconds": start.elapsed().as_secs_f64(),
-        "stage_seconds": {"race": race_seconds, "folds": folds_seconds, "resolution": resolution_seconds, "debias": debias_seconds, "refit": solution.report.seconds},
+        "stage_seconds": {"race": race_seconds, "folds": folds_seconds, "sure": sure_seconds, "resolution": resolution_seconds, "debias": debias_seconds, "refit": solution.report.seconds},
     });
     Ok(Outcome {
         t,
@@ -3885,5 +4099,139 @@ mod tests {
         // Noise-free: the exact image (the camera scene is non-negative, so clipping is a no-op).
         let err = metrics::relative_error(&r.images[0].data, &truth);
         assert!(err < 1e-5, "{err}");
+    }
+
+    /// A standard normal draw, deterministic in `i` (Box-Muller on two hashes of it).
+    fn gaussian(i: u64) -> f64 {
+        let u1 = crate::holdout::key(2 * i).max(1e-12);
+        let u2 = crate::holdout::key(2 * i + 1);
+        (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+    }
+
+    #[test]
+    fn stein_risk_estimates_the_fits_error_on_the_measured_coefficients() {
+        use crate::linop::LinearOperator;
+        use crate::ops::HadamardOperator;
+        use crate::solve::{Lambda, SolveOptions};
+        // A quarter of the Russian-doll pairs of the 64x64 camera scene, white noise of a known
+        // sigma: at every weight it tries, `sure_check`'s risk must be the fit's true error on
+        // the measured coefficients, `||A (t_hat - t)||^2 / (m sigma^2)`, to within the
+        // estimate's own spread (`||n||^2 - m sigma^2` alone has a standard deviation of
+        // `sqrt(2 / m) = 0.044` of `m sigma^2` here).
+        let n = 64usize;
+        let truth: Vec<f64> = scene("camera", n as u32)
+            .iter()
+            .map(|&v| v as f64)
+            .collect();
+        let rows = n * n / 4;
+        let op = HadamardOperator::new(n as u32, n as u32, HadamardOrdering::RussianDoll, rows);
+        let mut clean = vec![0.0; rows];
+        op.apply(&truth, &mut clean);
+        let rms = (clean.iter().map(|v| v * v).sum::<f64>() / rows as f64).sqrt();
+        let sigma = 0.3 * rms;
+        let b: Vec<f64> = clean
+            .iter()
+            .enumerate()
+            .map(|(i, c)| c + sigma * gaussian(i as u64))
+            .collect();
+        let mut warm = vec![0.0; n * n];
+        op.adjoint(&b, &mut warm);
+        let check = super::sure_check(
+            Model::Tv,
+            (n, n),
+            (&op, &b),
+            sigma,
+            &warm,
+            0.03,
+            1.0,
+            0.0,
+            &Control::new(),
+        )
+        .unwrap();
+        let true_risk = |f: f64| {
+            let opts = SolveOptions {
+                max_iter: super::FOLD_MAX_ITER,
+                tol: 0.0,
+                lambda: Lambda::Relative(f),
+                warm_start: Some(warm.clone()),
+                lipschitz: Some(1.0),
+                accelerated_prox: true,
+                ..SolveOptions::default()
+            };
+            let s = crate::fit::fit_model(
+                Model::Tv,
+                (n, n),
+                &op,
+                &b,
+                Noise::Gaussian,
+                &opts,
+                &Control::new(),
+            )
+            .unwrap();
+            let mut p = vec![0.0; rows];
+            op.apply(&s.t, &mut p);
+            p.iter()
+                .zip(&clean)
+                .map(|(p, c)| (p - c) * (p - c))
+                .sum::<f64>()
+                / (rows as f64 * sigma * sigma)
+        };
+        let truths: Vec<f64> = check.fractions.iter().map(|&f| true_risk(f)).collect();
+        println!("{check:?}\ntrue risks {truths:?}");
+        assert!(check.fractions.len() >= 3);
+        for ((f, est), truth) in check.fractions.iter().zip(&check.risks).zip(&truths) {
+            assert!(
+                (est - truth).abs() < 0.1,
+                "at {f}: estimated {est}, true {truth}"
+            );
+        }
+        // The least estimated risk is the least true one, or next to it.
+        let argmin = |v: &[f64]| (0..v.len()).min_by(|&a, &b| v[a].total_cmp(&v[b])).unwrap();
+        let (e, t) = (argmin(&check.risks), argmin(&truths));
+        assert!(
+            e.abs_diff(t) <= 1,
+            "estimated best {e}, true best {t}: {check:?}"
+        );
+        assert_eq!(check.chosen, (check.race * check.best).sqrt());
+    }
+
+    #[test]
+    fn on_noisy_hadamard_pairs_the_stein_risk_moves_the_weight_and_the_image_gains() {
+        use helmholtz_sim::simulate::NoiseModel;
+        // The smooth scene, 64x64, from 10 % of the Russian-doll pairs at 1e4 photons per
+        // pattern: the race's held-out pairs (the last measured) choose one weight, the Stein
+        // risk on all the pairs a heavier one, and `auto` goes to their geometric midpoint (0.1 and
+        // 0.18 `lambda_max`: 0.13; 20.53 -> 20.93 dB).
+        let n = 64u32;
+        let truth = scene("smooth", n);
+        let spec = russian_doll(n, 2 * 410);
+        let noise = NoiseModel {
+            photons: Some(1e4),
+            seed: 17,
+            ..NoiseModel::default()
+        };
+        let (noisy, _) = helmholtz_sim::simulate::apply_noise(&buckets(&spec, &truth), 1, &noise);
+        let with = auto(&spec, &noisy, json!({}));
+        let without = auto(&spec, &noisy, json!({"folds": 0}));
+        let sure = &with.report.details["auto"][0]["sure"];
+        let (p_with, p_without) = (
+            metrics::psnr(&with.images[0].data, &truth),
+            metrics::psnr(&without.images[0].data, &truth),
+        );
+        println!("sure {sure}: {p_with:.2} dB, without {p_without:.2} dB");
+        assert!(without.report.details["auto"][0]["sure"].is_null());
+        let (race, chosen) = (
+            sure["race"].as_f64().unwrap(),
+            sure["chosen"].as_f64().unwrap(),
+        );
+        assert!(chosen != race, "{sure}");
+        assert_eq!(
+            with.report.details["auto"][0]["lambda_fraction"].as_f64(),
+            Some(chosen)
+        );
+        assert!(p_with > p_without + 0.2, "{p_with} against {p_without}");
+        // Noise-free pairs show no noise: no check.
+        let clean = auto(&spec, &buckets(&spec, &truth), json!({}));
+        assert!(clean.report.details["auto"][0]["sure"].is_null());
     }
 }

@@ -53,8 +53,9 @@ pub enum MethodConfig {
         /// its own and needs it on a noisy rig.
         read_noise: Option<ReadNoise>,
         /// Folds of all the rows on which the race's weight is checked where random-pattern
-        /// rows show noise ([`crate::auto::cross_validate`]); 0 skips the check (faster, the
-        /// race's single held-out set alone chooses).
+        /// rows show noise ([`crate::auto::cross_validate`]); 0 skips the check, and the Stein
+        /// risk check of Hadamard pairs ([`crate::auto::sure_check`]) too (faster, the race's
+        /// single held-out set alone chooses).
         folds: usize,
     },
 }
