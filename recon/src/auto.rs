@@ -249,7 +249,9 @@ pub struct Channel<'a> {
     /// which the race's weight is checked ([`cross_validate`]); empty otherwise.
     pub folds: Vec<Fold<'a>>,
     /// Orthonormal rows under noise: check the race's weight by Stein's unbiased risk estimate
-    /// ([`sure_check`]).
+    /// ([`sure_check`]). Not for adaptive sessions: their rows' noise differs row by row
+    /// (adaptive_haar's data are also shrunk by it before the fit), and their rows were chosen
+    /// from the data, while the risk assumes one `sigma` on a fixed design.
     pub sure: bool,
 }
 

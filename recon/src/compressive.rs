@@ -524,7 +524,8 @@ pub fn run(
                             .collect(),
                         false => Vec::new(),
                     },
-                    sure: matches!(config, MethodConfig::Auto { folds, .. } if *folds > 0),
+                    sure: !adaptive
+                        && matches!(config, MethodConfig::Auto { folds, .. } if *folds > 0),
                 };
                 let out = auto::run(&job, models, *max_iter, *fit, span, control)?;
                 score.add_channel(ch, &job.b_test, &out.held_out_prediction);
