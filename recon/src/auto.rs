@@ -1275,6 +1275,20 @@ fn fold_choice(race: f64, tried: &[(f64, Vec<f64>)]) -> (f64, f64, f64) {
     (best, significance, chosen)
 }
 
+/// The next weight a check tries ([`cross_validate`], [`sure_check`]) while its best lies at
+/// an end of the weights tried (`weights`, increasing): a [`FOLD_STEP`] beyond it, not past
+/// `lambda_max`; `None` when the best lies inside them.
+fn next_weight(weights: &[f64], best: f64) -> Option<f64> {
+    let (lightest, heaviest) = (weights[0], weights[weights.len() - 1]);
+    if best == lightest {
+        Some(lightest / FOLD_STEP)
+    } else if best == heaviest && heaviest < 1.0 {
+        Some((heaviest * FOLD_STEP).min(1.0))
+    } else {
+        None
+    }
+}
+
 /// K-fold scores for the race's weight on random-pattern rows under noise (issue 20). The race
 /// chooses its weight by one held-out set; under noise its scores for neighbouring weights
 /// differ by less than their own noise (the coffee from 10 % Bernoulli rows at 30 dB: 0.9604,
@@ -1349,13 +1363,8 @@ pub(crate) fn cross_validate(
     let mut tried: Vec<(f64, Vec<f64>)> = first.into_iter().zip(sums(&first)?).collect();
     let total = |r: &[f64]| r.iter().sum::<f64>();
     for _ in 0..FOLD_EXTEND {
-        let best = fold_choice(race, &tried).0;
-        let (lightest, heaviest) = (tried[0].0, tried[tried.len() - 1].0);
-        let next = if best == lightest {
-            lightest / FOLD_STEP
-        } else if best == heaviest && heaviest < 1.0 {
-            (heaviest * FOLD_STEP).min(1.0)
-        } else {
+        let weights: Vec<f64> = tried.iter().map(|p| p.0).collect();
+        let Some(next) = next_weight(&weights, fold_choice(race, &tried).0) else {
             break;
         };
         let s = sums(&[next])?.pop().expect("one weight");
@@ -1576,13 +1585,8 @@ pub(crate) fn sure_check(
             .expect("weights tried")
     };
     for _ in 0..SURE_EXTEND {
-        let best = least(&tried);
-        let (lightest, heaviest) = (tried[0].0, tried[tried.len() - 1].0);
-        let next = if best == lightest {
-            lightest / FOLD_STEP
-        } else if best == heaviest && heaviest < 1.0 {
-            (heaviest * FOLD_STEP).min(1.0)
-        } else {
+        let weights: Vec<f64> = tried.iter().map(|p| p.0).collect();
+        let Some(next) = next_weight(&weights, least(&tried)) else {
             break;
         };
         let r = risks(&[next])?.pop().expect("one weight");
@@ -1674,6 +1678,28 @@ pub fn run(
         let residuals: Vec<f64> = job.b_test.iter().zip(&q).map(|(b, q)| b - q).collect();
         band_sigma(sigma, &residuals) >= sigma
     };
+    // The held-out fit solved again at the weight a check chose, from `warm`.
+    let refit_at = |f: f64, warm: &[f64], at: f64, accelerated_prox: bool| {
+        let opts = SolveOptions {
+            max_iter: FOLD_MAX_ITER,
+            tol: PATH_TOL,
+            lambda: Lambda::Relative(f),
+            warm_start: Some(warm.to_vec()),
+            lipschitz: Some(lipschitz),
+            progress: (at, at),
+            accelerated_prox,
+            ..SolveOptions::default()
+        };
+        fit_model(
+            model,
+            (w, h),
+            train_fit.as_ref(),
+            &b_train_fit,
+            Noise::Gaussian,
+            &opts,
+            control,
+        )
+    };
     let check_folds =
         !job.folds.is_empty() && fraction < 1.0 && sigma > 0.0 && confirmed(&held_out_fit.1);
     let fold_check = match check_folds {
@@ -1692,24 +1718,7 @@ pub fn run(
                 control,
             )?;
             if check.chosen != fraction {
-                let opts = SolveOptions {
-                    max_iter: FOLD_MAX_ITER,
-                    tol: PATH_TOL,
-                    lambda: Lambda::Relative(check.chosen),
-                    warm_start: Some(held_out_fit.1.clone()),
-                    lipschitz: Some(lipschitz),
-                    progress: (at, at),
-                    ..SolveOptions::default()
-                };
-                let s = fit_model(
-                    model,
-                    (w, h),
-                    train_fit.as_ref(),
-                    &b_train_fit,
-                    Noise::Gaussian,
-                    &opts,
-                    control,
-                )?;
+                let s = refit_at(check.chosen, &held_out_fit.1, at, false)?;
                 check.iterations += s.report.iterations;
                 held_out_fit = (score(&job.b_test, &scorer.predict(&s.t)), s.t, s.dual);
                 fraction = check.chosen;
@@ -1760,28 +1769,10 @@ pub fn run(
                 check.flat = Some(rivals);
             }
             if check.chosen != fraction {
-                let opts = SolveOptions {
-                    max_iter: FOLD_MAX_ITER,
-                    tol: PATH_TOL,
-                    lambda: Lambda::Relative(check.chosen),
-                    warm_start: Some(held_out_fit.1.clone()),
-                    lipschitz: Some(lipschitz),
-                    progress: (at, at),
-                    // From the flat image the plain prox stalls on its start at these weights;
-                    // elsewhere it was measured better (cell at 1e4 photons: 30.57 dB against
-                    // 30.33 with the accelerated prox).
-                    accelerated_prox: flat,
-                    ..SolveOptions::default()
-                };
-                let s = fit_model(
-                    model,
-                    (w, h),
-                    train_fit.as_ref(),
-                    &b_train_fit,
-                    Noise::Gaussian,
-                    &opts,
-                    control,
-                )?;
+                // From the flat image the plain prox stalls on its start at these weights;
+                // elsewhere it was measured better (cell at 1e4 photons: 30.57 dB against
+                // 30.33 with the accelerated prox).
+                let s = refit_at(check.chosen, &held_out_fit.1, at, flat)?;
                 check.iterations += s.report.iterations;
                 // A flat winner's fill-in, which the risk cannot see, judged by the held-out
                 // pairs: a fit they find worse than the flat image by more than half a noise
