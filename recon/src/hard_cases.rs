@@ -945,15 +945,18 @@ fn check_noise_estimate(case: &str, spec: &PatternSpec, c: &[f64], sigma: f64) {
 
 #[test]
 fn the_hard_cases_under_noise() {
-    // 1 % sampling at 30 dB: finite, non-negative, positively correlated.
+    // 1 % sampling at 30 dB: finite, non-negative, positively correlated (Bernoulli rows, and
+    // Russian-doll pairs, where `auto` checks its weight by Stein's risk).
     let truth = blocks(64, 64);
-    let spec = bernoulli(64, 64, 41, 0.5, 11);
-    let (c, _) = read_noise(&clean(&spec, &truth), 30.0, 3);
-    for method in any_family() {
-        let image = checked_image("1 % sampling, 30 dB", &spec, &c, 41, method);
-        let corr = pearson(&image, &truth);
-        eprintln!("1 % sampling, 30 dB / {method}: pearson {corr:.3}");
-        assert!(corr > 0.0, "{method}: pearson {corr:.3}");
+    for spec in [bernoulli(64, 64, 41, 0.5, 11), hadamard(64, 64, 82)] {
+        let (c, _) = read_noise(&clean(&spec, &truth), 30.0, 3);
+        let case = format!("1 % sampling, 30 dB {}", spec.family().name());
+        for method in any_family() {
+            let image = checked_image(&case, &spec, &c, spec.count(), method);
+            let corr = pearson(&image, &truth);
+            eprintln!("{case} / {method}: pearson {corr:.3}");
+            assert!(corr > 0.0, "{case} / {method}: pearson {corr:.3}");
+        }
     }
 
     // A nearly dark scene: one block at 1e-3 of full scale on black, 10 dB read noise (the
@@ -965,22 +968,34 @@ fn the_hard_cases_under_noise() {
             dim[y * 32 + x] = 1e-3;
         }
     }
-    let spec = bernoulli(32, 32, 600, 0.5, 5);
-    let (c, sigma) = read_noise(&clean(&spec, &dim), 10.0, 4);
     let total: f64 = dim.iter().map(|&v| v as f64).sum();
-    for method in any_family() {
-        let image = checked_image("nearly dark, 10 dB", &spec, &c, 600, method);
-        if is_correlation(method) {
-            continue;
+    for spec in [bernoulli(32, 32, 600, 0.5, 5), hadamard(32, 32, 600)] {
+        let (c, sigma) = read_noise(&clean(&spec, &dim), 10.0, 4);
+        let case = format!("nearly dark, 10 dB {}", spec.family().name());
+        for method in any_family() {
+            let image = checked_image(&case, &spec, &c, 600, method);
+            if is_correlation(method) {
+                continue;
+            }
+            let sum: f64 = image.iter().map(|&v| v as f64).sum();
+            eprintln!("{case} / {method}: total {sum:.4e} (truth {total:.4e})");
+            // From Hadamard pairs `cs` and `tv` at their default (light) weights invent light
+            // here: an open defect, stated by the ignored test below.
+            if matches!(spec.family(), Family::Hadamard { .. }) && matches!(method, "cs" | "tv") {
+                continue;
+            }
+            assert!(
+                (sum - total).abs() < 0.5 * total,
+                "{case} / {method}: total light {sum:.4e}, truth {total:.4e}"
+            );
         }
-        let sum: f64 = image.iter().map(|&v| v as f64).sum();
-        eprintln!("nearly dark, 10 dB / {method}: total {sum:.4e} (truth {total:.4e})");
-        assert!(
-            (sum - total).abs() < 0.5 * total,
-            "{method}: total light {sum:.4e}, truth {total:.4e}"
-        );
+        // Hadamard data are pair differences over sqrt(k): sigma sqrt(2) / sqrt(k).
+        let sigma = match spec.family() {
+            Family::Hadamard { .. } => sigma * 2f64.sqrt() / 32.0,
+            _ => sigma,
+        };
+        check_noise_estimate(&case, &spec, &c, sigma);
     }
-    check_noise_estimate("nearly dark, 10 dB", &spec, &c, sigma);
 
     // A highlight 1e4 times the background at 30 dB: located by every method.
     let at = 25 * 32 + 7;
@@ -1005,6 +1020,34 @@ fn the_hard_cases_under_noise() {
             _ => sigma,
         };
         check_noise_estimate(&case, &spec, &c, sigma);
+    }
+}
+
+/// An open defect (found 2026-12-03, not fixed): on the nearly dark scene of
+/// [`the_hard_cases_under_noise`] from 600 Russian-doll frames (300 pairs, 32x32) at 10 dB,
+/// `cs` and `tv` at their default weights (1e-3 of `lambda_max`) give 2.4 times the scene's
+/// light (0.191 against 0.080); `lsq` gives 0.071 and `auto` 0.093. The light is the noise
+/// the non-negativity keeps; the all-on pair measures the total, which the light weights do
+/// not hold. Run with `--ignored` to see it fail.
+#[test]
+#[ignore = "open defect: default cs and tv invent light on noisy dark Hadamard pairs"]
+fn default_cs_and_tv_keep_the_light_of_a_nearly_dark_scene_from_noisy_hadamard_pairs() {
+    let mut dim = vec![0.0f32; 32 * 32];
+    for y in 10..18 {
+        for x in 12..22 {
+            dim[y * 32 + x] = 1e-3;
+        }
+    }
+    let total: f64 = dim.iter().map(|&v| v as f64).sum();
+    let spec = hadamard(32, 32, 600);
+    let (c, _) = read_noise(&clean(&spec, &dim), 10.0, 4);
+    for method in ["cs", "tv"] {
+        let image = checked_image("nearly dark, 10 dB hadamard", &spec, &c, 600, method);
+        let sum: f64 = image.iter().map(|&v| v as f64).sum();
+        assert!(
+            (sum - total).abs() < 0.5 * total,
+            "{method}: total light {sum:.4e}, truth {total:.4e}"
+        );
     }
 }
 
