@@ -1449,6 +1449,17 @@ fn sure_signs(m: usize) -> Vec<f64> {
         .collect()
 }
 
+/// The probe's divergence of a fit: `delta . (p_shifted - p) / eps`, its predictions of the
+/// data shifted by `eps delta` and as measured.
+fn probe_divergence(delta: &[f64], p_shifted: &[f64], p: &[f64], eps: f64) -> f64 {
+    delta
+        .iter()
+        .zip(p_shifted.iter().zip(p))
+        .map(|(d, (a, c))| d * (a - c))
+        .sum::<f64>()
+        / eps
+}
+
 /// Stein's risk of a fit, relative to the noise's `m sigma^2`: its prediction `p` of the data
 /// `b`, its divergence `div`.
 fn stein_risk(p: &[f64], b: &[f64], div: f64, sigma: f64) -> f64 {
@@ -1481,12 +1492,7 @@ fn flat_rivals(job: &Channel, noise: &NoiseEstimate, flat: &[f64]) -> (f64, Opti
         .map(|s| super::fit::predict(job.full, &s.t))
     };
     let shrunk_risk = shrunk(job.b).zip(shrunk(&shifted)).map(|(p0, p1)| {
-        let div = delta
-            .iter()
-            .zip(p1.iter().zip(&p0))
-            .map(|(d, (a, c))| d * (a - c))
-            .sum::<f64>()
-            / eps;
+        let div = probe_divergence(&delta, &p1, &p0, eps);
         stein_risk(&p0, job.b, div + 1.0, sigma)
     });
     (flat_risk, shrunk_risk)
@@ -1565,12 +1571,7 @@ pub(crate) fn sure_check(
         Ok(predictions
             .chunks(2)
             .map(|p| {
-                let div = delta
-                    .iter()
-                    .zip(p[1].iter().zip(&p[0]))
-                    .map(|(d, (a, c))| d * (a - c))
-                    .sum::<f64>()
-                    / eps;
+                let div = probe_divergence(&delta, &p[1], &p[0], eps);
                 (stein_risk(&p[0], b, div, sigma), div)
             })
             .collect())
