@@ -1674,11 +1674,11 @@ pub fn run(
     // Only where the held-out rows confirm the noise the session shows ([`band_sigma`]): on
     // noise-free rows of a peaky scene the Bernoulli moments can read a noise that is not
     // there, and the race's single held-out set then separates the weights well.
-    let confirmed = |t: &[f64]| {
+    let residuals = |t: &[f64]| -> Vec<f64> {
         let q = scorer.predict(t);
-        let residuals: Vec<f64> = job.b_test.iter().zip(&q).map(|(b, q)| b - q).collect();
-        band_sigma(sigma, &residuals) >= sigma
+        job.b_test.iter().zip(&q).map(|(b, q)| b - q).collect()
     };
+    let confirmed = |t: &[f64]| band_sigma(sigma, &residuals(t)) >= sigma;
     // The held-out fit solved again at the weight a check chose, from `warm`.
     let refit_at = |f: f64, warm: &[f64], at: f64, accelerated_prox: bool| {
         let opts = SolveOptions {
@@ -1780,10 +1780,6 @@ pub fn run(
                 // deviation of the difference ([`within_noise`], [`PATH_BAND`]) is not taken
                 // (measured: the text page at 64x64 and 30 dB, 0.82 dB below the flat image's
                 // shrunk inverse, was 2.6 deviations worse there; the gains were within 0.3).
-                let residuals = |t: &[f64]| -> Vec<f64> {
-                    let q = scorer.predict(t);
-                    job.b_test.iter().zip(&q).map(|(b, q)| b - q).collect()
-                };
                 check.vetoed = flat
                     && !within_noise(
                         &residuals(&s.t),
