@@ -1475,3 +1475,171 @@ fn accelerated_tv_prox_is_exact_to_its_gap_and_beats_the_plain_iteration_at_a_ra
         "accelerated gap {fast_gap:.3e} against the plain {plain_gap:.3e}"
     );
 }
+
+/// The scaled simplex's threshold: `max(z - tau, 0)` sums to `s`, and it is the projection
+/// (against the sorted-prefix formula: `tau = (sum of the top j - s) / j` for the largest `j`
+/// whose `j`-th entry stays above it), from any guess; `s <= 0` projects to 0.
+#[test]
+fn the_simplex_threshold_projects_onto_the_held_total() {
+    let mut rng = Rng::new(17);
+    for (k, s) in [
+        (1usize, 2.0f64),
+        (7, 0.3),
+        (200, 5.0),
+        (200, 1e3),
+        (4096, 12.5),
+    ] {
+        let z: Vec<f64> = (0..k).map(|_| rng.normal()).collect();
+        let tau = fista::simplex_threshold(&z, s);
+        let p: Vec<f64> = z.iter().map(|&v| (v - tau).max(0.0)).collect();
+        let sum: f64 = p.iter().sum();
+        assert!(
+            (sum - s).abs() <= 1e-12 * s.max(1.0),
+            "k {k}: sum {sum} for {s}"
+        );
+        let mut sorted = z.clone();
+        sorted.sort_by(|a, b| b.total_cmp(a));
+        let mut reference = f64::NAN;
+        let mut prefix = 0.0;
+        for (j, &v) in sorted.iter().enumerate() {
+            prefix += v;
+            let t = (prefix - s) / (j + 1) as f64;
+            if v > t {
+                reference = t;
+            }
+        }
+        assert!(
+            (tau - reference).abs() <= 1e-12 * (1.0 + reference.abs()),
+            "k {k}: {tau} against {reference}"
+        );
+        // From a guess above the root, below it, or above every entry: the same threshold.
+        for guess in [
+            reference + 0.5,
+            reference - 0.5,
+            reference + 1e-9,
+            1e3,
+            f64::NAN,
+        ] {
+            let from = fista::simplex_threshold_from(&z, s, guess);
+            assert!(
+                (from - reference).abs() <= 1e-12 * (1.0 + reference.abs()),
+                "k {k}, from {guess}: {from} against {reference}"
+            );
+        }
+    }
+    let z = [0.5, -1.0, 2.0];
+    for s in [0.0, -1.0] {
+        let tau = fista::simplex_threshold(&z, s);
+        assert!(
+            z.iter().all(|&v| (v - tau).max(0.0) == 0.0),
+            "total {s}: tau {tau}"
+        );
+    }
+}
+
+/// With a held total the proxes are exact on `{t >= 0, sum t = S}`: the l1 of pixels is the
+/// simplex projection (the l1 is `S` there), and the dual iterations for an orthonormal `Psi`
+/// and for TV equal an independent Chambolle-Pock solve whose primal step projects onto the
+/// same set; every output holds the total.
+#[test]
+fn proxes_with_a_held_total_are_exact_on_the_simplex() {
+    use crate::transforms::tv::{gradient, gradient_adjoint, pair_norm};
+    let side = 12;
+    let k = side * side;
+    let total = 9.0;
+    let mut rng = Rng::new(5);
+    let v: Vec<f64> = (0..k).map(|_| 0.05 + 0.2 * rng.normal()).collect();
+    let gamma = 0.08;
+    let sum = |t: &[f64]| t.iter().sum::<f64>();
+
+    // l1 of pixels.
+    let mut prox = fista::Prox::new(fista::Reg::Pixel, true, k);
+    prox.hold_total(Some(total));
+    let mut t = vec![0.0; k];
+    prox.apply(&v, gamma, 0.0, &mut t);
+    let tau = fista::simplex_threshold(&v, total);
+    assert!(t.iter().zip(&v).all(|(&a, &b)| a == (b - tau).max(0.0)));
+
+    // Chambolle-Pock on min_{t in C} 1/2 ||t - v||^2 + gamma ||G t||, for G = Psi or D.
+    let reference = |g: &dyn Fn(&[f64], &mut [f64]),
+                     gt: &dyn Fn(&[f64], &mut [f64]),
+                     m: usize,
+                     norm2: f64,
+                     project: &dyn Fn(&mut [f64])| {
+        let (mut r, mut y) = (vec![0.0; k], vec![0.0; m]);
+        let (mut gty, mut gs) = (vec![0.0; k], vec![0.0; m]);
+        let step = 0.95 / norm2.sqrt();
+        for _ in 0..40000 {
+            gt(&y, &mut gty);
+            let old = r.clone();
+            let mut z: Vec<f64> = (0..k)
+                .map(|i| (r[i] - step * gty[i] + step * v[i]) / (1.0 + step))
+                .collect();
+            let tau = fista::simplex_threshold(&z, total);
+            z.iter_mut().for_each(|x| *x = (*x - tau).max(0.0));
+            r = z;
+            let bar: Vec<f64> = r.iter().zip(&old).map(|(n, o)| 2.0 * n - o).collect();
+            g(&bar, &mut gs);
+            y.iter_mut().zip(&gs).for_each(|(y, s)| *y += step * s);
+            project(&mut y);
+        }
+        r
+    };
+
+    let psi = random_orthogonal(k, 11);
+    let mut prox = fista::Prox::new(fista::Reg::Ortho(&psi, 0), true, k);
+    prox.hold_total(Some(total));
+    for _ in 0..2000 {
+        prox.apply(&v, gamma, 1e-28, &mut t);
+    }
+    assert!(t.iter().all(|&x| x >= 0.0));
+    assert!(
+        (sum(&t) - total).abs() < 1e-12 * total,
+        "ortho: total {}",
+        sum(&t)
+    );
+    assert!(prox.last_gap < 1e-12, "ortho: gap {}", prox.last_gap);
+    let cp = reference(
+        &|x, out| psi.apply(x, out),
+        &|y, out| psi.adjoint(y, out),
+        k,
+        1.0,
+        &|y| y.iter_mut().for_each(|u| *u = u.clamp(-gamma, gamma)),
+    );
+    let err = rel_err(&t, &cp);
+    assert!(err < 1e-6, "ortho: dual prox against the reference {err:e}");
+
+    let grid = Grid::new(side, side);
+    let mut prox = fista::Prox::new(fista::Reg::Tv(grid), true, k);
+    prox.hold_total(Some(total));
+    prox.accelerated = true;
+    for _ in 0..4 {
+        prox.tighten();
+    }
+    for _ in 0..20 {
+        prox.apply(&v, gamma, 0.0, &mut t);
+    }
+    assert!(t.iter().all(|&x| x >= 0.0));
+    assert!(
+        (sum(&t) - total).abs() < 1e-12 * total,
+        "tv: total {}",
+        sum(&t)
+    );
+    assert!(prox.last_gap < 1e-12, "tv: gap {}", prox.last_gap);
+    let cp = reference(
+        &|x, out| gradient(x, grid, out),
+        &|y, out| gradient_adjoint(y, grid, out),
+        2 * k,
+        8.0,
+        &|y| {
+            let (px, py) = y.split_at_mut(k);
+            for (x, y) in px.iter_mut().zip(py.iter_mut()) {
+                let f = (gamma / pair_norm(*x, *y)).min(1.0);
+                *x *= f;
+                *y *= f;
+            }
+        },
+    );
+    let err = rel_err(&t, &cp);
+    assert!(err < 1e-6, "tv: dual prox against the reference {err:e}");
+}

@@ -60,7 +60,9 @@ use crate::linop::{LinearOperator, dot, norm};
 use crate::simd::avx2_dispatch;
 use crate::{Control, ReconError};
 
-pub(crate) use self::prox::{Prox, Reg, project_discs};
+#[cfg(test)]
+pub(crate) use self::prox::simplex_threshold_from;
+pub(crate) use self::prox::{Prox, Reg, project_discs, simplex_threshold};
 
 /// `||A z - (A y)_recurrence||^2` below this fraction of `||A z||^2 + ||A y||^2` is rounding
 /// (a relative difference of 1e-10, far above f64 rounding and far below any real step), not
@@ -324,12 +326,22 @@ fn fista_core(
     // Work vectors, allocated once.
     let mut x = vec![0.0; k];
     let mut ax = vec![0.0; n];
+    let total = opts.total.filter(|_| opts.nonnegative);
     match &opts.warm_start {
         Some(t0) => {
             x.copy_from_slice(t0);
             if opts.nonnegative {
                 x.iter_mut().for_each(|v| *v = v.max(0.0));
             }
+            if let Some(s) = total {
+                let tau = simplex_threshold(&x, s);
+                x.iter_mut().for_each(|v| *v = (*v - tau).max(0.0));
+            }
+            a.apply(&x, &mut ax);
+        }
+        None if total.is_some() => {
+            // Cold start on the held total: the flat image of that light.
+            x.fill(total.unwrap_or(0.0).max(0.0) / k as f64);
             a.apply(&x, &mut ax);
         }
         None => {
@@ -350,6 +362,7 @@ fn fista_core(
     let mut ay = ax.clone();
     let mut prox = Prox::new(reg, opts.nonnegative, k);
     prox.accelerated = opts.accelerated_prox;
+    prox.hold_total(total);
     // The warm dual is the fallback of a first step that fails (below): started from it
     // always, the first steps of a point next to its neighbour are tiny and the relative-change
     // rule stopped the point there (measured: noise-free 10 % Hadamard pairs of the smooth

@@ -2,7 +2,7 @@
 //! (module docs of [`super`]): closed-form for the l1 of pixels and for an orthonormal `Psi`
 //! without the constraint, the dual projected-gradient iteration otherwise.
 
-use super::tv_prox::tv_prox_pass;
+use super::tv_prox::{primal_from_dual_serial, tv_prox_pass};
 use crate::linop::LinearOperator;
 use crate::simd::avx2_dispatch;
 use crate::solve::grid::{Grid, gradient, pair_norm};
@@ -64,13 +64,23 @@ impl Reg<'_> {
     }
 }
 
-/// Proximal operator of `gamma R(t) (+ i_{t >= 0})`, with its dual state kept between calls
-/// (warm start). Closed-form for `Pixel` and for `Ortho` without the constraint; otherwise the
-/// dual projected-gradient iteration of the module docs (step `1 / ||G||^2`: 1 for `Psi`,
-/// 1/8 for `D`; dual set: the box `|u_j| <= gamma`, or the pointwise discs `|p_i| <= gamma`).
+/// Proximal operator of `gamma R(t) (+ i_C(t))`, with its dual state kept between calls
+/// (warm start); `C` is `t >= 0`, or with a held total ([`Prox::hold_total`]) the scaled
+/// simplex `t >= 0, sum t = S`. Closed-form for `Pixel` and for `Ortho` without the constraint;
+/// otherwise the dual projected-gradient iteration of the module docs (step `1 / ||G||^2`: 1
+/// for `Psi`, 1/8 for `D`; dual set: the box `|u_j| <= gamma`, or the pointwise discs
+/// `|p_i| <= gamma`), whose primal point is `P_C(v - G^T u)` for any closed convex `C` (the
+/// gap `gamma R(t) - u . G t` is the same).
 pub(crate) struct Prox<'a> {
     reg: Reg<'a>,
     nonneg: bool,
+    /// `S` of `sum t = S` ([`Prox::hold_total`]), and the last simplex threshold (the next
+    /// call's guess, [`simplex_threshold_from`]).
+    total: Option<f64>,
+    tau: f64,
+    /// `v - tau`, the prox input shifted by the simplex projection's threshold (TV with a
+    /// held total).
+    shifted: Vec<f64>,
     u: Vec<f64>,
     pub(crate) s: Vec<f64>,
     tmp: Vec<f64>,
@@ -91,6 +101,9 @@ impl<'a> Prox<'a> {
         Prox {
             reg,
             nonneg,
+            total: None,
+            tau: f64::NEG_INFINITY,
+            shifted: Vec::new(),
             u: vec![0.0; m],
             s: vec![0.0; m],
             tmp: vec![0.0; k],
@@ -99,6 +112,28 @@ impl<'a> Prox<'a> {
             cap: Self::base_cap(reg),
             accelerated: false,
         }
+    }
+
+    /// Holds `sum t = total` besides `t >= 0` (ignored without the constraint; a total `<= 0`
+    /// leaves only `t = 0`).
+    pub(crate) fn hold_total(&mut self, total: Option<f64>) {
+        self.total = total.filter(|_| self.nonneg);
+        if self.total.is_some() && matches!(self.reg, Reg::Tv(_)) {
+            self.shifted = vec![0.0; self.tmp.len()];
+        }
+    }
+
+    /// `v` shifted by the threshold of `P_C(v - D^T u)` (the primal point's input), for a TV
+    /// pass that then clips at 0: `clip(v - tau - D^T u) = P_C(v - D^T u)`.
+    fn shift_for(&mut self, u: &[f64], v: &[f64], grid: Grid) {
+        let total = self.total.expect("a held total");
+        primal_from_dual_serial(u, v, grid, &mut self.tmp);
+        let tau = simplex_threshold_from(&self.tmp, total, self.tau);
+        self.tau = tau;
+        self.shifted
+            .iter_mut()
+            .zip(v)
+            .for_each(|(s, &v)| *s = v - tau);
     }
 
     /// The inner-iteration cap outside a retried step.
@@ -159,7 +194,14 @@ impl<'a> Prox<'a> {
     pub(crate) fn apply(&mut self, v: &[f64], gamma: f64, eps: f64, out: &mut [f64]) -> f64 {
         match self.reg {
             Reg::Pixel => {
-                if self.nonneg {
+                if let Some(total) = self.total {
+                    // On the simplex `||t||_1 = S`: the prox is the projection.
+                    let tau = simplex_threshold_from(v, total, self.tau);
+                    self.tau = tau;
+                    out.iter_mut()
+                        .zip(v)
+                        .for_each(|(o, &v)| *o = (v - tau).max(0.0));
+                } else if self.nonneg {
                     out.iter_mut()
                         .zip(v)
                         .for_each(|(o, &v)| *o = (v - gamma).max(0.0));
@@ -189,9 +231,19 @@ impl<'a> Prox<'a> {
                 let mut j = 0;
                 loop {
                     psi.adjoint(&self.u, &mut self.tmp);
+                    let tau = match self.total {
+                        Some(total) => {
+                            out.iter_mut()
+                                .zip(v.iter().zip(&self.tmp))
+                                .for_each(|(o, (&v, &pu))| *o = v - pu);
+                            self.tau = simplex_threshold_from(out, total, self.tau);
+                            self.tau
+                        }
+                        None => 0.0,
+                    };
                     out.iter_mut()
                         .zip(v.iter().zip(&self.tmp))
-                        .for_each(|(o, (&v, &pu))| *o = (v - pu).max(0.0));
+                        .for_each(|(o, (&v, &pu))| *o = (v - pu - tau).max(0.0));
                     psi.apply(out, &mut self.s);
                     let (mut l1, mut us, mut mag) = (0.0, 0.0, 0.0);
                     for (&s, &u) in self.s.iter().zip(&self.u).skip(free) {
@@ -225,7 +277,15 @@ impl<'a> Prox<'a> {
                     // out = clip(v - D^T u); then s = D out, the gap at u, and the ascent step
                     // u <- proj(u + s / 8) (the step is kept even when we stop: it only
                     // improves the next warm start), all in one pass ([`tv_prox_pass`]).
-                    let (l1, us, mag) = tv_prox_pass(&mut self.u, v, grid, self.nonneg, gamma, out);
+                    // With a held total `v` is shifted first ([`Prox::shift_for`]).
+                    let (l1, us, mag) = if self.total.is_some() {
+                        let u = std::mem::take(&mut self.u);
+                        self.shift_for(&u, v, grid);
+                        self.u = u;
+                        tv_prox_pass(&mut self.u, &self.shifted, grid, true, gamma, out)
+                    } else {
+                        tv_prox_pass(&mut self.u, v, grid, self.nonneg, gamma, out)
+                    };
                     let gap = gamma * l1 - us;
                     j += 1;
                     self.inner += 1;
@@ -256,7 +316,12 @@ impl Prox<'_> {
         let mut j = 0;
         loop {
             // r <- proj(r + D t(r) / 8): the next iterate, from the extrapolated point.
-            tv_prox_pass(&mut r, v, grid, self.nonneg, gamma, out);
+            if self.total.is_some() {
+                self.shift_for(&r, v, grid);
+                tv_prox_pass(&mut r, &self.shifted, grid, true, gamma, out);
+            } else {
+                tv_prox_pass(&mut r, v, grid, self.nonneg, gamma, out);
+            }
             j += 1;
             self.inner += 1;
             let next = 0.5 * (1.0 + (1.0 + 4.0 * theta * theta).sqrt());
@@ -270,7 +335,12 @@ impl Prox<'_> {
             }
             if j % FGP_CHECK == 0 || j >= self.cap {
                 check.copy_from_slice(&prev);
-                let (l1, us, mag) = tv_prox_pass(&mut check, v, grid, self.nonneg, gamma, out);
+                let (l1, us, mag) = if self.total.is_some() {
+                    self.shift_for(&check, v, grid);
+                    tv_prox_pass(&mut check, &self.shifted, grid, true, gamma, out)
+                } else {
+                    tv_prox_pass(&mut check, v, grid, self.nonneg, gamma, out)
+                };
                 self.inner += 1;
                 let gap = gamma * l1 - us;
                 self.last_gap = gap;
@@ -280,6 +350,63 @@ impl Prox<'_> {
                 }
             }
         }
+    }
+}
+
+/// The threshold `tau` of the projection onto the scaled simplex `{t >= 0, sum t = s}`:
+/// `P(z) = max(z - tau, 0)` with `sum max(z - tau, 0) = s`. For `s <= 0` (or no finite entry)
+/// the largest entry, so that `P(z) = 0`.
+pub(crate) fn simplex_threshold(z: &[f64], s: f64) -> f64 {
+    simplex_threshold_from(z, s, f64::NEG_INFINITY)
+}
+
+/// [`simplex_threshold`] started from a guess (the previous call's threshold, in a prox whose
+/// input moves little between calls). `f(tau) = sum max(z - tau, 0) - s` is convex and
+/// decreasing, so a Newton step from any guess lands at or below the root, and Newton steps
+/// from below rise to it monotonically, the set `z > tau` only shrinking (Michelot 1986: each
+/// step is the mean excess over the entries still above), ending when it stops changing. From
+/// a good guess that is two or three passes; from none (`-inf`: every entry) a few more.
+pub(crate) fn simplex_threshold_from(z: &[f64], s: f64, guess: f64) -> f64 {
+    let top = z.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+    if !(s > 0.0) || !top.is_finite() {
+        return top;
+    }
+    // Branch-free sums over the entries above `tau`, in eight lanes (so they vectorise).
+    let above = |tau: f64| {
+        let (mut sum, mut count) = ([0.0f64; 8], [0.0f64; 8]);
+        let chunks = z.chunks_exact(8);
+        let rest = chunks.remainder();
+        for c in chunks {
+            for l in 0..8 {
+                let m = if c[l] > tau { 1.0 } else { 0.0 };
+                sum[l] += m * c[l];
+                count[l] += m;
+            }
+        }
+        for &v in rest {
+            let m = if v > tau { 1.0 } else { 0.0 };
+            sum[0] += m * v;
+            count[0] += m;
+        }
+        (sum.iter().sum::<f64>(), count.iter().sum::<f64>())
+    };
+    // A guess at or above the top has no entry above it: start from every entry.
+    let mut tau = if guess.is_finite() && guess < top {
+        guess
+    } else {
+        f64::NEG_INFINITY
+    };
+    let mut first = true;
+    loop {
+        let (sum, count) = above(tau);
+        let next = (sum - s) / count;
+        // From below, a step that does not rise ends it; the first step (the guess may lie
+        // above the root) is always taken.
+        if !first && next <= tau {
+            return tau;
+        }
+        first = false;
+        tau = next;
     }
 }
 

@@ -1,6 +1,7 @@
 //! The TV prox's inner iteration in one banded, fused pass over the rows ([`tv_prox_pass`]),
 //! and the two separate passes it replaces (`primal_from_dual`, `tv_dual_ascent`), kept as
-//! the tests' bit-for-bit reference.
+//! the tests' bit-for-bit reference (its band function also gives a held total's threshold,
+//! [`super::prox::Prox::hold_total`]).
 
 use rayon::prelude::*;
 
@@ -285,8 +286,14 @@ pub(super) fn primal_from_dual(u: &[f64], v: &[f64], grid: Grid, nonneg: bool, o
         .for_each(|(i, o)| primal_from_dual_band(u, v, grid, nonneg, i * band / w, o));
 }
 
+/// [`primal_from_dual`] in one serial pass (no parallel section: a held total's threshold
+/// needs it on every inner iteration, where another section's synchronisation cost more than
+/// the pass, measured on 128x128).
+pub(super) fn primal_from_dual_serial(u: &[f64], v: &[f64], grid: Grid, out: &mut [f64]) {
+    primal_from_dual_band(u, v, grid, false, 0, out);
+}
+
 avx2_dispatch! {
-#[cfg(test)]
 /// [`primal_from_dual`] on the rows `y0..` of one band (`out`: the band's pixels), in
 /// branch-free passes.
 fn primal_from_dual_band(u: &[f64], v: &[f64], grid: Grid, nonneg: bool, y0: usize, out: &mut [f64]) {
