@@ -368,7 +368,7 @@ pub(crate) fn simplex_threshold(z: &[f64], s: f64) -> f64 {
 /// a good guess that is two or three passes; from none (`-inf`: every entry) a few more.
 pub(crate) fn simplex_threshold_from(z: &[f64], s: f64, guess: f64) -> f64 {
     let top = z.iter().copied().fold(f64::NEG_INFINITY, f64::max);
-    if !(s > 0.0) || !top.is_finite() {
+    if s.is_nan() || s <= 0.0 || !top.is_finite() {
         return top;
     }
     // Branch-free sums over the entries above `tau`, in eight lanes (so they vectorise).
