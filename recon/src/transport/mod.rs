@@ -821,9 +821,13 @@ fn subset_error(
             continue;
         }
         let noise = super::noise::from_pair_sums(sum, scale, raw);
-        let Some(est) =
-            super::auto::orthonormal_error(measured, noise.as_ref(), (op, raw, (pw, ph)), row)
-        else {
+        let Some(est) = super::auto::orthonormal_error(
+            measured,
+            noise.as_ref(),
+            (op, raw, (pw, ph)),
+            row,
+            None,
+        ) else {
             continue;
         };
         let (Some(rel), Some((lo, hi))) = (est.relative_error, est.relative_error_range) else {
