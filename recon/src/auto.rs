@@ -3802,7 +3802,6 @@ mod tests {
         use crate::linop::LinearOperator;
         use crate::ops::HadamardOperator;
         let n = 16usize;
-        let k = n * n;
         let rows = 64;
         let op = HadamardOperator::new(n as u32, n as u32, HadamardOrdering::RussianDoll, rows);
         let truth: Vec<f64> = scene("camera", n as u32)
