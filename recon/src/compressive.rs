@@ -825,14 +825,7 @@ mod tests {
         let ordering = HadamardOrdering::RussianDoll;
         let spec =
             PatternSpec::new(Family::Hadamard { ordering }, w as u32, h as u32, 300, 0).unwrap();
-        let c = buckets(&spec, &truth, 2.0);
-        let problem = Problem {
-            spec: &spec,
-            channels: 1,
-            rows: spec.count(),
-        };
-        let mut source = SliceSource::new(&c, 1, 1000);
-        let planned = Planned::load(&problem, &mut source, &Control::new(), None).unwrap();
+        let planned = plan(&spec, &buckets(&spec, &truth, 2.0));
         let b = &planned.data[0];
         let got = measured_total(planned.op(), b).expect("the all-on pair measures the total");
         assert!((got - total).abs() < 1e-9 * total, "{got} against {total}");
@@ -844,15 +837,19 @@ mod tests {
 
         let spec =
             PatternSpec::new(Family::Bernoulli { fill: 0.5 }, w as u32, h as u32, 300, 3).unwrap();
-        let c = buckets(&spec, &truth, 0.0);
+        let planned = plan(&spec, &buckets(&spec, &truth, 0.0));
+        assert_eq!(measured_total(planned.op(), &planned.data[0]), None);
+    }
+
+    /// One channel's buckets, planned as a reconstruction plans them.
+    fn plan<'a>(spec: &'a PatternSpec, c: &[f64]) -> Planned<'a> {
         let problem = Problem {
-            spec: &spec,
+            spec,
             channels: 1,
             rows: spec.count(),
         };
-        let mut source = SliceSource::new(&c, 1, 1000);
-        let planned = Planned::load(&problem, &mut source, &Control::new(), None).unwrap();
-        assert_eq!(measured_total(planned.op(), &planned.data[0]), None);
+        let mut source = SliceSource::new(c, 1, 1000);
+        Planned::load(&problem, &mut source, &Control::new(), None).unwrap()
     }
 
     #[test]
