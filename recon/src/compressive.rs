@@ -536,6 +536,11 @@ pub fn run(
             (ch + 1) as f64 / channels as f64,
         );
         let mid = span.0 + 0.6 * (span.1 - span.0);
+        // A fixed-weight method's fit ([`fit_fixed`]), with this channel's noise.
+        let noisy = is_noisy(planned.noise[ch].as_ref());
+        let fixed = |op: &dyn LinearOperator, b: &[f64], opts: SolveOptions| {
+            fit_fixed(config, size, (op, b, noisy), opts, control)
+        };
         let (t, report) = match (config, &split, &parts) {
             (
                 MethodConfig::Auto {
@@ -614,7 +619,6 @@ pub fn run(
             }
             (MethodConfig::Auto { .. }, _, _) => unreachable!("refused above"),
             (_, Ok(split), Some((train, test))) => {
-                let noisy = is_noisy(planned.noise[ch].as_ref());
                 let b_train = gather(b, &split.train);
                 let (op_fit, b_fit) = fitting(train.as_ref(), &b_train, offset);
                 let warm_start =
@@ -624,13 +628,7 @@ pub fn run(
                     warm_start,
                     ..SolveOptions::default()
                 };
-                let first = fit_fixed(
-                    config,
-                    size,
-                    (op_fit.as_ref(), &b_fit, noisy),
-                    opts,
-                    control,
-                )?;
+                let first = fixed(op_fit.as_ref(), &b_fit, opts)?;
                 let scorer = Scorer {
                     test: test.as_ref(),
                     offset: offset.then(|| Offset::new(train.as_ref(), &b_train)),
@@ -643,13 +641,7 @@ pub fn run(
                     warm_dual: first.dual,
                     ..SolveOptions::default()
                 };
-                let sol = fit_fixed(
-                    config,
-                    size,
-                    (op_fit.as_ref(), &b_fit, noisy),
-                    opts,
-                    control,
-                )?;
+                let sol = fixed(op_fit.as_ref(), &b_fit, opts)?;
                 iterations += (first.report.iterations + sol.report.iterations) as u64;
                 let mut report = json!({"held_out_fit": first.report, "fit": sol.report});
                 if offset {
@@ -658,7 +650,6 @@ pub fn run(
                 (sol.t, report)
             }
             _ => {
-                let noisy = is_noisy(planned.noise[ch].as_ref());
                 let (op_fit, b_fit) = fitting(planned.op(), b, offset);
                 let warm_start =
                     Planned::cold_start(op_fit.as_ref(), &b_fit, planned.has_orthonormal_rows());
@@ -667,13 +658,7 @@ pub fn run(
                     warm_start,
                     ..SolveOptions::default()
                 };
-                let sol = fit_fixed(
-                    config,
-                    size,
-                    (op_fit.as_ref(), &b_fit, noisy),
-                    opts,
-                    control,
-                )?;
+                let sol = fixed(op_fit.as_ref(), &b_fit, opts)?;
                 iterations += sol.report.iterations as u64;
                 let mut report = json!({"fit": sol.report});
                 if offset {
