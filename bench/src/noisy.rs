@@ -433,7 +433,7 @@ fn write(
         )?;
     }
     summary(&mut md, results)?;
-    md.push_str("\n## Calibration: the error `auto` reports against the true error\n\n`error_estimate.relative_error` in `auto`'s report is its estimate of `||t_hat - t|| / ||t||` from the held-out rows and the noise it estimated (docs/usage.md, `recon/src/auto.rs`), with a range; for Hadamard subsets it adds the coefficients no row measured, from the scene's energy there extrapolated across the measured scales (`orthonormal_error` in `recon/src/auto.rs`). The truth is measured here against the scene.\n\n| scene | family | noise | noise put in (sigma) | estimated noise (sigma +- se, source) | estimated relative error (range) | true relative error | estimate / truth | truth in range |\n|---|---|---|---|---|---|---|---|---|\n");
+    md.push_str("\n## Calibration: the error `auto` reports against the true error\n\n`error_estimate.relative_error` in `auto`'s report is its estimate of `||t_hat - t|| / ||t||` from the held-out rows and the noise it estimated (docs/usage.md, `recon/src/auto.rs`), with a range; for Hadamard subsets it is the residual on the measured coefficients less the noise plus twice the noise the image absorbed (its divergence), and the coefficients no row measured, from the scene's energy there extrapolated across the measured scales (`orthonormal_error` in `recon/src/auto.rs`). The truth is measured here against the scene.\n\n| scene | family | noise | noise put in (sigma) | estimated noise (sigma +- se, source) | estimated relative error (range) | true relative error | estimate / truth | truth in range |\n|---|---|---|---|---|---|---|---|---|\n");
     for r in results {
         let est = estimate(r);
         let noise = &r.auto_choice["noise_estimate"];
