@@ -2766,7 +2766,8 @@ pub(crate) fn orthonormal_error(
     let mut basis = match absorbed {
         Some(d) => format!(
             "the image's residuals on the {rows} measured coefficients of {k}, less the noise, plus twice the noise \
-             the fit absorbed (Stein's unbiased risk: its divergence {d:.1}, measured by the weight check)"
+             the image absorbed (Stein's unbiased risk: its divergence {d:.1}, the weight check's or the shrunk \
+             inverse's)"
         ),
         None => format!(
             "the image's residuals on the {rows} measured coefficients of {k}, less the noise (each is its datum plus \
