@@ -1550,7 +1550,13 @@ fn proxes_with_a_held_total_are_exact_on_the_simplex() {
     let mut rng = Rng::new(5);
     let v: Vec<f64> = (0..k).map(|_| 0.05 + 0.2 * rng.normal()).collect();
     let gamma = 0.08;
-    let sum = |t: &[f64]| t.iter().sum::<f64>();
+    // Non-negative, the total held, the prox solved to its gap.
+    let on_the_simplex = |t: &[f64], gap: f64, what: &str| {
+        let sum = t.iter().sum::<f64>();
+        assert!(t.iter().all(|&x| x >= 0.0), "{what}: a negative pixel");
+        assert!((sum - total).abs() < 1e-12 * total, "{what}: total {sum}");
+        assert!(gap < 1e-12, "{what}: gap {gap}");
+    };
 
     // l1 of pixels.
     let mut prox = fista::Prox::new(fista::Reg::Pixel, true, k);
@@ -1592,13 +1598,7 @@ fn proxes_with_a_held_total_are_exact_on_the_simplex() {
     for _ in 0..2000 {
         prox.apply(&v, gamma, 1e-28, &mut t);
     }
-    assert!(t.iter().all(|&x| x >= 0.0));
-    assert!(
-        (sum(&t) - total).abs() < 1e-12 * total,
-        "ortho: total {}",
-        sum(&t)
-    );
-    assert!(prox.last_gap < 1e-12, "ortho: gap {}", prox.last_gap);
+    on_the_simplex(&t, prox.last_gap, "ortho");
     let cp = reference(
         &|x, out| psi.apply(x, out),
         &|y, out| psi.adjoint(y, out),
@@ -1619,13 +1619,7 @@ fn proxes_with_a_held_total_are_exact_on_the_simplex() {
     for _ in 0..20 {
         prox.apply(&v, gamma, 0.0, &mut t);
     }
-    assert!(t.iter().all(|&x| x >= 0.0));
-    assert!(
-        (sum(&t) - total).abs() < 1e-12 * total,
-        "tv: total {}",
-        sum(&t)
-    );
-    assert!(prox.last_gap < 1e-12, "tv: gap {}", prox.last_gap);
+    on_the_simplex(&t, prox.last_gap, "tv");
     let cp = reference(
         &|x, out| gradient(x, grid, out),
         &|y, out| gradient_adjoint(y, grid, out),
