@@ -2790,7 +2790,18 @@ pub(crate) fn orthonormal_error(
             u.scene / norm2.max(f64::MIN_POSITIVE),
         );
     } else if measured.len() < k {
-        basis.push_str("; the unmeasured coefficients are not in it (too few scales above the noise to extrapolate)");
+        // The unmeasured coefficients' energy is unknown: the measured part alone is no estimate
+        // of the error (it read 0 where the truth was 86 %).
+        return Some(ErrorEstimate {
+            relative_error: None,
+            relative_error_range: None,
+            rms_error: None,
+            basis: format!(
+                "{basis}; but the {} unmeasured coefficients are not in it (too few measured coefficients per scale order to \
+                 extrapolate the scene's energy there), so the error is unknown",
+                k - measured.len()
+            ),
+        });
     }
     let relative = |e2: f64| (norm2 > 0.0).then(|| e2.max(0.0).sqrt() / norm2.sqrt());
     Some(ErrorEstimate {
@@ -2849,8 +2860,9 @@ pub fn hadamard_level(n: usize, (w, h): (usize, usize)) -> u32 {
 /// order ([`hadamard_level`]), the measured coefficients' mean energy less the noise variance
 /// `s2`; a line in `log2(energy)` against the order, fitted to the finest three orders with
 /// [`LEVEL_MIN_COEFFICIENTS`] measured coefficients and energy above the noise (slope at most
-/// 0), gives every order's unmeasured coefficients their energy. `None` when every coefficient is measured, the grid is not a power of two, or fewer
-/// than two levels can be fitted.
+/// 0), gives every order's unmeasured coefficients their energy. `None` when every coefficient
+/// is measured, the grid is not a power of two, or an order with unmeasured coefficients has no
+/// bound (no order up to it has [`LEVEL_MIN_COEFFICIENTS`] measured).
 fn unmeasured_energy(
     measured: &[usize],
     b: &[f64],
@@ -2959,7 +2971,13 @@ fn unmeasured_energy(
             let point = low;
             (point, bound)
         };
-        if missing[l] > 0 && per_high.is_finite() {
+        if missing[l] > 0 {
+            // No coarser order measured enough to bound this one (a 4x4 grid measured completely
+            // inside an 8x8 one: no order has 8 measured coefficients): its energy is unknown,
+            // and leaving it out read a T error of 1e-17 against a true 0.86.
+            if !per_high.is_finite() {
+                return None;
+            }
             scene += missing[l] as f64 * per;
             scene_high += missing[l] as f64 * per_high;
         }
@@ -2975,12 +2993,15 @@ fn unmeasured_energy(
         .sum();
     // The least error: the image's energy there against the nearest the scene's can be.
     let nearest = image.clamp(scene_low, scene_high.max(scene_low));
+    let low = (nearest.sqrt() - image.sqrt()).powi(2);
     Some(Unmeasured {
         coefficients: unmeasured,
         scene,
         point: (scene.sqrt() - image.sqrt()).powi(2),
-        low: (nearest.sqrt() - image.sqrt()).powi(2),
-        high: scene_high + image + 2.0 * (scene_high * image).sqrt(),
+        low,
+        // At least `low`, which it equals to rounding where the noise-free bounds meet and the
+        // image is 0 there (a zero-filled grid: `clamp` panicked on the difference).
+        high: (scene_high + image + 2.0 * (scene_high * image).sqrt()).max(low),
         levels: fit.iter().map(|p| p.0).collect(),
     })
 }

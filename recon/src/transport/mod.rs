@@ -86,7 +86,12 @@
 //!   noise summed over the camera swamps it), cross-validation over every frame does
 //!   ([`random_cv_relight_error`]), and with noisy frames a parametric bootstrap gives the
 //!   error the noise alone makes ([`random_bootstrap_noise`]): the estimate is then at least
-//!   that. A warning when the estimate is above 0.2.
+//!   that. A warning when the estimate is above 0.2. A Hadamard subset reports the same
+//!   estimate ([`subset_relight_error`]) from the same problem one grid coarser, where the truth
+//!   is known: the session's share of the pairs of the coarser grid it completes, fitted with
+//!   the chosen model on every camera pixel, predicts all of them (a check across the levels of
+//!   a Russian-doll set; each row's error of T, extrapolated from its measured scale orders, put
+//!   it at 4-16x the relit error of half a set).
 //!   The final fit of every row runs down a continuation path (its stages before the last
 //!   solved to a tenth of the precision: they are warm starts; the larger fractions of
 //!   [`LAMBDA_PATH`], each warm-starting the next), which converges in far fewer iterations than
@@ -1491,30 +1496,25 @@ impl LevelTest {
     }
 }
 
-/// A Hadamard subset's error estimate of T (`details.error_estimate`): the sample pixels (`raws`,
-/// their pair sums `sums`, their chance of being drawn `chance`, their noise `sigmas`) fitted
-/// with the chosen model on all measured pairs ([`subset_error`]).
-fn hadamard_subset_error(
+/// The sample rows fitted with the chosen `model` on the pairs of `op` (the plan's or some of
+/// them; `raws`, each sample pixel's data on those pairs, `floors` their noise floors, empty when
+/// the model has none, `sigmas` their noise, at `picked` of a camera `camera_width` wide): the
+/// rows' images (rows x k) and each row's count of nonzero stored coefficients.
+fn fit_subset_sample(
     plan: &Plan,
     model: &ModelChoice,
-    (raws, sums, chance): (&[Vec<f64>], &[Vec<f64>], &[f64]),
+    (op, raws, floors): (&HadamardOperator, &[Vec<f64>], &[f64]),
     (picked, camera_width, sigmas): (&[usize], usize, &[f64]),
     config: &TransportConfig,
     chunk: usize,
     control: &Control,
-) -> Result<Option<Value>, ReconError> {
-    let Raw::Hadamard(op) = &plan.raw else {
-        return Ok(None);
-    };
-    if raws.is_empty() || sums.len() != raws.len() || sigmas.len() != raws.len() {
-        return Ok(None);
-    }
+) -> Result<(Vec<f64>, Vec<usize>), ReconError> {
     let (pw, ph) = plan.size();
     let ModelChoice {
         kind,
         lambda,
         refit,
-        floored,
+        floored: _,
         coarse,
         ref prune,
     } = *model;
@@ -1531,24 +1531,8 @@ fn hadamard_subset_error(
         cgls_refit: true,
     };
     let bs: Vec<f64> = raws.iter().flatten().copied().collect();
-    let floors: Vec<f64> = if floored {
-        raws.iter()
-            .zip(sums)
-            .map(|(raw, sum)| noise_floor(sum, raw, op.cols()))
-            .collect()
-    } else {
-        Vec::new()
-    };
     let mut tally = Tally::default();
-    let mut s = solve_block(
-        &sh,
-        (&bs, &floors),
-        lambda,
-        None,
-        chunk,
-        &mut tally,
-        control,
-    )?;
+    let mut s = solve_block(&sh, (&bs, floors), lambda, None, chunk, &mut tally, control)?;
     if refit {
         batch::refit_rows(&sh, &bs, &mut s, chunk, control)?;
     }
@@ -1587,15 +1571,167 @@ fn hadamard_subset_error(
             sh.inverse(&s, &mut t);
         }
     }
-    let Some(pooled) = subset_error(op, (raws, sums, chance), &t) else {
-        return Ok(None);
-    };
+    let nonzeros = s
+        .chunks_exact(k)
+        .map(|row| row.iter().filter(|v| **v != 0.0).count())
+        .collect();
+    Ok((t, nonzeros))
+}
+
+/// The noise floors of the sample rows under `model` ([`noise_floor`]; empty without one).
+fn subset_floors(
+    model: &ModelChoice,
+    (raws, sums): (&[Vec<f64>], &[Vec<f64>]),
+    k: usize,
+) -> Vec<f64> {
+    if model.floored {
+        raws.iter()
+            .zip(sums)
+            .map(|(raw, sum)| noise_floor(sum, raw, k))
+            .collect()
+    } else {
+        Vec::new()
+    }
+}
+
+/// A Hadamard subset's error estimate of T (`details.error_estimate`): the sample pixels (`raws`,
+/// their pair sums `sums`, their chance of being drawn `chance`) fitted with the chosen model on
+/// all measured pairs (`t`, [`fit_subset_sample`]), judged by [`subset_error`].
+fn hadamard_subset_error(
+    op: &HadamardOperator,
+    (raws, sums, chance): (&[Vec<f64>], &[Vec<f64>], &[f64]),
+    t: &[f64],
+) -> Option<Value> {
+    let pooled = subset_error(op, (raws, sums, chance), t)?;
     let (rel, (lo, hi), judged) = (pooled.relative, pooled.range, pooled.judged);
-    Ok(Some(json!({
+    Some(json!({
         "relative": rel,
         "range": [lo, hi],
         "sample_pixels": judged,
         "basis": "relative error of T (Frobenius) on the sample pixels, each row fitted with the chosen model on all measured pairs: its residual on the measured coefficients less the noise its pair sums show, plus the scene's energy in the unmeasured coefficients extrapolated from the measured scale orders (a power law), against the row's own; pooled with weights 1 / (the pixel's chance of being drawn)",
+    }))
+}
+
+/// Camera pixels the relight check of a Hadamard subset fits ([`subset_relight_error`]): every
+/// one up to this many, else every `ceil(m / this)`-th.
+const RELIGHT_CHECK_PIXELS: usize = 4096;
+
+/// A Hadamard subset's full-light relight error `||(T_hat - T)^T 1|| / ||T^T 1||`, from the same
+/// problem one grid coarser, where the truth is known: a subset measures a coarser grid
+/// completely ([`complete_binning`], `b x b` projector blocks: a Russian-doll half, every pair
+/// of the 16x16 grid of a 32x32 set); the same share of that grid's pairs, in the session's
+/// order (for a Russian-doll set, the coarse grid's own Russian-doll subset), fitted with the
+/// chosen model, predicts all of them, as the session's pairs must predict its unmeasured
+/// coefficients. The relative error of that relight (every coarse coefficient's residual
+/// summed over the camera, less the noise, plus twice the noise the fit absorbed: Stein, each
+/// row's degrees of freedom its stored nonzeros) stands for the session's. What the model gets
+/// wrong is measured rather than extrapolated: on a sparse scene a model fills the
+/// unmeasured coefficients to a percent, which no energy extrapolation (known to a factor)
+/// could show, and a zero-filled grid misses all of their energy. A relight's error is not its
+/// rows' errors in quadrature (a model errs alike in neighbouring rows), and the 64 sample
+/// pixels of the model choice, weighted back to the camera, left the coherent sum in their
+/// own scatter (estimates of 0 against 0.46): the check fits every camera pixel, up to
+/// [`RELIGHT_CHECK_PIXELS`] (beyond, an even stride of them, each standing for its stride),
+/// read `block` pixels at a time. A coarser grid is easier (fewer unknowns per row), so it
+/// leans low.
+///
+/// `None` on a binned plan, when no coarser grid is complete, when its share would leave fewer
+/// than [`holdout::MIN_HELD_OUT`] pairs on either side, or the relight has no energy.
+#[allow(clippy::too_many_arguments)]
+fn subset_relight_error(
+    plan: &Plan,
+    model: &ModelChoice,
+    source: &mut dyn FrameSource,
+    (m, camera_width, block): (usize, usize, usize),
+    largest: &mut usize,
+    config: &TransportConfig,
+    chunk: usize,
+    control: &Control,
+) -> Result<Option<Value>, ReconError> {
+    let Raw::Hadamard(op) = &plan.raw else {
+        return Ok(None);
+    };
+    if plan.binning != 1 || m == 0 {
+        return Ok(None);
+    }
+    let Some(b) = complete_binning(op, plan.grid) else {
+        return Ok(None);
+    };
+    let coarse = Plan::new(plan.spec, plan.rows_read, b)?;
+    let (Raw::Hadamard(cop), Some(pairs)) = (&coarse.raw, &coarse.pairs) else {
+        return Ok(None);
+    };
+    let (k, kc, nc) = (plan.k(), coarse.k(), cop.rows());
+    let na = (op.rows() as f64 / k as f64 * kc as f64).round() as usize;
+    if nc < kc || na < holdout::MIN_HELD_OUT || nc - na < holdout::MIN_HELD_OUT {
+        return Ok(None);
+    }
+    let first: Vec<usize> = (0..na).collect();
+    let analogue = cop.select_rows(&first);
+    let stride = m.div_ceil(RELIGHT_CHECK_PIXELS);
+    let weight = stride as f64;
+    let pixels: Vec<usize> = (stride / 2..m).step_by(stride).collect();
+    let bf = b as f64;
+    // Summed over the camera: the misses, the data, the noise variance and what the fits absorbed.
+    let (mut missed, mut data) = (vec![0.0; nc], vec![0.0; nc]);
+    let (mut noise, mut absorbed) = (0.0, 0.0);
+    for group in pixels.chunks(block.max(1)) {
+        let (raws, sums) = read_columns(plan, source, group, block, largest)?;
+        let coarse_raws: Vec<Vec<f64>> = raws
+            .iter()
+            .map(|raw| pairs.iter().map(|&p| bf * raw[p]).collect())
+            .collect();
+        let coarse_sigmas: Vec<f64> = raws
+            .iter()
+            .zip(&sums)
+            .map(|(raw, sum)| bf * pair_sigma(sum, raw, k))
+            .collect();
+        let analogue_raws: Vec<Vec<f64>> = coarse_raws.iter().map(|r| r[..na].to_vec()).collect();
+        let analogue_sums: Vec<Vec<f64>> = sums
+            .iter()
+            .map(|sum| pairs[..na].iter().map(|&p| sum[p]).collect())
+            .collect();
+        let floors = subset_floors(model, (&analogue_raws, &analogue_sums), kc);
+        let (fit, nonzeros) = fit_subset_sample(
+            &coarse,
+            model,
+            (&analogue, &analogue_raws, &floors),
+            (group, camera_width, &coarse_sigmas),
+            config,
+            chunk,
+            control,
+        )?;
+        let mut predicted = vec![0.0; group.len() * nc];
+        cop.apply_batch(&fit, &mut predicted, group.len());
+        for (c, (raw, p)) in coarse_raws
+            .iter()
+            .zip(predicted.chunks_exact(nc))
+            .enumerate()
+        {
+            missed
+                .iter_mut()
+                .zip(raw.iter().zip(p))
+                .for_each(|(a, (o, p))| *a += weight * (o - p));
+            data.iter_mut().zip(raw).for_each(|(a, o)| *a += weight * o);
+            let s2 = weight * weight * coarse_sigmas[c] * coarse_sigmas[c];
+            noise += s2;
+            absorbed += 2.0 * s2 * nonzeros[c].min(na) as f64;
+        }
+    }
+    let energy = |v: &[f64]| v.iter().map(|x| x * x).sum::<f64>() - nc as f64 * noise;
+    let norm2 = energy(&data);
+    if norm2 <= 0.0 || !norm2.is_finite() {
+        return Ok(None);
+    }
+    let error2 = (energy(&missed) + absorbed).max(0.0);
+    Ok(Some(json!({
+        "relative": (error2 / norm2).sqrt(),
+        "resolved": true,
+        "light": "full (every camera pixel at 1)",
+        "coarse_grid": [coarse.grid.0, coarse.grid.1],
+        "coarse_pairs": [na, nc],
+        "camera_pixels": pixels.len(),
+        "basis": "the same problem on the coarser grid the measured pairs complete (coarse_grid), where the truth is known: its first pairs in the session's order, the session's share of them (coarse_pairs), fitted with the chosen model on every camera pixel (camera_pixels: beyond 4096, an even stride), predicting all of its pairs; the relative error of that full-light relight (the residuals summed over the camera, less their noise, plus twice the noise the fits absorbed: each row's stored nonzeros of its noise); a coarser grid is easier, so it leans low",
     })))
 }
 
@@ -3465,15 +3601,37 @@ fn choose_model(
         Raw::Hadamard(op) => complete_binning(op, plan.grid),
         _ => None,
     };
-    if let Some(estimate) = hadamard_subset_error(
-        plan,
-        &choice,
-        (&raws, &sums, &chance),
-        (&picked, camera_width, &sample_sigmas),
-        config,
-        chunk,
-        control,
-    )? {
+    // A Hadamard subset's sample rows fitted with the choice on every measured pair: the error
+    // of T and of a full-light relight.
+    let subset_fit = match subset_op {
+        Some(op) => Some(fit_subset_sample(
+            plan,
+            &choice,
+            (op, &raws, &subset_floors(&choice, (&raws, &sums), k)),
+            (&picked, camera_width, &sample_sigmas),
+            config,
+            chunk,
+            control,
+        )?),
+        None => None,
+    };
+    if subset_op.is_some()
+        && let Some(estimate) = subset_relight_error(
+            plan,
+            &choice,
+            source,
+            (m, camera_width, mem.block_pixels),
+            largest,
+            config,
+            chunk,
+            control,
+        )?
+    {
+        details.insert("relight_error_estimate".into(), estimate);
+    }
+    if let (Some(op), Some((t, _))) = (subset_op, &subset_fit)
+        && let Some(estimate) = hadamard_subset_error(op, (&raws, &sums, &chance), t)
+    {
         if let Some(rel) = estimate["relative"].as_f64()
             && rel > SUBSET_ERROR_WARNING
         {
