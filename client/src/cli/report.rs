@@ -88,7 +88,7 @@ pub fn report_lines(report: &Report) -> Vec<String> {
                 )),
                 // Not resolved from the held-out frames' scatter: only the bound is known.
                 (None, Some(upper)) => lines.push(format!(
-                    "error of the full-light relight at most {upper:.4} (not resolved by the held-out frames)"
+                    "error of the full-light relight at most {upper:.4} (the data do not resolve more)"
                 )),
                 (None, None) => {}
             }
@@ -286,7 +286,7 @@ mod tests {
         let text = relight(json!({"relative": null, "upper": 0.09, "resolved": false}));
         assert!(
             text.contains(
-                "error of the full-light relight at most 0.0900 (not resolved by the held-out frames)"
+                "error of the full-light relight at most 0.0900 (the data do not resolve more)"
             ),
             "{text}"
         );

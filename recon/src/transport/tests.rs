@@ -2692,7 +2692,8 @@ fn a_hadamard_subset_reports_its_relight_error_from_the_same_problem_one_grid_co
     // judged against all of that grid's pairs. A coarser grid is easier, so it leans low:
     // within 2x of the truth, and above half of it but on the slide's half set, whose error lies
     // in the finest diagonal Walsh functions, which the coarser grid's easier problem
-    // predicts better (0.24x at a true 1.0 %, measured on a 48x48 camera).
+    // predicts better (0.24x at a true 1.0 %, measured on a 48x48 camera; the relief, not
+    // here, leans as low: 0.14-0.6x).
     let camera = CameraGrid {
         width: 24,
         height: 24,
@@ -2722,7 +2723,11 @@ fn a_hadamard_subset_reports_its_relight_error_from_the_same_problem_one_grid_co
             for (noise, f) in [("noise-free", &clean), ("1 % noise", &noisy)] {
                 let (t, report, _) = run(&spec, camera, f, &TransportConfig::default());
                 let estimate = &report.details["relight_error_estimate"];
-                let est = estimate["relative"].as_f64().unwrap();
+                // Where the noise summed over the camera swamps it, only the bound.
+                let est = estimate["relative"]
+                    .as_f64()
+                    .or_else(|| estimate["upper"].as_f64())
+                    .unwrap();
                 let full = relight_errors(&dense(&t), &truth, camera, k)[0];
                 let ratio = est / full;
                 println!(
