@@ -1635,7 +1635,8 @@ const RELIGHT_CHECK_PIXELS: usize = 4096;
 /// read `block` pixels at a time. A coarser grid is easier (fewer unknowns per row), so it
 /// leans low: on the 32x32 x 48x48 relief and rendered scenes from 25 %, 37.5 %, 50 % and 75 %
 /// of a Russian-doll set, noise-free and at 1 % and 3 % frame noise, within 2x of the true
-/// relit error on 34 of 45, below half on 11 (the relief 0.14-0.6x, the slide 0.2-0.3x); the
+/// relit error on 34 of the 43 it resolves, below half on 9 (the relief 0.14-0.4x, the slide
+/// 0.2-0.25x; docs/benchmark-notes.md); the
 /// coarse grid's model misses a smaller share of its unmeasured energy than the session's
 /// (amplitude, relief from 50 %: 0.018 against 0.144; slide 0.010 against 0.040; Cornell box
 /// 0.23 against 0.54; glossy 0.058 against 0.044), while the unmeasured share of the energy

@@ -2693,7 +2693,7 @@ fn a_hadamard_subset_reports_its_relight_error_from_the_same_problem_one_grid_co
     // within 2x of the truth, and above half of it but on the slide's half set, whose error lies
     // in the finest diagonal Walsh functions, which the coarser grid's easier problem
     // predicts better (0.24x at a true 1.0 %, measured on a 48x48 camera; the relief, not
-    // here, leans as low: 0.14-0.6x).
+    // here, leans as low: 0.14-0.4x).
     let camera = CameraGrid {
         width: 24,
         height: 24,
