@@ -2681,6 +2681,20 @@ fn a_noisy_hadamard_subset_stores_no_more_than_the_complete_set_and_keeps_its_li
     }
 }
 
+/// A rendered scene by name (`cornell`, `glossy`, `slide`; seed 1).
+fn rendered(
+    name: &str,
+    projector: (usize, usize),
+    camera: (usize, usize),
+) -> helmholtz_sim::RenderedTransport {
+    match name {
+        "cornell" => helmholtz_sim::RenderedTransport::cornell(projector, camera, 1),
+        "glossy" => helmholtz_sim::RenderedTransport::glossy(projector, camera, 1),
+        "slide" => helmholtz_sim::RenderedTransport::slide(projector, camera, 1),
+        _ => panic!("no rendered scene {name}"),
+    }
+}
+
 #[test]
 fn a_hadamard_subset_reports_its_relight_error_from_the_same_problem_one_grid_coarser() {
     // Rendered scenes (interreflections, glints and a caustic, a sparse slide), 32x32
@@ -2701,22 +2715,8 @@ fn a_hadamard_subset_reports_its_relight_error_from_the_same_problem_one_grid_co
     let (pw, ph) = (32, 32);
     let k = pw * ph;
     let m = camera.pixels();
-    let scenes = [
-        (
-            "cornell",
-            helmholtz_sim::RenderedTransport::cornell((pw, ph), (24, 24), 1),
-        ),
-        (
-            "glossy",
-            helmholtz_sim::RenderedTransport::glossy((pw, ph), (24, 24), 1),
-        ),
-        (
-            "slide",
-            helmholtz_sim::RenderedTransport::slide((pw, ph), (24, 24), 1),
-        ),
-    ];
-    for (name, scene) in scenes {
-        let truth = scene.dense();
+    for name in ["cornell", "glossy", "slide"] {
+        let truth = rendered(name, (pw, ph), (24, 24)).dense();
         for share in [2, 4] {
             let spec = russian_doll(pw, ph, k / share);
             let (clean, noisy) = clean_and_noisy(&spec, &truth, m, 0.01);
