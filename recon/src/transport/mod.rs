@@ -3616,8 +3616,8 @@ fn choose_model(
         Raw::Hadamard(op) => complete_binning(op, plan.grid),
         _ => None,
     };
-    // A Hadamard subset's sample rows fitted with the choice on every measured pair: the error
-    // of T and of a full-light relight.
+    // A Hadamard subset's sample rows fitted with the choice on every measured pair (the error
+    // of T), and its full-light relight error from the coarser grid it completes.
     let subset_fit = match subset_op {
         Some(op) => Some(fit_subset_sample(
             plan,
