@@ -907,10 +907,7 @@ fn write_scenes(md: &mut String, stats: &[SceneStats], rows: &[SceneRow]) {
 
 /// The reported full-light relight error against the true one, per compressive session.
 fn calibration(md: &mut String, rows: &[SceneRow]) {
-    md.push_str("
-### Calibration: the reported relight error against the truth
-
-Every `reconstruct_transport` and `compact: false` row of a compressive session (a complete set's estimate is its noise alone): `details.relight_error_estimate.relative` against the true **relit full** error.\n\n| scene | case | noise | method | estimate | true relit full | estimate / truth |\n|---|---|---|---|---|---|---|\n");
+    md.push_str("\n### Calibration: the reported relight error against the truth\n\nEvery `reconstruct_transport` and `compact: false` row of a compressive session (complete sets are left out: their T is exact up to its noise): `details.relight_error_estimate.relative` against the true **relit full** error.\n\n| scene | case | noise | method | estimate | true relit full | estimate / truth |\n|---|---|---|---|---|---|---|\n");
     let (mut within, mut low, mut high, mut missing) = (0, 0, 0, 0);
     for r in rows
         .iter()
