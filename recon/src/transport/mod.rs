@@ -3622,7 +3622,7 @@ fn choose_model(
         Some(op) => Some(fit_subset_sample(
             plan,
             &choice,
-            (op, &raws, &subset_floors(&choice, (&raws, &sums), k)),
+            (op, &raws, if choice.floored { &floors } else { &[] }),
             (&picked, camera_width, &sample_sigmas),
             config,
             chunk,
